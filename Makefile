@@ -1,0 +1,38 @@
+# roco-env: `make demo` runs the main job, `make test` runs the suite.
+# Both create .venv on first use and reuse it afterwards.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip install --quiet --disable-pip-version-check
+# This machine's CPU build of torch, found on disk; installing it first keeps
+# pip from pulling a multi-GB CUDA build to satisfy the range in pyproject.toml.
+TORCH_PIN ?= torch==2.13.0
+
+.PHONY: demo test bench lint clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+$(VENV)/.base-installed: pyproject.toml | $(PY)
+	$(PIP) $(TORCH_PIN)
+	$(PIP) -e .
+	touch $@
+
+$(VENV)/.dev-installed: $(VENV)/.base-installed
+	$(PIP) -e '.[dev]'
+	touch $@
+
+demo: $(VENV)/.base-installed
+	$(VENV)/bin/roco-env demo
+
+test: $(VENV)/.dev-installed
+	$(PY) -m pytest
+
+bench: $(VENV)/.base-installed
+	$(PY) -m roco_env.perf
+
+lint: $(VENV)/.dev-installed
+	$(VENV)/bin/ruff check roco_env tests examples baselines
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,62 @@
+"""What every alignment policy shares: the result type and observation helpers.
+
+A policy is any callable ``policy(observation, info=None) -> action`` where the
+action (N, 3) holds one correction (dx, dy, dyaw) per collaborator slot, in the
+ego frame: ``T_corrected_{j->i} = SE2(dx, dy, dyaw) * T_reported_{j->i}``
+(metres, radians). Zeros trust the reported poses. Built-in alignment policies
+also keep their last :class:`AlignmentResult` in ``policy.last_result`` so a
+sweep can score their matching.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from roco_env.geometry import se2_compose, se2_inverse, se2_relative
+
+
+@dataclass
+class AlignmentResult:
+    """Output of an alignment algorithm for one ego and N collaborator slots.
+
+    corrected: (N, 3) corrected relative poses T_{j->i} (x m, y m, yaw rad).
+    applied: (N,) bool, True where a correction was applied (False = prior kept).
+    matched_pairs: (P, 4) int rows (slot_a, box_a, slot_b, box_b) saying box
+        ``box_a`` of agent ``slot_a`` and box ``box_b`` of ``slot_b`` were judged the
+        same object; slot -1 is the ego, 0..N-1 the collaborator slots.
+    landmarks: (L, 3) landmark poses in the ego frame after optimisation.
+    outer_iterations: matching/optimisation rounds; solver_iterations: LM iterations.
+    reason: short text on why a prior was kept (empty when applied).
+    """
+
+    corrected: np.ndarray
+    applied: np.ndarray
+    matched_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    landmarks: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    outer_iterations: int = 0
+    solver_iterations: int = 0
+    reason: str = ""
+
+
+def reported_relative_poses(observation: dict) -> np.ndarray:
+    """T_reported_{j->i} (N, 3) from an observation's own and collaborators' noisy poses.
+
+    Empty slots (collab_mask 0) get the identity.
+    """
+    own = np.asarray(observation["pose"], dtype=float)
+    others = np.asarray(observation["collab_poses"], dtype=float)
+    rel = se2_relative(own[None, :], others)
+    rel[np.asarray(observation["collab_mask"]) == 0] = 0.0
+    return rel
+
+
+def correction_action(reported: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+    """The action (N, 3) that turns reported relative poses into corrected ones."""
+    return se2_compose(np.asarray(corrected, dtype=float), se2_inverse(reported)).astype(np.float32)
+
+
+def apply_correction(reported: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """T_corrected = SE2(action) * T_reported, per slot (N, 3)."""
+    return se2_compose(np.asarray(action, dtype=float), np.asarray(reported, dtype=float))

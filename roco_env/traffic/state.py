@@ -1,0 +1,72 @@
+"""The per-step world snapshot every later stage reads.
+
+All boxes and poses are in the world frame of DESIGN.md section 3 (right-handed,
+x forward, y left, yaw in radians CCW from +x). Sizes are full lengths in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+OBJECT_CLASSES = ("car", "van", "truck", "bus")
+AGENT_KINDS = ("cav", "rsu")
+
+
+@dataclass(frozen=True)
+class WorldState:
+    """Immutable snapshot of one time step.
+
+    Objects (M of them): every vehicle in the scene, CAVs included.
+      object_ids (M,) int64, stable across the episode.
+      object_classes (M,) int64 index into OBJECT_CLASSES.
+      object_boxes (M, 7) float64 world boxes (x, y, z, l, w, h, yaw).
+      object_velocities (M, 2) float64 world velocity (m/s).
+    Agents (A of them): CAVs first (cav_0, cav_1, ...), then RSUs (rsu_0, ...).
+      agent_ids tuple of str; agent_kinds tuple of "cav" | "rsu".
+      agent_poses (A, 3) true world poses (x, y, yaw) of the sensor origin.
+      agent_object_ids (A,) int64: the object id of the agent's own vehicle,
+        -1 for an RSU (an RSU is not an object others can see).
+      sensor_heights (A,) metres above ground; sensor_ranges (A,) metres;
+      comm_ranges (A,) metres.
+    """
+
+    time: float
+    object_ids: np.ndarray
+    object_classes: np.ndarray
+    object_boxes: np.ndarray
+    object_velocities: np.ndarray
+    agent_ids: tuple[str, ...]
+    agent_kinds: tuple[str, ...]
+    agent_poses: np.ndarray
+    agent_object_ids: np.ndarray
+    sensor_heights: np.ndarray
+    sensor_ranges: np.ndarray
+    comm_ranges: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in (
+            "object_ids", "object_classes", "object_boxes", "object_velocities",
+            "agent_poses", "agent_object_ids", "sensor_heights", "sensor_ranges", "comm_ranges",
+        ):
+            arr = np.array(getattr(self, name))  # private copy, then frozen
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def num_objects(self) -> int:
+        return int(self.object_ids.shape[0])
+
+    @property
+    def num_agents(self) -> int:
+        return len(self.agent_ids)
+
+
+class TrafficSource(Protocol):
+    """Where objects and agents are, step by step. Deterministic given the rng."""
+
+    def reset(self, rng: np.random.Generator) -> WorldState: ...
+
+    def step(self, dt: float) -> WorldState: ...
