@@ -25,6 +25,7 @@ __all__ = [
     "validate_boxes",
     "bev_iou",
     "bev_iou_pairs",
+    "bev_candidate_pairs",
     "nms_bev",
 ]
 
@@ -107,9 +108,9 @@ def validate_boxes(boxes: np.ndarray, name: str = "boxes") -> np.ndarray:
         raise ValueError(
             f"{name} must have shape (N, 7) = (x, y, z, l, w, h, yaw); got {arr.shape}"
         )
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f"{name} contains NaN or inf; all values must be finite")
-    if np.any(arr[:, 3:6] < 0):
+    if (arr[:, 3:6] < 0).any():
         raise ValueError(f"{name} has negative sizes; l, w, h (columns 3-5) must be >= 0")
     return arr
 
@@ -130,6 +131,10 @@ def transform_boxes(boxes: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 # Unit-square corners in counter-clockwise order (front-left last).
 _CORNER_SIGNS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])
+# Corner signs of the half length / half width going round the footprint
+# counter-clockwise and back to the first corner, shaped (5, 1) to broadcast.
+_LOOP_LENGTH = np.array([1.0, -1.0, -1.0, 1.0, 1.0])[:, None]
+_LOOP_WIDTH = np.array([1.0, 1.0, -1.0, -1.0, 1.0])[:, None]
 
 
 def box_corners_bev(boxes: np.ndarray) -> np.ndarray:
@@ -142,57 +147,91 @@ def box_corners_bev(boxes: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
-def _cross(o: np.ndarray, a: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """z of (a - o) x (p - o); positive when p is left of the directed line o->a."""
-    return (a[..., 0] - o[..., 0]) * (p[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (
-        p[..., 0] - o[..., 0]
-    )
+# Pairs per vectorised block: the (4, 4, block) temporaries then stay in the CPU
+# cache, which measured about twice as fast as one block of 40,000 pairs.
+_BLOCK = 4096
 
 
-def _compact(points: np.ndarray, valid: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Move each row's valid points to the front, keeping their order; (P, size, 2)."""
-    n_pairs = points.shape[0]
-    slot = np.cumsum(valid, axis=1) - 1
-    rows, cols = np.nonzero(valid)
-    out = np.zeros((n_pairs, size, 2))
-    out[rows, slot[rows, cols]] = points[rows, cols]
-    count = valid.sum(axis=1)
-    return out, np.arange(size)[None, :] < count[:, None]
+def _rectangle_intersection_area(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """Exact area of the intersection of the BEV rectangles of aligned pairs (P,)."""
+    if boxes_a.shape[0] <= _BLOCK:
+        return _block_intersection_area(boxes_a, boxes_b)
+    return np.concatenate([
+        _block_intersection_area(boxes_a[start:start + _BLOCK], boxes_b[start:start + _BLOCK])
+        for start in range(0, boxes_a.shape[0], _BLOCK)
+    ])
 
 
-def _convex_intersection_area(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
-    """Area of the intersection of convex quads, pair by pair.
+def _block_intersection_area(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """Intersection areas (P,) of rectangle pairs, by Green's theorem in B's own frame.
 
-    subject, clip: (P, 4, 2) counter-clockwise corners. Sutherland-Hodgman
-    clipping, vectorised over pairs with fixed-size vertex buffers and a
-    validity mask (written by hand: shapely is exact but works one pair at a
-    time, far too slow for the thousands of pairs per frame the metric needs).
+    Written by hand because no installed library does this vectorised (shapely
+    is exact but works one pair at a time). In B's frame B is the axis-aligned
+    rectangle [-hx, hx] x [-hy, hy] around the origin, and the intersection's
+    counter-clockwise boundary is (edges of A inside B) + (sides of B inside A):
+
+        area = sum over A's edges of cross(start, end) / 2 of the part inside B
+             + sum over B's sides k of h_k * (length of side k inside A) / 2,
+
+    with h_k the distance of side k from the origin. Each crossing of an A edge
+    with a side line is computed once and used for both pieces, so the boundary
+    closes even for (nearly) coincident edges; a corner exactly on a side line
+    counts as inside B, so a shared edge is counted once. Only A's pose relative
+    to B enters, so precision does not depend on the distance to the world origin.
     """
-    n_pairs = subject.shape[0]
-    rows = np.arange(n_pairs)[:, None]
-    poly, valid = subject, np.ones((n_pairs, 4), dtype=bool)
-    for edge in range(4):
-        a = clip[:, edge][:, None, :]
-        b = clip[:, (edge + 1) % 4][:, None, :]
-        count = valid.sum(axis=1, keepdims=True)
-        idx = np.arange(poly.shape[1])[None, :]
-        nxt_pts = poly[rows, np.where(idx + 1 < count, idx + 1, 0)]
-        s_cur, s_nxt = _cross(a, b, poly), _cross(a, b, nxt_pts)
-        in_cur, in_nxt = s_cur >= 0.0, s_nxt >= 0.0
-        crosses = (in_cur != in_nxt) & valid
-        t = (s_cur / np.where(crosses, s_cur - s_nxt, 1.0))[..., None]
-        inter = poly + t * (nxt_pts - poly)
-        # Each vertex emits itself (if inside) then the crossing point (if any).
-        emitted = np.stack([poly, inter], axis=2).reshape(n_pairs, -1, 2)
-        emitted_valid = np.stack([in_cur & valid, crosses], axis=2).reshape(n_pairs, -1)
-        poly, valid = _compact(emitted, emitted_valid, 4 + edge + 1)
-    # Shoelace over the valid vertices, closing each polygon on its first vertex.
-    count = valid.sum(axis=1, keepdims=True)
-    idx = np.arange(poly.shape[1])[None, :]
-    nxt_pts = poly[rows, np.where(idx + 1 < count, idx + 1, 0)]
-    terms = poly[..., 0] * nxt_pts[..., 1] - nxt_pts[..., 0] * poly[..., 1]
-    area = 0.5 * np.where(valid, terms, 0.0).sum(axis=1)
-    return np.where(count[:, 0] >= 3, np.maximum(area, 0.0), 0.0)
+    # Layout (..., P): reductions over sides/corners are element-wise on contiguous
+    # rows. Written with few numpy calls: per-frame metrics call this on a handful of pairs.
+    n_pairs = boxes_a.shape[0]
+    a, b = np.ascontiguousarray(boxes_a.T), np.ascontiguousarray(boxes_b.T)
+    cos_b, sin_b = np.cos(b[6]), np.sin(b[6])
+    rel_yaw = a[6] - b[6]
+    cos_r, sin_r = np.cos(rel_yaw), np.sin(rel_yaw)
+    dx, dy = a[0] - b[0], a[1] - b[1]
+    half_l, half_w = 0.5 * a[3], 0.5 * a[4]
+    # A's corners in B's frame (2, 5, P), counter-clockwise as in box_corners_bev, the
+    # first repeated at the end so that edge k runs from corner k to corner k + 1.
+    xy = np.empty((2, 5, n_pairs))
+    xy[0] = (cos_b * dx + sin_b * dy) + _LOOP_LENGTH * (half_l * cos_r) - _LOOP_WIDTH * (
+        half_w * sin_r
+    )
+    xy[1] = (cos_b * dy - sin_b * dx) + _LOOP_LENGTH * (half_l * sin_r) + _LOOP_WIDTH * (
+        half_w * cos_r
+    )
+    start_xy, edge = xy[:, :4], xy[:, 1:] - xy[:, :4]  # (2, 4 edges, P)
+    hx, hy = 0.5 * b[3], 0.5 * b[4]
+    # Inside-distance of A's corners to B's side lines, sides counter-clockwise:
+    # right (x = hx), top (y = hy), left (x = -hx), bottom (y = -hy). (4 sides, 5, P)
+    dist = np.empty((4, 5, n_pairs))
+    np.subtract(hx, xy[0], out=dist[0])
+    np.subtract(hy, xy[1], out=dist[1])
+    np.add(hx, xy[0], out=dist[2])
+    np.add(hy, xy[1], out=dist[3])
+    inside_line = dist >= 0.0
+    s0, s1 = dist[:, :4], dist[:, 1:]  # at the start / end corner of each A edge
+    in0, in1 = inside_line[:, :4], inside_line[:, 1:]
+    crossing = in0 != in1
+    # Crossing coordinate along each side's line (y on right/left, x on top/bottom).
+    along = np.empty((4, 4, n_pairs))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = s0 / (s0 - s1)  # edge parameter of the crossing, read only where crossing
+        np.add(start_xy[1], t[0::2] * edge[1], out=along[0::2])
+        np.add(start_xy[0], t[1::2] * edge[0], out=along[1::2])
+    # Part of each A edge inside B: parameter interval [t_lo, t_hi] (4 edges, P); a
+    # side with both ends outside closes it (t_hi = 0).
+    t_lo = np.where(crossing & in1, t, 0.0).max(axis=0)
+    t_hi = np.where(crossing & in0, t, in1).min(axis=0)
+    # cross(p + t_lo e, p + t_hi e) = (t_hi - t_lo) cross(p, e) for edge start p, vector e.
+    moment = start_xy[0] * edge[1] - start_xy[1] * edge[0]
+    area_a_edges = (moment * np.maximum(t_hi - t_lo, 0.0)).sum(axis=0)
+    # Part of each B side inside A: between the crossings of A's boundary with its line;
+    # right/left sides have half length hy and distance hx from the centre, top/bottom hx, hy.
+    low = np.where(crossing, along, np.inf).min(axis=1)
+    high = np.where(crossing, along, -np.inf).max(axis=1)
+    length_rl = np.minimum(high[0::2], hy) - np.maximum(low[0::2], -hy)
+    length_tb = np.minimum(high[1::2], hx) - np.maximum(low[1::2], -hx)
+    area_b_sides = (hx * np.maximum(length_rl, 0.0).sum(axis=0)
+                    + hy * np.maximum(length_tb, 0.0).sum(axis=0))
+    return 0.5 * (area_a_edges + area_b_sides)
 
 
 def bev_iou_pairs(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
@@ -209,9 +248,12 @@ def bev_iou_pairs(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
 def _pair_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     area_a = boxes_a[:, 3] * boxes_a[:, 4]
     area_b = boxes_b[:, 3] * boxes_b[:, 4]
-    inter = _convex_intersection_area(box_corners_bev(boxes_a), box_corners_bev(boxes_b))
+    # Clamp rounding so that 0 <= inter <= min(area), hence 0 <= IoU <= 1; the
+    # union is then >= max(area) and zero only when both boxes have zero area.
+    inter = np.clip(_rectangle_intersection_area(boxes_a, boxes_b), 0.0,
+                    np.minimum(area_a, area_b))
     union = area_a + area_b - inter
-    return np.where(union > 0.0, inter / np.where(union > 0.0, union, 1.0), 0.0)
+    return inter / np.where(union > 0.0, union, 1.0)
 
 
 def bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
@@ -223,17 +265,59 @@ def bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     boxes_a = validate_boxes(boxes_a, "boxes_a")
     boxes_b = validate_boxes(boxes_b, "boxes_b")
     iou = np.zeros((boxes_a.shape[0], boxes_b.shape[0]))
-    if iou.size == 0:
-        return iou
-    radius_a = 0.5 * np.hypot(boxes_a[:, 3], boxes_a[:, 4])
-    radius_b = 0.5 * np.hypot(boxes_b[:, 3], boxes_b[:, 4])
-    gap = np.hypot(
-        boxes_a[:, None, 0] - boxes_b[None, :, 0], boxes_a[:, None, 1] - boxes_b[None, :, 1]
-    )
-    ia, ib = np.nonzero(gap < radius_a[:, None] + radius_b[None, :])
+    ia, ib = _candidate_pairs(boxes_a, boxes_b)
     if ia.size:
         iou[ia, ib] = _pair_iou(boxes_a[ia], boxes_b[ib])
     return iou
+
+
+def bev_candidate_pairs(
+    boxes_a: np.ndarray,
+    boxes_b: np.ndarray,
+    groups_a: np.ndarray | None = None,
+    groups_b: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (ia, ib) whose BEV footprints may overlap, sorted by ia then ib.
+
+    A superset of the pairs with IoU > 0: the boxes' circumscribed circles
+    overlap (strictly). boxes_a (N, 7), boxes_b (M, 7). With ``groups_a`` (N,)
+    and ``groups_b`` (M,), integer labels sorted ascending (e.g. frame numbers),
+    only pairs within the same group are considered, all groups in one pass.
+    """
+    boxes_a = validate_boxes(boxes_a, "boxes_a")
+    boxes_b = validate_boxes(boxes_b, "boxes_b")
+    if groups_a is None and groups_b is None:
+        return _candidate_pairs(boxes_a, boxes_b)
+    groups_a = _sorted_groups(groups_a, boxes_a.shape[0], "groups_a")
+    groups_b = _sorted_groups(groups_b, boxes_b.shape[0], "groups_b")
+    # All (a, b) pairs of equal group: b runs over [first, last) of a's group.
+    first = np.searchsorted(groups_b, groups_a, side="left")
+    count = np.searchsorted(groups_b, groups_a, side="right") - first
+    ia = np.repeat(np.arange(boxes_a.shape[0]), count)
+    ib = np.arange(ia.size) - np.repeat(np.cumsum(count) - count - first, count)
+    a, b = boxes_a[ia], boxes_b[ib]
+    reach = 0.5 * (np.hypot(a[:, 3], a[:, 4]) + np.hypot(b[:, 3], b[:, 4]))
+    near = np.square(a[:, 0] - b[:, 0]) + np.square(a[:, 1] - b[:, 1]) < np.square(reach)
+    return ia[near], ib[near]
+
+
+def _sorted_groups(groups: np.ndarray | None, n: int, name: str) -> np.ndarray:
+    if groups is None:
+        raise ValueError("groups_a and groups_b must be given together")
+    arr = np.asarray(groups)
+    if arr.shape != (n,) or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name} must be ({n},) integer group labels; got {arr.dtype} {arr.shape}")
+    if n > 1 and (np.diff(arr) < 0).any():
+        raise ValueError(f"{name} must be sorted ascending")
+    return arr
+
+
+def _candidate_pairs(boxes_a: np.ndarray, boxes_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    radius_a = 0.5 * np.hypot(boxes_a[:, 3], boxes_a[:, 4])
+    radius_b = 0.5 * np.hypot(boxes_b[:, 3], boxes_b[:, 4])
+    gap = np.square(boxes_a[:, None, 0] - boxes_b[None, :, 0])
+    gap += np.square(boxes_a[:, None, 1] - boxes_b[None, :, 1])
+    return np.nonzero(gap < np.square(radius_a[:, None] + radius_b[None, :]))
 
 
 def nms_bev(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:

@@ -52,10 +52,23 @@ class TrafficConfig:
         doc="vehicles per 100 m of lane; for parking_lot the fill ratio in [0, 1]",
     )
     min_gap: float = _spec(2.0, low=0.0, high=50.0, doc="minimum bumper-to-bumper gap, m")
-    lanes: int = _spec(3, low=1, high=8, doc="lanes per direction")
-    length: float = _spec(300.0, low=20.0, high=5000.0, doc="road length, m")
+    lanes: int = _spec(
+        3, low=1, high=8,
+        doc="lanes per direction (roundabout: ring lanes, at most 2; parking_lot: double rows)",
+    )
+    length: float = _spec(
+        300.0, low=20.0, high=5000.0,
+        doc="road length, m (intersection/roundabout: across the scene; parking_lot: row "
+        "length, at most 200 m)",
+    )
     dt: float = _spec(0.1, low=0.01, high=1.0, doc="simulation step, s")
+    speed_limit: float | None = _spec(
+        None, low=0.5, high=60.0, doc="desired speed, m/s; null = the layout's default"
+    )
     path: str | None = _spec(None, doc="dataset folder for opv2v/dair replay")
+    params: dict = _spec(
+        {}, doc="source-specific options (highway_env: extra env config; replay: see traffic)"
+    )
 
 
 @dataclass
@@ -186,13 +199,13 @@ def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
     if not isinstance(raw, dict):
         raise ScenarioError(f"{path}: top level must be a mapping of keys, got {type(raw).__name__}")
     raw.setdefault("name", path.stem)
-    config = _build(ScenarioConfig, raw, where=str(path), prefix="")
+    config = _build_scenario(raw, where=str(path))
     return apply_overrides(config, overrides)
 
 
 def scenario_from_dict(data: dict, where: str = "<dict>") -> ScenarioConfig:
     """Validate a plain mapping (same keys as the YAML files) into a config."""
-    return _build(ScenarioConfig, dict(data), where=where, prefix="")
+    return _build_scenario(dict(data), where=where)
 
 
 def scenario_to_dict(config: ScenarioConfig) -> dict:
@@ -215,7 +228,25 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
         if parts[-1] not in node:
             raise ScenarioError(_unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
-    return _build(ScenarioConfig, data, where="override", prefix="")
+    return _build_scenario(data, where="override")
+
+
+# traffic.layout values each traffic.source understands (replay/frames ignore the layout).
+SOURCE_LAYOUTS: dict[str, tuple[str, ...]] = {
+    "synthetic": ("highway", "intersection", "roundabout", "parking_lot", "traffic_jam"),
+    "highway_env": ("highway", "merge", "roundabout", "intersection"),
+}
+
+
+def _build_scenario(data: dict, where: str) -> ScenarioConfig:
+    config = _build(ScenarioConfig, data, where=where, prefix="")
+    allowed = SOURCE_LAYOUTS.get(config.traffic.source)
+    if allowed is not None and config.traffic.layout not in allowed:
+        raise ScenarioError(
+            f"{where}: traffic.layout={config.traffic.layout!r} is not allowed with "
+            f"traffic.source={config.traffic.source!r}; choose one of {list(allowed)}"
+        )
+    return config
 
 
 def _valid_override_names() -> list[str]:

@@ -23,6 +23,8 @@ _REGISTRY: dict[str, str] = {
     "oracle": "roco_env.policies.basic:OraclePolicy",
     "coalign": "roco_env.policies.coalign:CoAlignPolicy",
     "roco": "roco_env.policies.roco:RoCoPolicy",
+    "coalign_temporal": "roco_env.policies.temporal:coalign_temporal",
+    "roco_temporal": "roco_env.policies.temporal:roco_temporal",
 }
 
 

@@ -1,0 +1,135 @@
+"""Where cells run: ``local`` (a process pool on this machine) or ``ray`` (a Ray cluster).
+
+Both take a picklable module-level ``cell_fn(cell) -> record`` that never raises
+(see :func:`roco_env.bench.episode.run_cell`) and yield ``(cell, record)`` in
+completion order; the caller (the parent process) writes the records. A cell is a
+pure function of its settings and seed, so both backends give identical records
+apart from ``elapsed_s``. If the machinery itself fails for a cell (a worker
+killed, a result that cannot be shipped back) that cell gets an error record.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+
+from roco_env.bench.grid import Cell
+from roco_env.bench.records import error_record
+
+BACKENDS = ("local", "ray")
+RAY_MISSING = "the ray backend needs Ray, which is not installed: pip install roco-env[ray]"
+
+CellFn = Callable[[Cell], dict]
+Results = Iterator[tuple[Cell, dict]]
+
+
+def default_workers() -> int:
+    """All cores this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _single_thread_worker() -> None:
+    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None) -> Results:
+    """Run cells in a process pool of ``workers`` processes (default: all cores).
+
+    ``workers=1`` runs in this process (no pool): the 1-process reference for speedups.
+    """
+    workers = workers or default_workers()
+    if workers == 1:
+        for cell in cells:
+            start = time.perf_counter()
+            try:
+                record = cell_fn(cell)
+            except Exception as exc:  # noqa: BLE001 - same contract as the pool below
+                record = error_record(cell, exc, time.perf_counter() - start)
+            yield cell, record
+        return
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker)
+    try:
+        futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
+        for future in as_completed(futures):
+            cell, start = futures[future]
+            try:
+                record = future.result()
+            except Exception as exc:  # noqa: BLE001 - machinery failure, recorded per cell
+                record = error_record(cell, exc, time.perf_counter() - start)
+            yield cell, record
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise ValueError(RAY_MISSING) from exc
+    return ray
+
+
+def run_ray(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None,
+            address: str | None = None) -> Results:
+    """Run cells as Ray tasks (1 CPU each).
+
+    ``address``: ``"auto"`` (the running cluster), ``"ray://host:10001"`` or
+    ``"host:6379"`` to join a cluster; None starts a local Ray with ``workers`` CPUs
+    (default: all cores). An already initialised Ray is reused and left running.
+    """
+    ray = _import_ray()
+    started_here = not ray.is_initialized()
+    if started_here:
+        options = {"include_dashboard": False, "log_to_driver": False}
+        if address:
+            try:
+                ray.init(address=address, **options)
+            except ConnectionError as exc:
+                raise ValueError(
+                    f"no Ray cluster reachable at address {address!r} ({exc}); start one with "
+                    "`ray start --head` or leave out the address to run a local Ray"
+                ) from exc
+        else:
+            ray.init(num_cpus=workers or default_workers(), **options)
+    try:
+        remote_fn = ray.remote(num_cpus=1)(cell_fn)
+        start = time.perf_counter()
+        pending = {remote_fn.remote(cell): cell for cell in cells}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                cell = pending.pop(ref)
+                try:
+                    record = ray.get(ref)
+                except Exception as exc:  # noqa: BLE001 - worker died etc., recorded per cell
+                    record = error_record(cell, exc, time.perf_counter() - start)
+                yield cell, record
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def check_backend(backend: str, workers: int | None = None, address: str | None = None) -> None:
+    """ValueError naming the bad option (unknown backend, workers < 1, Ray missing, ...)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of: {', '.join(BACKENDS)}")
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1; got {workers}")
+    if backend == "local" and address:
+        raise ValueError("address (--address) is only used by the ray backend")
+    if backend == "ray":
+        _import_ray()
+
+
+def run_cells(cells: Sequence[Cell], cell_fn: CellFn, backend: str = "local",
+              workers: int | None = None, address: str | None = None) -> Results:
+    """Run cells on the named backend after :func:`check_backend`."""
+    check_backend(backend, workers, address)
+    if backend == "local":
+        return run_local(cells, cell_fn, workers)
+    return run_ray(cells, cell_fn, workers, address)

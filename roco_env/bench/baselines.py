@@ -1,0 +1,164 @@
+"""The reproducible baseline experiments of ``baselines/`` and their runner.
+
+    python -m roco_env.bench.baselines                      # all, into baselines/results/
+    python -m roco_env.bench.baselines --only paper_protocol ablation_tau2
+    python -m roco_env.bench.baselines --smoke              # tiny version, into runs/
+    python -m roco_env.bench.baselines --print-commands     # the same as roco-env commands
+
+Each experiment is one sweep (resumable) written to ``OUT/<name>/`` (results.jsonl,
+report.md, summary.csv, plots). Noise level s = sigma_t s m and sigma_r s deg on
+every agent (the ego included: ``noise.perturb_ego=true``), realistic detector.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from roco_env.bench.backends import BACKENDS
+from roco_env.bench.grid import Cell, build_grid, validate_grid
+from roco_env.bench.report import write_report
+from roco_env.bench.spec import Scalar, format_scalar
+from roco_env.bench.sweep import run_sweep
+
+PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
+BUILTIN = ("identity", "coalign", "roco", "oracle")
+PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
+SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One sweep: the grid and what it answers."""
+
+    name: str
+    question: str
+    scenarios: tuple[str, ...]
+    noises: tuple[float, ...]
+    policies: tuple[str, ...]
+    seeds: int = 3
+    steps: int = 40
+    densities: tuple[float | None, ...] = (None,)
+    overrides: dict[str, Scalar] = field(default_factory=lambda: dict(PROTOCOL))
+
+    def cells(self, smoke: bool = False, seeds: int | None = None,
+              steps: int | None = None) -> list[Cell]:
+        """The grid; ``smoke`` keeps every axis but uses 1 seed, 2 steps and 2 CAVs;
+        ``seeds``/``steps`` replace the experiment's own (a cheaper preliminary run)."""
+        if smoke:
+            seeds, steps = SMOKE["seeds"], SMOKE["steps"]
+        seeds, steps = seeds or self.seeds, steps or self.steps
+        overrides = {**self.overrides, **(SMOKE["overrides"] if smoke else {})}
+        return build_grid(self.scenarios, self.noises, self.policies, list(range(seeds)), steps,
+                          densities=self.densities, overrides=overrides)
+
+    def command(self, out: str) -> str:
+        """The equivalent ``roco-env compare`` command line."""
+        words = ["roco-env", "compare", "--scenario", *self.scenarios,
+                 "--policies", *self.policies,
+                 "--noise", *(format_scalar(n) for n in self.noises),
+                 "--seeds", str(self.seeds), "--steps", str(self.steps)]
+        if self.densities != (None,):
+            words += ["--density", *(format_scalar(float(d)) for d in self.densities)]
+        for key, value in self.overrides.items():
+            words += ["--set", f"{key}={format_scalar(value)}"]
+        words += ["--out", f"{out}/{self.name}", "--title", self.name]
+        return shlex.join(words)
+
+
+EXPERIMENTS: tuple[Experiment, ...] = (
+    Experiment("paper_protocol", "Table 1: AP@0.5/0.7 vs noise 0-0.8 (crowded urban, highway)",
+               ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN),
+    Experiment("crowding_intersection", "Crowding: AP@0.7 vs vehicles per 100 m of lane",
+               ("crowded_intersection",), (0.4, 0.8), BUILTIN,
+               densities=(2.0, 4.0, 6.0, 9.0, 12.0, 15.0)),
+    Experiment("crowding_parking", "Crowding, repetitive: parking-lot fill ratio",
+               ("parking_lot",), (0.4, 0.8), BUILTIN, densities=(0.3, 0.5, 0.7, 0.9, 1.0)),
+    Experiment("ablation_tau2", "Table 2: RoCo's candidate gate tau2 in 1..4 m",
+               ("crowded_intersection",), (0.2, 0.4, 0.6, 0.8),
+               ("roco:tau2=1", "roco:tau2=2", "roco:tau2=3", "roco:tau2=4")),
+    Experiment("ablation_similarity", "Table 3: distance / edge similarity (coalign = neither)",
+               ("crowded_intersection",), (0.2, 0.4, 0.8),
+               ("coalign", "roco:use_edge_similarity=false",
+                "roco:use_distance_similarity=false", "roco")),
+    Experiment("ablation_modules", "Table 4: matching and robust optimisation (coalign = neither)",
+               ("crowded_intersection",), (0.2, 0.4, 0.8),
+               ("coalign", "roco:robust_kernel=null", "roco:iterate=false", "roco")),
+    Experiment("beyond_paper", "Beyond the paper: noise 1.0, 1.5, 2.0",
+               ("crowded_intersection", "highway_dense"), (1.0, 1.5, 2.0), BUILTIN),
+)
+
+
+def experiment(name: str) -> Experiment:
+    for item in EXPERIMENTS:
+        if item.name == name:
+            return item
+    raise ValueError(f"unknown experiment {name!r}; available: "
+                     f"{', '.join(e.name for e in EXPERIMENTS)}")
+
+
+def run_experiments(names: Sequence[str], out: Path, smoke: bool = False, backend: str = "local",
+                    workers: int | None = None, progress: bool = True, seeds: int | None = None,
+                    steps: int | None = None) -> int:
+    """Run the named experiments into ``out/<name>/``; returns the number of failed cells."""
+    chosen = [experiment(n) for n in names]
+    grids = {e.name: e.cells(smoke, seeds, steps) for e in chosen}
+    for cells in grids.values():
+        validate_grid(cells)
+    failed = 0
+    for item in chosen:
+        print(f"== {item.name}: {item.question} ({len(grids[item.name])} cells)", flush=True)
+        outcome = run_sweep(grids[item.name], out / item.name / "results.jsonl", backend=backend,
+                            workers=workers, progress=progress)
+        report = write_report(outcome.records, out / item.name, title=f"{item.name}: "
+                              f"{item.question}")
+        print(report.markdown, flush=True)
+        failed += outcome.failed
+    return failed
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m roco_env.bench.baselines",
+                                     description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--only", nargs="+", metavar="NAME",
+                        help=f"experiments to run (default: all: "
+                        f"{' '.join(e.name for e in EXPERIMENTS)})")
+    parser.add_argument("--smoke", action="store_true",
+                        help="tiny version (1 seed, 2 steps, 2 CAVs) into runs/baselines_smoke")
+    parser.add_argument("--seeds", type=int, default=None,
+                        help="seeds per setting for every experiment (default: each one's own)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="steps per episode for every experiment (default: each one's own)")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default: baselines/results, or runs/baselines_smoke)")
+    parser.add_argument("--backend", default="local", choices=BACKENDS)
+    parser.add_argument("--workers", type=int, default=None, help="default: all cores")
+    parser.add_argument("--print-commands", action="store_true",
+                        help="print the equivalent roco-env compare commands and exit")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    out = Path(args.out or ("runs/baselines_smoke" if args.smoke else "baselines/results"))
+    names = args.only or [e.name for e in EXPERIMENTS]
+    try:
+        if args.print_commands:
+            for name in names:
+                print(experiment(name).command(str(out)))
+            return 0
+        for option in ("seeds", "steps"):
+            if getattr(args, option) is not None and getattr(args, option) < 1:
+                raise ValueError(f"--{option} must be >= 1; got {getattr(args, option)}")
+        failed = run_experiments(names, out, args.smoke, args.backend, args.workers,
+                                 not args.quiet, args.seeds, args.steps)
+    except ValueError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

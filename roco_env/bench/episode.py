@@ -1,0 +1,158 @@
+"""Run one sweep cell: one env episode with one policy instance per agent, scored.
+
+Scores (DESIGN.md section 8), pooled over every evaluated agent and step:
+* dataset AP@0.3/0.5/0.7 from the infos' exact per-frame data
+  (``frame_scores``, ``frame_tp``, ``frame_fp``, ``frame_n_gt``);
+* relative pose error of every filled collaborator slot before and after the
+  correction (translation m, rotation deg): median, 95th percentile,
+  Success@1m1deg and Success@2m2deg; the samples are kept for distribution plots;
+* matching precision/recall against true object ids, mean over the frames where
+  the policy reported a match result (``policy.last_result``), using the privileged
+  ids of the info returned *with* the observation the policy saw;
+* correction share: frames (agent-steps with >= 1 collaborator) where the action
+  changed a filled slot's reported pose.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+import roco_env
+from roco_env.bench.grid import Cell
+from roco_env.bench.records import error_record, ok_record
+from roco_env.bench.spec import parse_policy_spec
+from roco_env.bench.stats import nanmean, pose_error_summary
+from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, FrameStats
+from roco_env.policies.base import AlignmentResult
+from roco_env.policies.evaluation import matching_precision_recall
+
+SAMPLE_DECIMALS = 3  # RPE samples are stored to 1 mm / 0.001 deg (plots, pooled percentiles)
+_ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"
+
+PolicyFactory = Callable[[], Callable]
+StepCallback = Callable[[int, Any, dict, dict], None]
+
+
+def _finite_rows(errors: Any) -> np.ndarray:
+    arr = np.asarray(errors, dtype=float).reshape(-1, 2)
+    return arr[np.isfinite(arr).all(axis=1)]
+
+
+@dataclass
+class EpisodeScorer:
+    """Accumulates one episode's decisions (policy side) and outcomes (env side)."""
+
+    ap: APAccumulator = field(default_factory=lambda: APAccumulator(DEFAULT_IOU_THRESHOLDS))
+    before: list = field(default_factory=list)
+    after: list = field(default_factory=list)
+    precision: list = field(default_factory=list)
+    recall: list = field(default_factory=list)
+    applied: list = field(default_factory=list)
+
+    def add_decision(self, observation: dict, info: dict, action: np.ndarray,
+                     result: AlignmentResult | None) -> None:
+        """Score an action taken on ``observation`` (``info`` came with it); ``result`` is
+        the policy's alignment result for this very call, None when it reported none."""
+        filled = np.asarray(observation["collab_mask"]) > 0
+        if not filled.any():
+            return
+        moved = np.abs(np.asarray(action, dtype=float)[filled]) > _ACTION_EPS
+        self.applied.append(bool(moved.any()))
+        privileged = info.get("privileged") if info else None
+        if result is None or privileged is None:
+            return
+        precision, recall = matching_precision_recall(
+            result, privileged["box_object_ids"], privileged["collab_box_object_ids"],
+            ego_mask=observation["box_mask"], collab_mask=observation["collab_box_mask"])
+        self.precision.append(precision)
+        self.recall.append(recall)
+
+    def add_outcome(self, info: dict) -> None:
+        """Pool an agent's post-step info (its fused frame and RPE rows)."""
+        if "frame_scores" in info:
+            self.ap.add_stats(FrameStats(info["frame_scores"], info["frame_tp"], info["frame_fp"],
+                                         int(info["frame_n_gt"]), DEFAULT_IOU_THRESHOLDS))
+        if "rpe_before" in info:
+            self.before.append(_finite_rows(info["rpe_before"]))
+            self.after.append(_finite_rows(info["rpe_after"]))
+
+    def summary(self) -> tuple[dict[str, float], dict[str, list]]:
+        """(metrics, samples): scalar metrics and rounded RPE samples [[t m, r deg], ...]."""
+        ap = self.ap.ap()
+        before = np.concatenate(self.before) if self.before else np.zeros((0, 2))
+        after = np.concatenate(self.after) if self.after else np.zeros((0, 2))
+        metrics = {"ap30": ap[0.3], "ap50": ap[0.5], "ap70": ap[0.7]}
+        metrics.update(pose_error_summary(before, after))
+        metrics["match_precision"] = nanmean(self.precision)
+        metrics["match_recall"] = nanmean(self.recall)
+        metrics["correction_share"] = nanmean(self.applied)
+        metrics["frames"] = self.ap.n_frames  # evaluated agent-steps
+        metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
+        metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
+        metrics["pairs"] = int(after.shape[0])
+        samples = {
+            "before": np.round(before, SAMPLE_DECIMALS).tolist(),
+            "after": np.round(after, SAMPLE_DECIMALS).tolist(),
+        }
+        return metrics, samples
+
+
+def make_env(cell: Cell, render_mode: str | None = None):
+    """The cell's PettingZoo ParallelEnv (scenario + noise/density/other overrides)."""
+    return roco_env.parallel_env(cell.scenario, max_cycles=cell.steps, render_mode=render_mode,
+                                 **cell.env_overrides())
+
+
+def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
+                on_step: StepCallback | None = None,
+                render_mode: str | None = None) -> tuple[dict[str, float], dict[str, list]]:
+    """Run ``cell`` and return (metrics, samples) as in :meth:`EpisodeScorer.summary`.
+
+    ``policy_factory`` builds one policy per agent (default: the cell's policy spec);
+    ``on_step(step, env, actions, infos)`` is called after every env step (step from 1),
+    e.g. to print per-step metrics or ``env.render()`` a frame.
+    """
+    factory = policy_factory or parse_policy_spec(cell.policy).build
+    env = make_env(cell, render_mode)
+    try:
+        observations, infos = env.reset(seed=cell.seed)
+        policies = {agent: factory() for agent in env.agents}
+        scorer = EpisodeScorer()
+        step = 0
+        while env.agents and step < cell.steps:
+            actions = {}
+            for agent in env.agents:
+                policy = policies[agent]
+                previous = getattr(policy, "last_result", None)
+                action = np.asarray(policy(observations[agent], infos[agent]))
+                result = getattr(policy, "last_result", None)
+                scorer.add_decision(observations[agent], infos[agent], action,
+                                    None if result is previous else result)  # never a stale one
+                actions[agent] = action
+            observations, _, _, _, infos = env.step(actions)
+            step += 1
+            for info in infos.values():
+                scorer.add_outcome(info)
+            if on_step is not None:
+                on_step(step, env, actions, infos)
+        return scorer.summary()
+    finally:
+        env.close()
+
+
+def run_cell(cell: Cell) -> dict[str, Any]:
+    """The stored record of one cell; an exception becomes an ``error`` record (never raised).
+
+    Module-level and argument-only so process pools and Ray can ship it.
+    """
+    start = time.perf_counter()
+    try:
+        metrics, samples = run_episode(cell)
+    except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the sweep goes on
+        return error_record(cell, exc, time.perf_counter() - start)
+    return ok_record(cell, metrics, samples, time.perf_counter() - start)

@@ -1,0 +1,30 @@
+"""The record stored per finished cell (one JSONL line; see :mod:`roco_env.bench.store`).
+
+``{"key", "cell", "version", "status": "ok" | "error", "elapsed_s",
+   "metrics": {...}, "samples": {"before": [[t m, r deg], ...], "after": [...]}}``
+for a success; an error record has ``"error"`` ("Type: message") and ``"traceback"``
+(the last frames) instead of metrics and samples.
+"""
+
+from __future__ import annotations
+
+import traceback
+from typing import Any
+
+from roco_env.bench.grid import Cell
+
+RECORD_VERSION = 1
+TRACEBACK_FRAMES = 6
+
+
+def ok_record(cell: Cell, metrics: dict, samples: dict, elapsed_s: float) -> dict[str, Any]:
+    return {"key": cell.key, "cell": cell.to_dict(), "version": RECORD_VERSION, "status": "ok",
+            "metrics": metrics, "samples": samples, "elapsed_s": round(elapsed_s, 3)}
+
+
+def error_record(cell: Cell, exc: BaseException, elapsed_s: float) -> dict[str, Any]:
+    """Record of a cell that raised ``exc`` (call inside the ``except`` block)."""
+    summary = "".join(traceback.format_exception(exc, limit=-TRACEBACK_FRAMES))
+    return {"key": cell.key, "cell": cell.to_dict(), "version": RECORD_VERSION,
+            "status": "error", "error": f"{type(exc).__name__}: {exc}",
+            "traceback": summary, "elapsed_s": round(elapsed_s, 3)}

@@ -1,0 +1,40 @@
+"""``roco-env list``: the scenarios and alignment policies available."""
+
+from __future__ import annotations
+
+import argparse
+
+from roco_env.policies import available_policies
+from roco_env.scenario import list_scenarios, load_scenario
+
+
+def _scenario_lines() -> list[str]:
+    lines = []
+    for name in list_scenarios():
+        try:
+            description = load_scenario(name).description.strip().splitlines()
+            summary = description[0] if description else ""
+        except ValueError as exc:  # a broken user file must not hide the others
+            summary = f"(invalid: {exc})"
+        lines.append(f"  {name:<28} {summary}".rstrip())
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.what in ("all", "scenarios"):
+        print("scenarios:")
+        print("\n".join(_scenario_lines()) or "  (none found)")
+    if args.what in ("all", "policies"):
+        print("policies (spec NAME[:KEY=VALUE,...], e.g. roco:tau2=2):")
+        print("\n".join(f"  {name}" for name in available_policies()))
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "list", help="list scenarios and policies",
+        description="List the scenario names (YAML files in scenarios/ and $ROCO_ENV_SCENARIOS) "
+        "and the registered alignment policies.")
+    parser.add_argument("what", nargs="?", default="all", choices=("all", "scenarios", "policies"),
+                        help="what to list (default: all)")
+    parser.set_defaults(func=run)

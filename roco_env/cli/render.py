@@ -1,0 +1,65 @@
+"""``roco-env render``: an episode's bird's-eye view as PNG frames and/or an animated GIF.
+
+Each step's ``env.render()`` (rgb_array: ground truth, every agent's boxes in its
+colour, fused boxes, true and reported poses) becomes ``OUT/frame_0001.png`` ...
+and, with ``--gif``, one frame of the GIF (written with Pillow).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from roco_env.bench.episode import run_episode
+from roco_env.bench.options import add_episode_options, episode_cell
+
+
+def _frame(env) -> Image.Image:
+    picture = np.asarray(env.render())
+    if picture.ndim != 3 or picture.shape[2] not in (3, 4):
+        raise ValueError(f"env.render() must return an (H, W, 3) image; got shape {picture.shape}")
+    return Image.fromarray(picture.astype(np.uint8)[..., :3])
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.out is None and args.gif is None:
+        raise ValueError("give --out DIR (PNG frames), --gif FILE.gif, or both")
+    if args.fps <= 0:
+        raise ValueError(f"--fps must be > 0; got {args.fps}")
+    if args.gif is not None and Path(args.gif).suffix.lower() != ".gif":
+        raise ValueError(f"--gif must name a .gif file; got {args.gif}")
+    cell = episode_cell(args)
+    out = Path(args.out) if args.out else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    frames: list[Image.Image] = []
+
+    def on_step(step: int, env, actions: dict, infos: dict) -> None:
+        frames.append(_frame(env))
+        if out is not None:
+            frames[-1].save(out / f"frame_{step:04d}.png")
+
+    metrics, _ = run_episode(cell, on_step=on_step, render_mode="rgb_array")
+    if out is not None:
+        print(f"wrote {len(frames)} PNG frames to {out}/")
+    if args.gif is not None:
+        Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
+        frames[0].save(args.gif, save_all=True, append_images=frames[1:],
+                       duration=round(1000 / args.fps), loop=0)
+        print(f"wrote {args.gif} ({len(frames)} frames, {args.fps:g} fps)")
+    print(f"dataset AP@0.7 {100 * metrics['ap70']:.1f}%")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("render", help="render an episode to PNG frames or a GIF",
+                                   description=__doc__,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_episode_options(parser, steps=10)
+    parser.add_argument("--out", default=None, metavar="DIR", help="folder for PNG frames")
+    parser.add_argument("--gif", default=None, metavar="FILE", help="animated GIF to write")
+    parser.add_argument("--fps", type=float, default=5.0, help="GIF frame rate (default: 5)")
+    parser.set_defaults(func=run)

@@ -1,0 +1,48 @@
+"""``roco-env scenario``: list scenarios, generate stress scenarios (logic in
+roco_env.traffic.generate)."""
+
+from __future__ import annotations
+
+import argparse
+
+from roco_env.scenario import list_scenarios
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("scenario", help="list scenarios or generate stress scenarios")
+    actions = parser.add_subparsers(dest="scenario_command", metavar="ACTION", required=True)
+    actions.add_parser("list", help="names of the available scenarios").set_defaults(func=_list)
+    gen = actions.add_parser(
+        "generate", help="write a crowded synthetic scenario YAML and print a summary")
+    gen.add_argument("--layout", required=True,
+                     help="highway | intersection | roundabout | parking_lot | traffic_jam")
+    gen.add_argument("--density", type=float, required=True,
+                     help="vehicles per 100 m of lane (parking_lot: stall fill ratio 0..1)")
+    gen.add_argument("--cavs", type=int, default=4)
+    gen.add_argument("--rsus", type=int, default=1)
+    gen.add_argument("--seed", type=int, default=0, help="seed of the previewed episode")
+    gen.add_argument("--min-gap", type=float, default=None, help="spawn gap, m (default: tight)")
+    gen.add_argument("-o", "--output", required=True, help="scenario YAML to write")
+    gen.add_argument("--export-opv2v", metavar="DIR", default=None,
+                     help="also write the preview episode as OPV2V label folders")
+    gen.add_argument("--frames", type=int, default=10, help="frames to export (default 10)")
+    gen.set_defaults(func=_generate)
+
+
+def _list(args: argparse.Namespace) -> int:
+    print("\n".join(list_scenarios()))
+    return 0
+
+
+def _generate(args: argparse.Namespace) -> int:
+    from roco_env.traffic.generate import generate
+
+    config, summary = generate(args.layout, args.density, args.cavs, args.rsus, args.seed,
+                               output=args.output, export_dir=args.export_opv2v,
+                               frames=args.frames, min_gap=args.min_gap)
+    print(f"wrote {args.output} ({config.name})")
+    for line in summary.lines():
+        print(line)
+    if args.export_opv2v:
+        print(f"exported {args.frames} frames to {args.export_opv2v}")
+    return 0

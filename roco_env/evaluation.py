@@ -1,0 +1,177 @@
+"""Per-ego evaluation of one step: ground truth, fused-detection AP, RPE, reward, info.
+
+Frames: everything here is in the ego's TRUE frame. The ego's own boxes are
+already there (sensors see the world correctly, DESIGN.md contract); the
+collaborators' boxes got there through the corrected relative poses, so a
+wrong correction shows up as misplaced boxes. Ground truth for ego i = the
+objects visible to at least one agent of i's collaboration (i and its
+collaborator slots), minus i's own vehicle, kept only when all BEV corners lie
+inside the evaluation range (DESIGN.md section 8). Fused predictions are range
+filtered the same way (OpenCOOD filters predictions before matching too).
+Relative pose errors are [translation m, rotation deg].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from roco_env.fusion import FusedDetections
+from roco_env.geometry import se2_inverse, transform_boxes
+from roco_env.metrics import (
+    DEFAULT_IOU_THRESHOLDS,
+    FrameStats,
+    average_precision,
+    frame_stats,
+    in_range_mask,
+    relative_pose_error,
+)
+from roco_env.observation import EgoView
+from roco_env.traffic.state import WorldState
+
+AP_KEYS: dict[float, str] = {0.3: "ap30", 0.5: "ap50", 0.7: "ap70"}
+REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "neg_rpe")
+
+
+@dataclass(frozen=True)
+class EgoEvaluation:
+    """One ego's evaluated frame.
+
+    gt_boxes (G, 7); pred_boxes (P, 7) / pred_scores (P,) the fused,
+    range-filtered detections (descending score); stats: the frame's matching
+    (AP input); ap: threshold -> per-step AP (NaN with no GT and no
+    predictions); rpe_before / rpe_after (N, 2) errors of the reported /
+    corrected T_{j->i}, NaN rows for empty slots.
+    """
+
+    gt_boxes: np.ndarray
+    pred_boxes: np.ndarray
+    pred_scores: np.ndarray
+    stats: FrameStats
+    ap: dict[float, float]
+    rpe_before: np.ndarray
+    rpe_after: np.ndarray
+
+
+def ground_truths(state: WorldState, visible: np.ndarray,
+                  egos: Sequence[tuple[int, Sequence[int]]], x_range: Sequence[float],
+                  y_range: Sequence[float]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per (ego, collaborators): GT boxes (G, 7) in the ego's true frame and object ids (G,).
+
+    visible (A, M) bool: which agent sees which object (state's object order).
+    All egos are transformed and range-tested in one batch.
+    """
+    visible = np.asarray(visible, dtype=bool)
+    rows = [np.flatnonzero(visible[[ego, *collaborators]].any(axis=0)
+                           & (state.object_ids != state.agent_object_ids[ego]))
+            for ego, collaborators in egos]
+    counts = [r.shape[0] for r in rows]
+    objects = np.concatenate([np.zeros(0, dtype=np.int64), *rows])
+    to_ego = np.repeat(se2_inverse(state.agent_poses[[ego for ego, _ in egos]]).reshape(-1, 3),
+                       counts, axis=0)
+    boxes = transform_boxes(state.object_boxes[objects], to_ego)
+    keep = in_range_mask(boxes, x_range, y_range)
+    return [(b[k], state.object_ids[o][k]) for b, k, o in zip(
+        _split(boxes, counts), _split(keep, counts), rows, strict=True)]
+
+
+def ground_truth(state: WorldState, visible: np.ndarray, ego: int, collaborators: Sequence[int],
+                 x_range: Sequence[float],
+                 y_range: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """GT boxes (G, 7) in ego ``ego``'s true frame and their object ids (G,) (one ego)."""
+    return ground_truths(state, visible, [(ego, collaborators)], x_range, y_range)[0]
+
+
+def slot_errors(views: Sequence[EgoView], corrected: Sequence[np.ndarray],
+                max_collaborators: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per view: RPE (N, 2) of the reported and of the corrected T_{j->i}, NaN rows for empty slots.
+
+    corrected[k] (n_k, 3): the corrected poses of view k's filled slots.
+    """
+    counts = [len(view.collaborators) for view in views]
+    truth = np.concatenate([np.zeros((0, 3)), *(v.true_relative for v in views)])
+    reported = np.concatenate([np.zeros((0, 3)), *(v.reported_relative for v in views)])
+    fixed = np.concatenate([np.zeros((0, 3)), *corrected])
+    out = []
+    for errors_before, errors_after in zip(
+            _split(relative_pose_error(reported, truth), counts),
+            _split(relative_pose_error(fixed, truth), counts), strict=True):
+        before = np.full((max_collaborators, 2), np.nan)
+        after = np.full((max_collaborators, 2), np.nan)
+        before[: errors_before.shape[0]] = errors_before
+        after[: errors_after.shape[0]] = errors_after
+        out.append((before, after))
+    return out
+
+
+def evaluate_egos(views: Sequence[EgoView], fused: Sequence[FusedDetections],
+                  corrected: Sequence[np.ndarray], state: WorldState, visible: np.ndarray,
+                  x_range: Sequence[float], y_range: Sequence[float],
+                  max_collaborators: int) -> list[EgoEvaluation]:
+    """Score each ego's fused detections against its ground truth (one frame, several egos).
+
+    fused[k] and corrected[k] ((n_k, 3) corrected T_{j->i} of the filled slots, the
+    poses the fusion used) belong to views[k]. Transforms and range tests are
+    batched over the egos; the matching runs per ego.
+    """
+    gts = ground_truths(state, visible, [(v.agent, v.collaborators) for v in views],
+                        x_range, y_range)
+    counts = [len(f) for f in fused]
+    all_fused = np.concatenate([np.zeros((0, 7)), *(f.boxes for f in fused)])
+    in_range = _split(in_range_mask(all_fused, x_range, y_range), counts)
+    errors = slot_errors(views, corrected, max_collaborators)
+    evaluations = []
+    for (gt_boxes, _), ego_fused, keep, (before, after) in zip(gts, fused, in_range, errors,
+                                                               strict=True):
+        pred_boxes, pred_scores = ego_fused.boxes[keep], ego_fused.scores[keep]
+        stats = frame_stats(pred_boxes, pred_scores, gt_boxes, DEFAULT_IOU_THRESHOLDS)
+        ap = {thr: average_precision(stats.scores, stats.tp[k], stats.n_gt)
+              for k, thr in enumerate(stats.thresholds)}
+        evaluations.append(
+            EgoEvaluation(gt_boxes, pred_boxes, pred_scores, stats, ap, before, after))
+    return evaluations
+
+
+def _split(values: np.ndarray, counts: Sequence[int]) -> list[np.ndarray]:
+    """Consecutive chunks of ``values`` (along axis 0) of the given sizes."""
+    return np.split(values, np.cumsum(counts)[:-1]) if len(counts) else []
+
+
+def reward(evaluation: EgoEvaluation, kind: str) -> float:
+    """Scalar reward of an evaluated frame.
+
+    ``ap30``/``ap50``/``ap70``: the per-step AP at 0.3/0.5/0.7, with a NaN AP
+    (no GT and no predictions: nothing to get right) counted as 0.
+    ``neg_rpe``: minus the mean over filled slots of (translation error m +
+    rotation error deg) after correction; 0 without collaborators.
+    """
+    if kind == "neg_rpe":
+        rows = evaluation.rpe_after[~np.isnan(evaluation.rpe_after).any(axis=1)]
+        return -float(rows.sum(axis=1).mean()) if rows.shape[0] else 0.0
+    thresholds = {key: thr for thr, key in AP_KEYS.items()}
+    if kind not in thresholds:
+        raise ValueError(f"reward must be one of {list(REWARDS)}; got {kind!r}")
+    value = evaluation.ap[thresholds[kind]]
+    return 0.0 if np.isnan(value) else float(value)
+
+
+def metric_info(evaluation: EgoEvaluation) -> dict:
+    """The metric entries of a step's info (keys of the env contract plus the boxes)."""
+    stats = evaluation.stats
+    info = {key: float(evaluation.ap[thr]) for thr, key in AP_KEYS.items()}
+    info.update(
+        rpe_before=evaluation.rpe_before,
+        rpe_after=evaluation.rpe_after,
+        n_gt=int(evaluation.gt_boxes.shape[0]),
+        n_pred=int(evaluation.pred_scores.shape[0]),
+        frame_scores=stats.scores,
+        frame_tp=stats.tp,
+        frame_fp=stats.fp,
+        frame_n_gt=stats.n_gt,
+        fused_boxes=evaluation.pred_boxes,
+        fused_scores=evaluation.pred_scores,
+        gt_boxes=evaluation.gt_boxes,
+    )
+    return info

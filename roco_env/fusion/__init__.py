@@ -1,0 +1,16 @@
+"""Fusion of an ego's own outputs with its collaborators' (DESIGN.md section 7).
+
+``late_fusion`` merges boxes (the default; ``suppress`` runs the NMS of
+many egos at once); ``roco_env.fusion.intermediate``
+warps and max-fuses BEV feature maps (imported on demand: it needs torch).
+"""
+
+from roco_env.fusion.late import (
+    EGO_SOURCE,
+    FusedDetections,
+    late_fusion,
+    merge_into_ego_frame,
+    suppress,
+)
+
+__all__ = ["EGO_SOURCE", "FusedDetections", "late_fusion", "merge_into_ego_frame", "suppress"]

@@ -1,0 +1,387 @@
+"""Detection and alignment metrics: the OpenCOOD/CoAlign AP protocol, RPE, success rate.
+
+AP protocol (DESIGN.md section 8), on BEV footprints of boxes (x, y, z, l, w, h, yaw):
+
+* Per frame, predictions are visited by descending score (stable: ties keep
+  input order). Each takes the *remaining* ground-truth box with maximum BEV IoU
+  (ties: the lowest GT index); it is a true positive if that IoU is >= the
+  threshold (the GT box is then removed), otherwise a false positive. The frame's
+  GT count is accumulated even when it has no predictions.
+* Dataset AP: every frame's (score, tp, fp) is sorted globally by descending
+  score (stable: ties keep the order frames were added, then in-frame order);
+  cumulative precision tp / (tp + fp) and recall tp / n_gt; VOC all-point
+  interpolation: recall padded with 0 and 1, precision with 0 and 0, precision
+  made monotone from the right, AP = sum of delta-recall x precision.
+
+Edge cases (decided here; OpenCOOD divides by zero): no GT and no predictions
+-> NaN (nothing to evaluate); GT but no predictions -> 0.0 (recall is 0);
+predictions but no GT -> 0.0 (every prediction is a false positive). IoU
+thresholds must lie in (0, 1]: a prediction never matches a GT it does not overlap.
+
+``APAccumulator.add_frame`` matches one frame (what the env does per step);
+``APAccumulator.add_frames`` matches a whole data set in one vectorised pass
+with identical results.
+
+Relative pose errors are in metres and degrees.
+"""
+
+from __future__ import annotations
+
+import itertools
+import operator
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from roco_env.geometry import (
+    bev_candidate_pairs,
+    bev_iou_pairs,
+    box_corners_bev,
+    validate_boxes,
+    wrap_angle,
+)
+
+__all__ = [
+    "DEFAULT_IOU_THRESHOLDS",
+    "FrameStats",
+    "frame_stats",
+    "frame_ap",
+    "average_precision",
+    "APAccumulator",
+    "in_range_mask",
+    "relative_pose_error",
+    "success_rate",
+]
+
+DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.3, 0.5, 0.7)
+
+
+def _thresholds(iou_thresholds: Sequence[float]) -> tuple[float, ...]:
+    try:
+        values = tuple(float(t) for t in iou_thresholds)
+    except (TypeError, ValueError):
+        values = ()
+    if not values or not all(0.0 < t <= 1.0 for t in values):
+        raise ValueError(
+            f"iou_thresholds must be a non-empty sequence of values in (0, 1]; got {iou_thresholds}"
+        )
+    if len(set(values)) != len(values):
+        raise ValueError(f"iou_thresholds must not repeat values; got {iou_thresholds}")
+    return values
+
+
+def _scores(scores: np.ndarray, n_boxes: int, name: str) -> np.ndarray:
+    arr = np.asarray(scores, dtype=float).reshape(-1)
+    if arr.shape[0] != n_boxes:
+        raise ValueError(f"{name} must have one entry per box ({n_boxes}); got {arr.shape[0]}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} contains NaN or inf; all values must be finite")
+    return arr
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """One frame's matching result, the exact input of :meth:`APAccumulator.add_stats`.
+
+    scores (P,) prediction scores sorted descending; tp, fp (T, P) bool, one row
+    per IoU threshold in ``thresholds`` (T of them); n_gt the frame's GT count.
+    """
+
+    scores: np.ndarray
+    tp: np.ndarray
+    fp: np.ndarray
+    n_gt: int
+    thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS
+
+    def __post_init__(self) -> None:
+        scores = np.asarray(self.scores, dtype=float).reshape(-1)
+        thresholds = _thresholds(self.thresholds)
+        shape = (len(thresholds), scores.shape[0])
+        tp, fp = (np.asarray(flags, dtype=bool) for flags in (self.tp, self.fp))
+        if tp.size != scores.size * len(thresholds) or fp.size != tp.size:
+            raise ValueError(
+                f"tp and fp must have shape (thresholds, predictions) = {shape}; "
+                f"got {tp.shape} and {fp.shape}"
+            )
+        tp, fp = tp.reshape(shape), fp.reshape(shape)
+        if (tp == fp).any():
+            raise ValueError("tp and fp must be complementary: each prediction is exactly one")
+        if not np.isfinite(scores).all():
+            raise ValueError("scores contains NaN or inf; all values must be finite")
+        if int(self.n_gt) != self.n_gt or self.n_gt < 0:
+            raise ValueError(f"n_gt must be a non-negative integer; got {self.n_gt}")
+        if (tp.sum(axis=1) > self.n_gt).any():
+            raise ValueError(f"tp counts exceed n_gt ({self.n_gt})")
+        object.__setattr__(self, "scores", scores)
+        object.__setattr__(self, "tp", tp)
+        object.__setattr__(self, "fp", fp)
+        object.__setattr__(self, "n_gt", int(self.n_gt))
+        object.__setattr__(self, "thresholds", thresholds)
+
+
+def frame_stats(
+    pred_boxes: np.ndarray,
+    pred_scores: np.ndarray,
+    gt_boxes: np.ndarray,
+    iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
+) -> FrameStats:
+    """Greedy OpenCOOD matching of one frame's predictions (P, 7) against GT (G, 7).
+
+    Boxes must be in the same frame. Returns scores sorted descending and the
+    tp/fp flags in that order, one row per threshold.
+    """
+    thresholds = _thresholds(iou_thresholds)
+    frame = _validated_frame(pred_boxes, pred_scores, gt_boxes, "")
+    scores, tp, _ = _match_frames([frame], np.asarray(thresholds))
+    return FrameStats(scores, tp, ~tp, frame[2].shape[0], thresholds)
+
+
+Frame = tuple[np.ndarray, np.ndarray, np.ndarray]  # pred boxes (P, 7), scores (P,), GT (G, 7)
+
+
+def _validated_frame(pred_boxes: np.ndarray, pred_scores: np.ndarray, gt_boxes: np.ndarray,
+                     prefix: str) -> Frame:
+    pred_boxes = validate_boxes(pred_boxes, f"{prefix}pred_boxes")
+    return (
+        pred_boxes,
+        _scores(pred_scores, pred_boxes.shape[0], f"{prefix}pred_scores"),
+        validate_boxes(gt_boxes, f"{prefix}gt_boxes"),
+    )
+
+
+def _match_frames(frames: Sequence[Frame],
+                  thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Greedy matching of validated frames, all at once.
+
+    Returns the predictions' scores (P,) frame by frame, each frame sorted by
+    descending score (stable), their tp flags (T, P) and the frames' start
+    offsets into them (F + 1,).
+    """
+    n_pred = [len(frame[1]) for frame in frames]
+    pred_frame = np.repeat(np.arange(len(frames)), n_pred)
+    gt_frame = np.repeat(np.arange(len(frames)), [len(frame[2]) for frame in frames])
+    scores = np.concatenate([frame[1] for frame in frames])
+    order = np.lexsort((-scores, pred_frame))
+    preds = np.concatenate([frame[0] for frame in frames])[order]
+    gts = np.concatenate([frame[2] for frame in frames])
+    groups = (pred_frame, gt_frame) if len(frames) > 1 else ()
+    rows, cols = bev_candidate_pairs(preds, gts, *groups)
+    iou = bev_iou_pairs(preds[rows], gts[cols])
+    overlap = iou > 0.0
+    tp = _greedy_match(rows[overlap], cols[overlap], iou[overlap], scores.size, gts.shape[0],
+                       thresholds)
+    return scores[order], tp, np.concatenate([[0], np.cumsum(n_pred)])
+
+
+def _greedy_match(rows: np.ndarray, cols: np.ndarray, iou: np.ndarray, n_pred: int,
+                  n_gt: int, thresholds: np.ndarray) -> np.ndarray:
+    """TP flags (T, P) from the overlapping (prediction, GT) pairs, IoU > 0.
+
+    ``rows`` index predictions in matching order (descending score within each
+    frame), pairs sorted by row then column. Thresholds are > 0, so a GT only
+    matters to the predictions overlapping it: a prediction sharing none of its
+    GTs with another one simply takes its best GT; only predictions competing
+    for a GT need the sequential greedy pass (each match removes its GT).
+    """
+    best = np.zeros(n_pred)
+    np.maximum.at(best, rows, iou)
+    tp = best[None, :] >= thresholds[:, None]
+    shared = np.bincount(cols, minlength=n_gt) > 1
+    competing = np.zeros(n_pred, dtype=bool)
+    competing[rows[shared[cols]]] = True
+    pairs = competing[rows]
+    taken: list[set[int]] = [set() for _ in thresholds]
+    # Plain Python: a few pairs per competing prediction, where numpy calls cost more.
+    for rank, candidates in itertools.groupby(
+        zip(rows[pairs].tolist(), cols[pairs].tolist(), iou[pairs].tolist(), strict=True),
+        key=operator.itemgetter(0),
+    ):
+        candidates = list(candidates)
+        for k, thr in enumerate(thresholds.tolist()):
+            best_iou, best_gt = 0.0, -1
+            for _, gt, value in candidates:  # first of equal IoUs, like argmax
+                if value > best_iou and gt not in taken[k]:
+                    best_iou, best_gt = value, gt
+            tp[k, rank] = best_iou >= thr
+            if tp[k, rank]:
+                taken[k].add(best_gt)
+    return tp
+
+
+def average_precision(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> float:
+    """VOC all-point AP of pooled predictions: scores (P,), tp (P,) bool, n_gt GT boxes.
+
+    Applies the NaN/0 edge-case rules of the module docstring.
+    """
+    scores = np.asarray(scores, dtype=float).reshape(-1)
+    tp = np.asarray(tp, dtype=bool).reshape(-1)
+    if n_gt == 0:
+        return float("nan") if scores.size == 0 else 0.0
+    if scores.size == 0:
+        return 0.0
+    tp = tp[np.argsort(-scores, kind="stable")]
+    tp_cum = np.cumsum(tp)
+    recall = np.concatenate([[0.0], tp_cum / n_gt, [1.0]])
+    precision = np.concatenate([[0.0], tp_cum / np.arange(1, tp.size + 1), [0.0]])
+    precision = np.maximum.accumulate(precision[::-1])[::-1]
+    return float(np.sum(np.diff(recall) * precision[1:]))
+
+
+def frame_ap(
+    pred_boxes: np.ndarray,
+    pred_scores: np.ndarray,
+    gt_boxes: np.ndarray,
+    iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
+) -> dict[float, float]:
+    """AP of a single frame per threshold (NaN when it has no GT and no predictions)."""
+    acc = APAccumulator(iou_thresholds)
+    acc.add_frame(pred_boxes, pred_scores, gt_boxes)
+    return acc.ap()
+
+
+class APAccumulator:
+    """Pools frames and computes dataset AP per IoU threshold (OpenCOOD protocol)."""
+
+    def __init__(self, iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS) -> None:
+        self.thresholds = _thresholds(iou_thresholds)
+        self._scores: list[np.ndarray] = []
+        self._tp: list[np.ndarray] = []
+        self._n_gt = 0
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._scores)
+
+    @property
+    def n_gt(self) -> int:
+        return self._n_gt
+
+    def add_frame(self, pred_boxes: np.ndarray, pred_scores: np.ndarray,
+                  gt_boxes: np.ndarray) -> FrameStats:
+        """Match one frame (boxes in one common frame) and pool it; returns its stats."""
+        stats = frame_stats(pred_boxes, pred_scores, gt_boxes, self.thresholds)
+        self.add_stats(stats)
+        return stats
+
+    def add_frames(self, frames: Sequence[Frame]) -> None:
+        """Match and pool many frames ``(pred_boxes, pred_scores, gt_boxes)`` in one go.
+
+        Same result as calling :meth:`add_frame` on each, vectorised across frames.
+        """
+        checked = []
+        for k, frame in enumerate(frames):
+            if len(frame) != 3:
+                raise ValueError(
+                    f"frames[{k}] must be (pred_boxes, pred_scores, gt_boxes); got {len(frame)} items"
+                )
+            checked.append(_validated_frame(*frame, f"frames[{k}]."))
+        frames = checked
+        if not frames:
+            return
+        scores, tp, start = _match_frames(frames, np.asarray(self.thresholds))
+        for f, frame in enumerate(frames):
+            self._scores.append(scores[start[f]:start[f + 1]])
+            self._tp.append(tp[:, start[f]:start[f + 1]])
+            self._n_gt += frame[2].shape[0]
+
+    def add_stats(self, stats: FrameStats) -> None:
+        """Pool an already matched frame (e.g. the env's frame_scores/tp/fp/n_gt info)."""
+        if not isinstance(stats, FrameStats):
+            raise ValueError(f"stats must be a FrameStats; got {type(stats).__name__}")
+        if stats.thresholds != self.thresholds:
+            raise ValueError(
+                f"stats.thresholds must equal the accumulator's {self.thresholds}; "
+                f"got {stats.thresholds}"
+            )
+        self._scores.append(stats.scores)
+        self._tp.append(stats.tp)
+        self._n_gt += stats.n_gt
+
+    def ap(self) -> dict[float, float]:
+        """Dataset AP per threshold, ``{0.3: .., 0.5: .., 0.7: ..}``."""
+        scores = np.concatenate(self._scores) if self._scores else np.zeros(0)
+        tp = (
+            np.concatenate(self._tp, axis=1)
+            if self._tp
+            else np.zeros((len(self.thresholds), 0), dtype=bool)
+        )
+        return {
+            thr: average_precision(scores, tp[k], self._n_gt)
+            for k, thr in enumerate(self.thresholds)
+        }
+
+
+def _range(values: Sequence[float], name: str) -> tuple[float, float]:
+    arr = np.asarray(values, dtype=float).reshape(-1)
+    if arr.shape != (2,) or not np.all(np.isfinite(arr)) or arr[0] >= arr[1]:
+        raise ValueError(f"{name} must be two finite values [low, high] with low < high; got {values}")
+    return float(arr[0]), float(arr[1])
+
+
+def in_range_mask(boxes: np.ndarray, x_range: Sequence[float],
+                  y_range: Sequence[float]) -> np.ndarray:
+    """(N,) bool: True where all four BEV corners of a box lie inside the ranges (inclusive).
+
+    ``boxes`` (N, 7) and the ranges (metres) are in the same (ego) frame.
+    """
+    boxes = validate_boxes(boxes, "boxes")
+    (x_lo, x_hi), (y_lo, y_hi) = _range(x_range, "x_range"), _range(y_range, "y_range")
+    corners = box_corners_bev(boxes)
+    inside = (
+        (corners[..., 0] >= x_lo) & (corners[..., 0] <= x_hi)
+        & (corners[..., 1] >= y_lo) & (corners[..., 1] <= y_hi)
+    )
+    return inside.all(axis=1)
+
+
+def _poses_allow_nan(poses: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(poses, dtype=float)
+    if arr.ndim == 1 and arr.size == 0:
+        arr = arr.reshape(0, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3) = (x, y, yaw); got {arr.shape}")
+    if np.any(np.isinf(arr)):
+        raise ValueError(f"{name} contains inf; values must be finite (NaN marks an empty slot)")
+    return arr
+
+
+def relative_pose_error(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Errors (N, 2) = [translation m, rotation deg] of estimated vs true poses (N, 3).
+
+    Translation error is the Euclidean distance of the translations (equal to the
+    norm of the translation of ``truth^-1 * estimated``); rotation error is the
+    absolute wrapped yaw difference in degrees. Rows containing NaN (empty
+    slots) give NaN rows.
+    """
+    estimated = _poses_allow_nan(estimated, "estimated")
+    truth = _poses_allow_nan(truth, "truth")
+    if estimated.shape != truth.shape:
+        raise ValueError(
+            f"estimated and truth must have the same shape; got {estimated.shape} and {truth.shape}"
+        )
+    trans = np.hypot(estimated[:, 0] - truth[:, 0], estimated[:, 1] - truth[:, 1])
+    rot = np.degrees(np.abs(wrap_angle(estimated[:, 2] - truth[:, 2])))
+    errors = np.stack([trans, rot], axis=1)
+    errors[np.isnan(errors).any(axis=1)] = np.nan
+    return errors
+
+
+def success_rate(errors: np.ndarray, lam: float) -> float:
+    """Share of rows with translation < lam m AND rotation < lam deg; NaN rows ignored.
+
+    ``errors`` (N, 2) as returned by :func:`relative_pose_error`. NaN if no row is valid.
+    """
+    arr = np.asarray(errors, dtype=float)
+    if arr.ndim == 1 and arr.size == 0:
+        arr = arr.reshape(0, 2)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"errors must have shape (N, 2) = (translation m, rotation deg); got {arr.shape}")
+    if np.any(arr < 0):
+        raise ValueError("errors must be non-negative (or NaN for empty slots)")
+    if not (np.isfinite(lam) and lam > 0):
+        raise ValueError(f"lam must be a finite positive number (m and deg); got {lam}")
+    valid = arr[~np.isnan(arr).any(axis=1)]
+    if valid.shape[0] == 0:
+        return float("nan")
+    return float(np.mean((valid[:, 0] < lam) & (valid[:, 1] < lam)))

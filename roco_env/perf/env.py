@@ -1,0 +1,114 @@
+"""Environment throughput: steps per second and the cost split by stage.
+
+Setting (issue 5): ``urban_intersection`` with 4 CAVs + 1 RSU (5 agents, every
+one evaluated as an ego), the lowest density (step 0.5) giving at least 100
+vehicles at reset, identity policy, late fusion. The per-step cost varies along
+an episode (signal phases, queues), so whole episodes from a seeded reset are
+timed. Baseline measured in the same process: the late-fusion NMS of all egos
+done one ego at a time with ``geometry.nms_bev`` (the plain implementation)
+against the batched NMS the env uses (identical kept boxes).
+"""
+
+from __future__ import annotations
+
+import cProfile
+import io
+import pstats
+import time
+
+import numpy as np
+
+from roco_env.env import CollabPerceptionEnv
+from roco_env.fusion import merge_into_ego_frame
+from roco_env.fusion.nms import batched_nms_bev
+from roco_env.geometry import nms_bev
+from roco_env.perf._timing import median_seconds
+from roco_env.policies.basic import IdentityPolicy
+
+SETTING = dict(scenario="urban_intersection", cavs=4, rsus=1, fusion="late")
+TARGET_VEHICLES = 100
+TARGET_STEPS_PER_S = 200.0
+
+
+def _env() -> tuple[CollabPerceptionEnv, dict, dict]:
+    """The benchmark env, reset with seed 0, at the density giving TARGET_VEHICLES."""
+    for density in np.arange(2.0, 20.0, 0.5):
+        env = CollabPerceptionEnv(**SETTING, density=float(density), max_cycles=10**9)
+        obs, infos = env.reset(seed=0)
+        if env.unwrapped._frame.state.num_objects >= TARGET_VEHICLES:
+            return env, obs, infos
+    raise ValueError(f"no density up to 20 gives {TARGET_VEHICLES} vehicles")
+
+
+def _stepper(env: CollabPerceptionEnv, obs: dict, infos: dict, steps: int):
+    policy = IdentityPolicy()
+    state = {"obs": obs, "infos": infos}
+
+    def run_steps() -> None:
+        for _ in range(steps):
+            actions = {a: policy(state["obs"][a], state["infos"][a]) for a in env.agents}
+            state["obs"], _, _, _, state["infos"] = env.step(actions)
+
+    return run_steps
+
+
+def run(quick: bool) -> list[str]:
+    steps, repeats = (100, 3) if quick else (500, 3)
+    env, obs, infos = _env()
+    frame = env.unwrapped._frame
+    lines = [f"setting: {env.config.name}, {len(env.possible_agents)} agents (all evaluated), "
+             f"{frame.state.num_objects} vehicles (density {env.config.traffic.density}), "
+             "identity policy, late fusion"]
+
+    def episode() -> None:  # steps 1..steps after a seeded reset (cost varies along it)
+        _stepper(env, *env.reset(seed=0), steps)()
+
+    seconds = median_seconds(episode, repeats=repeats, warmup=1)
+    rate = steps / seconds
+    lines.append(f"env.step over {steps}-step episodes: {1e3 * seconds / steps:.2f} ms/step "
+                 f"(median of {repeats}) -> {rate:.0f} steps/s (target "
+                 f"{TARGET_STEPS_PER_S:.0f}: {'met' if rate >= TARGET_STEPS_PER_S else 'NOT met'})")
+
+    env.clock.enabled = True
+    start = time.perf_counter()
+    episode()
+    wall = time.perf_counter() - start
+    env.clock.enabled = False
+    split = dict(env.clock.seconds)
+    split["other (env glue, policy)"] = wall - sum(split.values())
+    lines.append(f"cost split by stage (one more episode, {1e3 * wall / steps:.2f} ms/step):")
+    for stage, spent in sorted(split.items(), key=lambda item: -item[1]):
+        lines.append(f"  {stage:<26} {1e3 * spent / steps:6.2f} ms/step "
+                     f"({100 * spent / wall:4.1f}%)")
+
+    merged = [merge_into_ego_frame(v.boxes, v.scores, v.collab_boxes, v.collab_scores,
+                                   v.reported_relative) for v in frame.views]
+    thr = env.config.fusion.nms_iou
+    boxes, scores = [m.boxes for m in merged], [m.scores for m in merged]
+    plain = median_seconds(lambda: [nms_bev(b, s, thr) for b, s in zip(boxes, scores,
+                                                                         strict=True)],
+                           repeats=repeats * 3)
+    batched = median_seconds(lambda: batched_nms_bev(boxes, scores, thr), repeats=repeats * 3)
+    same = all(np.array_equal(a, b) for a, b in zip(
+        batched_nms_bev(boxes, scores, thr), [nms_bev(b, s, thr) for b, s in
+                                              zip(boxes, scores, strict=True)], strict=True))
+    lines.append(f"late-fusion NMS of {len(merged)} egos on the first frame "
+                 f"({sum(len(b) for b in boxes)} boxes): "
+                 f"batched {1e3 * batched:.2f} ms vs per-ego nms_bev {1e3 * plain:.2f} ms -> "
+                 f"{plain / batched:.1f}x, identical kept boxes: {same}")
+    if not quick:
+        lines += _profile(env, steps)
+    return lines
+
+
+def _profile(env: CollabPerceptionEnv, steps: int, top: int = 6) -> list[str]:
+    profiler = cProfile.Profile()
+    run_steps = _stepper(env, *env.reset(seed=0), steps)
+    profiler.enable()
+    run_steps()
+    profiler.disable()
+    out = io.StringIO()
+    pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(top)
+    rows = [line for line in out.getvalue().splitlines() if "/" in line or "{" in line]
+    return ["cProfile, top functions by own time (ncalls tottime percall cumtime percall):"] + [
+        "  " + " ".join(row.split()) for row in rows[:top]]

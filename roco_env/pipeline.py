@@ -1,0 +1,191 @@
+"""The per-step perception pipeline upstream of the policy: traffic -> noise -> sensing -> views.
+
+Built from a :class:`~roco_env.scenario.ScenarioConfig`; the environment drives
+it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Frame`:
+the world, every agent's reported pose and detections, and each agent's
+:class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
+transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
+the same top-K of its own. With ``noise.perturb_ego=False`` an ego's own pose
+in its view is its true pose (its collaborators' stay noisy).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+
+import numpy as np
+
+from roco_env.geometry import se2_relative
+from roco_env.noise import make_pose_noise
+from roco_env.observation import EgoView, top_k
+from roco_env.scenario import ScenarioConfig
+from roco_env.sensing import (
+    CHANNELS,
+    AgentDetections,
+    BevGrid,
+    Visibility,
+    bev_features,
+    build_messages,
+    compute_visibility,
+    make_detector,
+)
+from roco_env.traffic import make_traffic_source
+from roco_env.traffic.state import WorldState
+
+
+class StageClock:
+    """Accumulates wall time per named stage (seconds); a no-op unless ``enabled``."""
+
+    def __init__(self, enabled: bool = False) -> None:
+        self.enabled = enabled
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def measure(self, stage: str) -> AbstractContextManager:
+        """Context manager timing one run of ``stage``."""
+        return _Timed(self.seconds, stage) if self.enabled else nullcontext()
+
+
+class _Timed(AbstractContextManager):
+    def __init__(self, sink: dict[str, float], stage: str) -> None:
+        self.sink, self.stage = sink, stage
+
+    def __enter__(self) -> _Timed:
+        self.start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.sink[self.stage] += time.perf_counter() - self.start
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One step's perception inputs.
+
+    state: the world; reported_poses (A, 3): the noise model's output for every
+    agent (world frame); visibility: who sees what; detections: per agent, top-K,
+    in its true sensor frame; features: per agent (C, H, W) tensors or None;
+    views: per agent, what its observation holds.
+    """
+
+    state: WorldState
+    reported_poses: np.ndarray
+    visibility: Visibility
+    detections: tuple[AgentDetections, ...]
+    features: tuple | None
+    views: tuple[EgoView, ...]
+
+
+class Pipeline:
+    """Traffic, pose noise, detector and messages of one scenario."""
+
+    def __init__(self, config: ScenarioConfig, clock: StageClock | None = None,
+                 frames: Sequence | None = None) -> None:
+        """frames: the user's scene for ``traffic.source='frames'`` (roco_env.traffic.frames)."""
+        self.config = config
+        self.clock = clock or StageClock()
+        self.traffic = make_traffic_source(config, frames=frames)
+        self.agent_ids: tuple[str, ...] = tuple(
+            [f"cav_{i}" for i in range(config.agents.cavs)]
+            + [f"rsu_{i}" for i in range(config.agents.rsus)]
+        )
+        self.noise = make_pose_noise(config.noise, self.agent_ids, config.traffic.dt)
+        self.detector = make_detector(config.detector)
+        evaluation = config.evaluation
+        self.grid = (
+            BevGrid(tuple(evaluation.x_range), tuple(evaluation.y_range),
+                    config.features.resolution)
+            if config.features.enabled else None
+        )
+        self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
+
+    @property
+    def feature_shape(self) -> tuple[int, int, int] | None:
+        """(C, H, W) of the BEV feature maps, None when features are off."""
+        if self.grid is None:
+            return None
+        return (len(CHANNELS), self.grid.H, self.grid.W)
+
+    def reset(self, rng: np.random.Generator) -> Frame:
+        """Start an episode: independent child streams for traffic, noise and sensing."""
+        traffic_rng, noise_rng, sensing_rng = rng.spawn(3)
+        self._rngs = (noise_rng, sensing_rng)
+        with self.clock.measure("traffic"):
+            state = self.traffic.reset(traffic_rng)
+        if state.agent_ids != self.agent_ids:
+            raise ValueError(
+                f"the traffic source produced agents {list(state.agent_ids)} but the scenario's "
+                f"agents.cavs={self.config.agents.cavs} and agents.rsus={self.config.agents.rsus} "
+                f"imply {list(self.agent_ids)}"
+            )
+        self.noise.reset(noise_rng)
+        return self._observe(state)
+
+    def advance(self) -> Frame:
+        """Move the traffic one step (config.traffic.dt seconds) and observe it."""
+        if self._rngs is None:
+            raise ValueError("advance() called before reset(rng)")
+        with self.clock.measure("traffic"):
+            state = self.traffic.step(self.config.traffic.dt)
+        return self._observe(state)
+
+    def _observe(self, state: WorldState) -> Frame:
+        noise_rng, sensing_rng = self._rngs
+        with self.clock.measure("noise"):
+            reported = self.noise.perturb(state.agent_poses, noise_rng)
+        with self.clock.measure("visibility"):
+            visibility = compute_visibility(state)
+        with self.clock.measure("detection"):
+            detections = tuple(
+                _top_k_detections(d, self.config.max_boxes)
+                for d in self.detector.detect(state, visibility, sensing_rng)
+            )
+        features = None
+        if self.grid is not None:
+            with self.clock.measure("features"):
+                features = tuple(bev_features(visibility, a, self.grid)
+                                 for a in range(state.num_agents))
+        with self.clock.measure("messages"):
+            views = tuple(self._view(state, i, reported, detections, features)
+                          for i in range(state.num_agents))
+        return Frame(state, reported, visibility, detections, features, views)
+
+    def _view(self, state: WorldState, ego: int, reported: np.ndarray,
+              detections: tuple[AgentDetections, ...], features: tuple | None) -> EgoView:
+        messages = build_messages(state, ego, reported, detections,
+                                  self.config.max_collaborators, features)
+        slots = tuple(self.agent_ids.index(m.sender) for m in messages)
+        own_pose = reported[ego] if self.noise.perturb_ego else state.agent_poses[ego]
+        collab_poses = np.array([m.reported_pose for m in messages]).reshape(-1, 3)
+        true = state.agent_poses
+        mine = detections[ego]
+        return EgoView(
+            agent=ego,
+            pose=np.array(own_pose, dtype=float),
+            boxes=mine.boxes,
+            uncertainty=mine.uncertainty,
+            scores=mine.scores,
+            object_ids=mine.object_ids,
+            collaborators=slots,
+            collab_poses=collab_poses,
+            reported_relative=se2_relative(own_pose[None, :], collab_poses),
+            true_relative=se2_relative(true[ego][None, :], true[list(slots)]).reshape(-1, 3),
+            collab_boxes=tuple(m.boxes for m in messages),
+            collab_uncertainty=tuple(m.uncertainty for m in messages),
+            collab_scores=tuple(m.scores for m in messages),
+            collab_object_ids=tuple(detections[j].object_ids for j in slots),
+            features=None if features is None else features[ego],
+            collab_features=None if features is None else tuple(m.features for m in messages),
+        )
+
+
+def _top_k_detections(detections: AgentDetections, k: int) -> AgentDetections:
+    """The at most ``k`` highest-scoring detections (order kept)."""
+    if detections.scores.shape[0] <= k:
+        return detections
+    idx = top_k(detections.scores, k)
+    return AgentDetections(detections.boxes[idx], detections.uncertainty[idx],
+                           detections.scores[idx], detections.object_ids[idx])

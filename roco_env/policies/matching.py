@@ -1,0 +1,281 @@
+"""RoCo's graph-guided object matching (paper section 4.2, DESIGN.md section 6 steps 2-5).
+
+Given the landmark set P (poses in the ego frame) and one collaborator's boxes Q
+(poses in the collaborator's own frame, and the same boxes mapped into the ego
+frame with the current pose estimate):
+
+1. star graph per box: centre = the box, leaves = the other boxes of the same set
+   within ``neighbor_radius`` metres (the paper's "spatial neighbours"; default 20 m,
+   None = all boxes). Local graphs matter with real detections: T_pm lives in box p's
+   frame, so a heading error of p moves a leaf 50 m away by ~0.9 m per degree and the
+   edge consistency of far leaves collapses (env urban_intersection at sigma 0.8:
+   Success@1m1deg 0.70 with all boxes, 0.97 at 30 m, 0.996 at 20 m). Star graphs over
+   all boxes help only in perfectly periodic layouts (tests/test_roco.py parking lot);
+2. initial match A(m) = nearest q with dis(m, q) <= tau2 (centre distance, metres,
+   in the ego frame);
+3. edge similarity S_edge(p, q) = mean over leaves m of p with a match n = A(m),
+   n != q and n a leaf of q, of exp(-||T_pm T_qn^{-1} - I||_F), T the 3x3
+   homogeneous box-to-box transform (frame independent: T_qn is computed in the
+   collaborator's own frame); 0 when no leaf qualifies;
+4. distance similarity S_dis = exp(-dis(p, q)); S = S_edge + lambda * S_dis;
+5. maximum-weight one-to-one assignment (Kuhn-Munkres) over the gated pairs
+   (dis <= tau2); assigned pairs with S < tau1 are rejected.
+
+Every candidate pair is scored at once with numpy broadcasting over
+(candidate pairs x matched leaves). :class:`StarGraphMatcher` serves the
+re-matching rounds of one collaborator against one landmark set: per-box
+features are computed once, and S_edge is reused while the candidate pairs and
+the initial matches stay the same (it does not depend on the pose otherwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+__all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
+
+_EMPTY_INDEX = np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class MatchingParams:
+    """tau1 (similarity threshold), tau2 (gate, m), lam (weight of S_dis),
+    use_edge_similarity / use_distance_similarity (ablation switches),
+    neighbor_radius (m, leaves of a star graph; None = all boxes are leaves)."""
+
+    tau1: float = 0.5
+    tau2: float = 3.0
+    lam: float = 1.0
+    use_edge_similarity: bool = True
+    use_distance_similarity: bool = True
+    neighbor_radius: float | None = 20.0
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.tau1):
+            raise ValueError(f"tau1 must be finite; got {self.tau1}")
+        if not (np.isfinite(self.tau2) and self.tau2 > 0):
+            raise ValueError(f"tau2 must be a finite distance > 0 m; got {self.tau2}")
+        if not (np.isfinite(self.lam) and self.lam >= 0):
+            raise ValueError(f"lam must be finite and >= 0; got {self.lam}")
+        if not (self.use_edge_similarity or self.use_distance_similarity):
+            raise ValueError("use_edge_similarity and use_distance_similarity cannot both be False")
+        if self.neighbor_radius is not None and not self.neighbor_radius > 0:
+            raise ValueError(f"neighbor_radius must be None or > 0 m; got {self.neighbor_radius}")
+
+
+def edge_consistency(rel_a: np.ndarray, rel_b: np.ndarray) -> np.ndarray:
+    """exp(-||T_a T_b^{-1} - I||_F) for relative poses (..., 3) (closed form).
+
+    For SE(2), T_a T_b^{-1} has rotation phi = yaw_a - yaw_b and translation
+    t_a - R(phi) t_b; ||R(phi) - I||_F^2 = 4 (1 - cos phi).
+    """
+    return _consistency(*np.moveaxis(rel_a, -1, 0), *np.moveaxis(rel_b, -1, 0))
+
+
+def _consistency(ax, ay, ayaw, bx, by, byaw):
+    phi = ayaw - byaw
+    c, s = np.cos(phi), np.sin(phi)
+    tx = ax - (c * bx - s * by)
+    ty = ay - (s * bx + c * by)
+    return np.exp(-np.sqrt(4.0 * (1.0 - c) + tx * tx + ty * ty))
+
+
+def _pose_features(poses: np.ndarray) -> np.ndarray:
+    """Per-pose factors (5, n) of the bilinear edge-similarity form: x, y, x^2 + y^2,
+    cos(yaw), sin(yaw)."""
+    x, y, yaw = poses[:, 0], poses[:, 1], poses[:, 2]
+    return np.stack([x, y, x * x + y * y, np.cos(yaw), np.sin(yaw)])
+
+
+class StarGraphMatcher:
+    """Matching of one collaborator's boxes against a fixed landmark set, for several
+    pose estimates (RoCo's re-matching rounds).
+
+    landmarks (L, 3): poses in the ego frame; boxes_own (K, 3): the collaborator's box
+    poses in its own frame. :meth:`match` takes the current pose estimate T_{j->i}.
+    """
+
+    def __init__(self, landmarks: np.ndarray, boxes_own: np.ndarray, params: MatchingParams):
+        self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
+        self._land_features = _pose_features(landmarks)
+        self._box_features = _pose_features(boxes_own)
+        self._cached_key: tuple | None = None
+        self._cached_edge = np.zeros(0)
+
+    def match(
+        self, pose: np.ndarray, tau2: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Match under the pose estimate ``pose`` (3,) with gate ``tau2`` (m; default
+        ``params.tau2``). Returns (landmark index (P,), box index (P,), similarity S (P,)),
+        sorted by landmark index."""
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        xy = self.boxes_own[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
+        return self.match_centres(xy, self.params.tau2 if tau2 is None else tau2)
+
+    def match_centres(
+        self, centres: np.ndarray, tau2: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
+        if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
+            return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
+        dis = np.hypot(
+            self.landmarks[:, None, 0] - centres[None, :, 0],
+            self.landmarks[:, None, 1] - centres[None, :, 1],
+        )
+        cand_p, cand_q = np.nonzero(dis <= tau2)
+        if cand_p.size == 0:
+            return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
+        p = self.params
+        score = p.lam * np.exp(-dis[cand_p, cand_q]) if p.use_distance_similarity else 0.0
+        if p.use_edge_similarity:
+            score = score + self._edge_similarity(dis, tau2, cand_p, cand_q)
+        return _assign(cand_p, cand_q, score, p.tau1)
+
+    def _edge_similarity(
+        self, dis: np.ndarray, tau2: float, cand_p: np.ndarray, cand_q: np.ndarray
+    ) -> np.ndarray:
+        """S_edge (C,) of the candidate pairs, reused when the candidate pairs and the
+        initial matches A are those of the previous call."""
+        # A row's nearest box is within the gate iff the row has a gated box at all.
+        nearest = dis.argmin(axis=1)
+        leaves = np.nonzero(dis[np.arange(dis.shape[0]), nearest] <= tau2)[0]
+        partner = nearest[leaves]  # n = A(m)
+        key = (cand_p.size, leaves.size, np.concatenate([cand_p, cand_q, leaves, partner]).tobytes())
+        if key != self._cached_key:
+            self._cached_edge = _edge_similarity_from_features(
+                self._land_features,
+                self._box_features,
+                cand_p,
+                cand_q,
+                leaves,
+                partner,
+                self.params.neighbor_radius,
+            )
+            self._cached_key = key
+        return self._cached_edge
+
+
+def match_star_graphs(
+    landmarks: np.ndarray, boxes_own: np.ndarray, boxes_ego: np.ndarray, params: MatchingParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Match landmarks (L, 3) to a collaborator's boxes.
+
+    boxes_own (K, 3): box poses in the collaborator's frame; boxes_ego (K, 3): the same
+    boxes in the ego frame under the current pose estimate. Returns (landmark index (P,),
+    box index (P,), similarity S (P,)), sorted by landmark index.
+    """
+    matcher = StarGraphMatcher(landmarks, boxes_own, params)
+    return matcher.match_centres(np.asarray(boxes_ego)[:, :2], params.tau2)
+
+
+def _assign(
+    cand_p: np.ndarray, cand_q: np.ndarray, score: np.ndarray, tau1: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Maximum-weight one-to-one assignment (Kuhn-Munkres) over the candidate pairs
+    (sorted by p); assigned pairs with S < tau1 are dropped.
+
+    When every landmark and every box has a single candidate and every score is > 0, the
+    unique optimum takes all pairs, so the solver is skipped (the usual sparse scene).
+    """
+    if np.bincount(cand_p).max() == 1 and np.bincount(cand_q).max() == 1 and np.all(score > 0):
+        keep = score >= tau1
+        return cand_p[keep], cand_q[keep], score[keep]
+    rows, row_idx = np.unique(cand_p, return_inverse=True)
+    cols, col_idx = np.unique(cand_q, return_inverse=True)
+    weights = np.zeros((rows.size, cols.size))
+    weights[row_idx, col_idx] = score
+    valid = np.zeros_like(weights, dtype=bool)
+    valid[row_idx, col_idx] = True
+    r, c = linear_sum_assignment(weights, maximize=True)
+    keep = valid[r, c] & (weights[r, c] >= tau1)
+    return rows[r[keep]], cols[c[keep]], weights[r[keep], c[keep]]
+
+
+def _edge_similarity(
+    landmarks: np.ndarray,
+    boxes_own: np.ndarray,
+    dis: np.ndarray,
+    gated: np.ndarray,
+    cand_p: np.ndarray,
+    cand_q: np.ndarray,
+    params: MatchingParams,
+) -> np.ndarray:
+    """S_edge for every candidate pair (C,) via the initial-match table A (gated: dis <= tau2)."""
+    leaves = np.nonzero(gated.any(axis=1))[0]  # landmarks m with an initial match
+    partner = np.argmin(np.where(gated[leaves], dis[leaves], np.inf), axis=1)  # n = A(m)
+    return _edge_similarity_from_features(
+        _pose_features(landmarks),
+        _pose_features(boxes_own),
+        cand_p,
+        cand_q,
+        leaves,
+        partner,
+        params.neighbor_radius,
+    )
+
+
+def _edge_similarity_from_features(
+    land: np.ndarray,
+    box: np.ndarray,
+    cand_p: np.ndarray,
+    cand_q: np.ndarray,
+    leaves: np.ndarray,
+    partner: np.ndarray,
+    neighbor_radius: float | None,
+) -> np.ndarray:
+    """S_edge (C,) from :func:`_pose_features` of the landmarks and the boxes.
+
+    ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
+    - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
+    frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
+    candidate feature and a leaf feature, so all (C x H) norms are one matrix product,
+    and so are the squared leaf distances |d_pm|^2, |d_qn|^2 of the radius test.
+    """
+    px, py, p2, pc, ps = land[:, cand_p]
+    qx, qy, q2, qc, qs = box[:, cand_q]
+    mx, my, m2, mc, ms = land[:, leaves]
+    nx, ny, n2, nc, ns = box[:, partner]
+    cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
+    rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
+    rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
+    cand = np.stack(
+        [
+            np.ones_like(px),
+            pc * qc + ps * qs,  # cos(v)
+            ps * qc - pc * qs,  # sin(v)
+            px,
+            py,
+            p2,
+            qx,
+            qy,
+            q2,
+            px * qx + py * qy,
+            py * qx - px * qy,
+        ],
+        axis=1,
+    )
+    h = leaves.size
+    leaf = np.zeros((11, h if neighbor_radius is None else 3 * h))
+    leaf[0, :h] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
+    leaf[1, :h], leaf[2, :h] = -4.0 * cu, -4.0 * su
+    leaf[3, :h], leaf[4, :h] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
+    leaf[6, :h], leaf[7, :h] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
+    leaf[5, :h] = leaf[8, :h] = 1.0
+    leaf[9, :h], leaf[10, :h] = -2.0 * cu, -2.0 * su
+    usable = (leaves[None, :] != cand_p[:, None]) & (partner[None, :] != cand_q[:, None])
+    if neighbor_radius is None:
+        norm2 = cand @ leaf
+    else:
+        # |t_p - t_m|^2 and |t_q - t_n|^2 from the same product (columns 0 and 3-8 of cand).
+        leaf[0, h : 2 * h], leaf[5, h : 2 * h] = m2, 1.0
+        leaf[3, h : 2 * h], leaf[4, h : 2 * h] = -2.0 * mx, -2.0 * my
+        leaf[0, 2 * h :], leaf[8, 2 * h :] = n2, 1.0
+        leaf[6, 2 * h :], leaf[7, 2 * h :] = -2.0 * nx, -2.0 * ny
+        norm2, dist_pm, dist_qn = np.split(cand @ leaf, 3, axis=1)
+        r2 = neighbor_radius**2
+        usable &= (dist_pm <= r2) & (dist_qn <= r2)
+    total = (np.exp(-np.sqrt(np.maximum(norm2, 0.0))) * usable).sum(axis=1)
+    return total / np.maximum(usable.sum(axis=1), 1)

@@ -1,0 +1,137 @@
+"""Observation adapter shared by the array-based aligners (CoAlign, RoCo).
+
+Maps one agent's env observation (contract layout: padded slots with masks) to
+the array call ``align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
+**params)``: only masked boxes are used, collaborator boxes stay in their own
+frames, reported relative poses come from ``obs["collab_rel_poses"]`` of the
+filled slots. The result is mapped back to slot and box positions of the
+observation, and the action is the correction that turns the reported relative
+poses into the corrected ones (zeros for empty slots).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from roco_env.policies.base import AlignmentResult, correction_action
+
+__all__ = ["ArrayAlignmentPolicy", "ObservationView", "unpack_observation"]
+
+_KEYS = (
+    "boxes",
+    "uncertainty",
+    "box_mask",
+    "collab_mask",
+    "collab_rel_poses",
+    "collab_boxes",
+    "collab_uncertainty",
+    "collab_box_mask",
+)
+
+
+@dataclass(frozen=True)
+class ObservationView:
+    """The filled part of an observation.
+
+    slots (n,): filled collaborator slots; ego_index (K0,), collab_index[j] (K_j,):
+    positions of the used boxes in the padded arrays; reported_full (N, 3): reported
+    T_{j->i} for every slot (identity where empty).
+    """
+
+    ego_boxes: np.ndarray
+    ego_unc: np.ndarray
+    ego_index: np.ndarray
+    collab_boxes: list[np.ndarray]
+    collab_unc: list[np.ndarray]
+    collab_index: list[np.ndarray]
+    slots: np.ndarray
+    reported_full: np.ndarray
+
+    @property
+    def reported(self) -> np.ndarray:
+        return self.reported_full[self.slots]
+
+    def expand(self, result: AlignmentResult) -> AlignmentResult:
+        """Map a result over the filled slots/used boxes back to observation positions."""
+        n = self.reported_full.shape[0]
+        corrected = self.reported_full.copy()
+        corrected[self.slots] = result.corrected
+        applied = np.zeros(n, dtype=bool)
+        applied[self.slots] = result.applied
+        pairs = np.asarray(result.matched_pairs, dtype=np.int64).reshape(-1, 4).copy()
+        for col in (0, 2):
+            slot, box = pairs[:, col].copy(), pairs[:, col + 1].copy()
+            for compact in np.unique(slot):
+                sel = slot == compact
+                index = self.ego_index if compact < 0 else self.collab_index[compact]
+                pairs[sel, col + 1] = index[box[sel]]
+                pairs[sel, col] = -1 if compact < 0 else self.slots[compact]
+        return replace(result, corrected=corrected, applied=applied, matched_pairs=pairs)
+
+
+def _field(observation: dict, key: str) -> np.ndarray:
+    if key not in observation:
+        raise ValueError(f"observation lacks {key!r}; required keys: {', '.join(_KEYS)}")
+    return np.asarray(observation[key])
+
+
+def unpack_observation(observation: dict) -> ObservationView:
+    """Extract the masked boxes and filled slots of one agent's observation."""
+    boxes, unc = _field(observation, "boxes"), _field(observation, "uncertainty")
+    ego_index = np.nonzero(_field(observation, "box_mask") > 0)[0]
+    collab_mask = _field(observation, "collab_mask") > 0
+    rel = np.asarray(_field(observation, "collab_rel_poses"), dtype=float).reshape(-1, 3)
+    cboxes, cunc = _field(observation, "collab_boxes"), _field(observation, "collab_uncertainty")
+    cmask = _field(observation, "collab_box_mask") > 0
+    slots = np.nonzero(collab_mask)[0]
+    reported_full = np.where(collab_mask[:, None], rel, 0.0)
+    collab_index = [np.nonzero(cmask[s])[0] for s in slots]
+    return ObservationView(
+        ego_boxes=np.asarray(boxes[ego_index], dtype=float),
+        ego_unc=np.asarray(unc[ego_index], dtype=float),
+        ego_index=ego_index,
+        collab_boxes=[
+            np.asarray(cboxes[s][i], dtype=float) for s, i in zip(slots, collab_index, strict=True)
+        ],
+        collab_unc=[
+            np.asarray(cunc[s][i], dtype=float) for s, i in zip(slots, collab_index, strict=True)
+        ],
+        collab_index=collab_index,
+        slots=slots,
+        reported_full=reported_full,
+    )
+
+
+class ArrayAlignmentPolicy:
+    """Env policy around an array aligner ``align(...) -> AlignmentResult``.
+
+    ``params`` (already validated by the subclass) is kept as ``self.params``; the raw
+    keyword arguments are passed to ``align`` on every call. ``self.last_result`` holds
+    the last result in observation positions (slots, box indices).
+    """
+
+    def __init__(self, align: Callable[..., AlignmentResult], params: object, kwargs: dict):
+        self._align = align
+        self._kwargs = dict(kwargs)
+        self.params = params
+        self.last_result: AlignmentResult | None = None
+
+    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
+        view = unpack_observation(observation)
+        result = self._align(
+            view.ego_boxes,
+            view.ego_unc,
+            view.collab_boxes,
+            view.collab_unc,
+            view.reported,
+            **self._kwargs,
+        )
+        self.last_result = view.expand(result)
+        return correction_action(view.reported_full, self.last_result.corrected)
+
+    def reset(self) -> None:
+        """Stateless between frames; kept for a uniform policy interface."""
+        self.last_result = None

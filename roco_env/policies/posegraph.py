@@ -1,0 +1,601 @@
+"""SE(2) pose-graph optimisation: agents + landmarks, Levenberg-Marquardt, Schur complement.
+
+Vertices are SE(2) poses (x m, y m, yaw rad) in one common frame (the ego's
+reported frame for the alignment policies). Two kinds of edges:
+
+* observation edge agent a -> landmark l, measurement ``Z`` = the landmark's
+  pose in the agent's frame (a detected box), 3x3 information ``Omega``;
+* prior edge agent a -> agent b, measurement ``Z`` = the relative pose
+  ``T_a^{-1} T_b`` (e.g. from the reported poses), 3x3 information.
+
+Every edge has the residual of the paper's ``e_ik = T_ip^{-1} E_i^{-1} X_k``:
+``e = (dx, dy, wrap(dyaw))`` of ``Z^{-1} T_a^{-1} T_l``, i.e. the translation
+part ``R_z^T (R_a^T (t_l - t_a) - t_z)`` and the wrapped angle ``th_l - th_a - th_z``.
+The cost is ``sum rho(e^T Omega e)`` with ``rho`` the identity (least squares)
+or a Huber/Cauchy kernel on observation edges, handled by IRLS weights
+``rho'(chi2)`` inside LM. Prior edges are always quadratic.
+
+Hand-written rather than scipy.optimize.least_squares because the structure
+matters: each landmark touches only agents, so its 3x3 block is eliminated by
+the Schur complement and every LM step solves a 3(N-1) system (N agents, one
+fixed), which is what makes per-frame alignment take milliseconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "PoseGraph",
+    "PoseGraphResult",
+    "PoseResult",
+    "ROBUST_KERNELS",
+    "edge_chi2",
+    "edge_residuals",
+    "optimize",
+    "optimize_pose",
+    "robust_kernel",
+]
+
+ROBUST_KERNELS = ("huber", "cauchy")
+_MIN_DIAG = 1e-9  # keeps Marquardt damping positive for vertices with no constraint
+
+
+@dataclass(frozen=True)
+class PoseGraph:
+    """An SE(2) pose graph.
+
+    agents (N, 3), landmarks (M, 3): initial vertex poses (x m, y m, yaw rad).
+    obs_agent, obs_landmark (E,): vertex indices of each observation edge;
+    obs_measurement (E, 3): landmark pose in the agent's frame; obs_information (E, 3, 3).
+    prior_from, prior_to (P,): agent indices; prior_measurement (P, 3): T_from^{-1} T_to;
+    prior_information (P, 3, 3).
+    """
+
+    agents: np.ndarray
+    landmarks: np.ndarray
+    obs_agent: np.ndarray
+    obs_landmark: np.ndarray
+    obs_measurement: np.ndarray
+    obs_information: np.ndarray
+    prior_from: np.ndarray
+    prior_to: np.ndarray
+    prior_measurement: np.ndarray
+    prior_information: np.ndarray
+
+    @classmethod
+    def build(
+        cls,
+        agents: np.ndarray,
+        landmarks: np.ndarray,
+        obs_agent: np.ndarray,
+        obs_landmark: np.ndarray,
+        obs_measurement: np.ndarray,
+        obs_information: np.ndarray,
+        prior_from: np.ndarray | None = None,
+        prior_to: np.ndarray | None = None,
+        prior_measurement: np.ndarray | None = None,
+        prior_information: np.ndarray | None = None,
+    ) -> PoseGraph:
+        """Validate shapes and indices and return the graph (float64/int64 arrays)."""
+        agents = _poses(agents, "agents")
+        landmarks = _poses(landmarks, "landmarks")
+        obs_agent = _indices(obs_agent, "obs_agent", agents.shape[0])
+        obs_landmark = _indices(obs_landmark, "obs_landmark", landmarks.shape[0])
+        n_obs = obs_agent.size
+        if obs_landmark.size != n_obs:
+            raise ValueError("obs_landmark must have one entry per obs_agent entry")
+        obs_measurement = _poses(obs_measurement, "obs_measurement", n_obs)
+        obs_information = _information(obs_information, "obs_information", n_obs)
+        prior_from = _indices(_or_empty(prior_from, (0,)), "prior_from", agents.shape[0])
+        prior_to = _indices(_or_empty(prior_to, (0,)), "prior_to", agents.shape[0])
+        n_prior = prior_from.size
+        if prior_to.size != n_prior:
+            raise ValueError("prior_to must have one entry per prior_from entry")
+        prior_measurement = _poses(
+            _or_empty(prior_measurement, (0, 3)), "prior_measurement", n_prior
+        )
+        prior_information = _information(
+            _or_empty(prior_information, (0, 3, 3)), "prior_information", n_prior
+        )
+        return cls(
+            agents,
+            landmarks,
+            obs_agent,
+            obs_landmark,
+            obs_measurement,
+            obs_information,
+            prior_from,
+            prior_to,
+            prior_measurement,
+            prior_information,
+        )
+
+
+@dataclass(frozen=True)
+class PoseGraphResult:
+    """Optimised vertices and solver diagnostics.
+
+    agents (N, 3), landmarks (M, 3): optimised poses. obs_chi2 (E,), prior_chi2 (P,):
+    ``e^T Omega e`` per edge at the solution. initial_cost / cost: robust cost before
+    and after. iterations: LM iterations (linearisations); converged: a convergence
+    test fired before the iteration cap.
+    """
+
+    agents: np.ndarray
+    landmarks: np.ndarray
+    obs_chi2: np.ndarray
+    prior_chi2: np.ndarray
+    initial_cost: float
+    cost: float
+    iterations: int
+    converged: bool
+
+
+def _or_empty(value: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    return np.zeros(shape) if value is None else value
+
+
+def _poses(value: np.ndarray, name: str, count: int | None = None) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.size == 0:
+        arr = arr.reshape(0, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3 or (count is not None and arr.shape[0] != count):
+        want = f"({count}, 3)" if count is not None else "(n, 3)"
+        raise ValueError(f"{name} must have shape {want} = (x, y, yaw); got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf; all values must be finite")
+    return arr
+
+
+def _indices(value: np.ndarray, name: str, bound: int) -> np.ndarray:
+    arr = np.asarray(value).reshape(-1)
+    if arr.size and (
+        not np.issubdtype(arr.dtype, np.integer) or arr.min() < 0 or arr.max() >= bound
+    ):
+        raise ValueError(f"{name} must hold integer indices in [0, {bound}); got {arr}")
+    return arr.astype(np.int64)
+
+
+def _information(value: np.ndarray, name: str, count: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.size == 0:
+        arr = arr.reshape(0, 3, 3)
+    if arr.shape != (count, 3, 3):
+        raise ValueError(f"{name} must have shape ({count}, 3, 3); got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf; all values must be finite")
+    return arr
+
+
+def edge_residuals(
+    pose_a: np.ndarray, pose_b: np.ndarray, measurement: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals and analytic Jacobians of ``Z^{-1} T_a^{-1} T_b`` for E edges.
+
+    pose_a, pose_b, measurement: (E, 3). Returns e (E, 3) = (dx, dy, wrapped dyaw),
+    J_a (E, 3, 3) = de/d(x_a, y_a, yaw_a) and J_b (E, 3, 3) = de/d(x_b, y_b, yaw_b).
+    """
+    e, jac = _residuals_jacobian(pose_a, pose_b, measurement[:, 2], _measurement_offset(measurement))
+    return e, jac[:, :, :3], jac[:, :, 3:]
+
+
+def _measurement_offset(measurement: np.ndarray) -> np.ndarray:
+    """R_z^T t_z (E, 2) of measurements (E, 3): the constant part of the residual."""
+    cz, sz = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
+    return np.stack(
+        [cz * measurement[:, 0] + sz * measurement[:, 1], -sz * measurement[:, 0] + cz * measurement[:, 1]],
+        axis=1,
+    )
+
+
+def _residuals(
+    pose_a: np.ndarray, pose_b: np.ndarray, meas_yaw: np.ndarray, meas_offset: np.ndarray
+) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """e (E, 3) of ``Z^{-1} T_a^{-1} T_b`` and the terms (c, s, w_x, w_y) its Jacobian reuses."""
+    angle = pose_a[:, 2] + meas_yaw
+    c, s = np.cos(angle), np.sin(angle)
+    dx = pose_b[:, 0] - pose_a[:, 0]
+    dy = pose_b[:, 1] - pose_a[:, 1]
+    # B = R(-(yaw_a + yaw_z)); w = B (t_b - t_a); e_t = w - R_z^T t_z.
+    wx = c * dx + s * dy
+    wy = -s * dx + c * dy
+    e = np.empty((pose_a.shape[0], 3))
+    e[:, 0] = wx - meas_offset[:, 0]
+    e[:, 1] = wy - meas_offset[:, 1]
+    e[:, 2] = _wrap(pose_b[:, 2] - angle)
+    return e, (c, s, wx, wy)
+
+
+def _residuals_jacobian(
+    pose_a: np.ndarray, pose_b: np.ndarray, meas_yaw: np.ndarray, meas_offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """e (E, 3) and the stacked Jacobian (E, 3, 6) = [J_a | J_b] (see :func:`edge_residuals`)."""
+    e, (c, s, wx, wy) = _residuals(pose_a, pose_b, meas_yaw, meas_offset)
+    jac = np.zeros((pose_a.shape[0], 3, 6))
+    jac[:, 0, 3], jac[:, 0, 4] = c, s
+    jac[:, 1, 3], jac[:, 1, 4] = -s, c
+    jac[:, 2, 5] = 1.0
+    jac[:, :, :3] = -jac[:, :, 3:]
+    # d w / d yaw_a = -S w with S the 90-degree rotation: (w_y, -w_x).
+    jac[:, 0, 2] = wy
+    jac[:, 1, 2] = -wx
+    return e, jac
+
+
+def edge_chi2(
+    pose_a: np.ndarray, pose_b: np.ndarray, measurement: np.ndarray, information: np.ndarray
+) -> np.ndarray:
+    """``e^T Omega e`` (E,) of the edges of :func:`edge_residuals` (information (E, 3, 3))."""
+    e = _residuals(pose_a, pose_b, measurement[:, 2], _measurement_offset(measurement))[0]
+    return np.einsum("ei,ei->e", e, np.matmul(information, e[:, :, None])[:, :, 0])
+
+
+def robust_kernel(
+    chi2: np.ndarray, kernel: str | None, delta: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(rho(chi2), rho'(chi2)) for the robust kernel (delta in whitened units)."""
+    if kernel is None:
+        return chi2, np.ones_like(chi2)
+    d2 = delta * delta
+    if kernel == "huber":
+        root = np.sqrt(chi2)
+        inlier = chi2 <= d2
+        rho = np.where(inlier, chi2, 2.0 * delta * root - d2)
+        return rho, np.where(inlier, 1.0, delta / np.maximum(root, 1e-300))
+    return d2 * np.log1p(chi2 / d2), 1.0 / (1.0 + chi2 / d2)
+
+
+def _scatter_indices(graph: PoseGraph) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """Where each edge's 6x6 Hessian block and 6-vector gradient go.
+
+    Hessian entries land in one flat buffer [H_aa (3N x 3N) | H_al (3N x 3M) | H_ll
+    (M, 3, 3) | one unused slot] and gradient entries in [g_a (3N) | g_l (3M)], so that
+    assembling the normal equations is one bincount each. Rows/columns 0-2 of a block
+    belong to the edge's agent, 3-5 to its landmark (observations) or second agent
+    (priors). Returns (hessian index (E, 6, 6), gradient index (E, 6), buffer sizes).
+    """
+    na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
+    obs_a, obs_l = graph.obs_agent, graph.obs_landmark
+    pf, pt = graph.prior_from, graph.prior_to
+    n_obs = obs_a.size
+    sizes = (9 * na * na, 9 * na * nl, 9 * nl)
+    i, j = np.arange(3)[:, None], np.arange(3)[None, :]
+
+    def block(row_base: np.ndarray, width: int, col_base: np.ndarray, offset: int) -> np.ndarray:
+        return offset + (row_base[:, None, None] + i) * width + col_base[:, None, None] + j
+
+    from_all = np.concatenate([obs_a, pf])
+    h = np.empty((from_all.size, 2, 3, 2, 3), dtype=np.int64)
+    h[:, 0, :, 0, :] = block(3 * from_all, 3 * na, 3 * from_all, 0)
+    h[:n_obs, 0, :, 1, :] = block(3 * obs_a, 3 * nl, 3 * obs_l, sizes[0])
+    h[:n_obs, 1, :, 0, :] = sum(sizes)  # H_la = H_al^T is not stored
+    h[:n_obs, 1, :, 1, :] = block(3 * obs_l, 3, np.zeros_like(obs_l), sizes[0] + sizes[1])
+    h[n_obs:, 0, :, 1, :] = block(3 * pf, 3 * na, 3 * pt, 0)
+    h[n_obs:, 1, :, 0, :] = block(3 * pt, 3 * na, 3 * pf, 0)
+    h[n_obs:, 1, :, 1, :] = block(3 * pt, 3 * na, 3 * pt, 0)
+    g = np.concatenate(
+        [
+            3 * from_all[:, None] + np.arange(3),
+            np.concatenate([3 * na + 3 * obs_l, 3 * pt])[:, None] + np.arange(3),
+        ],
+        axis=1,
+    )
+    return h.reshape(-1), g.reshape(-1), sizes
+
+
+class _Problem:
+    """Edge bookkeeping for one optimisation: all edges stacked (observations first),
+    vertices stacked (agents, then landmarks), scatter indices precomputed so that
+    assembling the normal equations is two bincounts (much faster than np.add.at)."""
+
+    def __init__(self, graph: PoseGraph, fixed: int, kernel: str | None, delta: float):
+        self.kernel, self.delta = kernel, delta
+        na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
+        self.n_agents, self.n_land, self.n_obs = na, nl, graph.obs_agent.size
+        self.from_vertex = np.concatenate([graph.obs_agent, graph.prior_from])
+        self.to_vertex = np.concatenate([na + graph.obs_landmark, graph.prior_to])
+        meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
+        self.meas_yaw, self.meas_offset = meas[:, 2], _measurement_offset(meas)
+        self.info = np.concatenate([graph.obs_information, graph.prior_information])
+        self.free = np.setdiff1d(np.arange(3 * na), np.arange(3 * fixed, 3 * fixed + 3))
+        self.h_index, self.g_index, self.h_sizes = _scatter_indices(graph)
+
+    def linearize(self, agents: np.ndarray, landmarks: np.ndarray):
+        """Robust cost and the linearisation (e, Jacobian, chi2, IRLS weight) at a state."""
+        vertices = np.concatenate([agents, landmarks])
+        e, jac = _residuals_jacobian(
+            vertices[self.from_vertex], vertices[self.to_vertex], self.meas_yaw, self.meas_offset
+        )
+        info_e = np.matmul(self.info, e[:, :, None])[:, :, 0]
+        chi2 = np.einsum("ei,ei->e", e, info_e)
+        rho, weight = robust_kernel(chi2[: self.n_obs], self.kernel, self.delta)
+        cost = float(rho.sum() + chi2[self.n_obs :].sum())
+        weight = np.concatenate([weight, np.ones(chi2.size - self.n_obs)])
+        return cost, (e, jac, chi2, weight)
+
+    def normal_equations(self, e, jac, chi2, weight):
+        """Dense H_aa (3N,3N), H_al (3N,3M), block-diagonal H_ll (M,3,3), g_a (3N,), g_l (M,3)."""
+        j_t_info = np.matmul(jac.transpose(0, 2, 1), self.info * weight[:, None, None])
+        blocks = np.matmul(j_t_info, jac)
+        grads = np.matmul(j_t_info, e[:, :, None])
+        na, nl = self.n_agents, self.n_land
+        n_aa, n_al, n_ll = self.h_sizes
+        h = np.bincount(self.h_index, blocks.reshape(-1), minlength=n_aa + n_al + n_ll + 1)
+        g = np.bincount(self.g_index, grads.reshape(-1), minlength=3 * (na + nl))
+        return (
+            h[:n_aa].reshape(3 * na, 3 * na),
+            h[n_aa : n_aa + n_al].reshape(3 * na, 3 * nl),
+            h[n_aa + n_al : n_aa + n_al + n_ll].reshape(nl, 3, 3),
+            g[: 3 * na],
+            g[3 * na :].reshape(nl, 3),
+        )
+
+    def step(self, h_aa, h_al, h_ll, g_a, g_l, lam):
+        """LM step (d_agents (N,3), d_landmarks (M,3)) with Marquardt damping ``lam``."""
+        nl = self.n_land
+        diag_a = np.maximum(np.diagonal(h_aa), _MIN_DIAG)
+        diag_l = np.maximum(np.diagonal(h_ll, axis1=1, axis2=2), _MIN_DIAG)
+        h_ll_d = h_ll.copy()
+        h_ll_d.reshape(nl, 9)[:, ::4] += lam * diag_l
+        h_ll_inv = np.linalg.inv(h_ll_d)
+        # Y = H_al H_ll^{-1}, block column by block column (3N x 3M).
+        h_al_b = h_al.reshape(-1, nl, 3).transpose(1, 0, 2)  # (M, 3N, 3)
+        y = np.matmul(h_al_b, h_ll_inv)  # (M, 3N, 3)
+        y2 = y.transpose(1, 0, 2).reshape(-1, 3 * nl)
+        damped = h_aa.copy()
+        damped.reshape(-1)[:: damped.shape[0] + 1] += lam * diag_a
+        reduced = damped - y2 @ h_al.T
+        rhs = y2 @ g_l.reshape(-1) - g_a
+        free = self.free
+        d_a = np.zeros(3 * self.n_agents)
+        if free.size:
+            d_a[free] = np.linalg.solve(reduced[np.ix_(free, free)], rhs[free])
+        back = (h_al.T @ d_a).reshape(nl, 3)
+        d_l = -np.matmul(h_ll_inv, (g_l + back)[:, :, None])[:, :, 0]
+        return d_a.reshape(-1, 3), d_l
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Wrap to [-pi, pi) (cheaper than geometry.wrap_angle; the end point is irrelevant
+    to residuals and retractions)."""
+    return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+
+
+def _retract(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    out = poses + delta
+    out[:, 2] = _wrap(out[:, 2])
+    return out
+
+
+def _levenberg_marquardt(x, evaluate, propose, max_iterations: int, tolerance: float):
+    """Levenberg-Marquardt loop shared by :func:`optimize` and :func:`optimize_pose`.
+
+    evaluate(x) -> (cost, linearisation); propose(x, linearisation, lam) -> (trial x,
+    largest step component). Starts with lam = 1e-4; a step is accepted when it does not
+    raise the cost (then lam /= 10), else lam *= 10 until 1e12 (no progress: converged).
+    Stops after ``max_iterations`` linearisations, when the relative cost decrease of an
+    accepted step is below ``tolerance`` or when its largest component is.
+    Returns (x, cost, linearisation, initial cost, iterations, converged).
+    """
+    cost, lin = evaluate(x)
+    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
+    while iterations < max_iterations and not converged:
+        iterations += 1
+        while True:
+            trial_x, step = propose(x, lin, lam)
+            trial_cost, trial_lin = evaluate(trial_x)
+            if trial_cost <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                converged = True  # no damping reduces the cost: a (local) minimum
+                break
+        if converged:
+            break
+        decrease = cost - trial_cost
+        x, cost, lin = trial_x, trial_cost, trial_lin
+        lam = max(lam / 10.0, 1e-12)
+        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+    return x, cost, lin, initial_cost, iterations, converged
+
+
+def optimize(
+    graph: PoseGraph,
+    fixed: int = 0,
+    kernel: str | None = None,
+    kernel_delta: float = 1.0,
+    max_iterations: int = 1000,
+    tolerance: float = 1e-6,
+) -> PoseGraphResult:
+    """Levenberg-Marquardt on the pose graph with agent ``fixed`` held at its initial pose.
+
+    kernel: None (least squares), "huber" or "cauchy"; kernel_delta is the kernel
+    width in whitened units (sqrt of chi2). Stops after ``max_iterations``
+    linearisations, when the relative cost decrease of an accepted step falls below
+    ``tolerance``, when the largest step component is below ``tolerance``, or when
+    no damping yields a decrease (no progress).
+    """
+    if kernel is not None and kernel not in ROBUST_KERNELS:
+        raise ValueError(f"kernel must be None or one of {ROBUST_KERNELS}; got {kernel!r}")
+    if not kernel_delta > 0:
+        raise ValueError(f"kernel_delta must be > 0; got {kernel_delta}")
+    if not 0 <= fixed < max(graph.agents.shape[0], 1):
+        raise ValueError(f"fixed must index an agent in [0, {graph.agents.shape[0]}); got {fixed}")
+    if max_iterations < 0:
+        raise ValueError(f"max_iterations must be >= 0; got {max_iterations}")
+    problem = _Problem(graph, fixed, kernel, kernel_delta)
+    n_agents = graph.agents.shape[0]
+    cache: list = [None, None]  # (linearisation, its normal equations): built once per state
+
+    def evaluate(x):
+        return problem.linearize(x[:n_agents], x[n_agents:])
+
+    def propose(x, lin, lam):
+        if cache[0] is not lin:
+            cache[:] = lin, problem.normal_equations(*lin)
+        d_a, d_l = problem.step(*cache[1], lam)
+        step = max(np.abs(d_a).max(initial=0.0), np.abs(d_l).max(initial=0.0))
+        return _retract(x, np.concatenate([d_a, d_l])), step
+
+    start = np.concatenate([graph.agents, graph.landmarks])
+    x, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
+        start, evaluate, propose, max_iterations, tolerance
+    )
+    chi2 = lin[2]
+    return PoseGraphResult(
+        x[:n_agents],
+        x[n_agents:],
+        chi2[: problem.n_obs],
+        chi2[problem.n_obs :],
+        initial_cost,
+        cost,
+        iterations,
+        converged,
+    )
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """One optimised SE(2) vertex: pose (3,), chi2 (E,) of its observation edges,
+    initial_cost / cost, iterations, converged (as in :class:`PoseGraphResult`)."""
+
+    pose: np.ndarray
+    chi2: np.ndarray
+    initial_cost: float
+    cost: float
+    iterations: int
+    converged: bool
+
+
+class _PoseProblem:
+    """One agent vertex observing fixed landmarks (and an optional prior edge from a fixed
+    identity vertex), linearised with few numpy calls.
+
+    Each observation residual is ``e = C e~`` with ``C = blockdiag(R(-yaw_z), 1)`` and
+    ``e~ = (R(-yaw) (t_l - t) - t_z, wrap(yaw_l - yaw_z - yaw))``, so the per-edge
+    information is rotated once, ``Omega' = C^T Omega C``. The Jacobian of ``e~`` is
+    ``-N Q^T`` with ``Q = blockdiag(R(yaw), 1)`` shared by all edges and
+    ``N = I + m e3^T``, ``m = (-e~_y', e~_x', 0)`` built from ``u = R(-yaw)(t_l - t)``;
+    hence ``H = Q (sum w N^T Omega' N) Q^T`` and ``g = -Q sum w N^T Omega' e~``, whose
+    sums are one weighted matrix product over per-edge features.
+    """
+
+    def __init__(self, landmarks, measurement, information, prior, prior_information, kernel,
+                 delta):
+        self.kernel, self.delta = kernel, delta
+        self.land_xy = landmarks[:, :2]
+        self.t_z = measurement[:, :2]
+        self.angle = landmarks[:, 2] - measurement[:, 2]
+        rot = np.zeros((measurement.shape[0], 3, 3))
+        c, s = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
+        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
+        rot[:, 2, 2] = 1.0
+        self.info = np.matmul(rot.transpose(0, 2, 1), np.matmul(information, rot))
+        self.info_flat = self.info.reshape(-1, 9)
+        self.prior = None
+        if prior is not None:
+            # The prior edge identity -> agent has the constant Jacobian J_p =
+            # blockdiag(R_z^T, 1) and residual J_p pose - (R_z^T t_z, yaw_z), yaw wrapped.
+            z = np.asarray(prior, dtype=float).reshape(3)
+            cz, sz = math.cos(z[2]), math.sin(z[2])
+            j_p = np.array([[cz, sz, 0.0], [-sz, cz, 0.0], [0.0, 0.0, 1.0]])
+            info_p = np.asarray(prior_information, dtype=float).reshape(3, 3)
+            self.prior = (j_p, j_p @ z, info_p, j_p.T @ info_p @ j_p, info_p @ j_p)
+
+    def evaluate(self, pose: np.ndarray) -> tuple[float, tuple]:
+        """(robust cost, linearisation point) at ``pose`` (3,); the point starts with the
+        per-edge chi2 (E,) and is what :meth:`normal_equations` takes."""
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        u = (self.land_xy - pose[:2]) @ np.array([[c, -s], [s, c]])
+        e = np.empty((u.shape[0], 3))
+        e[:, :2] = u - self.t_z
+        e[:, 2] = _wrap(self.angle - pose[2])
+        info_e = np.matmul(self.info, e[:, :, None])[:, :, 0]
+        chi2 = np.einsum("ei,ei->e", e, info_e)
+        rho, weight = robust_kernel(chi2, self.kernel, self.delta)
+        cost = float(rho.sum())
+        e_p = None
+        if self.prior is not None:
+            j_p, offset, info_p = self.prior[:3]
+            e_p = j_p @ pose - offset
+            e_p[2] = _wrap(e_p[2])
+            cost += float(e_p @ info_p @ e_p)
+        return cost, (chi2, c, s, u, info_e, weight, e_p)
+
+    def normal_equations(self, point: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
+        _, c, s, u, info_e, weight, e_p = point
+        m = u[:, ::-1] * _PERPENDICULAR  # (-u_y, u_x)
+        info_m = np.matmul(self.info[:, :, :2], m[:, :, None])[:, :, 0]
+        w_m = weight[:, None] * m
+        o00, o01, o02, o10, o11, o12, o20, o21, o22 = (weight @ self.info_flat).tolist()
+        v0, v1, v2 = (weight @ info_m).tolist()
+        g0, g1, g2 = (weight @ info_e).tolist()
+        g2 += float(np.vdot(w_m, info_e[:, :2]))
+        o22 += 2.0 * v2 + float(np.vdot(w_m, info_m[:, :2]))
+        # inner = sum w N^T Omega' N; H = Q inner Q^T, g = -Q (sum w N^T Omega' e~).
+        inner = ((o00, o01, o02 + v0), (o10, o11, o12 + v1), (o20 + v0, o21 + v1, o22))
+        rows = [(c * a0 - s * a1, s * a0 + c * a1, a2) for a0, a1, a2 in inner]  # inner Q^T
+        columns = [
+            (c * rows[0][k] - s * rows[1][k], s * rows[0][k] + c * rows[1][k], rows[2][k])
+            for k in range(3)
+        ]
+        hess = np.array(columns).T
+        grad = np.array([s * g1 - c * g0, -s * g0 - c * g1, -g2])
+        if e_p is not None:
+            hess_p, info_jp = self.prior[3:]
+            hess = hess + hess_p
+            grad = grad + info_jp.T @ e_p
+        return hess, grad
+
+
+_PERPENDICULAR = np.array([-1.0, 1.0])
+
+
+def optimize_pose(
+    initial: np.ndarray,
+    landmarks: np.ndarray,
+    measurement: np.ndarray,
+    information: np.ndarray,
+    prior: np.ndarray | None = None,
+    prior_information: np.ndarray | None = None,
+    kernel: str | None = None,
+    kernel_delta: float = 1.0,
+    max_iterations: int = 1000,
+    tolerance: float = 1e-6,
+) -> PoseResult:
+    """The pose graph restricted to one agent vertex with every other vertex fixed.
+
+    The agent (initial (3,)) observes fixed landmarks (E, 3) (same frame) with
+    measurements (E, 3) and information (E, 3, 3); an optional prior edge from a fixed
+    identity vertex (the ego) measures ``prior`` (3,) with ``prior_information``.
+    Same residuals, kernel and LM stopping rules as :func:`optimize`, with a 3x3 system.
+    """
+    if kernel is not None and kernel not in ROBUST_KERNELS:
+        raise ValueError(f"kernel must be None or one of {ROBUST_KERNELS}; got {kernel!r}")
+    problem = _PoseProblem(
+        landmarks, measurement, information, prior, prior_information, kernel, kernel_delta
+    )
+
+    cache: list = [None, None]  # (linearisation point, its normal equations)
+
+    def propose(pose, point, lam):
+        if cache[0] is not point:
+            cache[:] = point, problem.normal_equations(point)
+        hess, grad = cache[1]
+        damped = hess.copy()
+        damped.reshape(-1)[::4] += lam * np.maximum(np.diagonal(hess), _MIN_DIAG)
+        delta = np.linalg.solve(damped, -grad)
+        trial = pose + delta
+        trial[2] = _wrap(trial[2])
+        return trial, np.abs(delta).max()
+
+    start = np.asarray(initial, dtype=float).copy()
+    pose, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
+        start, problem.evaluate, propose, max_iterations, tolerance
+    )
+    return PoseResult(pose, lin[0], initial_cost, cost, iterations, converged)

@@ -1,0 +1,170 @@
+"""BEV feature maps per agent (torch) and their warping between agent frames.
+
+Axis convention (used by :func:`bev_features` and :func:`warp_bev` alike): a
+map is a float32 tensor (C, H, W) in an agent's sensor frame; row ``r`` covers
+``y in [y_min + r*res, y_min + (r+1)*res)`` and column ``c`` covers
+``x in [x_min + c*res, x_min + (c+1)*res)`` (row 0 at the most negative y, i.e.
+the right-hand side of the agent; column 0 at the most negative x, behind it).
+Values live at cell centres, which is exactly torch's ``align_corners=False``
+convention, so :func:`warp_bev` uses ``align_corners=False``.
+
+Channels (:data:`CHANNELS`):
+  0 ``log_returns``: log(1 + expected LiDAR returns falling in the cell), from
+    simulated returns at the entry points of the rays on visible vehicle surfaces;
+  1 ``max_height``: highest visible point of those surfaces in the cell (m above
+    ground, 0 where no return);
+  2 ``observed``: 1 where the cell centre lies on a ray before (or at) its first
+    footprint hit and within sensor range (free space seen by the sensor), else 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from roco_env.sensing.visibility import Visibility
+
+__all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev"]
+
+CHANNELS = ("log_returns", "max_height", "observed")
+
+
+def _as_float(value: object) -> float:
+    """float(value), or NaN when it is not a real number (rejected by the caller)."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return math.nan
+
+
+@dataclass(frozen=True)
+class BevGrid:
+    """A BEV raster: x_range, y_range (min, max) in metres (agent frame), cell size in m.
+
+    The grid covers [x_min, x_min + W*res) x [y_min, y_min + H*res) with
+    W = round((x_max - x_min) / res) columns and H = round((y_max - y_min) / res) rows.
+    """
+
+    x_range: tuple[float, float]
+    y_range: tuple[float, float]
+    resolution: float = 0.4
+
+    def __post_init__(self) -> None:
+        resolution = _as_float(self.resolution)
+        if not resolution > 0.0 or not math.isfinite(resolution):
+            raise ValueError(f"BevGrid.resolution must be a finite number > 0 m; "
+                             f"got {self.resolution!r}")
+        object.__setattr__(self, "resolution", resolution)
+        for name in ("x_range", "y_range"):
+            value = getattr(self, name)
+            bounds = tuple(_as_float(v) for v in value) if np.ndim(value) == 1 else ()
+            if not (len(bounds) == 2 and all(map(math.isfinite, bounds))
+                    and bounds[1] - bounds[0] >= resolution):
+                raise ValueError(
+                    f"BevGrid.{name} must be (min, max) finite with max - min >= resolution "
+                    f"({resolution} m); got {value!r}"
+                )
+            object.__setattr__(self, name, bounds)
+
+    @classmethod
+    def square(cls, half_extent: float, resolution: float = 0.4) -> BevGrid:
+        """Grid over [-half_extent, half_extent] on both axes (e.g. the sensor range)."""
+        return cls((-half_extent, half_extent), (-half_extent, half_extent), resolution)
+
+    @property
+    def H(self) -> int:  # noqa: N802 (the conventional tensor dimension name)
+        return int(round((self.y_range[1] - self.y_range[0]) / self.resolution))
+
+    @property
+    def W(self) -> int:  # noqa: N802
+        return int(round((self.x_range[1] - self.x_range[0]) / self.resolution))
+
+    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) int arrays of points (m); -1 in both where outside the grid."""
+        col = np.floor((np.asarray(x) - self.x_range[0]) / self.resolution).astype(np.int64)
+        row = np.floor((np.asarray(y) - self.y_range[0]) / self.resolution).astype(np.int64)
+        inside = (col >= 0) & (col < self.W) & (row >= 0) & (row < self.H)
+        return np.where(inside, row, -1), np.where(inside, col, -1)
+
+
+@lru_cache(maxsize=8)
+def _cell_polar(grid: BevGrid, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat (H*W,) distance (m) and ray index of every cell centre (cached per grid)."""
+    xs = grid.x_range[0] + (np.arange(grid.W) + 0.5) * grid.resolution
+    ys = grid.y_range[0] + (np.arange(grid.H) + 0.5) * grid.resolution
+    x, y = np.meshgrid(xs, ys)  # (H, W): rows along y, columns along x
+    step = 2.0 * np.pi / n_rays
+    ray = np.mod(np.rint(np.arctan2(y, x) / step).astype(np.int64), n_rays)
+    return np.hypot(x, y).ravel(), ray.ravel()
+
+
+def bev_features(visibility: Visibility, agent_index: int, grid: BevGrid) -> torch.Tensor:
+    """BEV map (len(CHANNELS), H, W) float32 of one agent, in its true sensor frame.
+
+    visibility: from :func:`compute_visibility`; agent_index: row of the agent.
+    """
+    n_agents, n_rays = visibility.ray_ranges.shape
+    if not 0 <= agent_index < n_agents:
+        raise ValueError(f"agent_index must be in [0, {n_agents}); got {agent_index}")
+    hits = visibility.hits
+    mine = hits.agent == agent_index
+    row, col = grid.cell_index(hits.x[mine], hits.y[mine])
+    inside = row >= 0
+    cell = row[inside] * grid.W + col[inside]
+    n_cells = grid.H * grid.W
+    out = np.zeros((len(CHANNELS), n_cells), dtype=np.float32)
+    out[0] = np.log1p(np.bincount(cell, weights=hits.returns[mine][inside], minlength=n_cells))
+    np.maximum.at(out[1], cell, hits.top[mine][inside])
+    radius, ray = _cell_polar(grid, n_rays)
+    out[2] = radius <= visibility.ray_ranges[agent_index][ray]
+    return torch.from_numpy(out.reshape(len(CHANNELS), grid.H, grid.W))
+
+
+def _affine_theta(poses: np.ndarray, grid: BevGrid) -> torch.Tensor:
+    """affine_grid matrices (N, 2, 3) sampling the source map at T^-1 * (dst cell centre)."""
+    half = np.array([grid.W * grid.resolution, grid.H * grid.resolution]) / 2.0
+    centre = np.array([grid.x_range[0], grid.y_range[0]]) + half
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    # Inverse pose dst -> src: p_src = A p_dst + b with A = R^T, b = -R^T t.
+    a = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], axis=1)  # (N, 2, 2)
+    b = -np.einsum("nij,nj->ni", a, poses[:, :2])
+    # Normalised coordinates: p = half * n + centre.
+    lin = a * half[None, None, :] / half[None, :, None]
+    shift = (np.einsum("nij,j->ni", a, centre) + b - centre) / half
+    return torch.from_numpy(np.concatenate([lin, shift[:, :, None]], axis=2))
+
+
+def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  # noqa: N803
+             grid: BevGrid) -> torch.Tensor:
+    """Resample BEV maps from a source agent frame into a destination frame.
+
+    features: (C, H, W) or (N, C, H, W) on ``grid`` in the source frame;
+    T_src_to_dst: pose (3,) or (N, 3) (x m, y m, yaw rad) mapping source-frame
+    points into the destination frame (e.g. a corrected T_{j->i}). Output has
+    the input's shape, on the same grid in the destination frame: bilinear
+    ``grid_sample``, zero padding outside the source map, ``align_corners=False``.
+    """
+    single = features.dim() == 3
+    batch = features.unsqueeze(0) if single else features
+    if batch.dim() != 4 or batch.shape[-2:] != (grid.H, grid.W):
+        raise ValueError(
+            f"features must have shape (C, {grid.H}, {grid.W}) or (N, C, {grid.H}, {grid.W}) "
+            f"for this grid; got {tuple(features.shape)}"
+        )
+    poses = np.asarray(torch.as_tensor(T_src_to_dst).detach().cpu(), dtype=float)
+    if poses.shape[-1:] != (3,) or poses.size != 3 * batch.shape[0] or not np.all(
+            np.isfinite(poses)):
+        raise ValueError(
+            f"T_src_to_dst must be {batch.shape[0]} finite pose(s) (x, y, yaw); "
+            f"got shape {tuple(np.shape(T_src_to_dst))}"
+        )
+    theta = _affine_theta(poses.reshape(-1, 3), grid).to(dtype=batch.dtype, device=batch.device)
+    sample_at = F.affine_grid(theta, list(batch.shape), align_corners=False)
+    warped = F.grid_sample(batch, sample_at, mode="bilinear", padding_mode="zeros",
+                           align_corners=False)
+    return warped[0] if single else warped

@@ -1,0 +1,310 @@
+"""Dataset replay: OPV2V / V2XSet label folders and DAIR-V2X cooperative labels.
+
+Only labels and poses are read (no point clouds). Everything is loaded and
+validated when the source is built, so a bad file raises :class:`ReplayError`
+(a ValueError naming the path and the problem) and nothing half-loaded is
+ever returned. Conversions happen here and nowhere else (DESIGN.md section 3).
+
+OPV2V / V2XSet (``traffic.source: opv2v``, ``traffic.path`` = one scenario folder)
+  ``<scenario>/<agent id>/<frame>.yaml``; CARLA frame: left-handed, degrees.
+  ``lidar_pose`` / ``true_ego_pos`` = [x, y, z, roll, yaw, pitch];
+  ``vehicles: {id: {location, center, angle [roll, yaw, pitch], extent (half
+  sizes), speed (km/h)}}``; box centre = location + center. Converted with
+  y -> -y, yaw -> -yaw (radians). Agent folders with id >= 0 are CAVs (sorted by
+  id, the first ``agents.cavs`` are used), negative ids are RSUs (V2XSet; ordered
+  -1, -2, ...). A CAV's pose is its ``lidar_pose``; its own box is taken from
+  another agent's ``vehicles`` list, or built from ``true_ego_pos`` with a
+  typical car size when no other agent lists it. Objects = union of all agents'
+  lists. An optional ``obj_type`` (car/van/truck/bus) restores the class.
+
+DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
+  ``cooperative/data_info.json`` lists frame pairs; vehicle pose =
+  ``novatel_to_world`` * ``lidar_to_novatel`` (vehicle-side calib), RSU pose =
+  ``virtuallidar_to_world`` with ``system_error_offset`` (delta_x, delta_y) added
+  to its translation (the corrected pose); objects from
+  ``cooperative/label_world/*.json`` ``world_8_points`` (right-handed, metres);
+  label types other than car/van/truck/bus (pedestrians, cyclists) are skipped.
+  DAIR cooperative frames are independent samples: object ids are per frame.
+  The vehicle's own box is built from its LiDAR pose with a typical car size.
+  One CAV (``cav_0``) and at most one RSU (``rsu_0``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from roco_env.geometry import wrap_angle
+from roco_env.scenario import ScenarioConfig
+from roco_env.traffic.agents import make_world
+from roco_env.traffic.frames import SequenceSource
+from roco_env.traffic.state import OBJECT_CLASSES, WorldState
+
+DEFAULT_CAR = np.array([4.5, 1.9, 1.6])  # l, w, h (m) for an ego box no label describes
+
+
+class ReplayError(ValueError):
+    """A dataset folder or file is missing or malformed; the message names the path."""
+
+
+_BaseLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+class FloatSafeLoader(_BaseLoader):  # type: ignore[misc, valid-type]
+    """yaml SafeLoader that also reads exponent floats without a dot (``1e-5``)."""
+
+
+FloatSafeLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def load_yaml(path: Path) -> Any:
+    """Parse a YAML file safely (exponent floats supported); ReplayError naming the path."""
+    if not path.is_file():
+        raise ReplayError(f"{path}: file not found")
+    try:
+        return yaml.load(path.read_text(), Loader=FloatSafeLoader)  # noqa: S506 (safe loader)
+    except yaml.YAMLError as exc:
+        raise ReplayError(f"{path}: malformed YAML: {exc}") from exc
+
+
+def load_json(path: Path) -> Any:
+    """Parse a JSON file; ReplayError naming the path."""
+    if not path.is_file():
+        raise ReplayError(f"{path}: file not found")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ReplayError(f"{path}: malformed JSON: {exc}") from exc
+
+
+def _numbers(path: Path, value: Any, key: str, size: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ReplayError(f"{path}: {key} must be {size} numbers, got {value!r}") from exc
+    if arr.size != size or not np.all(np.isfinite(arr)):
+        raise ReplayError(f"{path}: {key} must be {size} finite numbers, got {value!r}")
+    return arr
+
+
+def _get(path: Path, mapping: Any, key: str) -> Any:
+    if not isinstance(mapping, dict) or key not in mapping:
+        raise ReplayError(f"{path}: missing key {key!r}")
+    return mapping[key]
+
+
+def class_index(name: Any) -> int | None:
+    """Index into OBJECT_CLASSES of a label's type name (case-insensitive); None if it is
+    not a vehicle class (pedestrians, cyclists are skipped)."""
+    name = str(name).lower()
+    return OBJECT_CLASSES.index(name) if name in OBJECT_CLASSES else None
+
+
+def carla_pose_to_world(pose6: np.ndarray) -> np.ndarray:
+    """CARLA [x, y, z, roll, yaw, pitch] (m, deg, left-handed) -> world (x, y, yaw rad)."""
+    return np.array([pose6[0], -pose6[1], wrap_angle(-np.deg2rad(pose6[4]))])
+
+
+def _opv2v_object(path: Path, key: str, entry: Any) -> tuple[int, np.ndarray, float, int]:
+    where = f"vehicles.{key}"
+    location = _numbers(path, _get(path, entry, "location"), f"{where}.location", 3)
+    center = _numbers(path, _get(path, entry, "center"), f"{where}.center", 3)
+    angle = _numbers(path, _get(path, entry, "angle"), f"{where}.angle", 3)
+    extent = _numbers(path, _get(path, entry, "extent"), f"{where}.extent", 3)
+    speed = float(_numbers(path, _get(path, entry, "speed"), f"{where}.speed", 1)[0]) / 3.6
+    xyz = location + center
+    yaw = wrap_angle(-np.deg2rad(angle[1]))
+    box = np.array([xyz[0], -xyz[1], xyz[2], *(2.0 * extent), yaw])
+    cls = class_index(entry.get("obj_type", "car")) or 0
+    try:
+        oid = int(key)
+    except (TypeError, ValueError) as exc:
+        raise ReplayError(f"{path}: vehicle id {key!r} is not an integer") from exc
+    return oid, box, speed, cls
+
+
+def _agent_folders(root: Path) -> tuple[list[int], list[int]]:
+    if not root.is_dir():
+        raise ReplayError(f"{root}: dataset folder not found (set traffic.path to an OPV2V/"
+                          "V2XSet scenario folder holding <agent id>/<frame>.yaml)")
+    ids = sorted(int(p.name) for p in root.iterdir()
+                 if p.is_dir() and re.fullmatch(r"-?\d+", p.name))
+    if not ids:
+        raise ReplayError(f"{root}: no agent folders (<agent id>/ with <frame>.yaml files)")
+    return [i for i in ids if i >= 0], sorted((i for i in ids if i < 0), reverse=True)
+
+
+def load_opv2v(root: str | Path, config: ScenarioConfig) -> tuple[list[WorldState], list[int]]:
+    """All frames of an OPV2V/V2XSet scenario folder as WorldStates, plus the dataset ids
+    of the agents used (CAVs then RSUs)."""
+    root = Path(root)
+    cav_folders, rsu_folders = _agent_folders(root)
+    n_cav, n_rsu = config.agents.cavs, config.agents.rsus
+    if len(cav_folders) < n_cav or len(rsu_folders) < n_rsu:
+        raise ReplayError(f"{root}: has CAV folders {cav_folders} and RSU folders {rsu_folders};"
+                          f" agents.cavs={n_cav} and agents.rsus={n_rsu} must not exceed them")
+    agents = cav_folders[:n_cav] + rsu_folders[:n_rsu]
+    frames = sorted(p.stem for p in (root / str(agents[0] if agents else cav_folders[0]))
+                    .glob("*.yaml"))
+    if not frames:
+        raise ReplayError(f"{root / str(agents[0])}: no <frame>.yaml files")
+    states = []
+    for index, frame in enumerate(frames):
+        objects: dict[int, tuple[np.ndarray, float, int]] = {}
+        poses, egos = {}, {}
+        for agent in cav_folders + rsu_folders:
+            path = root / str(agent) / f"{frame}.yaml"
+            if agent not in agents and not path.is_file():
+                continue  # unused agents only contribute the objects they list
+            data = load_yaml(path)
+            poses[agent] = carla_pose_to_world(_numbers(path, _get(path, data, "lidar_pose"),
+                                                        "lidar_pose", 6))
+            if agent >= 0:
+                ego = _numbers(path, _get(path, data, "true_ego_pos"), "true_ego_pos", 6)
+                egos[agent] = (ego, path)
+            vehicles = _get(path, data, "vehicles") or {}
+            if not isinstance(vehicles, dict):
+                raise ReplayError(f"{path}: vehicles must be a mapping id -> object")
+            for key, entry in vehicles.items():
+                oid, box, speed, cls = _opv2v_object(path, key, entry)
+                objects.setdefault(oid, (box, speed, cls))
+        for agent in agents[:n_cav]:
+            if agent not in objects:
+                ego, _ = egos[agent]
+                pose = carla_pose_to_world(ego)
+                box = np.r_[pose[:2], ego[2] + DEFAULT_CAR[2] / 2, DEFAULT_CAR, pose[2]]
+                objects[agent] = (box, 0.0, 0)
+        ids = np.array(sorted(objects), dtype=np.int64)
+        boxes = np.array([objects[i][0] for i in ids]).reshape(-1, 7)
+        speed = np.array([objects[i][1] for i in ids])
+        vel = speed[:, None] * np.column_stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6])])
+        classes = np.array([objects[i][2] for i in ids], dtype=np.int64)
+        rows = np.searchsorted(ids, agents[:n_cav])
+        rsu = np.array([poses[a] for a in agents[n_cav:]]).reshape(-1, 3)
+        state = make_world(index * config.traffic.dt, ids, classes, boxes, vel, rows, rsu,
+                           config.agents)
+        cav_poses = np.array([poses[a] for a in agents[:n_cav]]).reshape(-1, 3)
+        poses_all = np.vstack([cav_poses, rsu])
+        states.append(_with_agent_poses(state, poses_all))
+    return states, agents
+
+
+def _with_agent_poses(state: WorldState, poses: np.ndarray) -> WorldState:
+    """The same state with the agents' sensor poses replaced (LiDAR pose, not box pose)."""
+    fields = {name: getattr(state, name) for name in state.__dataclass_fields__}
+    fields["agent_poses"] = poses
+    return WorldState(**fields)
+
+
+def _transform(path: Path, data: Any, key: str | None = None) -> np.ndarray:
+    """4x4 matrix from a DAIR calib dict {rotation 3x3, translation 3x1} (optionally nested)."""
+    node = _get(path, data, key) if key else data
+    rot = _numbers(path, _get(path, node, "rotation"), "rotation", 9).reshape(3, 3)
+    trans = _numbers(path, _get(path, node, "translation"), "translation", 3)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rot, trans
+    return out
+
+
+def _matrix_to_pose(mat: np.ndarray) -> np.ndarray:
+    return np.array([mat[0, 3], mat[1, 3], np.arctan2(mat[1, 0], mat[0, 0])])
+
+
+def box_from_8_points(path: Path, points: Any) -> np.ndarray:
+    """Box (x, y, z, l, w, h, yaw) of a cuboid given by its 8 corners (m); the longer
+    horizontal edge is the length, yaw its direction (a cuboid's heading is ambiguous by pi)."""
+    pts = _numbers(path, points, "world_8_points", 24).reshape(8, 3)
+    centre = pts.mean(axis=0)
+    bottom = pts[np.argsort(pts[:, 2], kind="stable")[:4], :2]
+    ring = bottom[np.argsort(np.arctan2(*(bottom - bottom.mean(0)).T[::-1]))]
+    edges = np.roll(ring, -1, axis=0) - ring
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    k = int(np.argmax(lengths))
+    yaw = np.arctan2(edges[k, 1], edges[k, 0])
+    if abs(wrap_angle(yaw)) > np.pi / 2:
+        yaw += np.pi
+    height = np.ptp(pts[:, 2])
+    return np.array([*centre, lengths[k], lengths[(k + 1) % 4], height, wrap_angle(yaw)])
+
+
+def load_dair(root: str | Path, config: ScenarioConfig) -> list[WorldState]:
+    """All frames of a DAIR-V2X cooperative dataset root as WorldStates."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ReplayError(f"{root}: DAIR-V2X dataset folder not found (set traffic.path to the "
+                          "folder holding cooperative/, vehicle-side/, infrastructure-side/)")
+    if config.agents.cavs != 1 or config.agents.rsus > 1:
+        raise ReplayError(f"{root}: DAIR-V2X has one vehicle and one RSU; agents.cavs must be 1 "
+                          f"and agents.rsus 0 or 1 (got {config.agents.cavs}, {config.agents.rsus})")
+    info_path = root / "cooperative" / "data_info.json"
+    info = load_json(info_path)
+    if not isinstance(info, list) or not info:
+        raise ReplayError(f"{info_path}: must be a non-empty list of frame pairs")
+    states = []
+    for index, item in enumerate(info):
+        veh_frame = Path(_get(info_path, item, "vehicle_pointcloud_path")).stem
+        inf_frame = Path(_get(info_path, item, "infrastructure_pointcloud_path")).stem
+        offset = _get(info_path, item, "system_error_offset")
+        delta = np.array([_get(info_path, offset, "delta_x"), _get(info_path, offset, "delta_y")],
+                         dtype=float)
+        calib = root / "vehicle-side" / "calib"
+        p1, p2 = calib / "lidar_to_novatel" / f"{veh_frame}.json", \
+            calib / "novatel_to_world" / f"{veh_frame}.json"
+        veh = _transform(p2, load_json(p2)) @ _transform(p1, load_json(p1), "transform")
+        p3 = root / "infrastructure-side" / "calib" / "virtuallidar_to_world" / f"{inf_frame}.json"
+        inf = _transform(p3, load_json(p3))
+        inf[:2, 3] += delta
+        label_path = root / _get(info_path, item, "cooperative_label_path")
+        labels = load_json(label_path)
+        if not isinstance(labels, list):
+            raise ReplayError(f"{label_path}: must be a list of labelled objects")
+        vehicles = [obj for obj in labels
+                    if class_index(_get(label_path, obj, "type")) is not None]
+        boxes = [box_from_8_points(label_path, _get(label_path, obj, "world_8_points"))
+                 for obj in vehicles]
+        classes = [class_index(obj["type"]) for obj in vehicles]
+        veh_pose = _matrix_to_pose(veh)
+        ego = np.r_[veh_pose[:2], veh[2, 3] - config.agents.cav_height + DEFAULT_CAR[2] / 2,
+                    DEFAULT_CAR, veh_pose[2]]
+        all_boxes = np.vstack([ego[None], np.array(boxes).reshape(-1, 7)])
+        ids = np.arange(all_boxes.shape[0], dtype=np.int64)
+        rsu = _matrix_to_pose(inf)[None] if config.agents.rsus else np.zeros((0, 3))
+        state = make_world(index * config.traffic.dt, ids, np.r_[0, classes].astype(np.int64),
+                           all_boxes, np.zeros((ids.size, 2)), [0], rsu, config.agents)
+        states.append(_with_agent_poses(state, np.vstack([veh_pose[None], rsu])))
+    return states
+
+
+def _require_path(config: ScenarioConfig) -> str:
+    if not config.traffic.path:
+        raise ReplayError(
+            f"traffic.source={config.traffic.source!r} needs a dataset folder: set the override "
+            "traffic.path=<folder> (e.g. load_scenario('opv2v_replay', "
+            "**{'traffic.path': '/data/opv2v/test/2021_08_18_19_48_05'}))"
+        )
+    return config.traffic.path
+
+
+class OPV2VReplay(SequenceSource):
+    """Replay of an OPV2V/V2XSet scenario folder (``traffic.path``); one frame per step.
+    ``dataset_agent_ids`` maps agent order (cav_0.., rsu_0..) to the dataset's ids."""
+
+    def __init__(self, config: ScenarioConfig) -> None:
+        states, self.dataset_agent_ids = load_opv2v(_require_path(config), config)
+        super().__init__(states)
+
+
+class DairReplay(SequenceSource):
+    """Replay of a DAIR-V2X cooperative dataset root (``traffic.path``); one frame per step."""
+
+    def __init__(self, config: ScenarioConfig) -> None:
+        super().__init__(load_dair(_require_path(config), config))

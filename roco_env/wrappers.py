@@ -1,0 +1,110 @@
+"""Views of the environment for other libraries.
+
+* :class:`EgoEnv`: a single-agent ``gymnasium.Env`` controlling one agent's
+  corrections while every other agent acts with a given policy (default
+  identity). Also registered as ``roco/CollabPerceptionEgo-v0`` in Gymnasium.
+* :class:`FlattenObservations`: a PettingZoo parallel wrapper turning each
+  agent's Dict observation into one flat float32 Box (``gymnasium.spaces.flatten``),
+  which SuperSuit's Box-only wrappers (``pad_observations_v0``, ``flatten_v0``)
+  and most RL libraries need.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.utils import BaseParallelWrapper
+
+from roco_env.env import CollabPerceptionEnv
+from roco_env.policies.basic import IdentityPolicy
+from roco_env.scenario import ScenarioConfig
+
+
+class EgoEnv(gymnasium.Env):
+    """One agent of :class:`CollabPerceptionEnv` as a Gymnasium env.
+
+    env: an existing (unwrapped) parallel env, or None to build one from
+    ``scenario``, ``max_cycles``, ``render_mode`` and ``overrides``; agent: the
+    controlled agent (default: the first evaluated agent); others: the policy
+    ``policy(obs, info) -> action`` of every other agent (default identity).
+    Observation, action, reward and info are that agent's (see roco_env.env).
+    Note: infos hold NaN for empty collaborator slots and for AP on a frame with
+    no GT and no predictions; equality-based checks (Gymnasium's determinism
+    check) then need a setting whose slots are all filled.
+    """
+
+    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
+                 max_cycles: int = 100, render_mode: str | None = None, *,
+                 env: CollabPerceptionEnv | None = None, agent: str | None = None,
+                 others: Callable | None = None, **overrides: Any) -> None:
+        self.env = env if env is not None else CollabPerceptionEnv(
+            scenario, max_cycles=max_cycles, render_mode=render_mode, **overrides)
+        if not isinstance(self.env, CollabPerceptionEnv):
+            raise ValueError(f"env must be an unwrapped CollabPerceptionEnv; "
+                             f"got {type(self.env).__name__}")
+        base = self.env
+        self.agent = agent if agent is not None else base.evaluated_agents[0]
+        if self.agent not in base.possible_agents:
+            raise ValueError(f"agent must be one of {base.possible_agents}; got {self.agent!r}")
+        self.others = others if others is not None else IdentityPolicy()
+        self.observation_space = base.observation_space(self.agent)
+        self.action_space = base.action_space(self.agent)
+        self.metadata = {"render_modes": list(base.metadata["render_modes"]),
+                         "render_fps": base.metadata["render_fps"]}
+        self.render_mode = base.render_mode
+        self._last: tuple[dict, dict] | None = None
+
+    def reset(self, *, seed: int | None = None,
+              options: dict | None = None) -> tuple[dict, dict]:
+        super().reset(seed=seed)
+        observations, infos = self.env.reset(seed=seed, options=options)
+        self._last = (observations, infos)
+        return observations[self.agent], infos[self.agent]
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        if self._last is None:
+            raise ValueError("step() called before reset()")
+        observations, infos = self._last
+        actions = {a: self.others(observations[a], infos[a])
+                   for a in self.env.agents if a != self.agent}
+        actions[self.agent] = action
+        observations, rewards, terminations, truncations, infos = self.env.step(actions)
+        self._last = (observations, infos)
+        return (observations[self.agent], float(rewards[self.agent]),
+                bool(terminations[self.agent]), bool(truncations[self.agent]), infos[self.agent])
+
+    def render(self) -> np.ndarray | None:
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class FlattenObservations(BaseParallelWrapper):
+    """Each agent's Dict observation flattened into one float32 Box (keys in space order)."""
+
+    def __init__(self, env: ParallelEnv) -> None:
+        super().__init__(env)
+        self._dict_spaces = {a: env.observation_space(a) for a in env.possible_agents}
+        self._flat_spaces = {a: spaces.flatten_space(space)
+                             for a, space in self._dict_spaces.items()}
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._flat_spaces[agent]
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        observations, infos = self.env.reset(seed=seed, options=options)
+        return self._flatten(observations), infos
+
+    def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
+        observations, rewards, terminations, truncations, infos = self.env.step(actions)
+        return self._flatten(observations), rewards, terminations, truncations, infos
+
+    def _flatten(self, observations: dict) -> dict:
+        return {a: spaces.flatten(self._dict_spaces[a], obs) for a, obs in observations.items()}

@@ -1,0 +1,41 @@
+"""Baseline experiments: valid grids, printed commands equal to the runner, a smoke run."""
+
+from __future__ import annotations
+
+import shlex
+
+import pytest
+
+from roco_env.bench.baselines import EXPERIMENTS, experiment, main
+from roco_env.bench.grid import validate_grid
+from roco_env.cli import build_parser
+from roco_env.cli.compare import grid_from_args
+
+
+@pytest.mark.parametrize("item", EXPERIMENTS, ids=lambda e: e.name)
+def test_printed_command_builds_the_same_grid(item):
+    words = shlex.split(item.command("baselines/results"))
+    assert words[:2] == ["roco-env", "compare"]
+    args = build_parser().parse_args(words[1:])
+    assert [c.key for c in grid_from_args(args)] == [c.key for c in item.cells()]
+    validate_grid(item.cells(smoke=True))  # scenarios, overrides and policy specs all valid
+
+
+def test_ablations_cover_the_papers_tables():
+    assert experiment("ablation_tau2").policies == tuple(f"roco:tau2={t}" for t in (1, 2, 3, 4))
+    assert set(experiment("ablation_similarity").policies) >= {
+        "roco:use_edge_similarity=false", "roco:use_distance_similarity=false"}
+    assert "roco:robust_kernel=null" in experiment("ablation_modules").policies
+    assert experiment("paper_protocol").noises == (0.0, 0.2, 0.4, 0.6, 0.8)
+    assert experiment("beyond_paper").noises == (1.0, 1.5, 2.0)
+    with pytest.raises(ValueError, match="unknown experiment 'nope'; available: paper_protocol"):
+        experiment("nope")
+
+
+def test_smoke_run_writes_reports(tmp_path, capsys):
+    assert main(["--smoke", "--only", "ablation_modules", "--out", str(tmp_path), "--quiet",
+                 "--workers", "1"]) == 0
+    report = (tmp_path / "ablation_modules" / "report.md").read_text()
+    assert "| roco:robust_kernel=null |" in report
+    assert main(["--only", "nope"]) == 2
+    assert "unknown experiment" in capsys.readouterr().err

@@ -1,0 +1,68 @@
+"""Report files (Markdown tables, CSV, PNG plots) are written and parse back to the numbers."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+from PIL import Image
+from test_bench_store import FAILING_NOISE, fake_cell
+
+from roco_env.bench.grid import build_grid
+from roco_env.bench.report import write_report
+from roco_env.bench.sweep import run_sweep
+
+
+def _markdown_tables(text: str) -> dict[str, list[list[str]]]:
+    """Heading -> table rows (cells stripped), for every table under a ### heading."""
+    tables, heading = {}, None
+    for line in text.splitlines():
+        if line.startswith("#"):
+            heading = line.lstrip("# ").strip()
+        elif line.startswith("|") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            tables.setdefault(heading, []).append(cells)
+    return tables
+
+
+def test_report_files_parse_back(tmp_path):
+    cells = build_grid(["s"], noises=[0.0, 0.4, 1.5], policies=["identity", "roco"],
+                       seeds=[0, 1], steps=2, densities=[1.0, 2.0])
+    FAILING_NOISE.add(1.5)
+    try:
+        outcome = run_sweep(cells, tmp_path / "results.jsonl", workers=1, cell_fn=fake_cell,
+                            progress=False)
+    finally:
+        FAILING_NOISE.clear()
+    report = write_report(outcome.records, tmp_path / "out")
+    names = sorted(p.name for p in report.files)
+    assert names == ["ap70_vs_density.png", "ap70_vs_noise.png", "report.md",
+                     "rpe_distribution.png", "summary.csv"]
+    for path in report.files:
+        if path.suffix == ".png":
+            with Image.open(path) as image:
+                assert image.size[0] > 300 and image.size[1] > 200
+
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert text == report.markdown
+    tables = _markdown_tables(text)
+    ap70 = tables["AP@0.7 (%)"]
+    header = ap70[0]
+    assert header[1:] == ["0.0/0.0", "0.4/0.4", "1.5/1.5"]
+    rows = {r[0]: r[1:] for r in ap70[1:3]}  # first scenario/density section
+    # fake AP@0.7 = 0.7 - noise/2 + 0.01*seed, mean over seeds 0, 1 -> +0.005
+    assert rows["identity"][:2] == [f"{100 * 0.705:.1f}", f"{100 * 0.505:.1f}"]
+    assert rows["roco"][2] == "err"
+    assert "## Failed cells" in text and "boom at noise 1.5" in text
+    assert "AP@0.7 (%) vs density" in tables
+
+    with (tmp_path / "out" / "summary.csv").open() as handle:
+        summary = list(csv.DictReader(handle))
+    assert len(summary) == 2 * 3 * 2  # densities x noises x policies
+    good = [r for r in summary if r["noise"] == "0.4"]
+    assert all(int(r["seeds"]) == 2 and int(r["failed"]) == 0 for r in good)
+    assert np.isclose(float(good[0]["ap70"]), 0.505)
+    # pooled RPE after correction is the fake's "before / 10"
+    assert np.isclose(float(good[0]["rpe_t_median"]), float(good[0]["rpe_t_median_before"]) / 10)
+    bad = [r for r in summary if r["noise"] == "1.5"]
+    assert all(int(r["seeds"]) == 0 and int(r["failed"]) == 2 for r in bad)

@@ -1,0 +1,93 @@
+"""Sweeps on the real env (tiny settings): resume after a kill, failing cells, Ray == local."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from roco_env.bench.grid import Cell, build_grid
+from roco_env.bench.store import ResultStore
+from roco_env.bench.sweep import run_sweep
+
+TINY = {"cavs": 2, "rsus": 1}  # few agents: fast cells
+SCENARIO = "crowded_intersection"
+
+
+def _strip(records: list[dict]) -> list[dict]:
+    """Records without the wall time (the only field allowed to differ between runs)."""
+    return sorted(({k: v for k, v in r.items() if k != "elapsed_s"} for r in records),
+                  key=lambda r: r["key"])
+
+
+def _lines(path: Path) -> list[dict]:
+    """Every record in the file (a line torn by the kill, if any, is not a record)."""
+    return ResultStore(path).records()
+
+
+def test_resume_after_kill_gives_the_uninterrupted_results(tmp_path):
+    out = tmp_path / "killed"
+    command = [str(Path(sys.executable).with_name("roco-env")), "compare", "--scenario", SCENARIO,
+               "--policies", "identity", "oracle", "--noise", "0", "0.4", "0.8", "--seeds", "2",
+               "--steps", "4", "--workers", "1", "--quiet", "--no-plots", "--out", str(out),
+               "--set", "cavs=2", "--set", "rsus=1"]
+    results = out / "results.jsonl"
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and process.poll() is None:
+        if results.exists() and results.read_text().count("\n") >= 1:
+            break
+        time.sleep(0.02)
+    assert process.poll() is None, process.stderr.read().decode()
+    os.killpg(process.pid, signal.SIGKILL)  # the sweep and anything it started
+    process.wait()
+    written = len(_lines(results))
+    assert 1 <= written < 12, f"kill came too late or too early: {written} cells written"
+
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert finished.returncode == 0, finished.stderr
+    assert f"{12 - written} run, {written} resumed" in finished.stdout
+    resumed = _lines(results)
+    assert len(resumed) == 12 and len({r["key"] for r in resumed}) == 12  # no duplicates
+
+    cells = build_grid([SCENARIO], [0.0, 0.4, 0.8], ["identity", "oracle"], [0, 1], 4,
+                       overrides=TINY)
+    reference = run_sweep(cells, tmp_path / "reference" / "results.jsonl", workers=1,
+                          progress=False)
+    assert _strip(resumed) == _strip(reference.records)
+    assert all(r["status"] == "ok" for r in resumed)
+
+
+def test_failing_cells_are_recorded_and_the_rest_finish(tmp_path):
+    good = build_grid([SCENARIO], [0.4], ["identity"], [0, 1], 2, overrides=TINY)
+    bad_override = Cell(SCENARIO, 50.0, "identity", 0, 2, overrides=tuple(TINY.items()))
+    bad_policy = Cell(SCENARIO, 0.4, "oracle:no_such_param=1", 0, 2,
+                      overrides=tuple(TINY.items()))
+    outcome = run_sweep([good[0], bad_override, bad_policy, good[1]], tmp_path / "r.jsonl",
+                        workers=2, progress=False)
+    status = {r["key"]: r for r in outcome.records}
+    assert outcome.failed == 2
+    assert status[bad_override.key]["status"] == "error"
+    assert "sigma_t" in status[bad_override.key]["error"]
+    assert "Traceback" in status[bad_override.key]["traceback"]
+    assert status[bad_policy.key]["status"] == "error"
+    assert status[bad_policy.key]["error"].startswith("TypeError: OraclePolicy")
+    assert all(status[c.key]["status"] == "ok" for c in good)
+    assert all(status[c.key]["metrics"]["frames"] > 0 for c in good)
+
+
+def test_ray_and_local_backends_give_identical_records(tmp_path):
+    pytest.importorskip("ray")
+    cells = build_grid([SCENARIO], [0.4], ["identity", "oracle"], [0, 1], 2, overrides=TINY)
+    local = run_sweep(cells, tmp_path / "local.jsonl", backend="local", workers=2,
+                      progress=False)
+    # no address: the backend starts (and stops) a local 2-CPU Ray without dashboard
+    remote = run_sweep(cells, tmp_path / "ray.jsonl", backend="ray", workers=2, progress=False)
+    assert all(r["status"] == "ok" for r in local.records)
+    assert _strip(local.records) == _strip(remote.records)

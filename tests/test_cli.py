@@ -1,0 +1,116 @@
+"""The roco-env subcommands list/run/compare/render: help, outputs, and exit 2 on bad options."""
+
+from __future__ import annotations
+
+import pytest
+from PIL import Image
+
+from roco_env.cli import main
+from roco_env.policies import available_policies
+
+TINY = ["--set", "cavs=2", "--set", "rsus=1"]
+
+
+@pytest.mark.parametrize("command", ["list", "run", "compare", "render"])
+def test_help_everywhere(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    assert f"usage: roco-env {command}" in capsys.readouterr().out
+
+
+def test_list_shows_scenarios_and_policies(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "crowded_intersection" in out and "urban_intersection" in out
+    for policy in ("identity", "oracle", "coalign", "roco"):
+        assert f"  {policy}\n" in out
+
+
+@pytest.mark.parametrize("argv, fragments", [
+    (["compare", "--policies", "identity", "magic"],
+     ["unknown policy 'magic'", ", ".join(available_policies())]),
+    (["compare", "--scenario", "atlantis"], ["unknown scenario 'atlantis'", "crowded_intersection"]),
+    (["compare", "--backend", "dask"], ["invalid choice: 'dask'", "'local', 'ray'"]),
+    (["compare", "--set", "bogus=1"], ["unknown key 'bogus'", "sigma_t"]),
+    (["compare", "--noise", "50"], ["sigma_t=50.0 is out of range"]),
+    (["compare", "--seeds", "0"], ["--seeds must be >= 1"]),
+    (["compare", "--workers", "0"], ["workers must be >= 1"]),
+    (["compare", "--address", "auto"], ["only used by the ray backend"]),
+    (["compare", "--policies", "oracle:gain=2"], ["policy spec 'oracle:gain=2'"]),
+    (["run", "--policy", "magic"], ["unknown policy 'magic'"]),
+    (["run", "--scenario", "atlantis"], ["unknown scenario 'atlantis'"]),
+    (["render", "--gif", "x.png"], ["--gif must name a .gif file"]),
+    (["render"], ["give --out DIR"]),
+])
+def test_bad_options_exit_2_naming_the_problem(argv, fragments, capsys, tmp_path):
+    with pytest.raises(SystemExit) as exit_info:
+        raise SystemExit(main([*argv, *(["--out", str(tmp_path)] if argv[0] == "compare" else [])]))
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    for fragment in fragments:
+        assert fragment in err
+    assert not (tmp_path / "results.jsonl").exists()
+
+
+def test_run_prints_a_row_per_step_and_the_totals(capsys):
+    assert main(["run", "--policy", "oracle", "--steps", "3", "--noise", "0.8", *TINY]) == 0
+    out = capsys.readouterr().out.splitlines()
+    header = next(i for i, line in enumerate(out) if line.split()[:2] == ["step", "AP@0.5"])
+    rows = [line.split() for line in out[header + 1:header + 4]]
+    assert [r[0] for r in rows] == ["1", "2", "3"]
+    assert all(float(r[4]) < 1e-3 for r in rows)  # oracle: RPE after correction ~ 0
+    assert all(r[-1] == "3/3" for r in rows)  # every agent corrected
+    assert any(line.startswith("dataset AP@0.3") for line in out)
+
+
+def test_compare_writes_report_and_resumes(capsys, tmp_path):
+    argv = ["compare", "--policies", "identity", "oracle", "--noise", "0", "0.8", "--seeds", "1",
+            "--steps", "2", "--workers", "1", "--quiet", "--out", str(tmp_path), *TINY]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "### AP@0.7 (%)" in out and "| oracle |" in out
+    assert "(4 run, 0 resumed, 0 failed)" in out
+    for name in ("results.jsonl", "report.md", "summary.csv", "ap70_vs_noise.png",
+                 "rpe_distribution.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert main(argv) == 0
+    assert "(0 run, 4 resumed, 0 failed)" in capsys.readouterr().out
+
+
+def test_render_writes_png_frames_and_a_gif(tmp_path, capsys):
+    gif = tmp_path / "episode.gif"
+    assert main(["render", "--policy", "identity", "--steps", "2", "--out", str(tmp_path / "png"),
+                 "--gif", str(gif), *TINY]) == 0
+    frames = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert [f.name for f in frames] == ["frame_0001.png", "frame_0002.png"]
+    with Image.open(frames[0]) as image:
+        assert image.mode == "RGB" and min(image.size) > 100
+    with Image.open(gif) as image:
+        assert image.n_frames == 2
+
+
+def test_demo_preset_and_explicit_options_win():
+    from roco_env.cli import build_parser
+    from roco_env.cli.compare import grid_from_args
+
+    demo = grid_from_args(build_parser().parse_args(["compare", "--demo"]))
+    assert {c.scenario for c in demo} == {"crowded_intersection"}
+    assert [c.policy for c in demo[::3]][:4] == ["identity", "coalign", "roco", "oracle"]
+    assert {c.noise for c in demo} == {0.0, 0.4, 0.8}
+    assert len(demo) == 4 * 3 * 3 and {c.steps for c in demo} == {40}
+    short = grid_from_args(build_parser().parse_args(["compare", "--demo", "--steps", "2"]))
+    assert {c.steps for c in short} == {2} and len(short) == len(demo)
+
+
+def test_ray_address_without_a_cluster_is_a_clear_error(monkeypatch, capsys, tmp_path):
+    ray = pytest.importorskip("ray")
+
+    def no_cluster(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance.")
+
+    monkeypatch.setattr(ray, "init", no_cluster)
+    argv = ["compare", "--backend", "ray", "--address", "auto", "--policies", "identity",
+            "--noise", "0", "--seeds", "1", "--steps", "1", "--quiet", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    assert "no Ray cluster reachable at address 'auto'" in capsys.readouterr().err

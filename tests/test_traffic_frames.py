@@ -1,0 +1,59 @@
+"""Bring-your-own scene: FramesSource from user arrays, and its validation."""
+
+import numpy as np
+import pytest
+
+from roco_env.scenario import scenario_from_dict
+from roco_env.traffic import Frame, make_traffic_source
+
+CONFIG = scenario_from_dict({"traffic": {"source": "frames"}, "agents": {"cavs": 1, "rsus": 1}})
+
+
+def frames(n=3):
+    out = []
+    for t in range(n):
+        boxes = np.array([[t * 1.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0],
+                          [20.0, 3.5, 0.8, 4.5, 1.9, 1.6, np.pi]])
+        out.append(Frame(object_ids=[7, 9], object_boxes=boxes, cav_object_ids=[7],
+                         rsu_poses=[[10.0, 8.0, -1.0]], object_classes=[0, 1]))
+    return out
+
+
+def test_frames_replay_in_order_and_hold_the_last():
+    source = make_traffic_source(CONFIG, frames=frames())
+    state = source.reset(np.random.default_rng(0))
+    assert state.agent_ids == ("cav_0", "rsu_0")
+    np.testing.assert_array_equal(state.agent_object_ids, [7, -1])
+    np.testing.assert_allclose(state.agent_poses, [[0.0, 0.0, 0.0], [10.0, 8.0, -1.0]])
+    np.testing.assert_array_equal(state.object_classes, [0, 1])
+    assert source.step(0.1).agent_poses[0, 0] == 1.0
+    assert source.step(0.1).time == pytest.approx(0.2)
+    assert source.finished
+    assert source.step(0.1).agent_poses[0, 0] == 2.0  # holds the last frame
+    assert source.reset(None).agent_poses[0, 0] == 0.0
+
+
+def test_frames_required_only_for_frames_source():
+    with pytest.raises(ValueError, match="frames="):
+        make_traffic_source(CONFIG)
+    synthetic = scenario_from_dict({})
+    with pytest.raises(ValueError, match="frames="):
+        make_traffic_source(synthetic, frames=frames())
+
+
+@pytest.mark.parametrize("change, fragment", [
+    ({"object_boxes": [[0, 0, 0, 1, 1]]}, "frames[1].object_boxes"),
+    ({"object_ids": [7, 7]}, "frames[1].object_ids"),
+    ({"cav_object_ids": [8]}, "frames[1].cav_object_ids [8]"),
+    ({"object_classes": [0, 9]}, "frames[1].object_classes"),
+    ({"object_velocities": [[0.0, 0.0]]}, "frames[1].object_velocities"),
+    ({"rsu_poses": []}, "agent set must stay constant"),
+])
+def test_bad_frames_are_rejected_with_the_field(change, fragment):
+    data = frames()
+    bad = data[1]
+    for key, value in change.items():
+        setattr(bad, key, value)
+    with pytest.raises(ValueError) as info:
+        make_traffic_source(CONFIG, frames=data)
+    assert fragment in str(info.value)
