@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from roco_env.metrics import relative_pose_error
 from roco_env.policies import make_policy
@@ -117,3 +119,30 @@ def test_bad_parameters_raise():
         coalign_align(
             scene.ego_boxes, scene.ego_unc, scene.collab_boxes[:1], scene.collab_unc, scene.reported
         )
+
+
+def dense_greedy_clusters(xy, owner, threshold):
+    """The clustering rule written out over the full distance matrix (test oracle)."""
+    dist = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    close = (dist <= threshold) & (owner[:, None] != owner[None, :])
+    assigned = np.zeros(len(xy), dtype=bool)
+    clusters = []
+    for seed in range(len(xy)):
+        members = np.nonzero(close[seed] & ~assigned)[0]
+        if assigned[seed] or not members.size:
+            continue
+        assigned[seed] = assigned[members] = True
+        clusters.append([seed, *members.tolist()])
+    return clusters
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(-12, 12), st.integers(-12, 12), st.integers(0, 3)), max_size=40)
+)
+def test_greedy_clustering_matches_the_dense_definition(points):
+    # half-metre grid: many pairs exactly at the 1.5 m threshold and duplicates
+    xy = np.array([p[:2] for p in points], dtype=float).reshape(-1, 2) * 0.5
+    owner = np.array([p[2] for p in points], dtype=np.int64)
+    got = [c.tolist() for c in greedy_clusters(xy, owner, 1.5)]
+    assert got == dense_greedy_clusters(xy, owner, 1.5)

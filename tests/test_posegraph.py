@@ -198,3 +198,33 @@ def test_bad_graphs_raise_value_errors_naming_the_field():
         PoseGraph.build(
             np.full((2, 3), np.nan), graph.landmarks, [], [], np.zeros((0, 3)), np.zeros((0, 3, 3))
         )
+
+
+@pytest.mark.parametrize("kernel", [None, "cauchy"])
+def test_single_pose_linearisation_matches_the_edge_jacobians(kernel):
+    """The rotated single-vertex normal equations equal sum w J^T Omega J and sum w J^T
+    Omega e from edge_residuals, for full (correlated) information matrices."""
+    from roco_env.policies.posegraph import _PoseProblem
+
+    rng = np.random.default_rng(8)
+    pose = np.array([2.0, -1.0, 2.8])
+    lands = rng.normal(size=(7, 3)) * [15, 15, 2]
+    meas = se2_relative(pose, lands) + rng.normal(size=(7, 3)) * [0.5, 0.5, 0.2]
+    root = rng.normal(size=(7, 3, 3))
+    info = root @ root.transpose(0, 2, 1) + np.eye(3)
+    prior, prior_info = pose + [0.3, -0.2, 0.05], np.diag([2.0, 3.0, 50.0])
+    problem = _PoseProblem(lands, meas, info, prior, prior_info, kernel, 2.0)
+    cost, point = problem.evaluate(pose)
+    hess, grad = problem.normal_equations(point)
+    e, j_a, _ = edge_residuals(np.tile(pose, (7, 1)), lands, meas)
+    chi2 = np.einsum("ei,eij,ej->e", e, info, e)
+    rho, weight = robust_kernel(chi2, kernel, 2.0)
+    e_p, _, j_p = edge_residuals(np.zeros((1, 3)), pose[None], prior[None])
+    expected_h = (
+        np.einsum("e,eki,ekl,elj->ij", weight, j_a, info, j_a) + j_p[0].T @ prior_info @ j_p[0]
+    )
+    expected_g = np.einsum("e,eki,ekl,el->i", weight, j_a, info, e) + j_p[0].T @ prior_info @ e_p[0]
+    assert np.isclose(cost, rho.sum() + e_p[0] @ prior_info @ e_p[0], rtol=1e-12)
+    assert np.allclose(point[0], chi2, rtol=1e-10)
+    assert np.allclose(hess, expected_h, rtol=1e-10, atol=1e-9)
+    assert np.allclose(grad, expected_g, rtol=1e-10, atol=1e-9)

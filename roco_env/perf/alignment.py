@@ -42,6 +42,7 @@ def run(quick: bool) -> list[str]:
     slope = np.polyfit(np.log(objects), np.log(roco_ms), 1)[0]
     lines.append(
         f"roco cost growth: {roco_ms[0]:.2f} -> {roco_ms[1]:.2f} -> {roco_ms[2]:.2f} ms for "
-        f"20 -> 60 -> 200 objects (agents grow too), ~objects^{slope:.2f}; target <= 3 ms at (5, 60)"
+        f"20 -> 60 -> 200 objects (agents grow too), ~objects^{slope:.2f}; "
+        "target <= 3 ms at (5, 60)"
     )
     return lines

@@ -121,10 +121,9 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        dis = np.hypot(
-            self.landmarks[:, None, 0] - centres[None, :, 0],
-            self.landmarks[:, None, 1] - centres[None, :, 1],
-        )
+        dx = self.landmarks[:, None, 0] - centres[None, :, 0]
+        dy = self.landmarks[:, None, 1] - centres[None, :, 1]
+        dis = np.sqrt(dx * dx + dy * dy)  # twice as fast as np.hypot on these sizes
         cand_p, cand_q = np.nonzero(dis <= tau2)
         if cand_p.size == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
@@ -143,7 +142,11 @@ class StarGraphMatcher:
         nearest = dis.argmin(axis=1)
         leaves = np.nonzero(dis[np.arange(dis.shape[0]), nearest] <= tau2)[0]
         partner = nearest[leaves]  # n = A(m)
-        key = (cand_p.size, leaves.size, np.concatenate([cand_p, cand_q, leaves, partner]).tobytes())
+        key = (
+            cand_p.size,
+            leaves.size,
+            np.concatenate([cand_p, cand_q, leaves, partner]).tobytes(),
+        )
         if key != self._cached_key:
             self._cached_edge = _edge_similarity_from_features(
                 self._land_features,
@@ -231,8 +234,7 @@ def _edge_similarity_from_features(
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature, so all (C x H) norms are one matrix product,
-    and so are the squared leaf distances |d_pm|^2, |d_qn|^2 of the radius test.
+    candidate feature and a leaf feature, so all (C x H) norms are one matrix product.
     """
     px, py, p2, pc, ps = land[:, cand_p]
     qx, qy, q2, qc, qs = box[:, cand_q]
@@ -258,24 +260,20 @@ def _edge_similarity_from_features(
         axis=1,
     )
     h = leaves.size
-    leaf = np.zeros((11, h if neighbor_radius is None else 3 * h))
-    leaf[0, :h] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
-    leaf[1, :h], leaf[2, :h] = -4.0 * cu, -4.0 * su
-    leaf[3, :h], leaf[4, :h] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
-    leaf[6, :h], leaf[7, :h] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
-    leaf[5, :h] = leaf[8, :h] = 1.0
-    leaf[9, :h], leaf[10, :h] = -2.0 * cu, -2.0 * su
+    leaf = np.zeros((11, h))
+    leaf[0] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
+    leaf[1], leaf[2] = -4.0 * cu, -4.0 * su
+    leaf[3], leaf[4] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
+    leaf[6], leaf[7] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
+    leaf[5] = leaf[8] = 1.0
+    leaf[9], leaf[10] = -2.0 * cu, -2.0 * su
+    norm2 = cand @ leaf
     usable = (leaves[None, :] != cand_p[:, None]) & (partner[None, :] != cand_q[:, None])
-    if neighbor_radius is None:
-        norm2 = cand @ leaf
-    else:
-        # |t_p - t_m|^2 and |t_q - t_n|^2 from the same product (columns 0 and 3-8 of cand).
-        leaf[0, h : 2 * h], leaf[5, h : 2 * h] = m2, 1.0
-        leaf[3, h : 2 * h], leaf[4, h : 2 * h] = -2.0 * mx, -2.0 * my
-        leaf[0, 2 * h :], leaf[8, 2 * h :] = n2, 1.0
-        leaf[6, 2 * h :], leaf[7, 2 * h :] = -2.0 * nx, -2.0 * ny
-        norm2, dist_pm, dist_qn = np.split(cand @ leaf, 3, axis=1)
+    if neighbor_radius is not None:
+        # Direct differences (not the expanded squares above): exact at the radius.
         r2 = neighbor_radius**2
-        usable &= (dist_pm <= r2) & (dist_qn <= r2)
+        d_pm = (px[:, None] - mx[None, :]) ** 2 + (py[:, None] - my[None, :]) ** 2
+        d_qn = (qx[:, None] - nx[None, :]) ** 2 + (qy[:, None] - ny[None, :]) ** 2
+        usable &= (d_pm <= r2) & (d_qn <= r2)
     total = (np.exp(-np.sqrt(np.maximum(norm2, 0.0))) * usable).sum(axis=1)
     return total / np.maximum(usable.sum(axis=1), 1)

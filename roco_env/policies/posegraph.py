@@ -179,7 +179,9 @@ def edge_residuals(
     pose_a, pose_b, measurement: (E, 3). Returns e (E, 3) = (dx, dy, wrapped dyaw),
     J_a (E, 3, 3) = de/d(x_a, y_a, yaw_a) and J_b (E, 3, 3) = de/d(x_b, y_b, yaw_b).
     """
-    e, jac = _residuals_jacobian(pose_a, pose_b, measurement[:, 2], _measurement_offset(measurement))
+    e, jac = _residuals_jacobian(
+        pose_a, pose_b, measurement[:, 2], _measurement_offset(measurement)
+    )
     return e, jac[:, :, :3], jac[:, :, 3:]
 
 
@@ -187,7 +189,10 @@ def _measurement_offset(measurement: np.ndarray) -> np.ndarray:
     """R_z^T t_z (E, 2) of measurements (E, 3): the constant part of the residual."""
     cz, sz = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
     return np.stack(
-        [cz * measurement[:, 0] + sz * measurement[:, 1], -sz * measurement[:, 0] + cz * measurement[:, 1]],
+        [
+            cz * measurement[:, 0] + sz * measurement[:, 1],
+            -sz * measurement[:, 0] + cz * measurement[:, 1],
+        ],
         axis=1,
     )
 
@@ -301,7 +306,9 @@ class _Problem:
         meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
         self.meas_yaw, self.meas_offset = meas[:, 2], _measurement_offset(meas)
         self.info = np.concatenate([graph.obs_information, graph.prior_information])
-        self.free = np.setdiff1d(np.arange(3 * na), np.arange(3 * fixed, 3 * fixed + 3))
+        free = np.arange(3 * na)
+        self.free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
+        self.free_block = np.ix_(self.free, self.free)
         self.h_index, self.g_index, self.h_sizes = _scatter_indices(graph)
 
     def linearize(self, agents: np.ndarray, landmarks: np.ndarray):
@@ -353,7 +360,7 @@ class _Problem:
         free = self.free
         d_a = np.zeros(3 * self.n_agents)
         if free.size:
-            d_a[free] = np.linalg.solve(reduced[np.ix_(free, free)], rhs[free])
+            d_a[free] = np.linalg.solve(reduced[self.free_block], rhs[free])
         back = (h_al.T @ d_a).reshape(nl, 3)
         d_l = -np.matmul(h_ll_inv, (g_l + back)[:, :, None])[:, :, 0]
         return d_a.reshape(-1, 3), d_l
@@ -371,11 +378,14 @@ def _retract(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return out
 
 
-def _levenberg_marquardt(x, evaluate, propose, max_iterations: int, tolerance: float):
+def _levenberg_marquardt(
+    x, evaluate, normal_equations, propose, max_iterations: int, tolerance: float
+):
     """Levenberg-Marquardt loop shared by :func:`optimize` and :func:`optimize_pose`.
 
-    evaluate(x) -> (cost, linearisation); propose(x, linearisation, lam) -> (trial x,
-    largest step component). Starts with lam = 1e-4; a step is accepted when it does not
+    evaluate(x) -> (cost, linearisation); normal_equations(linearisation) -> system, built
+    once per accepted state; propose(x, system, lam) -> (trial x, largest step
+    component). Starts with lam = 1e-4; a step is accepted when it does not
     raise the cost (then lam /= 10), else lam *= 10 until 1e12 (no progress: converged).
     Stops after ``max_iterations`` linearisations, when the relative cost decrease of an
     accepted step is below ``tolerance`` or when its largest component is.
@@ -385,8 +395,9 @@ def _levenberg_marquardt(x, evaluate, propose, max_iterations: int, tolerance: f
     initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
     while iterations < max_iterations and not converged:
         iterations += 1
+        system = normal_equations(lin)
         while True:
-            trial_x, step = propose(x, lin, lam)
+            trial_x, step = propose(x, system, lam)
             trial_cost, trial_lin = evaluate(trial_x)
             if trial_cost <= cost:
                 break
@@ -429,21 +440,23 @@ def optimize(
         raise ValueError(f"max_iterations must be >= 0; got {max_iterations}")
     problem = _Problem(graph, fixed, kernel, kernel_delta)
     n_agents = graph.agents.shape[0]
-    cache: list = [None, None]  # (linearisation, its normal equations): built once per state
 
     def evaluate(x):
         return problem.linearize(x[:n_agents], x[n_agents:])
 
-    def propose(x, lin, lam):
-        if cache[0] is not lin:
-            cache[:] = lin, problem.normal_equations(*lin)
-        d_a, d_l = problem.step(*cache[1], lam)
+    def propose(x, system, lam):
+        d_a, d_l = problem.step(*system, lam)
         step = max(np.abs(d_a).max(initial=0.0), np.abs(d_l).max(initial=0.0))
         return _retract(x, np.concatenate([d_a, d_l])), step
 
     start = np.concatenate([graph.agents, graph.landmarks])
     x, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start, evaluate, propose, max_iterations, tolerance
+        start,
+        evaluate,
+        lambda lin: problem.normal_equations(*lin),
+        propose,
+        max_iterations,
+        tolerance,
     )
     chi2 = lin[2]
     return PoseGraphResult(
@@ -484,8 +497,9 @@ class _PoseProblem:
     sums are one weighted matrix product over per-edge features.
     """
 
-    def __init__(self, landmarks, measurement, information, prior, prior_information, kernel,
-                 delta):
+    def __init__(
+        self, landmarks, measurement, information, prior, prior_information, kernel, delta
+    ):
         self.kernel, self.delta = kernel, delta
         self.land_xy = landmarks[:, :2]
         self.t_z = measurement[:, :2]
@@ -581,12 +595,8 @@ def optimize_pose(
         landmarks, measurement, information, prior, prior_information, kernel, kernel_delta
     )
 
-    cache: list = [None, None]  # (linearisation point, its normal equations)
-
-    def propose(pose, point, lam):
-        if cache[0] is not point:
-            cache[:] = point, problem.normal_equations(point)
-        hess, grad = cache[1]
+    def propose(pose, system, lam):
+        hess, grad = system
         damped = hess.copy()
         damped.reshape(-1)[::4] += lam * np.maximum(np.diagonal(hess), _MIN_DIAG)
         delta = np.linalg.solve(damped, -grad)
@@ -596,6 +606,6 @@ def optimize_pose(
 
     start = np.asarray(initial, dtype=float).copy()
     pose, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start, problem.evaluate, propose, max_iterations, tolerance
+        start, problem.evaluate, problem.normal_equations, propose, max_iterations, tolerance
     )
     return PoseResult(pose, lin[0], initial_cost, cost, iterations, converged)
