@@ -13,6 +13,13 @@ Action bounds: |dx|, |dy| <= 2 x ``agents.comm_range`` m (any pair within comm
 range needs less), |dyaw| <= pi; finite values outside are applied as given,
 NaN/inf or a wrong shape raise ValueError. Empty slots ignore their action.
 
+Late fusion drops every box that overlaps the ego's own vehicle (BEV IoU with
+its footprint above ``fusion.nms_iou``; CAV egos only, RSUs have no
+footprint): collaborators detect the ego's car, the ground truth leaves it out
+(DESIGN.md section 8), so those boxes could only be false positives (see
+:mod:`roco_env.fusion.late`). With the ideal detector and clean poses the fused
+AP is then exactly 1 wherever every ground-truth object is detected.
+
 Every agent is an ego for its own fused perception. ``agents.evaluated`` (a
 scenario field) may restrict which agents are scored: the others still get
 observations and act, but their reward is always 0 and their info has no
@@ -58,7 +65,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.evaluation import evaluate_egos, metric_info, reward, slot_errors
-from roco_env.fusion import FusedDetections, merge_into_ego_frame, suppress
+from roco_env.fusion import FusedDetections, merge_many, suppress
 from roco_env.observation import (
     EgoView,
     action_space,
@@ -277,15 +284,17 @@ class CollabPerceptionEnv(ParallelEnv):
                 {a: infos[a] for a in self.possible_agents})
 
     def _fuse(self, frame: Frame, corrected: dict[str, np.ndarray]) -> dict:
-        """Late-fused detections of every evaluated agent (one batched NMS)."""
+        """Late-fused detections of every evaluated agent (one batched NMS), own footprint clear."""
         with self.clock.measure("fusion"):
-            merged = [
-                merge_into_ego_frame(view.boxes, view.scores, view.collab_boxes,
-                                     view.collab_scores, corrected[agent])
-                for agent, view in zip(self.possible_agents, frame.views, strict=True)
-                if agent in self.evaluated_agents
-            ]
-            fused = suppress(merged, self.config.fusion.nms_iou)
+            egos = [k for k, agent in enumerate(self.possible_agents)
+                    if agent in self.evaluated_agents]
+            merged = merge_many([
+                (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
+                 frame.views[k].collab_scores, corrected[self.possible_agents[k]])
+                for k in egos
+            ])
+            fused = suppress(merged, self.config.fusion.nms_iou,
+                             [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
 
     def _fuse_features(self, view: EgoView, corrected: np.ndarray) -> np.ndarray:

@@ -23,9 +23,9 @@ from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.metrics import (
     DEFAULT_IOU_THRESHOLDS,
     FrameStats,
-    average_precision,
-    frame_stats,
+    average_precisions,
     in_range_mask,
+    match_frames,
     relative_pose_error,
 )
 from roco_env.observation import EgoView
@@ -113,8 +113,8 @@ def evaluate_egos(views: Sequence[EgoView], fused: Sequence[FusedDetections],
     """Score each ego's fused detections against its ground truth (one frame, several egos).
 
     fused[k] and corrected[k] ((n_k, 3) corrected T_{j->i} of the filled slots, the
-    poses the fusion used) belong to views[k]. Transforms and range tests are
-    batched over the egos; the matching runs per ego.
+    poses the fusion used) belong to views[k]. Transforms, range tests and the
+    matching (:func:`~roco_env.metrics.match_frames`) are batched over the egos.
     """
     gts = ground_truths(state, visible, [(v.agent, v.collaborators) for v in views],
                         x_range, y_range)
@@ -122,13 +122,16 @@ def evaluate_egos(views: Sequence[EgoView], fused: Sequence[FusedDetections],
     all_fused = np.concatenate([np.zeros((0, 7)), *(f.boxes for f in fused)])
     in_range = _split(in_range_mask(all_fused, x_range, y_range), counts)
     errors = slot_errors(views, corrected, max_collaborators)
+    preds = [(ego_fused.boxes[keep], ego_fused.scores[keep])
+             for ego_fused, keep in zip(fused, in_range, strict=True)]
+    all_stats = match_frames([(boxes, scores, gt_boxes) for (boxes, scores), (gt_boxes, _)
+                              in zip(preds, gts, strict=True)], DEFAULT_IOU_THRESHOLDS)
     evaluations = []
-    for (gt_boxes, _), ego_fused, keep, (before, after) in zip(gts, fused, in_range, errors,
-                                                               strict=True):
-        pred_boxes, pred_scores = ego_fused.boxes[keep], ego_fused.scores[keep]
-        stats = frame_stats(pred_boxes, pred_scores, gt_boxes, DEFAULT_IOU_THRESHOLDS)
-        ap = {thr: average_precision(stats.scores, stats.tp[k], stats.n_gt)
-              for k, thr in enumerate(stats.thresholds)}
+    for (gt_boxes, _), (pred_boxes, pred_scores), stats, (before, after) in zip(
+            gts, preds, all_stats, errors, strict=True):
+        ap = dict(zip(stats.thresholds,
+                      average_precisions(stats.scores, stats.tp, stats.n_gt).tolist(),
+                      strict=True))
         evaluations.append(
             EgoEvaluation(gt_boxes, pred_boxes, pred_scores, stats, ap, before, after))
     return evaluations

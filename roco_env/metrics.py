@@ -18,9 +18,12 @@ Edge cases (decided here; OpenCOOD divides by zero): no GT and no predictions
 predictions but no GT -> 0.0 (every prediction is a false positive). IoU
 thresholds must lie in (0, 1]: a prediction never matches a GT it does not overlap.
 
-``APAccumulator.add_frame`` matches one frame (what the env does per step);
-``APAccumulator.add_frames`` matches a whole data set in one vectorised pass
-with identical results.
+``frame_stats`` / ``APAccumulator.add_frame`` match one frame;
+``match_frames`` (what the env does for all its egos each step) and
+``APAccumulator.add_frames`` match many frames in one vectorised pass with
+identical results: one candidate search and one exact-IoU call for all frames;
+predictions overlapping no GT are false positives without further work, and
+the sequential greedy pass visits only the predictions competing for a GT.
 
 Relative pose errors are in metres and degrees.
 """
@@ -33,11 +36,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from roco_env.geometry import (
-    bev_candidate_pairs,
     bev_iou_pairs,
-    box_corners_bev,
     validate_boxes,
     wrap_angle,
 )
@@ -46,8 +48,10 @@ __all__ = [
     "DEFAULT_IOU_THRESHOLDS",
     "FrameStats",
     "frame_stats",
+    "match_frames",
     "frame_ap",
     "average_precision",
+    "average_precisions",
     "APAccumulator",
     "in_range_mask",
     "relative_pose_error",
@@ -132,12 +136,33 @@ def frame_stats(
     tp/fp flags in that order, one row per threshold.
     """
     thresholds = _thresholds(iou_thresholds)
-    frame = _validated_frame(pred_boxes, pred_scores, gt_boxes, "")
-    scores, tp, _ = _match_frames([frame], np.asarray(thresholds))
-    return FrameStats(scores, tp, ~tp, frame[2].shape[0], thresholds)
+    return _frames_stats([_validated_frame(pred_boxes, pred_scores, gt_boxes, "")], thresholds)[0]
 
 
 Frame = tuple[np.ndarray, np.ndarray, np.ndarray]  # pred boxes (P, 7), scores (P,), GT (G, 7)
+
+
+def match_frames(frames: Sequence[Frame],
+                 iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS) -> list[FrameStats]:
+    """:func:`frame_stats` of many frames ``(pred_boxes, pred_scores, gt_boxes)`` at once.
+
+    Each frame's boxes share one frame of reference (frames may differ, e.g. one
+    per ego). Same results as calling :func:`frame_stats` on each frame.
+    """
+    thresholds = _thresholds(iou_thresholds)
+    return _frames_stats(_validated_frames(frames), thresholds)
+
+
+def _validated_frames(frames: Sequence[Frame]) -> list[Frame]:
+    """Frames with validated arrays; errors name the frame (``frames[k].pred_scores``)."""
+    checked = []
+    for k, frame in enumerate(frames):
+        if len(frame) != 3:
+            raise ValueError(
+                f"frames[{k}] must be (pred_boxes, pred_scores, gt_boxes); got {len(frame)} items"
+            )
+        checked.append(_validated_frame(*frame, f"frames[{k}]."))
+    return checked
 
 
 def _validated_frame(pred_boxes: np.ndarray, pred_scores: np.ndarray, gt_boxes: np.ndarray,
@@ -148,6 +173,16 @@ def _validated_frame(pred_boxes: np.ndarray, pred_scores: np.ndarray, gt_boxes: 
         _scores(pred_scores, pred_boxes.shape[0], f"{prefix}pred_scores"),
         validate_boxes(gt_boxes, f"{prefix}gt_boxes"),
     )
+
+
+def _frames_stats(frames: Sequence[Frame], thresholds: tuple[float, ...]) -> list[FrameStats]:
+    """FrameStats of validated frames, matched in one pass."""
+    if not frames:
+        return []
+    scores, tp, start = _match_frames(frames, np.asarray(thresholds))
+    return [FrameStats(scores[lo:hi], tp[:, lo:hi], ~tp[:, lo:hi], frame[2].shape[0], thresholds)
+            for frame, lo, hi in zip(frames, start[:-1].tolist(), start[1:].tolist(),
+                                     strict=True)]
 
 
 def _match_frames(frames: Sequence[Frame],
@@ -165,13 +200,38 @@ def _match_frames(frames: Sequence[Frame],
     order = np.lexsort((-scores, pred_frame))
     preds = np.concatenate([frame[0] for frame in frames])[order]
     gts = np.concatenate([frame[2] for frame in frames])
-    groups = (pred_frame, gt_frame) if len(frames) > 1 else ()
-    rows, cols = bev_candidate_pairs(preds, gts, *groups)
+    rows, cols = _candidate_pairs(preds, gts, pred_frame, gt_frame)
     iou = bev_iou_pairs(preds[rows], gts[cols])
     overlap = iou > 0.0
     tp = _greedy_match(rows[overlap], cols[overlap], iou[overlap], scores.size, gts.shape[0],
                        thresholds)
     return scores[order], tp, np.concatenate([[0], np.cumsum(n_pred)])
+
+
+def _candidate_pairs(preds: np.ndarray, gts: np.ndarray, pred_frame: np.ndarray,
+                     gt_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(prediction, GT) index pairs of the same frame that may overlap, sorted by row then column.
+
+    A superset of the pairs with IoU > 0: the circumscribed circles overlap
+    (strictly), the test of ``geometry.bev_candidate_pairs``. Neighbours come
+    from scipy KD-trees (frames kept apart on a third axis, farther than the
+    search radius) instead of all same-frame pairs: O(n log n), not P x G.
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    if preds.shape[0] == 0 or gts.shape[0] == 0:
+        return empty, empty
+    radius_pred = 0.5 * np.hypot(preds[:, 3], preds[:, 4])
+    radius_gt = 0.5 * np.hypot(gts[:, 3], gts[:, 4])
+    reach = radius_pred.max() + radius_gt.max()
+    spacing = 4.0 * reach + 1.0
+    pairs = cKDTree(np.column_stack([preds[:, :2], pred_frame * spacing])).sparse_distance_matrix(
+        cKDTree(np.column_stack([gts[:, :2], gt_frame * spacing])), reach, output_type="ndarray")
+    rows, cols = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    near = (np.square(preds[rows, 0] - gts[cols, 0]) + np.square(preds[rows, 1] - gts[cols, 1])
+            < np.square(radius_pred[rows] + radius_gt[cols]))
+    rows, cols = rows[near], cols[near]
+    order = np.lexsort((cols, rows))
+    return rows[order], cols[order]
 
 
 def _greedy_match(rows: np.ndarray, cols: np.ndarray, iou: np.ndarray, n_pred: int,
@@ -214,18 +274,31 @@ def average_precision(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> float:
 
     Applies the NaN/0 edge-case rules of the module docstring.
     """
+    tp = np.asarray(tp, dtype=bool).reshape(1, -1)
+    return float(average_precisions(scores, tp, n_gt)[0])
+
+
+def average_precisions(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> np.ndarray:
+    """:func:`average_precision` of each row of tp (T, P) bool, all rows at once -> (T,).
+
+    scores (P,) is shared by the rows (one row per IoU threshold).
+    """
     scores = np.asarray(scores, dtype=float).reshape(-1)
-    tp = np.asarray(tp, dtype=bool).reshape(-1)
+    tp = np.asarray(tp, dtype=bool)
+    if tp.ndim != 2 or tp.shape[1] != scores.shape[0]:
+        raise ValueError(f"tp must have shape (thresholds, {scores.shape[0]}) for "
+                         f"{scores.shape[0]} scores; got {tp.shape}")
     if n_gt == 0:
-        return float("nan") if scores.size == 0 else 0.0
+        return np.full(tp.shape[0], np.nan if scores.size == 0 else 0.0)
     if scores.size == 0:
-        return 0.0
-    tp = tp[np.argsort(-scores, kind="stable")]
-    tp_cum = np.cumsum(tp)
-    recall = np.concatenate([[0.0], tp_cum / n_gt, [1.0]])
-    precision = np.concatenate([[0.0], tp_cum / np.arange(1, tp.size + 1), [0.0]])
-    precision = np.maximum.accumulate(precision[::-1])[::-1]
-    return float(np.sum(np.diff(recall) * precision[1:]))
+        return np.zeros(tp.shape[0])
+    tp_cum = np.cumsum(tp[:, np.argsort(-scores, kind="stable")], axis=1)
+    rows = tp.shape[0]
+    recall = np.concatenate([np.zeros((rows, 1)), tp_cum / n_gt, np.ones((rows, 1))], axis=1)
+    precision = np.concatenate([np.zeros((rows, 1)), tp_cum / np.arange(1, scores.size + 1),
+                                np.zeros((rows, 1))], axis=1)
+    precision = np.maximum.accumulate(precision[:, ::-1], axis=1)[:, ::-1]
+    return np.sum(np.diff(recall, axis=1) * precision[:, 1:], axis=1)
 
 
 def frame_ap(
@@ -269,21 +342,8 @@ class APAccumulator:
 
         Same result as calling :meth:`add_frame` on each, vectorised across frames.
         """
-        checked = []
-        for k, frame in enumerate(frames):
-            if len(frame) != 3:
-                raise ValueError(
-                    f"frames[{k}] must be (pred_boxes, pred_scores, gt_boxes); got {len(frame)} items"
-                )
-            checked.append(_validated_frame(*frame, f"frames[{k}]."))
-        frames = checked
-        if not frames:
-            return
-        scores, tp, start = _match_frames(frames, np.asarray(self.thresholds))
-        for f, frame in enumerate(frames):
-            self._scores.append(scores[start[f]:start[f + 1]])
-            self._tp.append(tp[:, start[f]:start[f + 1]])
-            self._n_gt += frame[2].shape[0]
+        for stats in match_frames(frames, self.thresholds):
+            self.add_stats(stats)
 
     def add_stats(self, stats: FrameStats) -> None:
         """Pool an already matched frame (e.g. the env's frame_scores/tp/fp/n_gt info)."""
@@ -306,10 +366,8 @@ class APAccumulator:
             if self._tp
             else np.zeros((len(self.thresholds), 0), dtype=bool)
         )
-        return {
-            thr: average_precision(scores, tp[k], self._n_gt)
-            for k, thr in enumerate(self.thresholds)
-        }
+        return dict(zip(self.thresholds, average_precisions(scores, tp, self._n_gt).tolist(),
+                        strict=True))
 
 
 def _range(values: Sequence[float], name: str) -> tuple[float, float]:
@@ -327,12 +385,12 @@ def in_range_mask(boxes: np.ndarray, x_range: Sequence[float],
     """
     boxes = validate_boxes(boxes, "boxes")
     (x_lo, x_hi), (y_lo, y_hi) = _range(x_range, "x_range"), _range(y_range, "y_range")
-    corners = box_corners_bev(boxes)
-    inside = (
-        (corners[..., 0] >= x_lo) & (corners[..., 0] <= x_hi)
-        & (corners[..., 1] >= y_lo) & (corners[..., 1] <= y_hi)
-    )
-    return inside.all(axis=1)
+    # The corners' extreme coordinates: centre +- the half extents of the rotated footprint.
+    cos, sin = np.abs(np.cos(boxes[:, 6])), np.abs(np.sin(boxes[:, 6]))
+    half_x = 0.5 * (cos * boxes[:, 3] + sin * boxes[:, 4])
+    half_y = 0.5 * (sin * boxes[:, 3] + cos * boxes[:, 4])
+    return ((boxes[:, 0] - half_x >= x_lo) & (boxes[:, 0] + half_x <= x_hi)
+            & (boxes[:, 1] - half_y >= y_lo) & (boxes[:, 1] + half_y <= y_hi))
 
 
 def _poses_allow_nan(poses: np.ndarray, name: str) -> np.ndarray:

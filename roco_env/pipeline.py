@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.geometry import se2_relative
+from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
 from roco_env.noise import make_pose_noise
 from roco_env.observation import EgoView, top_k
 from roco_env.scenario import ScenarioConfig
@@ -68,7 +68,9 @@ class Frame:
     state: the world; reported_poses (A, 3): the noise model's output for every
     agent (world frame); visibility: who sees what; detections: per agent, top-K,
     in its true sensor frame; features: per agent (C, H, W) tensors or None;
-    views: per agent, what its observation holds.
+    views: per agent, what its observation holds; footprints: per agent, its
+    own vehicle's box (7,) in its true sensor frame (what late fusion keeps
+    clear of collaborators' boxes), None for an RSU.
     """
 
     state: WorldState
@@ -77,6 +79,7 @@ class Frame:
     detections: tuple[AgentDetections, ...]
     features: tuple | None
     views: tuple[EgoView, ...]
+    footprints: tuple[np.ndarray | None, ...]
 
 
 class Pipeline:
@@ -149,37 +152,60 @@ class Pipeline:
                 features = tuple(bev_features(visibility, a, self.grid)
                                  for a in range(state.num_agents))
         with self.clock.measure("messages"):
-            views = tuple(self._view(state, i, reported, detections, features)
-                          for i in range(state.num_agents))
-        return Frame(state, reported, visibility, detections, features, views)
+            views = self._views(state, reported, detections, features)
+        return Frame(state, reported, visibility, detections, features, views,
+                     own_footprints(state))
 
-    def _view(self, state: WorldState, ego: int, reported: np.ndarray,
-              detections: tuple[AgentDetections, ...], features: tuple | None) -> EgoView:
-        messages = build_messages(state, ego, reported, detections,
-                                  self.config.max_collaborators, features)
-        slots = tuple(self.agent_ids.index(m.sender) for m in messages)
-        own_pose = reported[ego] if self.noise.perturb_ego else state.agent_poses[ego]
-        collab_poses = np.array([m.reported_pose for m in messages]).reshape(-1, 3)
+    def _views(self, state: WorldState, reported: np.ndarray,
+               detections: tuple[AgentDetections, ...],
+               features: tuple | None) -> tuple[EgoView, ...]:
+        """Every agent's view; the relative poses of all (ego, slot) pairs in one batch each."""
+        messages = [build_messages(state, ego, reported, detections,
+                                   self.config.max_collaborators, features)
+                    for ego in range(state.num_agents)]
+        slots = [tuple(self.agent_ids.index(m.sender) for m in sent) for sent in messages]
+        own = reported if self.noise.perturb_ego else state.agent_poses
         true = state.agent_poses
-        mine = detections[ego]
-        return EgoView(
-            agent=ego,
-            pose=np.array(own_pose, dtype=float),
-            boxes=mine.boxes,
-            uncertainty=mine.uncertainty,
-            scores=mine.scores,
-            object_ids=mine.object_ids,
-            collaborators=slots,
-            collab_poses=collab_poses,
-            reported_relative=se2_relative(own_pose[None, :], collab_poses),
-            true_relative=se2_relative(true[ego][None, :], true[list(slots)]).reshape(-1, 3),
-            collab_boxes=tuple(m.boxes for m in messages),
-            collab_uncertainty=tuple(m.uncertainty for m in messages),
-            collab_scores=tuple(m.scores for m in messages),
-            collab_object_ids=tuple(detections[j].object_ids for j in slots),
-            features=None if features is None else features[ego],
-            collab_features=None if features is None else tuple(m.features for m in messages),
-        )
+        collab_poses = [np.array([m.reported_pose for m in sent]).reshape(-1, 3)
+                        for sent in messages]
+        counts = [len(s) for s in slots]
+        egos = np.repeat(np.arange(state.num_agents), counts)
+        reported_relative = se2_relative(own[egos],
+                                         np.concatenate([np.zeros((0, 3)), *collab_poses]))
+        true_relative = se2_relative(true[egos], true[np.array(sum(slots, ()), dtype=np.int64)])
+        start = np.concatenate([[0], np.cumsum(counts)]).tolist()
+        views = []
+        for ego, (sent, slot) in enumerate(zip(messages, slots, strict=True)):
+            mine, rows = detections[ego], slice(start[ego], start[ego + 1])
+            views.append(EgoView(
+                agent=ego,
+                pose=np.array(own[ego], dtype=float),
+                boxes=mine.boxes,
+                uncertainty=mine.uncertainty,
+                scores=mine.scores,
+                object_ids=mine.object_ids,
+                collaborators=slot,
+                collab_poses=collab_poses[ego],
+                reported_relative=reported_relative[rows],
+                true_relative=true_relative[rows],
+                collab_boxes=tuple(m.boxes for m in sent),
+                collab_uncertainty=tuple(m.uncertainty for m in sent),
+                collab_scores=tuple(m.scores for m in sent),
+                collab_object_ids=tuple(detections[j].object_ids for j in slot),
+                features=None if features is None else features[ego],
+                collab_features=None if features is None else tuple(m.features for m in sent),
+            ))
+        return tuple(views)
+
+
+def own_footprints(state: WorldState) -> tuple[np.ndarray | None, ...]:
+    """Each agent's own vehicle box (7,) in its true sensor frame; None for an RSU."""
+    rows, objects = np.nonzero(state.agent_object_ids[:, None] == state.object_ids[None, :])
+    boxes = transform_boxes(state.object_boxes[objects], se2_inverse(state.agent_poses[rows]))
+    footprints: list[np.ndarray | None] = [None] * state.num_agents
+    for row, box in zip(rows.tolist(), boxes, strict=True):
+        footprints[row] = box
+    return tuple(footprints)
 
 
 def _top_k_detections(detections: AgentDetections, k: int) -> AgentDetections:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import roco_env
-from roco_env.geometry import se2_relative
+from roco_env.geometry import bev_iou, se2_relative
 from roco_env.metrics import APAccumulator, FrameStats, frame_ap
 from roco_env.policies import make_policy
 
@@ -84,6 +84,37 @@ def test_zero_noise_identity_equals_oracle():
             assert rew_i[agent] == rew_o[agent]
             np.testing.assert_allclose(info_o[agent]["fused_boxes"], info_i[agent]["fused_boxes"],
                                        atol=1e-9)
+
+
+@pytest.mark.parametrize("policy", ["identity", "oracle"])
+def test_ideal_detector_on_clean_poses_scores_exactly_one(policy):
+    """Every GT object is detected (ideal detector, K above the visible count) and every
+    fused box is a GT object: collaborators' views of the ego's own car (which the GT
+    leaves out) are dropped by the fusion, so AP is exactly 1 at every threshold."""
+    env = roco_env.parallel_env(**{**FAST, "max_boxes": 96}, detector="ideal", sigma_t=0.0,
+                                sigma_r=0.0, max_cycles=6)
+    chooser = make_policy(policy)
+    obs, infos = env.reset(seed=1)
+    n_cav = env.config.agents.cavs
+    ego_car_seen_by_collaborators = 0
+    while env.agents:
+        frame = env.unwrapped._frame
+        assert all(int(o["box_mask"].sum()) < 96 for o in obs.values())  # nothing cut by K
+        obs, _, _, _, infos = env.step({a: chooser(obs[a], infos[a]) for a in env.agents})
+        for k, agent in enumerate(env.possible_agents):
+            info = infos[agent]
+            assert info["n_gt"] > 0 and info["n_pred"] == info["n_gt"]
+            assert [info["ap30"], info["ap50"], info["ap70"]] == [1.0, 1.0, 1.0]
+            assert info["frame_tp"].all()
+            footprint = frame.footprints[k]
+            assert (footprint is None) == (k >= n_cav)
+            if footprint is not None:
+                assert np.all(bev_iou(info["fused_boxes"], footprint[None]) == 0.0)
+                own_car = frame.state.object_ids == frame.state.agent_object_ids[k]
+                collaborators = list(frame.views[k].collaborators)
+                ego_car_seen_by_collaborators += int(
+                    frame.visibility.visible[collaborators][:, own_car].any())
+    assert ego_car_seen_by_collaborators > 0  # the drop was exercised
 
 
 def test_oracle_beats_identity_under_heavy_noise():

@@ -8,10 +8,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from roco_env.fusion import EGO_SOURCE, late_fusion, merge_into_ego_frame, suppress
+from roco_env.fusion import (
+    EGO_SOURCE,
+    FusedDetections,
+    late_fusion,
+    merge_into_ego_frame,
+    suppress,
+)
 from roco_env.fusion.intermediate import fuse_features
-from roco_env.fusion.nms import batched_nms_bev
-from roco_env.geometry import nms_bev, transform_boxes
+from roco_env.fusion.nms import _iou_lower_bound, _separated, batched_nms_bev
+from roco_env.geometry import bev_iou, bev_iou_pairs, nms_bev, transform_boxes
 from roco_env.sensing import BevGrid
 
 
@@ -57,6 +63,16 @@ def test_merge_validates_its_inputs():
                              [np.ones(1)], np.zeros((1, 3)))
     with pytest.raises(ValueError, match="ego_scores must have one score per box"):
         merge_into_ego_frame(car(0, 0)[None], np.ones(2), [], [], np.zeros((0, 3)))
+    two_slots = np.zeros((2, 3))
+    with pytest.raises(ValueError, match=r"collab_boxes\[1\] must have shape"):
+        merge_into_ego_frame(np.zeros((0, 7)), np.zeros(0), [car(0, 0)[None], np.zeros((1, 6))],
+                             [np.ones(1), np.ones(1)], two_slots)
+    with pytest.raises(ValueError, match=r"collab_boxes\[0\] has negative sizes"):
+        merge_into_ego_frame(np.zeros((0, 7)), np.zeros(0), [car(0, 0, length=-1)[None], []],
+                             [np.ones(1), []], two_slots)
+    merged = merge_into_ego_frame(np.zeros((0, 7)), np.zeros(0), [[], car(1, 0)[None]],
+                                  [[], np.ones(1)], two_slots)  # an empty 1-D slot is fine
+    assert merged.source.tolist() == [1] and merged.source_index.tolist() == [0]
 
 
 @settings(max_examples=40, deadline=None)
@@ -69,6 +85,46 @@ def test_batched_nms_equals_geometry_nms(seed, sizes, threshold, ties):
     batched = batched_nms_bev(boxes, scores, threshold)
     for b, s, kept in zip(boxes, scores, batched, strict=True):
         np.testing.assert_array_equal(kept, nms_bev(b, s, threshold))
+
+
+def duplicated_scene(rng, n_objects, copies, jitter):
+    """Objects each detected ``copies`` times with centre/yaw noise (late fusion's input)."""
+    base = random_scene(rng, n_objects, spread=40.0)
+    boxes = np.repeat(base, copies, axis=0)
+    boxes[:, :2] += rng.normal(0.0, jitter, (len(boxes), 2))
+    boxes[:, 3:5] *= np.exp(rng.normal(0.0, 0.05, (len(boxes), 2)))
+    boxes[:, 6] += rng.normal(0.0, rng.choice([0.02, 0.3]), len(boxes))
+    return boxes
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), jitter=st.sampled_from([0.0, 0.1, 0.5, 1.5]),
+       threshold=st.sampled_from([0.0, 0.15, 0.5, 0.9]))
+def test_nms_shortcuts_change_no_decision(seed, jitter, threshold):
+    """The IoU lower bound and the separating-axis test only skip exact IoUs."""
+    rng = np.random.default_rng(seed)
+    boxes = [duplicated_scene(rng, int(rng.integers(1, 25)), 4, jitter) for _ in range(2)]
+    scores = [np.round(rng.random(len(b)), 1) for b in boxes]
+    for b, s, kept in zip(boxes, scores, batched_nms_bev(boxes, scores, threshold), strict=True):
+        np.testing.assert_array_equal(kept, nms_bev(b, s, threshold))
+    first, second = np.triu_indices(len(boxes[0]), 1)
+    a, b = boxes[0][first], boxes[0][second]
+    exact = bev_iou_pairs(a, b)
+    bound = _iou_lower_bound(a, b)
+    assert np.all(bound <= exact + 1e-12)
+    assert np.all(exact[_separated(a, b)] == 0.0)
+
+
+def test_iou_lower_bound_decides_most_duplicates():
+    rng = np.random.default_rng(5)
+    base = random_scene(rng, 200, spread=400.0)
+    copy = base.copy()
+    copy[:, :2] += rng.normal(0.0, 0.2, (200, 2))
+    copy[:, 6] += rng.normal(0.0, 0.05, 200)
+    exact, bound = bev_iou_pairs(base, copy), _iou_lower_bound(base, copy)
+    assert np.all(bound <= exact + 1e-12) and np.all(bound >= 0.0)
+    assert np.mean(bound > 0.15) > 0.9  # no exact IoU needed for these at the NMS threshold
+    np.testing.assert_allclose(_iou_lower_bound(base, base), 1.0, atol=1e-12)
 
 
 def test_suppress_matches_single_ego_late_fusion():
@@ -91,6 +147,62 @@ def test_batched_nms_validates_inputs():
         batched_nms_bev([], [], 1.5)
     assert batched_nms_bev([np.zeros((0, 7)), car(0, 0)[None]], [np.zeros(0), np.ones(1)],
                            0.15)[1].tolist() == [0]
+
+
+def test_boxes_on_the_ego_footprint_are_dropped():
+    footprint = car(0.0, 0.0)
+    # The collaborator, 20 m ahead, sees the ego's car 1 m to the side of where it is
+    # (pose error): centre outside the footprint, IoU 0.31 > 0.15. Its second box is the
+    # car queued 6 m ahead of the ego, which the ego sees too.
+    args = (car(6.0, 0.0)[None], np.array([0.6]), [np.stack([car(-20.0, 1.0), car(-14.1, 0.1)])],
+            [np.array([0.95, 0.5])], np.array([[20.0, 0.0, 0.0]]))
+    fused = late_fusion(*args, ego_footprint=footprint)
+    assert fused.source.tolist() == [EGO_SOURCE] and fused.scores.tolist() == [0.6]
+    # Without a footprint (an RSU ego) the view of the ego's car stays: a false positive.
+    for kept in (late_fusion(*args), late_fusion(*args, ego_footprint=None)):
+        assert kept.source.tolist() == [0, EGO_SOURCE] and kept.scores.tolist() == [0.95, 0.6]
+        assert bev_iou(kept.boxes[:1], footprint[None])[0, 0] == pytest.approx(4.05 / 13.05)
+    # A dropped box suppresses nothing: B (IoU 0.46 with A, 0.086 with the footprint)
+    # survives although A (IoU 0.36 with the footprint) has the higher score.
+    beside = late_fusion(np.zeros((0, 7)), np.zeros(0), [np.stack([car(0.0, 0.9), car(0.0, 1.6)])],
+                         [np.array([0.9, 0.8])], np.zeros((1, 3)), ego_footprint=footprint)
+    assert beside.source_index.tolist() == [1]
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 40), min_size=1, max_size=4),
+       threshold=st.sampled_from([0.0, 0.15, 0.5]))
+def test_footprint_equals_dropping_its_overlaps_before_nms(seed, sizes, threshold):
+    rng = np.random.default_rng(seed)
+    merged = [merge_into_ego_frame(random_scene(rng, n, 20.0), np.round(rng.random(n), 1), [],
+                                   [], np.zeros((0, 3))) for n in sizes]
+    footprints = [None if rng.random() < 0.3 else random_scene(rng, 1, 10.0)[0] for _ in sizes]
+    for m, footprint, fused in zip(merged, footprints, suppress(merged, threshold, footprints),
+                                   strict=True):
+        keep = (np.arange(len(m)) if footprint is None else
+                np.flatnonzero(bev_iou(m.boxes, footprint[None])[:, 0] <= threshold))
+        expected = keep[nms_bev(m.boxes[keep], m.scores[keep], threshold)]
+        np.testing.assert_array_equal(fused.source_index, expected)
+
+
+def test_footprints_are_validated():
+    merged = [merge_into_ego_frame(car(0, 0)[None], np.ones(1), [], [], np.zeros((0, 3)))]
+    with pytest.raises(ValueError, match="footprints must hold one entry"):
+        suppress(merged, 0.15, [None, None])
+    with pytest.raises(ValueError, match=r"footprints\[0\] must be one box"):
+        suppress(merged, 0.15, [np.zeros((2, 7))])
+    with pytest.raises(ValueError, match=r"footprints\[0\] contains NaN"):
+        suppress(merged, 0.15, [np.full(7, np.nan)])
+    bad = FusedDetections(np.zeros((1, 7)), np.array([np.nan]), np.zeros(1, np.int64),
+                          np.zeros(1, np.int64))
+    with pytest.raises(ValueError, match=r"merged\[0\]\.scores must hold one finite score"):
+        suppress([bad])
+    with pytest.raises(ValueError, match=r"merged boxes\[1\] has negative sizes"):
+        suppress([merged[0], FusedDetections(-np.ones((1, 7)), np.ones(1), np.zeros(1, np.int64),
+                                             np.zeros(1, np.int64))])
+    with pytest.raises(ValueError, match="ego_footprint must be one box"):
+        late_fusion(np.zeros((0, 7)), np.zeros(0), [], [], np.zeros((0, 3)),
+                    ego_footprint=np.zeros(6))
 
 
 GRID = BevGrid((-20.0, 20.0), (-10.0, 10.0), 0.4)

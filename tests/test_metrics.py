@@ -279,6 +279,20 @@ def test_in_range_mask_uses_all_corners():
     assert in_range_mask(np.zeros((0, 7)), (-1, 1), (-1, 1)).shape == (0,)
 
 
+def test_in_range_mask_equals_the_corner_test():
+    rng = np.random.default_rng(8)
+    n = 4000
+    boxes = np.column_stack([rng.uniform(-14, 14, n), rng.uniform(-8, 8, n), np.zeros(n),
+                             rng.uniform(0.0, 12.0, n), rng.uniform(0.0, 3.0, n), np.ones(n),
+                             rng.uniform(-7, 7, n)])
+    corners = box_corners_bev(boxes)
+    by_corners = ((corners[..., 0] >= -10) & (corners[..., 0] <= 10)
+                  & (corners[..., 1] >= -5) & (corners[..., 1] <= 5)).all(axis=1)
+    mask = in_range_mask(boxes, (-10, 10), (-5, 5))
+    np.testing.assert_array_equal(mask, by_corners)
+    assert 0.1 < mask.mean() < 0.9
+
+
 def test_relative_pose_error():
     truth = np.array([[1.0, 2.0, np.radians(179.0)], [0.0, 0.0, 0.0], [5.0, 5.0, 0.5]])
     est = np.array([[4.0, 6.0, np.radians(-179.0)], [np.nan] * 3, [5.0, 5.0, 0.5]])

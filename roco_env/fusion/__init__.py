@@ -1,7 +1,7 @@
 """Fusion of an ego's own outputs with its collaborators' (DESIGN.md section 7).
 
-``late_fusion`` merges boxes (the default; ``suppress`` runs the NMS of
-many egos at once); ``roco_env.fusion.intermediate``
+``late_fusion`` merges boxes (the default; ``merge_many`` and ``suppress``
+merge and NMS many egos at once); ``roco_env.fusion.intermediate``
 warps and max-fuses BEV feature maps (imported on demand: it needs torch).
 """
 
@@ -10,7 +10,9 @@ from roco_env.fusion.late import (
     FusedDetections,
     late_fusion,
     merge_into_ego_frame,
+    merge_many,
     suppress,
 )
 
-__all__ = ["EGO_SOURCE", "FusedDetections", "late_fusion", "merge_into_ego_frame", "suppress"]
+__all__ = ["EGO_SOURCE", "FusedDetections", "late_fusion", "merge_into_ego_frame", "merge_many",
+           "suppress"]

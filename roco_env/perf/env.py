@@ -4,9 +4,12 @@ Setting (issue 5): ``urban_intersection`` with 4 CAVs + 1 RSU (5 agents, every
 one evaluated as an ego), the lowest density (step 0.5) giving at least 100
 vehicles at reset, identity policy, late fusion. The per-step cost varies along
 an episode (signal phases, queues), so whole episodes from a seeded reset are
-timed. Baseline measured in the same process: the late-fusion NMS of all egos
-done one ego at a time with ``geometry.nms_bev`` (the plain implementation)
-against the batched NMS the env uses (identical kept boxes).
+timed. Baselines measured in the same process, on the first frame: the
+late-fusion NMS of all egos done one ego at a time with ``geometry.nms_bev``
+(the plain implementation) against the batched NMS the env uses (identical
+kept boxes), and the AP matching of all egos one ego at a time with
+``metrics.frame_stats`` against the batched ``metrics.match_frames`` the env
+uses (identical tp flags).
 """
 
 from __future__ import annotations
@@ -19,9 +22,11 @@ import time
 import numpy as np
 
 from roco_env.env import CollabPerceptionEnv
+from roco_env.evaluation import ground_truths
 from roco_env.fusion import merge_into_ego_frame
 from roco_env.fusion.nms import batched_nms_bev
 from roco_env.geometry import nms_bev
+from roco_env.metrics import frame_stats, match_frames
 from roco_env.perf._timing import median_seconds
 from roco_env.policies.basic import IdentityPolicy
 
@@ -96,9 +101,31 @@ def run(quick: bool) -> list[str]:
                  f"({sum(len(b) for b in boxes)} boxes): "
                  f"batched {1e3 * batched:.2f} ms vs per-ego nms_bev {1e3 * plain:.2f} ms -> "
                  f"{plain / batched:.1f}x, identical kept boxes: {same}")
+    lines.append(_matching_line(env, repeats * 3))
     if not quick:
         lines += _profile(env, steps)
     return lines
+
+
+def _matching_line(env: CollabPerceptionEnv, repeats: int) -> str:
+    """Per-ego ``frame_stats`` vs batched ``match_frames`` on the first frame's fused boxes."""
+    frame = env.unwrapped._frame
+    fused = env._fuse(frame, {a: v.reported_relative
+                              for a, v in zip(env.possible_agents, frame.views, strict=True)})
+    evaluation = env.config.evaluation
+    gts = ground_truths(frame.state, frame.visibility.visible,
+                        [(v.agent, v.collaborators) for v in frame.views],
+                        evaluation.x_range, evaluation.y_range)
+    frames = [(f.boxes, f.scores, gt) for f, (gt, _) in zip(fused.values(), gts, strict=True)]
+    per_ego = median_seconds(lambda: [frame_stats(*f) for f in frames], repeats=repeats)
+    batched = median_seconds(lambda: match_frames(frames), repeats=repeats)
+    same = all(np.array_equal(a.tp, b.tp) for a, b in zip(
+        match_frames(frames), [frame_stats(*f) for f in frames], strict=True))
+    return (f"AP matching of {len(frames)} egos on the first frame "
+            f"({sum(len(f[1]) for f in frames)} predictions, "
+            f"{sum(len(f[2]) for f in frames)} GT): batched {1e3 * batched:.2f} ms vs per-ego "
+            f"frame_stats {1e3 * per_ego:.2f} ms -> {per_ego / batched:.1f}x, "
+            f"identical tp: {same}")
 
 
 def _profile(env: CollabPerceptionEnv, steps: int, top: int = 6) -> list[str]:

@@ -34,12 +34,14 @@ Model (all agents and objects at once, vectorised with numpy):
   They fall with distance (smaller angles) and with occlusion.
 
 Ray hits (entry points of visible pairs) and each ray's first-hit distance are
-kept for the BEV features.
+kept for the BEV features; both are derived on first access (``Visibility.hits``
+/ ``ray_ranges``), so a pipeline without features never pays for them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -108,6 +110,27 @@ class RayHits:
 
 
 @dataclass(frozen=True)
+class _RayPairs:
+    """The cast (ray, object) pairs, sorted by agent, ray, then entry distance (P of them).
+
+    agent, obj, ray (P,) indices; angle (P,) ray azimuth in the agent frame (rad);
+    entry (P,) distance where the ray enters the footprint (m); top (P,) highest
+    visible point (m); returns (P,) expected LiDAR points; ranges (A,) sensor
+    ranges (m); n_rays rays per agent.
+    """
+
+    agent: np.ndarray
+    obj: np.ndarray
+    ray: np.ndarray
+    angle: np.ndarray
+    entry: np.ndarray
+    top: np.ndarray
+    returns: np.ndarray
+    ranges: np.ndarray
+    n_rays: int
+
+
+@dataclass(frozen=True)
 class Visibility:
     """What each of the A agents sees of the M objects.
 
@@ -115,18 +138,40 @@ class Visibility:
     returns (A, M): expected LiDAR points on the object.
     visible (A, M) bool: in range, not the agent's own vehicle, fraction > min_fraction.
     distance (A, M): sensor-to-object-centre distance in BEV (m).
-    ray_ranges (A, n_rays): distance to the first footprint along each ray
-      (sensor range where nothing is hit), m; ray k at azimuth k * azimuth_step.
-    azimuth_step: ray spacing, radians; hits: see :class:`RayHits`.
+    azimuth_step: ray spacing, radians.
+    ray_ranges and hits (properties, computed on first access): see below.
     """
 
     fraction: np.ndarray
     returns: np.ndarray
     visible: np.ndarray
     distance: np.ndarray
-    ray_ranges: np.ndarray
     azimuth_step: float
-    hits: RayHits
+    _pairs: _RayPairs = field(repr=False)
+
+    @cached_property
+    def ray_ranges(self) -> np.ndarray:
+        """(A, n_rays): distance to the first footprint along each ray (sensor range where
+        nothing is hit), m; ray k at azimuth k * azimuth_step."""
+        pairs = self._pairs
+        ray_ranges = np.repeat(pairs.ranges[:, None], pairs.n_rays, axis=1)
+        first = np.ones(pairs.agent.shape, dtype=bool)
+        first[1:] = (pairs.agent[1:] != pairs.agent[:-1]) | (pairs.ray[1:] != pairs.ray[:-1])
+        agent = pairs.agent[first]
+        ray_ranges[agent, pairs.ray[first]] = np.minimum(pairs.entry[first], pairs.ranges[agent])
+        return ray_ranges
+
+    @cached_property
+    def hits(self) -> RayHits:
+        """Entry points of the rays that see part of an object (:class:`RayHits`)."""
+        pairs = self._pairs
+        seen = pairs.returns > 0.0
+        angle, entry = pairs.angle[seen], pairs.entry[seen]
+        return RayHits(
+            agent=pairs.agent[seen], obj=pairs.obj[seen], ray=pairs.ray[seen],
+            x=entry * np.cos(angle), y=entry * np.sin(angle),
+            top=pairs.top[seen], returns=pairs.returns[seen],
+        )
 
 
 def _check_inputs(state: WorldState, azimuth_resolution_deg: float, rsu_height_factor: float,
@@ -309,24 +354,12 @@ def compute_visibility(
     fraction = np.where(centre_in_range, fraction.reshape(n_agents, n_obj), 0.0)
     total_returns = np.bincount(flat, weights=returns, minlength=size).reshape(n_agents, n_obj)
 
-    ray_ranges = np.repeat(ranges[:, None], n_rays, axis=1)
-    first = np.ones(agent.shape, dtype=bool)
-    first[1:] = pairs["key"][1:] != pairs["key"][:-1]
-    ray_ranges[agent[first], pairs["ray"][first]] = np.minimum(entry[first],
-                                                               ranges[agent[first]])
-    seen = returns > 0.0
-    angle = pairs["angle"][seen]
-    hits = RayHits(
-        agent=agent[seen], obj=obj[seen], ray=pairs["ray"][seen],
-        x=entry[seen] * np.cos(angle), y=entry[seen] * np.sin(angle),
-        top=top[seen], returns=returns[seen],
-    )
     return Visibility(
         fraction=fraction,
         returns=np.where(centre_in_range, total_returns, 0.0),
         visible=centre_in_range & (fraction > min_fraction),
         distance=distance,
-        ray_ranges=ray_ranges,
         azimuth_step=step,
-        hits=hits,
+        _pairs=_RayPairs(agent, obj, pairs["ray"], pairs["angle"], entry, top, returns, ranges,
+                         n_rays),
     )
