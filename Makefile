@@ -23,7 +23,7 @@ $(VENV)/.dev-installed: $(VENV)/.base-installed
 	touch $@
 
 demo: $(VENV)/.base-installed
-	$(VENV)/bin/roco-env demo
+	$(VENV)/bin/roco-env compare --demo
 
 test: $(VENV)/.dev-installed
 	$(PY) -m pytest

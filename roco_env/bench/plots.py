@@ -67,7 +67,7 @@ def ap_vs_density(rows: Sequence[SummaryRow], path: Path) -> Path:
     return _line_plot(
         [r for r in rows if r.density is not None], path, lambda r: (r.scenario, r.noise),
         lambda p: f"{p[0]} (noise {noise_label(p[1])})", lambda r: float(r.density),
-        "density (vehicles per 100 m of lane)")
+        "traffic density (vehicles / 100 m of lane; parking_lot: fill ratio)")
 
 
 def rpe_distribution(rows: Sequence[SummaryRow], path: Path) -> Path:
