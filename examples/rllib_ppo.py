@@ -1,7 +1,9 @@
 """Optional: train a shared PPO correction policy with RLlib on the PettingZoo env.
 
 Needs ``ray[rllib]`` (pip install "ray[rllib]"); without it this script says so and
-exits 0. Every agent shares one policy; observations are flattened; the reward is
+exits 0. Every agent shares one policy; observations are flattened (RLlib's
+FlattenObservations connector) and so are the (N, 3) corrections
+(roco_env.wrappers.FlattenActions: PPO needs one-dimensional actions); the reward is
 the per-step AP@0.7 of the agent's fused detections (env default).
 
     python examples/rllib_ppo.py [--iterations 5] [--quick]
@@ -45,11 +47,13 @@ def main() -> int:
     from ray.tune.registry import register_env
 
     import roco_env
+    from roco_env.wrappers import FlattenActions
 
     steps = 5 if quick else 50
-    register_env("roco_parallel", lambda config: ParallelPettingZooEnv(roco_env.parallel_env(
-        config["scenario"], max_cycles=config["steps"], sigma_t=config["noise"],
-        sigma_r=config["noise"], **({"cavs": 2} if config["quick"] else {}))))
+    register_env("roco_parallel", lambda config: ParallelPettingZooEnv(FlattenActions(
+        roco_env.parallel_env(config["scenario"], max_cycles=config["steps"],
+                              sigma_t=config["noise"], sigma_r=config["noise"],
+                              **({"cavs": 2} if config["quick"] else {})))))
     batch = 2 * steps if quick else 1000
     config = (
         PPOConfig()

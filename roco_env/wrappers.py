@@ -7,6 +7,9 @@
   agent's Dict observation into one flat float32 Box (``gymnasium.spaces.flatten``),
   which SuperSuit's Box-only wrappers (``pad_observations_v0``, ``flatten_v0``)
   and most RL libraries need.
+* :class:`FlattenActions`: a PettingZoo parallel wrapper exposing each agent's
+  (N, 3) correction as a flat (3N,) Box, for libraries whose action
+  distributions need one-dimensional actions (RLlib's PPO).
 """
 
 from __future__ import annotations
@@ -108,3 +111,36 @@ class FlattenObservations(BaseParallelWrapper):
 
     def _flatten(self, observations: dict) -> dict:
         return {a: spaces.flatten(self._dict_spaces[a], obs) for a, obs in observations.items()}
+
+
+class FlattenActions(BaseParallelWrapper):
+    """Each agent's (N, 3) correction action exposed as a flat (3N,) float32 Box.
+
+    Flat actions are reshaped to (N, 3) (slot-major: dx, dy, dyaw per slot)
+    before they reach the environment, which still validates them.
+    """
+
+    def __init__(self, env: ParallelEnv) -> None:
+        super().__init__(env)
+        self._shapes = {a: env.action_space(a).shape for a in env.possible_agents}
+        self._flat_spaces = {}
+        for agent in env.possible_agents:
+            box = env.action_space(agent)
+            self._flat_spaces[agent] = spaces.Box(box.low.reshape(-1), box.high.reshape(-1),
+                                                  dtype=box.dtype)
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self._flat_spaces[agent]
+
+    def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
+        return self.env.step({a: self._unflatten(a, act) for a, act in actions.items()})
+
+    def _unflatten(self, agent: str, action: Any) -> Any:
+        if agent not in self._shapes:
+            return action  # the env names the unknown agent
+        action = np.asarray(action)
+        expected = self._flat_spaces[agent].shape
+        if action.shape != expected:
+            raise ValueError(f"action of {agent!r} must have shape {expected} "
+                             f"(flattened (N, 3) corrections); got {action.shape}")
+        return action.reshape(self._shapes[agent])

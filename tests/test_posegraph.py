@@ -12,6 +12,7 @@ from roco_env.policies.posegraph import (
     edge_residuals,
     optimize,
     optimize_pose,
+    pose_hessian,
     robust_kernel,
 )
 
@@ -228,3 +229,28 @@ def test_single_pose_linearisation_matches_the_edge_jacobians(kernel):
     assert np.allclose(point[0], chi2, rtol=1e-10)
     assert np.allclose(hess, expected_h, rtol=1e-10, atol=1e-9)
     assert np.allclose(grad, expected_g, rtol=1e-10, atol=1e-9)
+
+
+def test_pose_hessian_is_the_gauss_newton_hessian_of_the_edges():
+    """pose_hessian = sum J^T Omega J from edge_residuals (no kernel, no prior), and its
+    inverse is the covariance of the least-squares pose: calibrated Monte Carlo spread."""
+    rng = np.random.default_rng(9)
+    pose = np.array([4.0, 1.0, -0.6])
+    lands = rng.normal(size=(10, 3)) * [15, 15, 2]
+    root = rng.normal(size=(10, 3, 3))
+    info = root @ root.transpose(0, 2, 1) + np.eye(3)
+    meas = se2_relative(pose, lands)
+    _, j_a, _ = edge_residuals(np.tile(pose, (10, 1)), lands, meas)
+    expected = np.einsum("eki,ekl,elj->ij", j_a, info, j_a)
+    assert np.allclose(pose_hessian(pose, lands, meas, info), expected, rtol=1e-10, atol=1e-9)
+    covariance = np.linalg.inv(expected)
+    # Residual noise with covariance Omega^-1 (small-noise regime: sigma scaled down).
+    scale = 0.01
+    noise_root = np.linalg.cholesky(np.linalg.inv(info))
+    estimates = []
+    for _ in range(300):
+        noise = scale * np.einsum("eij,ej->ei", noise_root, rng.normal(size=(10, 3)))
+        noisy = se2_compose(meas, noise)
+        estimates.append(optimize_pose(pose, lands, noisy, info, tolerance=1e-12).pose - pose)
+    spread = np.cov(np.array(estimates).T) / scale**2
+    assert np.allclose(np.diag(spread), np.diag(covariance), rtol=0.25)

@@ -177,6 +177,41 @@ def test_do_no_harm_keeps_prior_on_weak_evidence():
     assert roco_align(*scene.args(), min_matches=2).applied.all()
 
 
+# Realistic-detector box noise (sigma_xy 0.06 m + 0.002 m/m at ~30 m, yaw ~1.7 deg),
+# reported honestly: the boxes carry the sigma their noise is drawn with.
+CALIBRATED = (0.12, 0.12, 0.03)
+
+
+def calibrated_scene(seed, error):
+    rng = np.random.default_rng(seed)
+    objects = random_objects(rng, 12, 30.0, min_gap=8.0)
+    return make_scene(objects, PAIR, [error], sigma=CALIBRATED, noise=CALIBRATED, rng=rng)
+
+
+def test_significance_test_keeps_clean_poses_and_corrects_real_offsets():
+    """Clean reported poses: the estimate differs from them only by estimation noise, so
+    the chi2(3) test at 0.99 keeps the prior on ~99% of frames (without it, every frame
+    is 'corrected' by the noise). A 0.3 m / 0.3 deg offset is found and corrected."""
+    kept = 0
+    for seed in range(40):
+        scene = calibrated_scene(seed, np.zeros(3))
+        result = roco_align(*scene.args())
+        if not result.applied[0]:
+            kept += 1
+            assert "correction not significant" in result.reason
+            assert np.array_equal(result.corrected, scene.reported)
+    assert kept >= 36
+    clean = calibrated_scene(0, np.zeros(3))
+    assert roco_align(*clean.args(), significance=None).applied.all()  # the old rule
+    assert roco_align(*clean.args(), significance=0).applied.all()
+    for seed in range(20):
+        scene = calibrated_scene(seed, pose_error(0.3, 0.3, 1.0))
+        result = roco_align(*scene.args())
+        assert result.applied.all() and result.reason == ""
+        err = errors(result, scene)[0]
+        assert err[0] < 0.2 and err[1] < 0.3  # from ~0.3 m / 0.3 deg to the noise floor
+
+
 def test_collaborator_linked_only_through_another_is_retried():
     rng = np.random.default_rng(2)
     near = random_objects(rng, 8, 15.0)
@@ -282,6 +317,8 @@ def test_bad_parameters_raise():
         {"tau2": 0.0},
         {"robust_kernel": "tukey"},
         {"min_matches": 0},
+        {"significance": 1.0},
+        {"significance": -0.5},
         {"use_edge_similarity": False, "use_distance_similarity": False},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):

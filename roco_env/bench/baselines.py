@@ -90,6 +90,9 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                ("coalign", "roco:robust_kernel=null", "roco:iterate=false", "roco")),
     Experiment("beyond_paper", "Beyond the paper: noise 1.0, 1.5, 2.0",
                ("crowded_intersection", "highway_dense"), (1.0, 1.5, 2.0), BUILTIN),
+    Experiment("alignment_accuracy", "Pose accuracy: RPE, Success@1m1deg, matching P/R",
+               ("urban_intersection", "parking_lot"), (0.2, 0.4, 0.6, 0.8, 1.0, 1.5),
+               ("identity", "coalign", "roco"), seeds=2, steps=30),
 )
 
 

@@ -37,6 +37,7 @@ __all__ = [
     "edge_residuals",
     "optimize",
     "optimize_pose",
+    "pose_hessian",
     "robust_kernel",
 ]
 
@@ -609,3 +610,15 @@ def optimize_pose(
         start, problem.evaluate, problem.normal_equations, propose, max_iterations, tolerance
     )
     return PoseResult(pose, lin[0], initial_cost, cost, iterations, converged)
+
+
+def pose_hessian(
+    pose: np.ndarray, landmarks: np.ndarray, measurement: np.ndarray, information: np.ndarray
+) -> np.ndarray:
+    """Gauss-Newton Hessian ``sum J^T Omega J`` (3, 3) of one agent vertex at ``pose`` (3,)
+    over observation edges to fixed landmarks (E, 3) (measurements (E, 3), information
+    (E, 3, 3); no kernel, no prior), w.r.t. (x m, y m, yaw rad) as :func:`optimize_pose`
+    moves them. Scale ``information`` per edge to weight edges (e.g. by IRLS weights).
+    """
+    problem = _PoseProblem(landmarks, measurement, information, None, None, None, 1.0)
+    return problem.normal_equations(problem.evaluate(np.asarray(pose, dtype=float))[1])[0]
