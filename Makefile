@@ -28,7 +28,8 @@ demo: $(VENV)/.base-installed
 test: $(VENV)/.dev-installed
 	$(PY) -m pytest
 
-bench: $(VENV)/.base-installed
+# The benchmarks compare against shapely loops, a dev extra.
+bench: $(VENV)/.dev-installed
 	$(PY) -m roco_env.perf
 
 lint: $(VENV)/.dev-installed

@@ -74,7 +74,7 @@ from roco_env.observation import (
     pack_observation,
     privileged_truth,
 )
-from roco_env.pipeline import Frame, Pipeline, StageClock
+from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
 from roco_env.policies.base import apply_correction
 from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario
 
@@ -87,7 +87,7 @@ class CollabPerceptionEnv(ParallelEnv):
     scenario: a scenario name from ``roco_env.list_scenarios()``, a YAML path, or a
     :class:`ScenarioConfig`; overrides: validated scenario overrides (``sigma_t=0.4``,
     ``"traffic.min_gap"``-style dotted names via ``**{...}``); frames: your own scene
-    (a sequence of :class:`roco_env.traffic.frames.Frame`) with
+    (a sequence of :class:`roco_env.traffic.frames.PerceptionFrame`) with
     ``**{"traffic.source": "frames"}``.
     """
 
@@ -130,8 +130,8 @@ class CollabPerceptionEnv(ParallelEnv):
             a: action_space(n, 2.0 * config.agents.comm_range) for a in self.possible_agents}
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
-        self._frame: Frame | None = None
-        self._shown: tuple[Frame, dict] | None = None
+        self._frame: PerceptionFrame | None = None
+        self._shown: tuple[PerceptionFrame, dict] | None = None
         self._cycles = 0
         self._viewer = None
 
@@ -239,7 +239,7 @@ class CollabPerceptionEnv(ParallelEnv):
         n = self.config.max_collaborators
         return {a: check_action(actions[a], a, n) for a in self.agents}
 
-    def _observations(self, frame: Frame) -> dict[str, dict[str, np.ndarray]]:
+    def _observations(self, frame: PerceptionFrame) -> dict[str, dict[str, np.ndarray]]:
         cfg = self.config
         with self.clock.measure("observation"):
             return {a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
@@ -255,7 +255,7 @@ class CollabPerceptionEnv(ParallelEnv):
                                            self.config.max_collaborators),
         }
 
-    def _score(self, frame: Frame, corrected: dict[str, np.ndarray],
+    def _score(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray],
                fused: dict[str, FusedDetections]) -> tuple[dict, dict]:
         """Rewards and metric infos of every agent (evaluated ones are those in ``fused``)."""
         cfg = self.config
@@ -283,7 +283,7 @@ class CollabPerceptionEnv(ParallelEnv):
         return ({a: rewards[a] for a in self.possible_agents},
                 {a: infos[a] for a in self.possible_agents})
 
-    def _fuse(self, frame: Frame, corrected: dict[str, np.ndarray]) -> dict:
+    def _fuse(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray]) -> dict:
         """Late-fused detections of every evaluated agent (one batched NMS), own footprint clear."""
         with self.clock.measure("fusion"):
             egos = [k for k, agent in enumerate(self.possible_agents)

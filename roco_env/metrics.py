@@ -139,10 +139,10 @@ def frame_stats(
     return _frames_stats([_validated_frame(pred_boxes, pred_scores, gt_boxes, "")], thresholds)[0]
 
 
-Frame = tuple[np.ndarray, np.ndarray, np.ndarray]  # pred boxes (P, 7), scores (P,), GT (G, 7)
+LabelledFrame = tuple[np.ndarray, np.ndarray, np.ndarray]  # pred boxes (P, 7), scores (P,), GT (G, 7)
 
 
-def match_frames(frames: Sequence[Frame],
+def match_frames(frames: Sequence[LabelledFrame],
                  iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS) -> list[FrameStats]:
     """:func:`frame_stats` of many frames ``(pred_boxes, pred_scores, gt_boxes)`` at once.
 
@@ -153,7 +153,7 @@ def match_frames(frames: Sequence[Frame],
     return _frames_stats(_validated_frames(frames), thresholds)
 
 
-def _validated_frames(frames: Sequence[Frame]) -> list[Frame]:
+def _validated_frames(frames: Sequence[LabelledFrame]) -> list[LabelledFrame]:
     """Frames with validated arrays; errors name the frame (``frames[k].pred_scores``)."""
     checked = []
     for k, frame in enumerate(frames):
@@ -166,7 +166,7 @@ def _validated_frames(frames: Sequence[Frame]) -> list[Frame]:
 
 
 def _validated_frame(pred_boxes: np.ndarray, pred_scores: np.ndarray, gt_boxes: np.ndarray,
-                     prefix: str) -> Frame:
+                     prefix: str) -> LabelledFrame:
     pred_boxes = validate_boxes(pred_boxes, f"{prefix}pred_boxes")
     return (
         pred_boxes,
@@ -175,7 +175,7 @@ def _validated_frame(pred_boxes: np.ndarray, pred_scores: np.ndarray, gt_boxes: 
     )
 
 
-def _frames_stats(frames: Sequence[Frame], thresholds: tuple[float, ...]) -> list[FrameStats]:
+def _frames_stats(frames: Sequence[LabelledFrame], thresholds: tuple[float, ...]) -> list[FrameStats]:
     """FrameStats of validated frames, matched in one pass."""
     if not frames:
         return []
@@ -185,7 +185,7 @@ def _frames_stats(frames: Sequence[Frame], thresholds: tuple[float, ...]) -> lis
                                      strict=True)]
 
 
-def _match_frames(frames: Sequence[Frame],
+def _match_frames(frames: Sequence[LabelledFrame],
                   thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Greedy matching of validated frames, all at once.
 
@@ -337,7 +337,7 @@ class APAccumulator:
         self.add_stats(stats)
         return stats
 
-    def add_frames(self, frames: Sequence[Frame]) -> None:
+    def add_frames(self, frames: Sequence[LabelledFrame]) -> None:
         """Match and pool many frames ``(pred_boxes, pred_scores, gt_boxes)`` in one go.
 
         Same result as calling :meth:`add_frame` on each, vectorised across frames.

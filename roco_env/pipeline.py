@@ -1,7 +1,7 @@
 """The per-step perception pipeline upstream of the policy: traffic -> noise -> sensing -> views.
 
 Built from a :class:`~roco_env.scenario.ScenarioConfig`; the environment drives
-it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Frame`:
+it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`PerceptionFrame`:
 the world, every agent's reported pose and detections, and each agent's
 :class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
 transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
@@ -62,7 +62,7 @@ class _Timed(AbstractContextManager):
 
 
 @dataclass(frozen=True)
-class Frame:
+class PerceptionFrame:
     """One step's perception inputs.
 
     state: the world; reported_poses (A, 3): the noise model's output for every
@@ -112,7 +112,7 @@ class Pipeline:
             return None
         return (len(CHANNELS), self.grid.H, self.grid.W)
 
-    def reset(self, rng: np.random.Generator) -> Frame:
+    def reset(self, rng: np.random.Generator) -> PerceptionFrame:
         """Start an episode: independent child streams for traffic, noise and sensing."""
         traffic_rng, noise_rng, sensing_rng = rng.spawn(3)
         self._rngs = (noise_rng, sensing_rng)
@@ -127,7 +127,7 @@ class Pipeline:
         self.noise.reset(noise_rng)
         return self._observe(state)
 
-    def advance(self) -> Frame:
+    def advance(self) -> PerceptionFrame:
         """Move the traffic one step (config.traffic.dt seconds) and observe it."""
         if self._rngs is None:
             raise ValueError("advance() called before reset(rng)")
@@ -135,7 +135,7 @@ class Pipeline:
             state = self.traffic.step(self.config.traffic.dt)
         return self._observe(state)
 
-    def _observe(self, state: WorldState) -> Frame:
+    def _observe(self, state: WorldState) -> PerceptionFrame:
         noise_rng, sensing_rng = self._rngs
         with self.clock.measure("noise"):
             reported = self.noise.perturb(state.agent_poses, noise_rng)
@@ -153,7 +153,7 @@ class Pipeline:
                                  for a in range(state.num_agents))
         with self.clock.measure("messages"):
             views = self._views(state, reported, detections, features)
-        return Frame(state, reported, visibility, detections, features, views,
+        return PerceptionFrame(state, reported, visibility, detections, features, views,
                      own_footprints(state))
 
     def _views(self, state: WorldState, reported: np.ndarray,

@@ -17,13 +17,13 @@ from matplotlib.figure import Figure
 
 from roco_env.fusion import FusedDetections
 from roco_env.geometry import box_corners_bev, transform_boxes
-from roco_env.pipeline import Frame
+from roco_env.pipeline import PerceptionFrame
 
 _MARGIN_M = 30.0
 _MIN_SPAN_M = 80.0
 
 
-def render_bev(frame: Frame, ego: int, fused: FusedDetections | None, title: str = "",
+def render_bev(frame: PerceptionFrame, ego: int, fused: FusedDetections | None, title: str = "",
                size_px: int = 640) -> np.ndarray:
     """RGB image (size_px, size_px, 3) uint8 of ``frame`` seen from above.
 

@@ -13,10 +13,8 @@ import numpy as np
 import shapely
 
 from roco_env.geometry import bev_iou, box_corners_bev
-from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator
+from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, LabelledFrame
 from roco_env.perf._timing import median_seconds
-
-Frame = tuple[np.ndarray, np.ndarray, np.ndarray]  # pred boxes, pred scores, GT boxes
 
 
 def _vehicles(rng: np.random.Generator, n: int, x_span: float, y_span: float) -> np.ndarray:
@@ -53,7 +51,7 @@ def shapely_iou_loop(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     return iou
 
 
-def shapely_ap_loop(frames: list[Frame], thresholds: tuple[float, ...]) -> dict[float, float]:
+def shapely_ap_loop(frames: list[LabelledFrame], thresholds: tuple[float, ...]) -> dict[float, float]:
     """Baseline: the OpenCOOD protocol with Python loops and shapely IoU.
 
     Like OpenCOOD's evaluation, the matching (and its IoUs) is redone per threshold.
@@ -84,7 +82,7 @@ def shapely_ap_loop(frames: list[Frame], thresholds: tuple[float, ...]) -> dict[
     return result
 
 
-def _frames(rng: np.random.Generator, n_frames: int) -> list[Frame]:
+def _frames(rng: np.random.Generator, n_frames: int) -> list[LabelledFrame]:
     """Frames of 0-30 GT vehicles; 85% detected with noise, plus 0-4 false positives."""
     frames = []
     for _ in range(n_frames):
@@ -97,13 +95,13 @@ def _frames(rng: np.random.Generator, n_frames: int) -> list[Frame]:
     return frames
 
 
-def _batched_ap(frames: list[Frame]) -> dict[float, float]:
+def _batched_ap(frames: list[LabelledFrame]) -> dict[float, float]:
     acc = APAccumulator(DEFAULT_IOU_THRESHOLDS)
     acc.add_frames(frames)
     return acc.ap()
 
 
-def _per_frame_ap(frames: list[Frame]) -> dict[float, float]:
+def _per_frame_ap(frames: list[LabelledFrame]) -> dict[float, float]:
     acc = APAccumulator(DEFAULT_IOU_THRESHOLDS)
     for frame in frames:
         acc.add_frame(*frame)
