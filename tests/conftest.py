@@ -9,6 +9,13 @@ import os
 
 import matplotlib
 import pytest
+from hypothesis import settings
+
+# CI (CI=true) replays the same examples every run so a green main stays green;
+# local runs keep exploring new random examples (and the example database).
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+if os.environ.get("CI", "").lower() == "true":
+    settings.load_profile("ci")
 
 matplotlib.use("Agg")
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")

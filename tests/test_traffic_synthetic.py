@@ -195,10 +195,14 @@ def test_lane_lookup_lies_on_polyline(points, frac):
     if seg.min() < 1.0:
         return
     line = shapely.LineString(pts)
-    if not line.is_simple:
-        return
+    direction = np.arctan2(*np.diff(pts, axis=0).T[::-1])
+    turns = np.abs((np.diff(direction) + np.pi) % (2 * np.pi) - np.pi)
+    if not line.is_simple or np.any(turns > np.deg2rad(120)):
+        return  # a lane doubling back on itself makes project() ambiguous
     lanes = build_lanes([pts])
     s = np.array([frac * lanes.lengths[0] * 0.999])
     x, y, _ = lanes.pose(np.zeros(1, np.int64), s)
-    assert line.distance(shapely.Point(x[0], y[0])) < 1e-6
+    # The lookup interpolates a table resampled every `step` m: exact on straight
+    # stretches, and a chord across a corner strays at most half a step from it.
+    assert line.distance(shapely.Point(x[0], y[0])) <= lanes.step / 2
     assert line.project(shapely.Point(x[0], y[0])) == pytest.approx(s[0], abs=0.3)
