@@ -87,7 +87,7 @@ class CollabPerceptionEnv(ParallelEnv):
     scenario: a scenario name from ``roco_env.list_scenarios()``, a YAML path, or a
     :class:`ScenarioConfig`; overrides: validated scenario overrides (``sigma_t=0.4``,
     ``"traffic.min_gap"``-style dotted names via ``**{...}``); frames: your own scene
-    (a sequence of :class:`roco_env.traffic.frames.PerceptionFrame`) with
+    (a sequence of :class:`roco_env.traffic.frames.Frame`) with
     ``**{"traffic.source": "frames"}``.
     """
 

@@ -29,10 +29,10 @@ from roco_env.metrics import (
     relative_pose_error,
 )
 from roco_env.observation import EgoView
+from roco_env.scenario import REWARDS
 from roco_env.traffic.state import WorldState
 
 AP_KEYS: dict[float, str] = {0.3: "ap30", 0.5: "ap50", 0.7: "ap70"}
-REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "neg_rpe")
 
 
 @dataclass(frozen=True)
@@ -155,7 +155,7 @@ def reward(evaluation: EgoEvaluation, kind: str) -> float:
         return -float(rows.sum(axis=1).mean()) if rows.shape[0] else 0.0
     thresholds = {key: thr for thr, key in AP_KEYS.items()}
     if kind not in thresholds:
-        raise ValueError(f"reward must be one of {list(REWARDS)}; got {kind!r}")
+        raise ValueError(f"evaluation.reward must be one of {list(REWARDS)}; got {kind!r}")
     value = evaluation.ap[thresholds[kind]]
     return 0.0 if np.isnan(value) else float(value)
 

@@ -119,11 +119,15 @@ class FeaturesConfig:
     resolution: float = _spec(0.4, low=0.05, high=5.0, doc="BEV cell size, m")
 
 
+# Per-step reward kinds (roco_env.evaluation.reward computes them).
+REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "neg_rpe")
+
+
 @dataclass
 class EvaluationConfig:
     x_range: list = _spec([-140.8, 140.8], doc="ego-frame evaluation range along x, m")
     y_range: list = _spec([-40.0, 40.0], doc="ego-frame evaluation range along y, m")
-    reward: str = _spec("ap70", choices=("ap30", "ap50", "ap70", "neg_rpe"))
+    reward: str = _spec("ap70", choices=REWARDS)
 
 
 @dataclass

@@ -345,3 +345,14 @@ def test_success_rate():
 def test_bad_input_raises_value_error(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_scalar_average_precision_is_the_one_row_case():
+    from roco_env.metrics import average_precision, average_precisions
+
+    scores = np.array([0.9, 0.8, 0.7, 0.6])
+    tp = np.array([True, False, True, True])
+    # Hand-worked VOC all-point AP with 4 GT: recall steps 1/4 at precision 1,
+    # then 2/4 and 3/4 at the monotone precision 3/4 -> 1/4 + 2/4 * 3/4 = 0.625.
+    assert average_precision(scores, tp, 4) == pytest.approx(0.625, abs=1e-12)
+    assert average_precision(scores, tp, 4) == average_precisions(scores, tp[None], 4)[0]

@@ -57,3 +57,21 @@ def test_bad_frames_are_rejected_with_the_field(change, fragment):
     with pytest.raises(ValueError) as info:
         make_traffic_source(CONFIG, frames=data)
     assert fragment in str(info.value)
+
+
+def test_env_runs_a_users_scene_with_ideal_detections():
+    import roco_env
+
+    env = roco_env.parallel_env("urban_intersection", max_cycles=3, frames=frames(),
+                                detector="ideal", sigma_t=0.0, sigma_r=0.0,
+                                **{"traffic.source": "frames", "agents.cavs": 1,
+                                   "agents.rsus": 1})
+    obs, infos = env.reset(seed=0)
+    assert env.agents == ["cav_0", "rsu_0"]
+    # The RSU at (10, 8) sees both cars; the CAV is car 7, so it sees car 9 only.
+    assert int(obs["rsu_0"]["box_mask"].sum()) == 2
+    assert int(obs["cav_0"]["box_mask"].sum()) == 1
+    assert infos["cav_0"]["collaborators"][0] == "rsu_0"
+    _, rewards, *_ = env.step({a: np.zeros(env.action_space(a).shape, np.float32)
+                               for a in env.agents})
+    assert rewards["cav_0"] == 1.0  # ideal detector, clean poses: every box found exactly

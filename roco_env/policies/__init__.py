@@ -35,6 +35,9 @@ def available_policies() -> list[str]:
 
 def register_policy(name: str, target: str) -> None:
     """Register ``"module:factory"`` under ``name`` (for extensions)."""
+    module_name, _, factory = target.partition(":")
+    if not module_name or not factory:
+        raise ValueError(f"register_policy target must be 'module:factory'; got {target!r}")
     _REGISTRY[name] = target
 
 

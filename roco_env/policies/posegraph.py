@@ -325,7 +325,7 @@ class _Problem:
         weight = np.concatenate([weight, np.ones(chi2.size - self.n_obs)])
         return cost, (e, jac, chi2, weight)
 
-    def normal_equations(self, e, jac, chi2, weight):
+    def normal_equations(self, e, jac, _chi2, weight):
         """Dense H_aa (3N,3N), H_al (3N,3M), block-diagonal H_ll (M,3,3), g_a (3N,), g_l (M,3)."""
         j_t_info = np.matmul(jac.transpose(0, 2, 1), self.info * weight[:, None, None])
         blocks = np.matmul(j_t_info, jac)
