@@ -32,27 +32,22 @@ vehicles:
     location: [1e-5, -3e+1, 0.0]
     speed: 0.0
 """
+# CAV 641 as the other agents list it (an OPV2V agent never lists itself).
+VEHICLE_641 = """vehicles:
+  641:
+    angle: [0.0, 90.0, 0.0]
+    center: [0.0, 0.0, 0.75]
+    extent: [2.25, 0.9, 0.75]
+    location: [10.0, 20.0, 0.0]
+    speed: 18.0
+"""
 CAV_650 = """ego_speed: 36.0
 lidar_pose: [{x650}, 5.0, 1.9, 0.0, -30.0, 0.0]
 true_ego_pos: [{x650}, 5.0, 0.0, 0.0, -30.0, 0.0]
-vehicles:
-  641:
-    angle: [0.0, 90.0, 0.0]
-    center: [0.0, 0.0, 0.75]
-    extent: [2.25, 0.9, 0.75]
-    location: [10.0, 20.0, 0.0]
-    speed: 18.0
-"""
+""" + VEHICLE_641
 RSU = """lidar_pose: [0.0, 0.0, 5.5, 0.0, 45.0, 0.0]
 true_ego_pos: [0.0, 0.0, 5.5, 0.0, 45.0, 0.0]
-vehicles:
-  641:
-    angle: [0.0, 90.0, 0.0]
-    center: [0.0, 0.0, 0.75]
-    extent: [2.25, 0.9, 0.75]
-    location: [10.0, 20.0, 0.0]
-    speed: 18.0
-"""
+""" + VEHICLE_641
 
 
 def write_opv2v(root: Path) -> Path:
