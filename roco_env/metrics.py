@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import (
-    bev_iou_pairs,
+    _pair_iou,
     validate_boxes,
     wrap_angle,
 )
@@ -59,6 +59,10 @@ __all__ = [
 ]
 
 DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.3, 0.5, 0.7)
+
+# Up to this many (prediction, GT) pairs, a dense centre-distance test finds the
+# candidate pairs faster than building KD-trees (measured crossover ~100 x 100).
+_DENSE_MAX_PAIRS = 10_000
 
 
 def _thresholds(iou_thresholds: Sequence[float]) -> tuple[float, ...]:
@@ -123,6 +127,16 @@ class FrameStats:
         object.__setattr__(self, "n_gt", int(self.n_gt))
         object.__setattr__(self, "thresholds", thresholds)
 
+    @classmethod
+    def _trusted(cls, scores: np.ndarray, tp: np.ndarray, n_gt: int,
+                 thresholds: tuple[float, ...]) -> FrameStats:
+        """Stats from the matcher, already valid by construction: skips __post_init__."""
+        stats = object.__new__(cls)
+        for name, value in (("scores", scores), ("tp", tp), ("fp", ~tp), ("n_gt", n_gt),
+                            ("thresholds", thresholds)):
+            object.__setattr__(stats, name, value)
+        return stats
+
 
 def frame_stats(
     pred_boxes: np.ndarray,
@@ -180,18 +194,17 @@ def _frames_stats(frames: Sequence[LabelledFrame], thresholds: tuple[float, ...]
     if not frames:
         return []
     scores, tp, start = _match_frames(frames, np.asarray(thresholds))
-    return [FrameStats(scores[lo:hi], tp[:, lo:hi], ~tp[:, lo:hi], frame[2].shape[0], thresholds)
-            for frame, lo, hi in zip(frames, start[:-1].tolist(), start[1:].tolist(),
-                                     strict=True)]
+    return [FrameStats._trusted(scores[lo:hi], tp[:, lo:hi], frame[2].shape[0], thresholds)
+            for frame, lo, hi in zip(frames, start[:-1], start[1:], strict=True)]
 
 
 def _match_frames(frames: Sequence[LabelledFrame],
-                  thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  thresholds: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Greedy matching of validated frames, all at once.
 
     Returns the predictions' scores (P,) frame by frame, each frame sorted by
     descending score (stable), their tp flags (T, P) and the frames' start
-    offsets into them (F + 1,).
+    offsets into them (F + 1 ints).
     """
     n_pred = [len(frame[1]) for frame in frames]
     pred_frame = np.repeat(np.arange(len(frames)), n_pred)
@@ -200,12 +213,24 @@ def _match_frames(frames: Sequence[LabelledFrame],
     order = np.lexsort((-scores, pred_frame))
     preds = np.concatenate([frame[0] for frame in frames])[order]
     gts = np.concatenate([frame[2] for frame in frames])
-    rows, cols = _candidate_pairs(preds, gts, pred_frame, gt_frame)
-    iou = bev_iou_pairs(preds[rows], gts[cols])
-    overlap = iou > 0.0
-    tp = _greedy_match(rows[overlap], cols[overlap], iou[overlap], scores.size, gts.shape[0],
-                       thresholds)
-    return scores[order], tp, np.concatenate([[0], np.cumsum(n_pred)])
+    rows, cols, iou = _overlapping_pairs(preds, gts,
+                                         *_candidate_pairs(preds, gts, pred_frame, gt_frame))
+    tp = _greedy_match(rows, cols, iou, scores.size, gts.shape[0], thresholds)
+    return scores[order], tp, list(itertools.accumulate(n_pred, initial=0))
+
+
+def _overlapping_pairs(preds: np.ndarray, gts: np.ndarray, rows: np.ndarray,
+                       cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The candidate pairs (rows, cols) with IoU > 0, and their IoUs.
+
+    Boxes are validated already, so the exact IoU is called directly (and not
+    at all without candidates, e.g. for an empty frame).
+    """
+    if rows.size == 0:
+        return rows, cols, np.zeros(0)
+    iou = _pair_iou(preds[rows], gts[cols])
+    overlap = np.flatnonzero(iou > 0.0)
+    return rows[overlap], cols[overlap], iou[overlap]
 
 
 def _candidate_pairs(preds: np.ndarray, gts: np.ndarray, pred_frame: np.ndarray,
@@ -213,15 +238,18 @@ def _candidate_pairs(preds: np.ndarray, gts: np.ndarray, pred_frame: np.ndarray,
     """(prediction, GT) index pairs of the same frame that may overlap, sorted by row then column.
 
     A superset of the pairs with IoU > 0: the circumscribed circles overlap
-    (strictly), the test of ``geometry.bev_candidate_pairs``. Neighbours come
-    from scipy KD-trees (frames kept apart on a third axis, farther than the
-    search radius) instead of all same-frame pairs: O(n log n), not P x G.
+    (strictly), the test of ``geometry.bev_candidate_pairs``. Small inputs test
+    all pairs densely; larger ones get neighbours from scipy KD-trees (frames
+    kept apart on a third axis, farther than the search radius) instead of all
+    same-frame pairs: O(n log n), not P x G.
     """
     empty = np.zeros(0, dtype=np.int64)
     if preds.shape[0] == 0 or gts.shape[0] == 0:
         return empty, empty
     radius_pred = 0.5 * np.hypot(preds[:, 3], preds[:, 4])
     radius_gt = 0.5 * np.hypot(gts[:, 3], gts[:, 4])
+    if preds.shape[0] * gts.shape[0] <= _DENSE_MAX_PAIRS:
+        return _dense_candidate_pairs(preds, gts, radius_pred, radius_gt, pred_frame, gt_frame)
     reach = radius_pred.max() + radius_gt.max()
     spacing = 4.0 * reach + 1.0
     pairs = cKDTree(np.column_stack([preds[:, :2], pred_frame * spacing])).sparse_distance_matrix(
@@ -234,6 +262,18 @@ def _candidate_pairs(preds: np.ndarray, gts: np.ndarray, pred_frame: np.ndarray,
     return rows[order], cols[order]
 
 
+def _dense_candidate_pairs(preds: np.ndarray, gts: np.ndarray, radius_pred: np.ndarray,
+                           radius_gt: np.ndarray, pred_frame: np.ndarray,
+                           gt_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_candidate_pairs` by testing every (prediction, GT) pair; row-major order."""
+    gap = np.square(preds[:, None, 0] - gts[None, :, 0])
+    gap += np.square(preds[:, None, 1] - gts[None, :, 1])
+    near = gap < np.square(radius_pred[:, None] + radius_gt[None, :])
+    if not pred_frame[0] == pred_frame[-1] == gt_frame[0] == gt_frame[-1]:  # several frames
+        near &= pred_frame[:, None] == gt_frame[None, :]
+    return np.nonzero(near)
+
+
 def _greedy_match(rows: np.ndarray, cols: np.ndarray, iou: np.ndarray, n_pred: int,
                   n_gt: int, thresholds: np.ndarray) -> np.ndarray:
     """TP flags (T, P) from the overlapping (prediction, GT) pairs, IoU > 0.
@@ -244,6 +284,8 @@ def _greedy_match(rows: np.ndarray, cols: np.ndarray, iou: np.ndarray, n_pred: i
     GTs with another one simply takes its best GT; only predictions competing
     for a GT need the sequential greedy pass (each match removes its GT).
     """
+    if rows.size == 0:
+        return np.zeros((thresholds.size, n_pred), dtype=bool)
     best = np.zeros(n_pred)
     np.maximum.at(best, rows, iou)
     tp = best[None, :] >= thresholds[:, None]
@@ -333,8 +375,9 @@ class APAccumulator:
     def add_frame(self, pred_boxes: np.ndarray, pred_scores: np.ndarray,
                   gt_boxes: np.ndarray) -> FrameStats:
         """Match one frame (boxes in one common frame) and pool it; returns its stats."""
-        stats = frame_stats(pred_boxes, pred_scores, gt_boxes, self.thresholds)
-        self.add_stats(stats)
+        frame = _validated_frame(pred_boxes, pred_scores, gt_boxes, "")
+        stats = _frames_stats([frame], self.thresholds)[0]
+        self._pool(stats)
         return stats
 
     def add_frames(self, frames: Sequence[LabelledFrame]) -> None:
@@ -342,8 +385,8 @@ class APAccumulator:
 
         Same result as calling :meth:`add_frame` on each, vectorised across frames.
         """
-        for stats in match_frames(frames, self.thresholds):
-            self.add_stats(stats)
+        for stats in _frames_stats(_validated_frames(frames), self.thresholds):
+            self._pool(stats)
 
     def add_stats(self, stats: FrameStats) -> None:
         """Pool an already matched frame (e.g. the env's frame_scores/tp/fp/n_gt info)."""
@@ -354,6 +397,10 @@ class APAccumulator:
                 f"stats.thresholds must equal the accumulator's {self.thresholds}; "
                 f"got {stats.thresholds}"
             )
+        self._pool(stats)
+
+    def _pool(self, stats: FrameStats) -> None:
+        """Append checked stats; ap() concatenates them lazily."""
         self._scores.append(stats.scores)
         self._tp.append(stats.tp)
         self._n_gt += stats.n_gt

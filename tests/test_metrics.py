@@ -10,6 +10,7 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from roco_env import metrics
 from roco_env.geometry import box_corners_bev
 from roco_env.metrics import (
     APAccumulator,
@@ -17,6 +18,7 @@ from roco_env.metrics import (
     frame_ap,
     frame_stats,
     in_range_mask,
+    match_frames,
     relative_pose_error,
     success_rate,
 )
@@ -239,6 +241,23 @@ def test_add_frames_matches_add_frame_per_frame():
     assert one_by_one.ap() == batched.ap()
     batched.add_frames([])
     assert batched.n_frames == len(frames)
+
+
+@pytest.mark.parametrize("dense_max_pairs", [0, 10**9])
+def test_kd_tree_and_dense_candidate_searches_agree(monkeypatch, dense_max_pairs):
+    """KD-tree only vs dense only: same stats; frames never match each other's boxes."""
+    rng = np.random.default_rng(7)
+    frames = [random_frame(rng) for _ in range(12)]
+    expected = [frame_stats(*frame, THRESHOLDS) for frame in frames]
+    monkeypatch.setattr(metrics, "_DENSE_MAX_PAIRS", dense_max_pairs)
+    for ours, ref in zip(match_frames(frames, THRESHOLDS), expected, strict=True):
+        assert np.array_equal(ours.scores, ref.scores) and np.array_equal(ours.tp, ref.tp)
+        assert ours.n_gt == ref.n_gt
+    # Predictions in one frame, the same boxes as GT in the next: all false positives.
+    boxes = np.array([car(0.0), car(5.0)])
+    split = match_frames([(boxes, np.array([0.9, 0.8]), np.zeros((0, 7))),
+                          (np.zeros((0, 7)), np.zeros(0), boxes)], THRESHOLDS)
+    assert not split[0].tp.any() and split[1].n_gt == 2
 
 
 @settings(max_examples=40, deadline=None)
