@@ -22,7 +22,9 @@ $(VENV)/.dev-installed: $(VENV)/.base-installed
 	$(PIP) -e '.[dev]'
 	touch $@
 
+# A fresh sweep each time: a resumed one would show results of older code.
 demo: $(VENV)/.base-installed
+	rm -rf runs/demo
 	$(VENV)/bin/roco-env compare --demo
 
 test: $(VENV)/.dev-installed
