@@ -38,6 +38,7 @@ __all__ = [
     "optimize",
     "optimize_pose",
     "pose_hessian",
+    "pose_hessians",
     "robust_kernel",
 ]
 
@@ -252,7 +253,8 @@ def robust_kernel(
         inlier = chi2 <= d2
         rho = np.where(inlier, chi2, 2.0 * delta * root - d2)
         return rho, np.where(inlier, 1.0, delta / np.maximum(root, 1e-300))
-    return d2 * np.log1p(chi2 / d2), 1.0 / (1.0 + chi2 / d2)
+    ratio = chi2 / d2
+    return d2 * np.log1p(ratio), 1.0 / (1.0 + ratio)
 
 
 def _scatter_indices(graph: PoseGraph) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
@@ -371,6 +373,12 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
     """Wrap to [-pi, pi) (cheaper than geometry.wrap_angle; the end point is irrelevant
     to residuals and retractions)."""
     return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+
+
+def _wrap_scalar(angle: float) -> float:
+    """:func:`_wrap` of one float without numpy's per-call overhead (Python's float ``%``
+    is fmod with numpy's sign fix-up, so the result is the same to the bit)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def _retract(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -509,8 +517,8 @@ class _PoseProblem:
         c, s = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
         rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
         rot[:, 2, 2] = 1.0
-        self.info = np.matmul(rot.transpose(0, 2, 1), np.matmul(information, rot))
-        self.info_flat = self.info.reshape(-1, 9)
+        self._rot, self._rot_t = rot, rot.transpose(0, 2, 1)
+        self.set_information(information)
         self.prior = None
         if prior is not None:
             # The prior edge identity -> agent has the constant Jacobian J_p =
@@ -537,20 +545,26 @@ class _PoseProblem:
         if self.prior is not None:
             j_p, offset, info_p = self.prior[:3]
             e_p = j_p @ pose - offset
-            e_p[2] = _wrap(e_p[2])
+            e_p[2] = _wrap_scalar(float(e_p[2]))
             cost += float(e_p @ info_p @ e_p)
         return cost, (chi2, c, s, u, info_e, weight, e_p)
 
-    def normal_equations(self, point: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
-        _, c, s, u, info_e, weight, e_p = point
+    def set_information(self, information: np.ndarray) -> None:
+        """Replace the per-edge information (E, 3, 3) (rotated as in the constructor)."""
+        self.info = np.matmul(self._rot_t, np.matmul(information, self._rot))
+        self.info_flat = self.info.reshape(-1, 9)
+
+    def hessian(self, point: tuple) -> np.ndarray:
+        """H (3, 3) of :meth:`normal_equations`, without the gradient."""
+        return self._hessian(point)[0]
+
+    def _hessian(self, point: tuple) -> tuple:
+        _, c, s, u, _, weight, e_p = point
         m = u[:, ::-1] * _PERPENDICULAR  # (-u_y, u_x)
         info_m = np.matmul(self.info[:, :, :2], m[:, :, None])[:, :, 0]
         w_m = weight[:, None] * m
         o00, o01, o02, o10, o11, o12, o20, o21, o22 = (weight @ self.info_flat).tolist()
         v0, v1, v2 = (weight @ info_m).tolist()
-        g0, g1, g2 = (weight @ info_e).tolist()
-        g2 += float(np.vdot(w_m, info_e[:, :2]))
         o22 += 2.0 * v2 + float(np.vdot(w_m, info_m[:, :2]))
         # inner = sum w N^T Omega' N; H = Q inner Q^T, g = -Q (sum w N^T Omega' e~).
         inner = ((o00, o01, o02 + v0), (o10, o11, o12 + v1), (o20 + v0, o21 + v1, o22))
@@ -560,11 +574,19 @@ class _PoseProblem:
             for k in range(3)
         ]
         hess = np.array(columns).T
+        if e_p is not None:
+            hess = hess + self.prior[3]
+        return hess, w_m
+
+    def normal_equations(self, point: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
+        _, c, s, _, info_e, weight, e_p = point
+        hess, w_m = self._hessian(point)
+        g0, g1, g2 = (weight @ info_e).tolist()
+        g2 += float(np.vdot(w_m, info_e[:, :2]))
         grad = np.array([s * g1 - c * g0, -s * g0 - c * g1, -g2])
         if e_p is not None:
-            hess_p, info_jp = self.prior[3:]
-            hess = hess + hess_p
-            grad = grad + info_jp.T @ e_p
+            grad = grad + self.prior[4].T @ e_p
         return hess, grad
 
 
@@ -602,7 +624,7 @@ def optimize_pose(
         damped.reshape(-1)[::4] += lam * np.maximum(np.diagonal(hess), _MIN_DIAG)
         delta = np.linalg.solve(damped, -grad)
         trial = pose + delta
-        trial[2] = _wrap(trial[2])
+        trial[2] = _wrap_scalar(float(trial[2]))
         return trial, np.abs(delta).max()
 
     start = np.asarray(initial, dtype=float).copy()
@@ -620,5 +642,24 @@ def pose_hessian(
     (E, 3, 3); no kernel, no prior), w.r.t. (x m, y m, yaw rad) as :func:`optimize_pose`
     moves them. Scale ``information`` per edge to weight edges (e.g. by IRLS weights).
     """
-    problem = _PoseProblem(landmarks, measurement, information, None, None, None, 1.0)
-    return problem.normal_equations(problem.evaluate(np.asarray(pose, dtype=float))[1])[0]
+    return pose_hessians(pose, landmarks, measurement, (information,))[0]
+
+
+def pose_hessians(
+    pose: np.ndarray,
+    landmarks: np.ndarray,
+    measurement: np.ndarray,
+    informations: tuple[np.ndarray, ...],
+) -> list[np.ndarray]:
+    """:func:`pose_hessian` for several per-edge informations (each (E, 3, 3)) at one pose
+    over the same edges (e.g. a robust sandwich's bread and meat): the geometry is shared,
+    each Hessian is computed exactly as :func:`pose_hessian` computes it."""
+    problem = _PoseProblem(landmarks, measurement, informations[0], None, None, None, 1.0)
+    # The point's chi2 / info_e depend on the information, but the Hessian does not use
+    # them, and the weights are ones (no kernel).
+    point = problem.evaluate(np.asarray(pose, dtype=float))[1]
+    hessians = [problem.hessian(point)]
+    for information in informations[1:]:
+        problem.set_information(information)
+        hessians.append(problem.hessian(point))
+    return hessians

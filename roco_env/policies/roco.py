@@ -81,7 +81,7 @@ from roco_env.policies.posegraph import (
     edge_chi2,
     optimize,
     optimize_pose,
-    pose_hessian,
+    pose_hessians,
     robust_kernel,
 )
 
@@ -159,9 +159,9 @@ class _Map:
     upper bound once more observations refine it; used by the significance test).
     """
 
-    def __init__(self, ego_poses: np.ndarray, ego_information: np.ndarray):
+    def __init__(self, ego_poses: np.ndarray, ego_covariance: np.ndarray):
         self.poses = ego_poses.copy()
-        self.covariance = np.linalg.inv(ego_information)
+        self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
         self.obs_box = np.arange(count)
@@ -305,7 +305,12 @@ def _significance_threshold(significance: float) -> float:
 
 
 def _correction_statistic(
-    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
+    inputs: AlignmentInputs,
+    world: _Map,
+    agent: int,
+    att: _Attempt,
+    p: RoCoParams,
+    covariance: list[np.ndarray],
 ) -> float:
     """Wald statistic (module docstring) of the collaborator's correction: its pose is
     re-fitted to its matched edges alone with the box-difference information and the
@@ -313,7 +318,7 @@ def _correction_statistic(
     covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
     IRLS weights at the fit); chi-square with 3 dof when the reported pose is right."""
     own = inputs.poses[agent][att.match_box]
-    box_covariance = np.linalg.inv(inputs.information[agent][att.match_box])
+    box_covariance = covariance[agent][att.match_box]
     info = np.linalg.inv(box_covariance + world.covariance[att.match_land])
     fit = optimize_pose(
         att.pose,
@@ -325,8 +330,7 @@ def _correction_statistic(
         max_iterations=p.max_solver_iterations,
     )
     weight = robust_kernel(fit.chi2, p.robust_kernel, p.kernel_delta)[1][:, None, None]
-    bread = pose_hessian(fit.pose, att.landmarks, own, info * weight)
-    meat = pose_hessian(fit.pose, att.landmarks, own, info * weight**2)
+    bread, meat = pose_hessians(fit.pose, att.landmarks, own, (info * weight, info * weight**2))
     d = fit.pose - inputs.reported[agent - 1]
     d[2] = wrap_angle(d[2])
     ad = bread @ d
@@ -334,7 +338,12 @@ def _correction_statistic(
 
 
 def _rejection(
-    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
+    inputs: AlignmentInputs,
+    world: _Map,
+    agent: int,
+    att: _Attempt,
+    p: RoCoParams,
+    covariance: list[np.ndarray],
 ) -> str:
     """Why the do-no-harm rule rejects the attempt ("" when it is accepted)."""
     if not att.solved:
@@ -343,7 +352,7 @@ def _rejection(
     if inliers < p.min_matches:
         return f"{inliers} inlier matches < min_matches={p.min_matches}"
     if p.significance:
-        statistic = _correction_statistic(inputs, world, agent, att, p)
+        statistic = _correction_statistic(inputs, world, agent, att, p, covariance)
         threshold = _significance_threshold(p.significance)
         if not statistic > threshold:
             return (
@@ -369,7 +378,9 @@ def _store_joint(world: _Map, joint: tuple[PoseGraphResult, np.ndarray, np.ndarr
     world.poses[shared] = solution.landmarks
 
 
-def _commit(inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt) -> None:
+def _commit(
+    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, covariance: np.ndarray
+) -> None:
     """Accept the attempt: store optimised poses, observations and new landmarks."""
     if att.joint is not None:
         _store_joint(world, att.joint)
@@ -380,9 +391,7 @@ def _commit(inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt) -> 
     new_boxes = np.nonzero(unmatched)[0]
     new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
     world.poses = np.concatenate([world.poses, se2_compose(att.pose, own[new_boxes])])
-    world.covariance = np.concatenate(
-        [world.covariance, np.linalg.inv(inputs.information[agent][new_boxes])]
-    )
+    world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
     world.obs_agent = np.concatenate(
         [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
     )
@@ -407,7 +416,10 @@ def roco_align(
     """
     p = params_from_kwargs(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
-    world = _Map(inputs.poses[0], inputs.information[0])
+    # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
+    # np.linalg.inv does for any subset).
+    covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
+    world = _Map(inputs.poses[0], covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
     outer = solver = 0
@@ -421,9 +433,9 @@ def roco_align(
             continue
         att = _attempt(inputs, world, agent, p)
         outer, solver = outer + att.outer, solver + att.solver
-        reasons[agent - 1] = _rejection(inputs, world, agent, att, p)
+        reasons[agent - 1] = _rejection(inputs, world, agent, att, p, covariance)
         if not reasons[agent - 1]:
-            _commit(inputs, world, agent, att)
+            _commit(inputs, world, agent, att, covariance[agent])
             accepted_since_joint = True
             # The map grew: collaborators that failed earlier get one more try.
             failed = [a for a in range(1, agent) if reasons[a - 1] and a not in retried]
