@@ -1,6 +1,6 @@
 """SE(2) poses, 3D boxes, exact rotated-rectangle IoU in BEV and rotated NMS.
 
-Conventions (DESIGN.md section 3): right-handed frames, x forward, y left, z up;
+Conventions (docs/conventions.md): right-handed frames, x forward, y left, z up;
 yaw in radians, counter-clockwise from +x, wrapped to (-pi, pi]. A pose is
 ``(x, y, yaw)``; a box is ``(x, y, z, l, w, h, yaw)`` with its centre and full
 sizes in metres. ``T_{j->i} = E_i^{-1} E_j`` maps points of frame j into frame i.

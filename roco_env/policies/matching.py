@@ -1,4 +1,4 @@
-"""RoCo's graph-guided object matching (paper section 4.2, DESIGN.md section 6 steps 2-5).
+"""RoCo's graph-guided object matching (paper section 4.2; docs/alignment.md).
 
 Given the landmark set P (poses in the ego frame) and one collaborator's boxes Q
 (poses in the collaborator's own frame, and the same boxes mapped into the ego

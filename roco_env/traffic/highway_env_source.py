@@ -2,7 +2,7 @@
 
 The scene runs headless (``render_mode=None``, SDL dummy video driver) and is
 stepped with the IDLE meta-action, so every vehicle follows highway-env's own
-IDM/MOBIL behaviour. Conversions at this boundary only (DESIGN.md section 3):
+IDM/MOBIL behaviour. Conversions at this boundary only (docs/conventions.md):
 
 - highway-env's y axis points right (left-handed screen frame): world y = -y,
   world yaw = -heading, world velocity = (vx, -vy).
