@@ -24,6 +24,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.evaluation import evaluate_egos, metric_info, reward, slot_errors
 from roco_env.fusion import FusedDetections, merge_many, suppress
+from roco_env.geometry import apply_correction
 from roco_env.global_state import pack_state, state_space
 from roco_env.observation import (
     EgoView,
@@ -34,7 +35,6 @@ from roco_env.observation import (
     privileged_truth,
 )
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
-from roco_env.policies.base import apply_correction
 from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario, scenario_from_dict
 
 RENDER_MODES = ("rgb_array", "human")

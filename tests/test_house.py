@@ -1,6 +1,8 @@
 """The repository explains itself: references point into it, never to files outside it."""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,3 +32,11 @@ def test_docs_index_links_resolve():
     index = (ROOT / "docs" / "README.md").read_text()
     for name in re.findall(r"\]\(([\w.-]+\.md)\)", index):
         assert (ROOT / "docs" / name).is_file(), name
+
+
+def test_the_env_does_not_import_the_policies():
+    probe = ("import sys, roco_env.env; "
+             "print(sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
+    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True,
+                         text=True, cwd=ROOT).stdout
+    assert out.strip() == "[]"
