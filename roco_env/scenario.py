@@ -347,6 +347,9 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
         raise ScenarioError(
             f"{where}: traffic.density={traffic.density!r} is out of range for layout "
             "'parking_lot', where it is the fill ratio of the stalls; allowed [0, 1]")
+    if traffic.source == "highway_env" and config.agents.cavs < 1:
+        raise ScenarioError(f"{where}: agents.cavs must be >= 1 with traffic.source="
+                            "'highway_env' (its controlled vehicle is a CAV); got 0")
     if traffic.params and traffic.source != "highway_env":
         raise ScenarioError(
             f"{where}: traffic.params is only read by traffic.source='highway_env' (extra "

@@ -7,7 +7,9 @@ import roco_env
 from roco_env.cli import main
 from roco_env.noise import make_pose_noise
 from roco_env.scenario import (
+    LAYOUTS,
     NOISE_PARAMS,
+    SOURCE_LAYOUTS,
     DetectorParams,
     ScenarioError,
     load_scenario,
@@ -98,6 +100,18 @@ def test_one_schema_serves_the_scenario_and_the_components():
         make_pose_noise(cfg.noise, ("cav_0", "cav_1"), 0.1)
     with pytest.raises(ScenarioError, match="traffic.params is only read by"):
         scenario_from_dict({"traffic": {"params": {"lanes_count": 2}}})
+    with pytest.raises(ScenarioError, match="agents.cavs must be >= 1 with traffic.source"):
+        scenario_from_dict({"traffic": {"source": "highway_env", "layout": "merge"},
+                            "agents": {"cavs": 0, "rsus": 1}})
+
+
+def test_the_layout_lists_are_written_once():
+    from roco_env.traffic.generate import SYNTHETIC_LAYOUTS
+    from roco_env.traffic.highway_env_source import ENV_IDS
+
+    assert SYNTHETIC_LAYOUTS == SOURCE_LAYOUTS["synthetic"]
+    assert tuple(ENV_IDS) == SOURCE_LAYOUTS["highway_env"]
+    assert set(LAYOUTS) == set(SOURCE_LAYOUTS["synthetic"]) | set(SOURCE_LAYOUTS["highway_env"])
 
 
 def test_cli_output_path_under_a_file_is_a_clean_error(tmp_path, capsys):
