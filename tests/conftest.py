@@ -8,6 +8,9 @@ minutes on a 2-core machine. Test modules take the helpers from here
 """
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -36,6 +39,14 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+def run_python(code: str) -> str:
+    """Stdout (stripped) of ``code`` run by a fresh interpreter in the repository root:
+    what a new process imports, untouched by modules this test session loaded."""
+    done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                          text=True, cwd=Path(__file__).resolve().parents[1])
+    return done.stdout.strip()
 
 
 # --- Hand-built scenes (sensing tests) -----------------------------------------------

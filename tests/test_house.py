@@ -1,9 +1,9 @@
 """The repository explains itself: references point into it, never to files outside it."""
 
 import re
-import subprocess
-import sys
 from pathlib import Path
+
+from conftest import run_python
 
 ROOT = Path(__file__).resolve().parents[1]
 TEXT = [p for folder in ("roco_env", "tests", "examples", "baselines", "docs")
@@ -37,6 +37,4 @@ def test_docs_index_links_resolve():
 def test_the_env_does_not_import_the_policies():
     probe = ("import sys, roco_env.env; "
              "print(sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
-    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True,
-                         text=True, cwd=ROOT).stdout
-    assert out.strip() == "[]"
+    assert run_python(probe) == "[]"

@@ -7,6 +7,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import run_python
 
 import roco_env
 from roco_env.scenario import library_dir
@@ -46,14 +47,10 @@ print("torch" in sys.modules)
 
 
 def test_import_and_default_env_do_not_load_torch():
-    out = subprocess.run([sys.executable, "-c", _TORCH_PROBE], check=True, capture_output=True,
-                         text=True, cwd=ROOT).stdout
-    assert out.strip() == "False"
+    assert run_python(_TORCH_PROBE) == "False"
 
 
 def test_features_still_load_torch_on_demand():
     probe = ("import sys, roco_env; env = roco_env.parallel_env(features=True, max_cycles=1); "
              "env.reset(seed=0); print('torch' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", probe], check=True, capture_output=True,
-                         text=True, cwd=ROOT).stdout
-    assert out.strip() == "True"
+    assert run_python(probe) == "True"
