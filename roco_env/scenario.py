@@ -15,9 +15,11 @@ import importlib.resources
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from roco_env.schema import ScenarioError, build, load_yaml, spec, unknown_key_message
@@ -355,7 +357,8 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
             f"{where}: traffic.params is only read by traffic.source='highway_env' (extra "
             f"highway-env config); got {traffic.params!r} with source {traffic.source!r}")
     for name in ("x_range", "y_range"):
-        _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}")
+        setattr(config.evaluation, name,
+                _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.params = _given(build(NOISE_PARAMS[config.noise.model], config.noise.params,
                                        where, "noise.params."), config.noise.params)
     config.detector.params = _given(build(DetectorParams, config.detector.params, where,
@@ -368,12 +371,14 @@ def _given(params: Any, given: Mapping[str, Any]) -> dict:
     return {key: getattr(params, key) for key in given}
 
 
-def _check_range(value: list, where: str, key: str) -> None:
-    numbers = len(value) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+def _check_range(value: list, where: str, key: str) -> list[float]:
+    """[low, high] as floats (numpy numbers accepted) with low < high."""
+    numbers = len(value) == 2 and all(isinstance(v, Real) and not isinstance(v, (bool, np.bool_))
                                       for v in value)
     if not numbers or not value[0] < value[1]:
         raise ScenarioError(f"{where}: {key} must be [low, high] in m with low < high; "
                             f"got {value!r}")
+    return [float(v) for v in value]
 
 
 def _valid_override_names() -> list[str]:

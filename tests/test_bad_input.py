@@ -25,6 +25,8 @@ def test_numpy_scalars_are_accepted():
     assert (cfg.agents.cavs, cfg.noise.sigma_t, cfg.features.enabled) == (2, 0.4000000059604645,
                                                                            False)
     assert type(cfg.agents.cavs) is int and type(cfg.features.enabled) is bool
+    ranged = roco_env.parallel_env(**{"evaluation.x_range": [np.float32(-50), np.int64(50)]})
+    assert ranged.config.evaluation.x_range == [-50.0, 50.0]
 
 
 def test_yaml_exponent_is_a_number(tmp_path):
