@@ -30,7 +30,8 @@ def _policy_lines() -> list[str]:
         except (ValueError, TypeError) as exc:  # a broken plug-in must not hide the others
             lines.append(f"  {name:<28} (cannot build: {exc})")
             continue
-        lines.append(f"  {name:<28} stateful: keeps state {state}" if state else f"  {name}")
+        lines.append(f"  {name:<28} stateful: keeps state {state}; pass infos, and one "
+                     "instance serves all agents" if state else f"  {name}")
     return lines
 
 
