@@ -1,0 +1,328 @@
+"""Pose hypotheses for one collaborator and their evidence (aliasing-aware alignment).
+
+In a repetitive scene (a full parking lot: cars every 2.5 m) a collaborator's boxes
+fit the ego's boxes almost equally well at several global shifts, and a matcher that
+starts from the reported pose converges to whichever shift lies nearest. This module
+makes the shifts explicit:
+
+1. :func:`generate_hypotheses`: the relative rotation error is voted from the box
+   headings (modulo pi) of nearby box pairs, then the translation error from their
+   centre offsets on a 2D grid (a Hough vote); the ``max_hypotheses`` strongest local
+   maxima within ``search_radius`` become hypotheses (plus the reported pose and any
+   extra seeds, e.g. a temporal track's prediction);
+2. :func:`refine_hypothesis`: nearest-neighbour matching within ``refine_gate`` and a
+   robust single-vertex pose-graph solve (:func:`~roco_env.policies.posegraph.optimize_pose`),
+   twice;
+3. :func:`score_hypotheses`: a log-likelihood ratio per hypothesis in chi-square units
+   (-2 ln L): every collaborator box explained by an ego box gains
+   ``outlier_chi2 - chi2(pair)`` (position with both boxes' covariances, heading modulo pi,
+   log sizes), switchable terms add the mirror image with a penalty for ego boxes left
+   unexplained inside the collaborator's observed disk (free space), the mutual
+   detections (an ego box where the hypothesis puts the collaborator's own vehicle, a
+   collaborator box where it puts the ego), and a per-box weight favouring boxes whose
+   shape is rare among their neighbours (distinctive objects); priors (the reported pose,
+   a track) subtract their Mahalanobis distance.
+
+Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.policies.posegraph import optimize_pose
+
+__all__ = [
+    "BoxSet",
+    "EvidenceParams",
+    "box_set",
+    "generate_hypotheses",
+    "refine_hypothesis",
+    "score_hypotheses",
+]
+
+
+@dataclass(frozen=True)
+class EvidenceParams:
+    """Hypothesis search and evidence (units m, deg, chi-square units = -2 ln L).
+
+    search_radius (m) / search_yaw_deg (deg): translation / rotation errors searched around
+    the reported pose; vote_bin (m): translation vote cell; max_hypotheses: local maxima
+    kept; refine_gate (m): matching gate of the refinement; outlier_chi2: what an
+    unexplained box costs (a pair gains ``outlier_chi2 - chi2``, never less than 0);
+    pose_slack_t (m) / pose_slack_r_deg (deg): std added to every pair for the residual
+    misfit of a hypothesis; size_sigma: std of one box's log size (l, w, h);
+    free_space_penalty: chi2 cost of an ego box inside the collaborator's observed disk
+    that none of its boxes explains; distinct_radius (m): neighbourhood of the
+    distinctiveness weight. use_*: the switches of the terms (module docstring).
+    """
+
+    search_radius: float = 7.0
+    search_yaw_deg: float = 8.0
+    vote_bin: float = 0.5
+    max_hypotheses: int = 6
+    refine_gate: float = 1.0
+    outlier_chi2: float = 16.0
+    pose_slack_t: float = 0.1
+    pose_slack_r_deg: float = 0.3
+    size_sigma: float = 0.06
+    free_space_penalty: float = 2.0
+    distinct_radius: float = 8.0
+    use_size: bool = True
+    use_free_space: bool = True
+    use_mutual_detection: bool = True
+    use_distinctive: bool = False
+
+    def __post_init__(self) -> None:
+        for name in (
+            "search_radius",
+            "search_yaw_deg",
+            "vote_bin",
+            "refine_gate",
+            "outlier_chi2",
+            "pose_slack_t",
+            "pose_slack_r_deg",
+            "size_sigma",
+            "distinct_radius",
+        ):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        if not (np.isfinite(self.free_space_penalty) and self.free_space_penalty >= 0):
+            raise ValueError(f"free_space_penalty must be finite and >= 0; got {self.free_space_penalty}")
+        if int(self.max_hypotheses) < 1:
+            raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
+
+
+@dataclass(frozen=True)
+class BoxSet:
+    """One agent's boxes in its own frame: poses (K, 3), log sizes (K, 3) (l, w, h),
+    sigma (K, 3) = (sigma_x m, sigma_y m, sigma_yaw rad) floored, information (K, 3, 3)
+    (box frame, as the pose graph uses it) and range (m): the 90th percentile of the
+    boxes' distances from the agent (its observed disk)."""
+
+    poses: np.ndarray
+    log_sizes: np.ndarray
+    sigma: np.ndarray
+    information: np.ndarray
+    range: float
+
+
+def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
+    """:class:`BoxSet` of validated boxes (K, 7) with their poses (K, 3) and information
+    (K, 3, 3) from :func:`~roco_env.policies.landmarks.prepare_inputs`."""
+    sizes = np.maximum(boxes[:, 3:6], 1e-3)
+    # sigma_x^2 + sigma_y^2 is the trace of the xy block's inverse (rotation invariant).
+    xy_cov = np.linalg.inv(information[:, :2, :2]) if boxes.shape[0] else np.zeros((0, 2, 2))
+    sigma = np.column_stack(
+        [
+            np.sqrt(xy_cov[:, 0, 0]),
+            np.sqrt(xy_cov[:, 1, 1]),
+            1.0 / np.sqrt(information[:, 2, 2]),
+        ]
+    )
+    distance = np.hypot(poses[:, 0], poses[:, 1])
+    reach = float(np.percentile(distance, 90)) if distance.size else 0.0
+    return BoxSet(poses, np.log(sizes), sigma, information, reach)
+
+
+def _map(pose: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    return se2_compose(np.broadcast_to(pose, poses.shape), poses)
+
+
+def _half_turn(angle: np.ndarray) -> np.ndarray:
+    """Angle difference modulo pi, in [-pi/2, pi/2) (detected headings may be flipped)."""
+    return np.mod(angle + np.pi / 2, np.pi) - np.pi / 2
+
+
+def _size_chi2(ego: BoxSet, collab: BoxSet, p: EvidenceParams) -> np.ndarray:
+    """(K0, K1) chi2 of the log-size differences (both boxes noisy: variance 2 sigma^2)."""
+    diff = ego.log_sizes[:, None, :] - collab.log_sizes[None, :, :]
+    return (diff * diff).sum(axis=2) / (2.0 * p.size_sigma**2)
+
+
+def generate_hypotheses(
+    ego: BoxSet, collab: BoxSet, reported: np.ndarray, p: EvidenceParams
+) -> np.ndarray:
+    """Initial poses (H, 3) of the strongest votes (module docstring, step 1); the first
+    row is the vote maximum; empty (0, 3) when no box pair lies within the search."""
+    if ego.poses.shape[0] == 0 or collab.poses.shape[0] == 0:
+        return np.zeros((0, 3))
+    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, p)) if p.use_size else 1.0
+    mapped = _map(reported, collab.poses)
+    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
+    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
+    near = dx * dx + dy * dy <= (p.search_radius + 2.0) ** 2
+    # Rotation: heading differences of nearby pairs (modulo pi), 0.25 deg cells.
+    half = np.deg2rad(p.search_yaw_deg)
+    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
+    use = near & (np.abs(dyaw) <= half)
+    weight = np.broadcast_to(size_weight, near.shape)[use]
+    cell = np.deg2rad(0.25)
+    bins = int(np.ceil(2 * half / cell))
+    votes = np.bincount(
+        np.minimum(((dyaw[use] + half) / cell).astype(np.int64), bins - 1), weight, bins
+    )
+    smooth = np.convolve(votes, np.ones(5), mode="same")
+    rotation = -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
+    rotated = reported + np.array([0.0, 0.0, rotation])
+    mapped = _map(rotated, collab.poses)
+    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
+    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
+    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
+    use = (np.abs(dx) <= p.search_radius) & (np.abs(dy) <= p.search_radius)
+    sigma_yaw = np.deg2rad(3.0)
+    weight = (np.broadcast_to(size_weight, use.shape) * np.exp(-0.5 * (dyaw / sigma_yaw) ** 2))[use]
+    n = int(np.ceil(2 * p.search_radius / p.vote_bin))
+    ix = np.minimum(((dx[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
+    iy = np.minimum(((dy[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
+    grid = np.bincount(ix * n + iy, weight, n * n).reshape(n, n)
+    # 3x3 box sum: a true offset splits its votes over neighbouring cells.
+    padded = np.pad(grid, 1)
+    smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
+    peaks = []
+    order = np.argsort(-smooth, axis=None)
+    suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
+    for flat in order:
+        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= 0:
+            break
+        i, j = divmod(int(flat), n)
+        if all((i - a) ** 2 + (j - b) ** 2 > suppress for a, b in peaks):
+            peaks.append((i, j))
+    if not peaks:
+        return np.zeros((0, 3))
+    offsets = (np.array(peaks, dtype=float) + 0.5) * p.vote_bin - p.search_radius
+    out = np.tile(rotated, (offsets.shape[0], 1))
+    out[:, :2] += offsets
+    return out
+
+
+def refine_hypothesis(
+    ego: BoxSet,
+    collab: BoxSet,
+    initial: np.ndarray,
+    p: EvidenceParams,
+    kernel: str | None,
+    kernel_delta: float,
+    min_matches: int,
+) -> np.ndarray | None:
+    """Two rounds of nearest matching within ``refine_gate`` and a robust pose solve;
+    None when fewer than ``min_matches`` boxes match."""
+    pose = np.asarray(initial, dtype=float)
+    for _ in range(2):
+        mapped = _map(pose, collab.poses)
+        d2 = (ego.poses[:, None, 0] - mapped[None, :, 0]) ** 2 + (
+            ego.poses[:, None, 1] - mapped[None, :, 1]
+        ) ** 2
+        nearest = d2.argmin(axis=0)
+        box = np.nonzero(d2[nearest, np.arange(d2.shape[1])] <= p.refine_gate**2)[0]
+        if box.size < min_matches:
+            return None
+        land = nearest[box]
+        pose = optimize_pose(
+            pose,
+            ego.poses[land],
+            collab.poses[box],
+            collab.information[box],
+            kernel=kernel,
+            kernel_delta=kernel_delta,
+            max_iterations=50,
+            tolerance=1e-4,
+        ).pose
+    return pose
+
+
+def _distinctiveness(ego: BoxSet, p: EvidenceParams) -> np.ndarray:
+    """Weight (K0,) in (0, 1]: 1 / number of ego boxes (itself included) within
+    ``distinct_radius`` that look alike (size chi2 <= 9 and heading within 10 deg modulo pi)."""
+    xy = ego.poses[:, :2]
+    close = ((xy[:, None, :] - xy[None, :, :]) ** 2).sum(axis=2) <= p.distinct_radius**2
+    diff = ego.log_sizes[:, None, :] - ego.log_sizes[None, :, :]
+    alike = (diff * diff).sum(axis=2) / (2.0 * p.size_sigma**2) <= 9.0
+    heading = np.abs(_half_turn(ego.poses[:, None, 2] - ego.poses[None, :, 2])) <= np.deg2rad(10)
+    return 1.0 / (close & alike & heading).sum(axis=1)
+
+
+def _pair_chi2(ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams) -> np.ndarray:
+    """(K0, K1) chi2 of every ego box against every collaborator box mapped by ``pose``."""
+    mapped = _map(pose, collab.poses)
+    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
+    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
+    var_t = (
+        0.5 * (ego.sigma[:, None, 0] ** 2 + ego.sigma[:, None, 1] ** 2)
+        + 0.5 * (collab.sigma[None, :, 0] ** 2 + collab.sigma[None, :, 1] ** 2)
+        + p.pose_slack_t**2
+    )
+    var_r = ego.sigma[:, None, 2] ** 2 + collab.sigma[None, :, 2] ** 2 + np.deg2rad(p.pose_slack_r_deg) ** 2
+    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
+    return (dx * dx + dy * dy) / var_t + dyaw * dyaw / var_r
+
+
+def score_hypotheses(
+    ego: BoxSet,
+    collab: BoxSet,
+    poses: np.ndarray,
+    p: EvidenceParams,
+    size_chi2: np.ndarray | None = None,
+) -> np.ndarray:
+    """Evidence (H,) of each hypothesis pose (H, 3), in chi2 units (module docstring, step 3;
+    priors not included). ``size_chi2`` (K0, K1): :func:`_size_chi2`, computed once."""
+    if p.use_size and size_chi2 is None:
+        size_chi2 = _size_chi2(ego, collab, p)
+    weight = _distinctiveness(ego, p) if p.use_distinctive else np.ones(ego.poses.shape[0])
+    scores = np.zeros(poses.shape[0])
+    for h, pose in enumerate(poses):
+        chi2 = _pair_chi2(ego, collab, pose, p)
+        if p.use_size:
+            chi2 = chi2 + size_chi2
+        gain = np.maximum(p.outlier_chi2 - chi2, 0.0)
+        best_ego = gain.argmax(axis=0)  # per collaborator box, its best ego box
+        forward = gain[best_ego, np.arange(gain.shape[1])]
+        scores[h] = float((forward * weight[best_ego]).sum())
+        if p.use_free_space and ego.poses.shape[0]:
+            origin = pose[:2]
+            inside = np.hypot(*(ego.poses[:, :2] - origin).T) <= collab.range
+            backward = gain.max(axis=1)
+            scores[h] += float((backward * weight)[inside].sum())
+            scores[h] -= p.free_space_penalty * float(np.count_nonzero(inside & (backward == 0)))
+        if p.use_mutual_detection:
+            scores[h] += _mutual_detection(ego, collab, pose, gain, p)
+    return scores
+
+
+def _mutual_detection(
+    ego: BoxSet, collab: BoxSet, pose: np.ndarray, gain: np.ndarray, p: EvidenceParams
+) -> float:
+    """Gain of the two direct detections the hypothesis predicts: an ego box where it puts
+    the collaborator's vehicle (pose ``pose``, heading modulo pi) that no collaborator box
+    explains (nobody detects itself), and a collaborator box where it puts the ego."""
+    total = 0.0
+    inverse = np.array(
+        [
+            -np.cos(pose[2]) * pose[0] - np.sin(pose[2]) * pose[1],
+            np.sin(pose[2]) * pose[0] - np.cos(pose[2]) * pose[1],
+            -pose[2],
+        ]
+    )
+    for boxes, target, unexplained in (
+        (ego, pose, gain.max(axis=1) == 0),
+        (collab, inverse, gain.max(axis=0) == 0),
+    ):
+        if boxes.poses.shape[0] == 0:
+            continue
+        d = boxes.poses[:, :2] - target[:2]
+        var_t = 0.5 * (boxes.sigma[:, 0] ** 2 + boxes.sigma[:, 1] ** 2) + p.pose_slack_t**2
+        var_r = boxes.sigma[:, 2] ** 2 + np.deg2rad(p.pose_slack_r_deg) ** 2
+        dyaw = _half_turn(boxes.poses[:, 2] - target[2])
+        chi2 = (d * d).sum(axis=1) / var_t + dyaw * dyaw / var_r
+        gains = np.where(unexplained, np.maximum(p.outlier_chi2 - chi2, 0.0), 0.0)
+        total += float(gains.max())
+    return total
+
+
+def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation m, |yaw| rad) between two poses (3,)."""
+    return float(np.hypot(a[0] - b[0], a[1] - b[1])), float(abs(wrap_angle(a[2] - b[2])))
