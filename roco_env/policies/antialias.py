@@ -235,12 +235,14 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
         self._steps.clear()
         self.last_decisions = []
 
-    def _keys(self, info: dict | None, n: int) -> list[Hashable | None]:
+    @staticmethod
+    def _ego_and_keys(info: dict | None, slots: np.ndarray) -> tuple[Hashable | None, list]:
+        """The ego's id and the track key of each filled slot (None without ids)."""
         names = (info or {}).get("collaborators")
         ego = (info or {}).get("agent")
-        if ego is None or names is None or len(names) < n:
-            return [None] * n
-        return [(ego, names[slot]) for slot in range(n)]
+        if ego is None or names is None:
+            return None, [None] * slots.size
+        return ego, [(ego, names[s]) if s < len(names) else None for s in slots]
 
     def _prediction(self, key: Hashable | None, step: int) -> tuple[np.ndarray, float] | None:
         history = self._tracks.get(key) if key is not None else None
@@ -258,12 +260,10 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
 
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         view = unpack_observation(observation)
-        keys = self._keys(info, view.reported_full.shape[0])
-        ego = keys[0][0] if keys and keys[0] is not None else None
+        ego, slot_keys = self._ego_and_keys(info, view.slots)
         step = self._steps.get(ego, 0) + 1
         if ego is not None:
             self._steps[ego] = step
-        slot_keys = [keys[s] for s in view.slots]
         tracks = [self._prediction(k, step) for k in slot_keys]
         result, decisions = antialias_align(
             view.ego_boxes,

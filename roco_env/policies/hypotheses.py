@@ -101,8 +101,8 @@ class EvidenceParams:
 class BoxSet:
     """One agent's boxes in its own frame: poses (K, 3), log sizes (K, 3) (l, w, h),
     sigma (K, 3) = (sigma_x m, sigma_y m, sigma_yaw rad) floored, information (K, 3, 3)
-    (box frame, as the pose graph uses it) and range (m): the 90th percentile of the
-    boxes' distances from the agent (its observed disk)."""
+    (box frame, as the pose graph uses it) and range (m): the largest distance of a box
+    from the agent (the radius of its observed disk)."""
 
     poses: np.ndarray
     log_sizes: np.ndarray
@@ -125,7 +125,7 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
         ]
     )
     distance = np.hypot(poses[:, 0], poses[:, 1])
-    reach = float(np.percentile(distance, 90)) if distance.size else 0.0
+    reach = float(distance.max()) if distance.size else 0.0
     return BoxSet(poses, np.log(sizes), sigma, information, reach)
 
 
@@ -212,6 +212,8 @@ def refine_hypothesis(
     """Two rounds of nearest matching within ``refine_gate`` and a robust pose solve;
     None when fewer than ``min_matches`` boxes match."""
     pose = np.asarray(initial, dtype=float)
+    if min(ego.poses.shape[0], collab.poses.shape[0]) < min_matches:
+        return None
     for _ in range(2):
         mapped = _map(pose, collab.poses)
         d2 = (ego.poses[:, None, 0] - mapped[None, :, 0]) ** 2 + (
@@ -273,6 +275,14 @@ def score_hypotheses(
     if p.use_size and size_chi2 is None:
         size_chi2 = _size_chi2(ego, collab, p)
     weight = _distinctiveness(ego, p) if p.use_distinctive else np.ones(ego.poses.shape[0])
+    # Only boxes inside the other agent's observed disk under *every* hypothesis count:
+    # otherwise a hypothesis that pulls more boxes into the overlap scores higher.
+    forward_set = np.ones(collab.poses.shape[0], dtype=bool)
+    backward_set = np.ones(ego.poses.shape[0], dtype=bool)
+    for pose in poses:
+        mapped = _map(pose, collab.poses)
+        forward_set &= np.hypot(mapped[:, 0], mapped[:, 1]) <= ego.range
+        backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
     scores = np.zeros(poses.shape[0])
     for h, pose in enumerate(poses):
         chi2 = _pair_chi2(ego, collab, pose, p)
@@ -280,14 +290,13 @@ def score_hypotheses(
             chi2 = chi2 + size_chi2
         gain = np.maximum(p.outlier_chi2 - chi2, 0.0)
         best_ego = gain.argmax(axis=0)  # per collaborator box, its best ego box
-        forward = gain[best_ego, np.arange(gain.shape[1])]
-        scores[h] = float((forward * weight[best_ego]).sum())
+        forward = gain[best_ego, np.arange(gain.shape[1])] * weight[best_ego]
+        scores[h] = float(forward[forward_set].sum())
         if p.use_free_space and ego.poses.shape[0]:
-            origin = pose[:2]
-            inside = np.hypot(*(ego.poses[:, :2] - origin).T) <= collab.range
             backward = gain.max(axis=1)
-            scores[h] += float((backward * weight)[inside].sum())
-            scores[h] -= p.free_space_penalty * float(np.count_nonzero(inside & (backward == 0)))
+            scores[h] += float((backward * weight)[backward_set].sum())
+            unexplained = backward_set & (backward == 0)
+            scores[h] -= p.free_space_penalty * float(np.count_nonzero(unexplained))
         if p.use_mutual_detection:
             scores[h] += _mutual_detection(ego, collab, pose, gain, p)
     return scores
