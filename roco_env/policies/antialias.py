@@ -15,14 +15,13 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    mutual detections, P from ``prior_sigma_t`` / ``prior_sigma_r_deg`` and Q from the
    track's age (``track_sigma_t`` / ``track_sigma_r_deg`` per step);
 3. the best hypothesis is trusted only when it beats the best *distinct* one (more than
-   ``distinct_t`` m or ``distinct_r_deg`` deg away) by ``min_margin``; then, if it lies
-   outside the reported pose's basin (``basin_t`` m / ``basin_r_deg`` deg), it replaces the
-   reported pose as RoCo's starting point and prior; when the margin is too small the
+   ``distinct_t`` m or ``distinct_r_deg`` deg away) by ``min_margin``; then it becomes
+   the starting point of RoCo's matching rounds; when the margin is too small the
    collaborator is left out of RoCo and keeps its reported pose (do no harm).
 
-RoCo (unchanged, with all its parameters) then matches and solves the joint pose graph
-from those starting poses. A collaborator whose start moved counts as corrected even when
-RoCo's significance test keeps that start.
+RoCo (unchanged, with all its parameters: the prior edges and the significance test still
+refer to the reported poses) then matches and solves the joint pose graph from those
+starting points.
 
 :class:`AntiAliasPolicy` keeps one track per (ego, collaborator) agent-id pair from the
 info dict (``info["agent"]`` and ``info["collaborators"]``), so one instance may serve
@@ -61,8 +60,7 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     use_hypotheses: the decision stage (False = plain RoCo). min_margin: chi2 units the
     best hypothesis must beat the best distinct one by (ln likelihood ratio =
     min_margin / 2). distinct_t (m) / distinct_r_deg (deg): when two hypotheses are
-    distinct. basin_t (m) / basin_r_deg (deg): a best hypothesis this close to the
-    reported pose leaves RoCo's start unchanged. use_track: the temporal prior;
+    distinct. use_track: the temporal prior;
     track_sigma_t (m) / track_sigma_r_deg (deg): std of its prediction per step of age;
     track_max_age: steps a track survives without a decision.
     """
@@ -71,8 +69,6 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     min_margin: float = 20.0
     distinct_t: float = 1.0
     distinct_r_deg: float = 1.0
-    basin_t: float = 0.5
-    basin_r_deg: float = 0.5
     use_track: bool = True
     track_sigma_t: float = 0.5
     track_sigma_r_deg: float = 1.0
@@ -85,8 +81,6 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
             "min_margin",
             "distinct_t",
             "distinct_r_deg",
-            "basin_t",
-            "basin_r_deg",
             "track_sigma_t",
             "track_sigma_r_deg",
         ):
@@ -106,14 +100,13 @@ class Decision:
 
     pose (3,) or None: the chosen hypothesis (None = ambiguous or no evidence);
     margin: its score minus the best distinct hypothesis's (chi2 units; nan when
-    nothing was scored); hypotheses: how many were scored; moved: the start of RoCo
-    was replaced by ``pose``.
+    nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
+    runs from the reported pose).
     """
 
     pose: np.ndarray | None
     margin: float
     hypotheses: int
-    moved: bool
 
 
 def _prior_chi2(poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: float) -> np.ndarray:
@@ -143,7 +136,7 @@ def _decide(
         ):
             refined.append(pose)
     if not refined:
-        return Decision(None, float("nan"), 0, False)
+        return Decision(None, float("nan"), 0)
     poses = np.stack(refined)
     score = score_hypotheses(ego, collab, poses, p)
     score -= _prior_chi2(poses, reported, p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
@@ -158,10 +151,8 @@ def _decide(
     runner_up = float(score[distinct].max()) if distinct.any() else 0.0
     margin = float(score[best] - max(runner_up, 0.0) if not distinct.any() else score[best] - runner_up)
     if margin < p.min_margin:
-        return Decision(None, margin, len(refined), False)
-    t_rep, r_rep = pose_distance(poses[best], reported)
-    moved = t_rep > p.basin_t or r_rep > np.deg2rad(p.basin_r_deg)
-    return Decision(poses[best], margin, len(refined), moved)
+        return Decision(None, margin, len(refined))
+    return Decision(poses[best], margin, len(refined))
 
 
 def antialias_align(
@@ -184,7 +175,7 @@ def antialias_align(
     if not p.use_hypotheses:
         result = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
         n = result.corrected.shape[0]
-        return result, [Decision(None, float("nan"), 0, False)] * n
+        return result, [Decision(None, float("nan"), 0)] * n
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
     n = inputs.n_collaborators
     tracks = list(tracks) if tracks is not None and p.use_track else [None] * n
@@ -200,21 +191,21 @@ def antialias_align(
     for j in range(n):
         decision = _decide(sets[0], sets[j + 1], inputs.reported[j], tracks[j], p)
         decisions.append(decision)
-        if decision.moved:
+        if decision.pose is not None:
             start[j] = decision.pose
-        elif decision.pose is None and decision.hypotheses:
+        elif decision.hypotheses:
             kept_boxes[j] = boxes[j + 1][:0]  # ambiguous: RoCo leaves it at its reported pose
-    result = roco_align(boxes[0], ego_unc, kept_boxes, [
-        np.asarray(u)[: b.shape[0]] for u, b in zip(collab_unc, kept_boxes, strict=True)
-    ], start, **roco_params)
-    moved = np.array([d.moved for d in decisions], dtype=bool)
+    kept_unc = [np.asarray(u)[: b.shape[0]] for u, b in zip(collab_unc, kept_boxes, strict=True)]
+    result = roco_align(
+        boxes[0], ego_unc, kept_boxes, kept_unc, inputs.reported, initial=start, **roco_params
+    )
     notes = [
         f"slot {j}: ambiguous (margin {d.margin:.1f} < {p.min_margin:g}), reported pose kept"
         for j, d in enumerate(decisions)
         if d.pose is None and d.hypotheses
     ]
     reason = "; ".join([*notes, result.reason] if result.reason else notes)
-    return replace(result, applied=result.applied | moved, reason=reason), decisions
+    return replace(result, reason=reason), decisions
 
 
 class AntiAliasPolicy(ArrayAlignmentPolicy):
