@@ -19,9 +19,11 @@ makes the shifts explicit:
    log sizes), switchable terms add the mirror image with a penalty for ego boxes left
    unexplained inside the collaborator's observed disk (free space), the mutual
    detections (an ego box where the hypothesis puts the collaborator's own vehicle, a
-   collaborator box where it puts the ego), and a per-box weight favouring boxes whose
-   shape is rare among their neighbours (distinctive objects); priors (the reported pose,
-   a track) subtract their Mahalanobis distance.
+   collaborator box where it puts the ego); priors (the reported pose, a track) subtract
+   their Mahalanobis distance. Distinctive objects need no weight of their own: the log
+   sizes and headings in the pair chi2 are what makes a box distinctive, in the
+   likelihood's own units (an explicit rarity weight was measured to add nothing and
+   would make the margin's scale depend on the scene).
 
 Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywhere.
 """
@@ -56,8 +58,7 @@ class EvidenceParams:
     pose_slack_t (m) / pose_slack_r_deg (deg): std added to every pair for the residual
     misfit of a hypothesis; size_sigma: std of one box's log size (l, w, h);
     free_space_penalty: chi2 cost of an ego box inside the collaborator's observed disk
-    that none of its boxes explains; distinct_radius (m): neighbourhood of the
-    distinctiveness weight. use_*: the switches of the terms (module docstring).
+    that none of its boxes explains. use_*: the switches of the terms (module docstring).
     """
 
     search_radius: float = 7.0
@@ -70,11 +71,9 @@ class EvidenceParams:
     pose_slack_r_deg: float = 0.3
     size_sigma: float = 0.06
     free_space_penalty: float = 2.0
-    distinct_radius: float = 8.0
     use_size: bool = True
     use_free_space: bool = True
     use_mutual_detection: bool = True
-    use_distinctive: bool = False
 
     def __post_init__(self) -> None:
         for name in (
@@ -86,7 +85,6 @@ class EvidenceParams:
             "pose_slack_t",
             "pose_slack_r_deg",
             "size_sigma",
-            "distinct_radius",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -237,17 +235,6 @@ def refine_hypothesis(
     return pose
 
 
-def _distinctiveness(ego: BoxSet, p: EvidenceParams) -> np.ndarray:
-    """Weight (K0,) in (0, 1]: 1 / number of ego boxes (itself included) within
-    ``distinct_radius`` that look alike (size chi2 <= 9 and heading within 10 deg modulo pi)."""
-    xy = ego.poses[:, :2]
-    close = ((xy[:, None, :] - xy[None, :, :]) ** 2).sum(axis=2) <= p.distinct_radius**2
-    diff = ego.log_sizes[:, None, :] - ego.log_sizes[None, :, :]
-    alike = (diff * diff).sum(axis=2) / (2.0 * p.size_sigma**2) <= 9.0
-    heading = np.abs(_half_turn(ego.poses[:, None, 2] - ego.poses[None, :, 2])) <= np.deg2rad(10)
-    return 1.0 / (close & alike & heading).sum(axis=1)
-
-
 def _pair_chi2(ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams) -> np.ndarray:
     """(K0, K1) chi2 of every ego box against every collaborator box mapped by ``pose``."""
     mapped = _map(pose, collab.poses)
@@ -274,7 +261,6 @@ def score_hypotheses(
     priors not included). ``size_chi2`` (K0, K1): :func:`_size_chi2`, computed once."""
     if p.use_size and size_chi2 is None:
         size_chi2 = _size_chi2(ego, collab, p)
-    weight = _distinctiveness(ego, p) if p.use_distinctive else np.ones(ego.poses.shape[0])
     # Only boxes inside the other agent's observed disk under *every* hypothesis count:
     # otherwise a hypothesis that pulls more boxes into the overlap scores higher.
     forward_set = np.ones(collab.poses.shape[0], dtype=bool)
@@ -290,11 +276,11 @@ def score_hypotheses(
             chi2 = chi2 + size_chi2
         gain = np.maximum(p.outlier_chi2 - chi2, 0.0)
         best_ego = gain.argmax(axis=0)  # per collaborator box, its best ego box
-        forward = gain[best_ego, np.arange(gain.shape[1])] * weight[best_ego]
+        forward = gain[best_ego, np.arange(gain.shape[1])]
         scores[h] = float(forward[forward_set].sum())
         if p.use_free_space and ego.poses.shape[0]:
             backward = gain.max(axis=1)
-            scores[h] += float((backward * weight)[backward_set].sum())
+            scores[h] += float(backward[backward_set].sum())
             unexplained = backward_set & (backward == 0)
             scores[h] -= p.free_space_penalty * float(np.count_nonzero(unexplained))
         if p.use_mutual_detection:
