@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from roco_env.policies.matching_kernels import edge_similarity_sums
+
 __all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
 
 _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
@@ -234,7 +236,8 @@ def _edge_similarity_from_features(
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature, so all (C x H) norms are one matrix product.
+    candidate feature and a leaf feature: (C, 11) and (11, H) factors, summed per usable
+    (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity_sums`.
     """
     px, py, p2, pc, ps = land[:, cand_p]
     qx, qy, q2, qc, qs = box[:, cand_q]
@@ -260,20 +263,15 @@ def _edge_similarity_from_features(
         axis=1,
     )
     h = leaves.size
-    leaf = np.zeros((11, h))
+    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
     leaf[0] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
     leaf[1], leaf[2] = -4.0 * cu, -4.0 * su
     leaf[3], leaf[4] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
     leaf[6], leaf[7] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
     leaf[5] = leaf[8] = 1.0
     leaf[9], leaf[10] = -2.0 * cu, -2.0 * su
-    norm2 = cand @ leaf
-    usable = (leaves[None, :] != cand_p[:, None]) & (partner[None, :] != cand_q[:, None])
-    if neighbor_radius is not None:
-        # Direct differences (not the expanded squares above): exact at the radius.
-        r2 = neighbor_radius**2
-        d_pm = (px[:, None] - mx[None, :]) ** 2 + (py[:, None] - my[None, :]) ** 2
-        d_qn = (qx[:, None] - nx[None, :]) ** 2 + (qy[:, None] - ny[None, :]) ** 2
-        usable &= (d_pm <= r2) & (d_qn <= r2)
-    total = (np.exp(-np.sqrt(np.maximum(norm2, 0.0))) * usable).sum(axis=1)
-    return total / np.maximum(usable.sum(axis=1), 1)
+    leaf[11], leaf[12], leaf[13], leaf[14] = mx, my, nx, ny
+    # Pairs outside either star (neighbor_radius; None = no radius) are skipped in the loop.
+    radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2
+    centres = np.stack([px, py, qx, qy], axis=1)
+    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
