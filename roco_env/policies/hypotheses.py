@@ -33,8 +33,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.geometry import wrap_angle
 from roco_env.policies.posegraph import optimize_pose
 
 __all__ = [
@@ -98,15 +99,19 @@ class EvidenceParams:
 @dataclass(frozen=True)
 class BoxSet:
     """One agent's boxes in its own frame: poses (K, 3), log sizes (K, 3) (l, w, h),
-    sigma (K, 3) = (sigma_x m, sigma_y m, sigma_yaw rad) floored, information (K, 3, 3)
-    (box frame, as the pose graph uses it) and range (m): the largest distance of a box
-    from the agent (the radius of its observed disk)."""
+    information (K, 3, 3) (box frame, as the pose graph uses it), var_t (K,) the mean of
+    the centre's x and y variances (m^2), var_r (K,) the heading variance (rad^2),
+    range (m): the largest distance of a box from the agent (the radius of its observed
+    disk), and a KD-tree of the centres (pair searches are sparse: a few boxes lie within
+    a few metres of any point)."""
 
     poses: np.ndarray
     log_sizes: np.ndarray
-    sigma: np.ndarray
     information: np.ndarray
+    var_t: np.ndarray
+    var_r: np.ndarray
     range: float
+    tree: cKDTree
 
 
 def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
@@ -115,20 +120,29 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
     sizes = np.maximum(boxes[:, 3:6], 1e-3)
     # sigma_x^2 + sigma_y^2 is the trace of the xy block's inverse (rotation invariant).
     xy_cov = np.linalg.inv(information[:, :2, :2]) if boxes.shape[0] else np.zeros((0, 2, 2))
-    sigma = np.column_stack(
-        [
-            np.sqrt(xy_cov[:, 0, 0]),
-            np.sqrt(xy_cov[:, 1, 1]),
-            1.0 / np.sqrt(information[:, 2, 2]),
-        ]
-    )
+    var_t = 0.5 * (xy_cov[:, 0, 0] + xy_cov[:, 1, 1])
     distance = np.hypot(poses[:, 0], poses[:, 1])
     reach = float(distance.max()) if distance.size else 0.0
-    return BoxSet(poses, np.log(sizes), sigma, information, reach)
+    return BoxSet(
+        poses,
+        np.log(sizes),
+        information,
+        var_t,
+        1.0 / information[:, 2, 2],
+        reach,
+        cKDTree(poses[:, :2]),
+    )
 
 
 def _map(pose: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    return se2_compose(np.broadcast_to(pose, poses.shape), poses)
+    """Poses (K, 3) moved by the SE(2) pose (3,) (heading not wrapped: only its
+    differences modulo pi are used)."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    out = np.empty_like(poses)
+    out[:, 0] = c * poses[:, 0] - s * poses[:, 1] + pose[0]
+    out[:, 1] = s * poses[:, 0] + c * poses[:, 1] + pose[1]
+    out[:, 2] = poses[:, 2] + pose[2]
+    return out
 
 
 def _half_turn(angle: np.ndarray) -> np.ndarray:
@@ -136,10 +150,30 @@ def _half_turn(angle: np.ndarray) -> np.ndarray:
     return np.mod(angle + np.pi / 2, np.pi) - np.pi / 2
 
 
-def _size_chi2(ego: BoxSet, collab: BoxSet, p: EvidenceParams) -> np.ndarray:
-    """(K0, K1) chi2 of the log-size differences (both boxes noisy: variance 2 sigma^2)."""
-    diff = ego.log_sizes[:, None, :] - collab.log_sizes[None, :, :]
-    return (diff * diff).sum(axis=2) / (2.0 * p.size_sigma**2)
+def _pairs(ego: BoxSet, mapped: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(ego index, collaborator index) of every pair of centres at most ``radius`` m apart,
+    the collaborator's boxes already mapped into the ego frame (mapped (K1, 3))."""
+    if ego.poses.shape[0] == 0 or mapped.shape[0] == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty
+    found = ego.tree.sparse_distance_matrix(cKDTree(mapped[:, :2]), radius, output_type="ndarray")
+    return found["i"].astype(np.int64), found["j"].astype(np.int64)
+
+
+def _size_chi2(ego: BoxSet, collab: BoxSet, i: np.ndarray, j: np.ndarray, p: EvidenceParams):
+    """chi2 (P,) of the log-size differences of pairs (both boxes noisy: variance 2 sigma^2)."""
+    diff = ego.log_sizes[i] - collab.log_sizes[j]
+    return (diff * diff).sum(axis=1) / (2.0 * p.size_sigma**2)
+
+
+def _vote_peak(values: np.ndarray, weight: np.ndarray, half: float, cell: float) -> float:
+    """Centre of the strongest (5-cell smoothed) bin of a weighted 1D vote over [-half, half]."""
+    bins = int(np.ceil(2 * half / cell))
+    votes = np.bincount(
+        np.minimum(((values + half) / cell).astype(np.int64), bins - 1), weight, bins
+    )
+    smooth = np.convolve(votes, np.ones(5), mode="same")
+    return -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
 
 
 def generate_hypotheses(
@@ -147,33 +181,26 @@ def generate_hypotheses(
 ) -> np.ndarray:
     """Initial poses (H, 3) of the strongest votes (module docstring, step 1); the first
     row is the vote maximum; empty (0, 3) when no box pair lies within the search."""
-    if ego.poses.shape[0] == 0 or collab.poses.shape[0] == 0:
-        return np.zeros((0, 3))
-    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, p)) if p.use_size else 1.0
-    mapped = _map(reported, collab.poses)
-    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
-    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
-    near = dx * dx + dy * dy <= (p.search_radius + 2.0) ** 2
-    # Rotation: heading differences of nearby pairs (modulo pi), 0.25 deg cells.
+    # Rotation: heading differences (modulo pi) of nearby pairs, 0.25 deg cells.
     half = np.deg2rad(p.search_yaw_deg)
-    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
-    use = near & (np.abs(dyaw) <= half)
-    weight = np.broadcast_to(size_weight, near.shape)[use]
-    cell = np.deg2rad(0.25)
-    bins = int(np.ceil(2 * half / cell))
-    votes = np.bincount(
-        np.minimum(((dyaw[use] + half) / cell).astype(np.int64), bins - 1), weight, bins
-    )
-    smooth = np.convolve(votes, np.ones(5), mode="same")
-    rotation = -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
+    mapped = _map(reported, collab.poses)
+    i, j = _pairs(ego, mapped, p.search_radius + 2.0)
+    if i.size == 0:
+        return np.zeros((0, 3))
+    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
+    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
+    use = np.abs(dyaw) <= half
+    rotation = _vote_peak(dyaw[use], size_weight[use], half, np.deg2rad(0.25))
     rotated = reported + np.array([0.0, 0.0, rotation])
+    # Translation: centre offsets on a grid of vote_bin cells, headings weighing each pair.
     mapped = _map(rotated, collab.poses)
-    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
-    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
-    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
+    i, j = _pairs(ego, mapped, p.search_radius * np.sqrt(2.0))
+    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
+    dx = ego.poses[i, 0] - mapped[j, 0]
+    dy = ego.poses[i, 1] - mapped[j, 1]
+    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
     use = (np.abs(dx) <= p.search_radius) & (np.abs(dy) <= p.search_radius)
-    sigma_yaw = np.deg2rad(3.0)
-    weight = (np.broadcast_to(size_weight, use.shape) * np.exp(-0.5 * (dyaw / sigma_yaw) ** 2))[use]
+    weight = (size_weight * np.exp(-0.5 * (dyaw / np.deg2rad(3.0)) ** 2))[use]
     n = int(np.ceil(2 * p.search_radius / p.vote_bin))
     ix = np.minimum(((dx[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
     iy = np.minimum(((dy[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
@@ -181,15 +208,14 @@ def generate_hypotheses(
     # 3x3 box sum: a true offset splits its votes over neighbouring cells.
     padded = np.pad(grid, 1)
     smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
-    peaks = []
-    order = np.argsort(-smooth, axis=None)
+    peaks: list[tuple[int, int]] = []
     suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
-    for flat in order:
+    for flat in np.argsort(-smooth, axis=None):
         if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= 0:
             break
-        i, j = divmod(int(flat), n)
-        if all((i - a) ** 2 + (j - b) ** 2 > suppress for a, b in peaks):
-            peaks.append((i, j))
+        a, b = divmod(int(flat), n)
+        if all((a - c) ** 2 + (b - d) ** 2 > suppress for c, d in peaks):
+            peaks.append((a, b))
     if not peaks:
         return np.zeros((0, 3))
     offsets = (np.array(peaks, dtype=float) + 0.5) * p.vote_bin - p.search_radius
@@ -207,21 +233,25 @@ def refine_hypothesis(
     kernel_delta: float,
     min_matches: int,
 ) -> np.ndarray | None:
-    """Two rounds of nearest matching within ``refine_gate`` and a robust pose solve;
-    None when fewer than ``min_matches`` boxes match."""
+    """Up to two rounds of nearest matching within ``refine_gate`` and a robust pose solve
+    (the second only when the matches changed); None when fewer than ``min_matches``
+    boxes match."""
     pose = np.asarray(initial, dtype=float)
     if min(ego.poses.shape[0], collab.poses.shape[0]) < min_matches:
         return None
+    previous = None
     for _ in range(2):
         mapped = _map(pose, collab.poses)
-        d2 = (ego.poses[:, None, 0] - mapped[None, :, 0]) ** 2 + (
-            ego.poses[:, None, 1] - mapped[None, :, 1]
-        ) ** 2
-        nearest = d2.argmin(axis=0)
-        box = np.nonzero(d2[nearest, np.arange(d2.shape[1])] <= p.refine_gate**2)[0]
+        distance, nearest = ego.tree.query(mapped[:, :2], distance_upper_bound=p.refine_gate)
+        box = np.nonzero(np.isfinite(distance))[0]
         if box.size < min_matches:
             return None
         land = nearest[box]
+        if previous is not None and np.array_equal(land, previous[0]) and np.array_equal(
+            box, previous[1]
+        ):
+            break
+        previous = (land, box)
         pose = optimize_pose(
             pose,
             ego.poses[land],
@@ -235,32 +265,41 @@ def refine_hypothesis(
     return pose
 
 
-def _pair_chi2(ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams) -> np.ndarray:
-    """(K0, K1) chi2 of every ego box against every collaborator box mapped by ``pose``."""
+def _pair_gains(
+    ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ego index, collaborator index, gain) of the pairs that can gain under ``pose``:
+    gain = outlier_chi2 - chi2 > 0 with chi2 from position, heading modulo pi and (when
+    used) log sizes."""
     mapped = _map(pose, collab.poses)
-    dx = ego.poses[:, None, 0] - mapped[None, :, 0]
-    dy = ego.poses[:, None, 1] - mapped[None, :, 1]
-    var_t = (
-        0.5 * (ego.sigma[:, None, 0] ** 2 + ego.sigma[:, None, 1] ** 2)
-        + 0.5 * (collab.sigma[None, :, 0] ** 2 + collab.sigma[None, :, 1] ** 2)
-        + p.pose_slack_t**2
-    )
-    var_r = ego.sigma[:, None, 2] ** 2 + collab.sigma[None, :, 2] ** 2 + np.deg2rad(p.pose_slack_r_deg) ** 2
-    dyaw = _half_turn(ego.poses[:, None, 2] - mapped[None, :, 2])
-    return (dx * dx + dy * dy) / var_t + dyaw * dyaw / var_r
+    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
+    # chi2 >= distance^2 / var_t, so pairs beyond this radius cannot gain.
+    widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
+    i, j = _pairs(ego, mapped, float(np.sqrt(p.outlier_chi2 * widest)))
+    dx = ego.poses[i, 0] - mapped[j, 0]
+    dy = ego.poses[i, 1] - mapped[j, 1]
+    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
+    chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
+    chi2 += dyaw * dyaw / (ego.var_r[i] + collab.var_r[j] + slack_r)
+    if p.use_size:
+        chi2 += _size_chi2(ego, collab, i, j, p)
+    gain = p.outlier_chi2 - chi2
+    keep = gain > 0
+    return i[keep], j[keep], gain[keep]
+
+
+def _best_gain(index: np.ndarray, gain: np.ndarray, count: int) -> np.ndarray:
+    """Per box (count,), the largest gain of its pairs (0 for a box without one)."""
+    best = np.zeros(count)
+    np.maximum.at(best, index, gain)
+    return best
 
 
 def score_hypotheses(
-    ego: BoxSet,
-    collab: BoxSet,
-    poses: np.ndarray,
-    p: EvidenceParams,
-    size_chi2: np.ndarray | None = None,
+    ego: BoxSet, collab: BoxSet, poses: np.ndarray, p: EvidenceParams
 ) -> np.ndarray:
     """Evidence (H,) of each hypothesis pose (H, 3), in chi2 units (module docstring, step 3;
-    priors not included). ``size_chi2`` (K0, K1): :func:`_size_chi2`, computed once."""
-    if p.use_size and size_chi2 is None:
-        size_chi2 = _size_chi2(ego, collab, p)
+    priors not included)."""
     # Only boxes inside the other agent's observed disk under *every* hypothesis count:
     # otherwise a hypothesis that pulls more boxes into the overlap scores higher.
     forward_set = np.ones(collab.poses.shape[0], dtype=bool)
@@ -271,48 +310,43 @@ def score_hypotheses(
         backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
     scores = np.zeros(poses.shape[0])
     for h, pose in enumerate(poses):
-        chi2 = _pair_chi2(ego, collab, pose, p)
-        if p.use_size:
-            chi2 = chi2 + size_chi2
-        gain = np.maximum(p.outlier_chi2 - chi2, 0.0)
-        best_ego = gain.argmax(axis=0)  # per collaborator box, its best ego box
-        forward = gain[best_ego, np.arange(gain.shape[1])]
+        i, j, gain = _pair_gains(ego, collab, pose, p)
+        forward = _best_gain(j, gain, collab.poses.shape[0])
+        backward = _best_gain(i, gain, ego.poses.shape[0])
         scores[h] = float(forward[forward_set].sum())
-        if p.use_free_space and ego.poses.shape[0]:
-            backward = gain.max(axis=1)
+        if p.use_free_space:
             scores[h] += float(backward[backward_set].sum())
             unexplained = backward_set & (backward == 0)
             scores[h] -= p.free_space_penalty * float(np.count_nonzero(unexplained))
         if p.use_mutual_detection:
-            scores[h] += _mutual_detection(ego, collab, pose, gain, p)
+            scores[h] += _mutual_detection(ego, collab, pose, backward == 0, forward == 0, p)
     return scores
 
 
 def _mutual_detection(
-    ego: BoxSet, collab: BoxSet, pose: np.ndarray, gain: np.ndarray, p: EvidenceParams
+    ego: BoxSet,
+    collab: BoxSet,
+    pose: np.ndarray,
+    ego_unexplained: np.ndarray,
+    collab_unexplained: np.ndarray,
+    p: EvidenceParams,
 ) -> float:
     """Gain of the two direct detections the hypothesis predicts: an ego box where it puts
     the collaborator's vehicle (pose ``pose``, heading modulo pi) that no collaborator box
     explains (nobody detects itself), and a collaborator box where it puts the ego."""
     total = 0.0
-    inverse = np.array(
-        [
-            -np.cos(pose[2]) * pose[0] - np.sin(pose[2]) * pose[1],
-            np.sin(pose[2]) * pose[0] - np.cos(pose[2]) * pose[1],
-            -pose[2],
-        ]
-    )
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    inverse = np.array([-c * pose[0] - s * pose[1], s * pose[0] - c * pose[1], -pose[2]])
+    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
     for boxes, target, unexplained in (
-        (ego, pose, gain.max(axis=1) == 0),
-        (collab, inverse, gain.max(axis=0) == 0),
+        (ego, pose, ego_unexplained),
+        (collab, inverse, collab_unexplained),
     ):
         if boxes.poses.shape[0] == 0:
             continue
         d = boxes.poses[:, :2] - target[:2]
-        var_t = 0.5 * (boxes.sigma[:, 0] ** 2 + boxes.sigma[:, 1] ** 2) + p.pose_slack_t**2
-        var_r = boxes.sigma[:, 2] ** 2 + np.deg2rad(p.pose_slack_r_deg) ** 2
         dyaw = _half_turn(boxes.poses[:, 2] - target[2])
-        chi2 = (d * d).sum(axis=1) / var_t + dyaw * dyaw / var_r
+        chi2 = (d * d).sum(axis=1) / (boxes.var_t + slack_t) + dyaw * dyaw / (boxes.var_r + slack_r)
         gains = np.where(unexplained, np.maximum(p.outlier_chi2 - chi2, 0.0), 0.0)
         total += float(gains.max())
     return total
