@@ -115,25 +115,27 @@ def _prior_chi2(poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: 
     return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
 
 
+def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
+    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other."""
+    t, r = pose_distance(a, b)
+    return t <= tolerance and np.rad2deg(r) <= tolerance
+
+
 def _decide(
     ego, collab, reported: np.ndarray, track: tuple[np.ndarray, float] | None, p: AntiAliasParams
 ) -> Decision:
     """Steps 1-3 of the module docstring for one collaborator."""
-    seeds = [generate_hypotheses(ego, collab, reported, p), reported[None]]
-    if track is not None:
-        seeds.append(track[0][None])
+    starts = [generate_hypotheses(ego, collab, reported, p)]
+    for seed in (reported, None if track is None else track[0]):
+        # A seed next to a vote peak would refine to the same pose.
+        if seed is not None and not any(_close(seed, peak, 0.5) for peak in starts[0]):
+            starts.append(seed[None])
     refined: list[np.ndarray] = []
-    for start in np.concatenate(seeds):
+    for start in np.concatenate(starts):
         pose = refine_hypothesis(
             ego, collab, start, p, p.robust_kernel, p.kernel_delta, p.min_matches
         )
-        if pose is None:
-            continue
-        if all(
-            max(pose_distance(pose, other)[0] / 0.3, np.rad2deg(pose_distance(pose, other)[1]) / 0.3)
-            > 1.0
-            for other in refined
-        ):
+        if pose is not None and not any(_close(pose, other, 0.3) for other in refined):
             refined.append(pose)
     if not refined:
         return Decision(None, float("nan"), 0)

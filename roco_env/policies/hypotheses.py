@@ -54,7 +54,8 @@ class EvidenceParams:
 
     search_radius (m) / search_yaw_deg (deg): translation / rotation errors searched around
     the reported pose; vote_bin (m): translation vote cell; max_hypotheses: local maxima
-    kept; refine_gate (m): matching gate of the refinement; outlier_chi2: what an
+    kept; vote_floor: share of the strongest vote a local maximum needs (weaker ones
+    cannot compete and are not refined); refine_gate (m): matching gate of the refinement; outlier_chi2: what an
     unexplained box costs (a pair gains ``outlier_chi2 - chi2``, never less than 0);
     pose_slack_t (m) / pose_slack_r_deg (deg): std added to every pair for the residual
     misfit of a hypothesis; size_sigma: std of one box's log size (l, w, h);
@@ -66,6 +67,7 @@ class EvidenceParams:
     search_yaw_deg: float = 8.0
     vote_bin: float = 0.5
     max_hypotheses: int = 6
+    vote_floor: float = 0.2
     refine_gate: float = 1.0
     outlier_chi2: float = 16.0
     pose_slack_t: float = 0.1
@@ -92,6 +94,8 @@ class EvidenceParams:
                 raise ValueError(f"{name} must be finite and > 0; got {value}")
         if not (np.isfinite(self.free_space_penalty) and self.free_space_penalty >= 0):
             raise ValueError(f"free_space_penalty must be finite and >= 0; got {self.free_space_penalty}")
+        if not 0 <= self.vote_floor < 1:
+            raise ValueError(f"vote_floor must be in [0, 1); got {self.vote_floor}")
         if int(self.max_hypotheses) < 1:
             raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
 
@@ -210,8 +214,9 @@ def generate_hypotheses(
     smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
     peaks: list[tuple[int, int]] = []
     suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
+    floor = max(p.vote_floor * smooth.max(), 0.0)
     for flat in np.argsort(-smooth, axis=None):
-        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= 0:
+        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= floor:
             break
         a, b = divmod(int(flat), n)
         if all((a - c) ** 2 + (b - d) ** 2 > suppress for c, d in peaks):
