@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import edge_similarity_sums
+from roco_env.policies.matching_kernels import edge_similarity_sums, gated_pairs
 
 __all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
 
@@ -103,6 +103,7 @@ class StarGraphMatcher:
     def __init__(self, landmarks: np.ndarray, boxes_own: np.ndarray, params: MatchingParams):
         self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
         self._land_features = _pose_features(landmarks)
+        self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = _pose_features(boxes_own)
         self._cached_key: tuple | None = None
         self._cached_edge = np.zeros(0)
@@ -123,27 +124,23 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        dx = self.landmarks[:, None, 0] - centres[None, :, 0]
-        dy = self.landmarks[:, None, 1] - centres[None, :, 1]
-        dis = np.sqrt(dx * dx + dy * dy)  # twice as fast as np.hypot on these sizes
-        cand_p, cand_q = np.nonzero(dis <= tau2)
+        cand_p, cand_q, dis, leaves, partner = gated_pairs(
+            self._land_xy, np.ascontiguousarray(centres, dtype=float), float(tau2)
+        )
         if cand_p.size == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
         p = self.params
-        score = p.lam * np.exp(-dis[cand_p, cand_q]) if p.use_distance_similarity else 0.0
+        score = p.lam * np.exp(-dis) if p.use_distance_similarity else 0.0
         if p.use_edge_similarity:
-            score = score + self._edge_similarity(dis, tau2, cand_p, cand_q)
+            score = score + self._edge_similarity(cand_p, cand_q, leaves, partner)
         return _assign(cand_p, cand_q, score, p.tau1)
 
     def _edge_similarity(
-        self, dis: np.ndarray, tau2: float, cand_p: np.ndarray, cand_q: np.ndarray
+        self, cand_p: np.ndarray, cand_q: np.ndarray, leaves: np.ndarray, partner: np.ndarray
     ) -> np.ndarray:
-        """S_edge (C,) of the candidate pairs, reused when the candidate pairs and the
-        initial matches A are those of the previous call."""
-        # A row's nearest box is within the gate iff the row has a gated box at all.
-        nearest = dis.argmin(axis=1)
-        leaves = np.nonzero(dis[np.arange(dis.shape[0]), nearest] <= tau2)[0]
-        partner = nearest[leaves]  # n = A(m)
+        """S_edge (C,) of the candidate pairs given the initial matches n = A(m) (leaves m
+        (H,), partner n (H,)), reused when the pairs and the initial matches are those of
+        the previous call."""
         key = (
             cand_p.size,
             leaves.size,

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["edge_similarity_sums"]
+__all__ = ["edge_similarity_sums", "gated_pairs"]
 
 
 @njit(cache=True)
@@ -48,3 +48,43 @@ def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, r
             count += 1
         out[c] = total / max(count, 1)
     return out
+
+
+@njit(cache=True)
+def gated_pairs(land_xy, centres, tau2):
+    """Candidate pairs of the gate and the initial matches, without (L x K) temporaries.
+
+    land_xy (L, 2), centres (K, 2) in the ego frame; distance = sqrt(dx^2 + dy^2).
+    Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
+    (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
+    (lowest index among equal distances) is within the gate, with that box.
+    """
+    n_land, n_box = land_xy.shape[0], centres.shape[0]
+    count = 0
+    for p in range(n_land):
+        for q in range(n_box):
+            dx = land_xy[p, 0] - centres[q, 0]
+            dy = land_xy[p, 1] - centres[q, 1]
+            if math.sqrt(dx * dx + dy * dy) <= tau2:
+                count += 1
+    cand_p = np.empty(count, dtype=np.int64)
+    cand_q = np.empty(count, dtype=np.int64)
+    dis = np.empty(count)
+    leaves = np.empty(n_land, dtype=np.int64)
+    partner = np.empty(n_land, dtype=np.int64)
+    k = h = 0
+    for p in range(n_land):
+        best, best_q = math.inf, -1
+        for q in range(n_box):
+            dx = land_xy[p, 0] - centres[q, 0]
+            dy = land_xy[p, 1] - centres[q, 1]
+            d = math.sqrt(dx * dx + dy * dy)
+            if d <= tau2:
+                cand_p[k], cand_q[k], dis[k] = p, q, d
+                k += 1
+            if d < best:
+                best, best_q = d, q
+        if best <= tau2:
+            leaves[h], partner[h] = p, best_q
+            h += 1
+    return cand_p, cand_q, dis, leaves[:h], partner[:h]
