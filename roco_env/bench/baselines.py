@@ -28,6 +28,7 @@ from roco_env.bench.sweep import run_sweep
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
 WITH_ANTIALIAS = ("identity", "coalign", "roco", "roco_antialias", "oracle")
+ANTIALIAS_NOISE = (0.0, 0.4, 0.8, 1.2, 1.5)
 ANTIALIAS_SWITCHES = ("use_hypotheses", "use_size", "use_free_space", "use_mutual_detection",
                       "use_track")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
@@ -97,11 +98,17 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("alignment_accuracy", "Pose accuracy: RPE, Success@1m1deg, matching P/R",
                ("urban_intersection", "parking_lot"), (0.2, 0.4, 0.6, 0.8, 1.0, 1.5),
                ("identity", "coalign", "roco"), seeds=2, steps=30),
+    Experiment("antialias_parking", "Aliasing: a full parking lot, roco vs roco_antialias",
+               ("parking_lot",), ANTIALIAS_NOISE, ("identity", "roco", "roco_antialias"),
+               seeds=4, steps=10, densities=(1.0,)),
+    Experiment("antialias_scenes", "roco_antialias on non-repetitive scenes",
+               ("urban_intersection", "highway_dense", "traffic_jam"), ANTIALIAS_NOISE,
+               ("identity", "roco", "roco_antialias"), seeds=2, steps=10),
     Experiment("ablation_antialias", "roco_antialias: each component switched off, full parking lot",
                ("parking_lot",), (0.8, 1.5),
                ("roco", "roco_antialias",
                 *(f"roco_antialias:{switch}=false" for switch in ANTIALIAS_SWITCHES)),
-               seeds=2, steps=20, densities=(1.0,)),
+               seeds=2, steps=10, densities=(1.0,)),
 )
 
 
