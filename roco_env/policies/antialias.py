@@ -46,7 +46,7 @@ from roco_env.policies.hypotheses import (
     refine_hypothesis,
     score_hypotheses,
 )
-from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs
+from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs, require_positive
 from roco_env.policies.observation import ArrayAlignmentPolicy, unpack_observation
 from roco_env.policies.roco import RoCoParams, roco_align
 
@@ -77,16 +77,9 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     def __post_init__(self) -> None:
         RoCoParams.__post_init__(self)
         EvidenceParams.__post_init__(self)
-        for name in (
-            "min_margin",
-            "distinct_t",
-            "distinct_r_deg",
-            "track_sigma_t",
-            "track_sigma_r_deg",
-        ):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        require_positive(
+            self, ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg")
+        )
         if int(self.track_max_age) < 1:
             raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
 

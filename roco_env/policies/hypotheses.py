@@ -36,6 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import wrap_angle
+from roco_env.policies.landmarks import require_positive
 from roco_env.policies.posegraph import optimize_pose
 
 __all__ = [
@@ -46,6 +47,18 @@ __all__ = [
     "refine_hypothesis",
     "score_hypotheses",
 ]
+
+
+_POSITIVE_FIELDS = (
+    "search_radius",
+    "search_yaw_deg",
+    "vote_bin",
+    "refine_gate",
+    "outlier_chi2",
+    "pose_slack_t",
+    "pose_slack_r_deg",
+    "size_sigma",
+)
 
 
 @dataclass(frozen=True)
@@ -79,21 +92,11 @@ class EvidenceParams:
     use_mutual_detection: bool = True
 
     def __post_init__(self) -> None:
-        for name in (
-            "search_radius",
-            "search_yaw_deg",
-            "vote_bin",
-            "refine_gate",
-            "outlier_chi2",
-            "pose_slack_t",
-            "pose_slack_r_deg",
-            "size_sigma",
-        ):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        require_positive(self, _POSITIVE_FIELDS)
         if not (np.isfinite(self.free_space_penalty) and self.free_space_penalty >= 0):
-            raise ValueError(f"free_space_penalty must be finite and >= 0; got {self.free_space_penalty}")
+            raise ValueError(
+                f"free_space_penalty must be finite and >= 0; got {self.free_space_penalty}"
+            )
         if not 0 <= self.vote_floor < 1:
             raise ValueError(f"vote_floor must be in [0, 1); got {self.vote_floor}")
         if int(self.max_hypotheses) < 1:

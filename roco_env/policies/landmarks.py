@@ -30,6 +30,7 @@ __all__ = [
     "pairs_from_observations",
     "params_from_kwargs",
     "prior_information",
+    "require_positive",
 ]
 
 
@@ -243,3 +244,12 @@ def params_from_kwargs(cls: type, kwargs: dict, method: str):
     if unknown:
         raise ValueError(f"unknown {method} parameter(s) {unknown}; allowed: {', '.join(allowed)}")
     return cls(**kwargs)
+
+
+def require_positive(params: object, names: tuple[str, ...]) -> None:
+    """Raise ValueError naming the first of the fields ``names`` of ``params`` that is not a
+    finite number > 0."""
+    for name in names:
+        value = getattr(params, name)
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be finite and > 0; got {value}")
