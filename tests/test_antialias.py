@@ -100,7 +100,8 @@ def test_size_switch_resolves_a_lot_of_varied_cars():
     on, _ = antialias_align(*scene.args())
     off, decisions = antialias_align(*scene.args(), use_size=False)
     assert error_m(on.corrected, scene) < 0.1
-    assert decisions[0].pose is None and error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
 
 
 def test_mutual_detection_switch_uses_the_agents_own_cars():
@@ -110,7 +111,8 @@ def test_mutual_detection_switch_uses_the_agents_own_cars():
     on, _ = antialias_align(*scene.args())
     off, decisions = antialias_align(*scene.args(), use_mutual_detection=False)
     assert error_m(on.corrected, scene) < 0.1
-    assert decisions[0].pose is None and error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
 
 
 def test_free_space_switch_sees_the_end_of_the_rows():
@@ -121,7 +123,8 @@ def test_free_space_switch_sees_the_end_of_the_rows():
     on, _ = antialias_align(*scene.args())
     off, decisions = antialias_align(*scene.args(), use_free_space=False)
     assert error_m(on.corrected, scene) < 0.1
-    assert decisions[0].pose is None and error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
 
 
 def test_track_switch_carries_an_earlier_decision():

@@ -78,7 +78,8 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
         RoCoParams.__post_init__(self)
         EvidenceParams.__post_init__(self)
         require_positive(
-            self, ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg")
+            self,
+            ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg"),
         )
         if int(self.track_max_age) < 1:
             raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
@@ -102,7 +103,11 @@ class Decision:
     hypotheses: int
 
 
-def _prior_chi2(poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: float) -> np.ndarray:
+def _prior_chi2(
+    poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: float
+) -> np.ndarray:
+    """Mahalanobis distance (H,) of poses (H, 3) from ``centre`` with isotropic std
+    ``sigma_t`` (m) in translation and ``sigma_r`` (rad) in yaw."""
     d = poses - centre
     yaw = wrap_angle(d[:, 2])
     return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
@@ -117,7 +122,7 @@ def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
 def _decide(
     ego, collab, reported: np.ndarray, track: tuple[np.ndarray, float] | None, p: AntiAliasParams
 ) -> Decision:
-    """Steps 1-3 of the module docstring for one collaborator."""
+    """Steps 1-3 of the module docstring for one collaborator (ego / collab: BoxSets)."""
     starts = [generate_hypotheses(ego, collab, reported, p)]
     for seed in (reported, None if track is None else track[0]):
         # A seed next to a vote peak would refine to the same pose.
@@ -141,10 +146,12 @@ def _decide(
             poses, centre, p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
         )
     best = int(np.argmax(score))
-    t, r = np.hypot(*(poses[:, :2] - poses[best, :2]).T), np.abs(wrap_angle(poses[:, 2] - poses[best, 2]))
+    t = np.hypot(*(poses[:, :2] - poses[best, :2]).T)
+    r = np.abs(wrap_angle(poses[:, 2] - poses[best, 2]))
     distinct = (t > p.distinct_t) | (r > np.deg2rad(p.distinct_r_deg))
+    # Without a distinct rival the alternative is "no hypothesis explains the boxes" (0).
     runner_up = float(score[distinct].max()) if distinct.any() else 0.0
-    margin = float(score[best] - max(runner_up, 0.0) if not distinct.any() else score[best] - runner_up)
+    margin = float(score[best]) - runner_up
     if margin < p.min_margin:
         return Decision(None, margin, len(refined))
     return Decision(poses[best], margin, len(refined))
@@ -194,12 +201,15 @@ def antialias_align(
     result = roco_align(
         boxes[0], ego_unc, kept_boxes, kept_unc, inputs.reported, initial=start, **roco_params
     )
+    ambiguous = [j for j, d in enumerate(decisions) if d.pose is None and d.hypotheses]
     notes = [
-        f"slot {j}: ambiguous (margin {d.margin:.1f} < {p.min_margin:g}), reported pose kept"
-        for j, d in enumerate(decisions)
-        if d.pose is None and d.hypotheses
+        f"slot {j}: ambiguous (margin {decisions[j].margin:.1f} < {p.min_margin:g}), "
+        "reported pose kept"
+        for j in ambiguous
     ]
-    reason = "; ".join([*notes, result.reason] if result.reason else notes)
+    emptied = {f"slot {j}: no boxes" for j in ambiguous}
+    notes += [r for r in result.reason.split("; ") if r and r not in emptied]
+    reason = "; ".join(notes)
     return replace(result, reason=reason), decisions
 
 
@@ -209,7 +219,8 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     last call's :class:`Decision` per filled slot."""
 
     def __init__(self, **params) -> None:
-        super().__init__(antialias_align, params_from_kwargs(AntiAliasParams, params, "roco_antialias"), params)
+        checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
+        super().__init__(antialias_align, checked, params)
         self._tracks: dict[Hashable, list[tuple[int, np.ndarray]]] = {}
         self._steps: dict[Hashable, int] = {}
         self.last_decisions: list[Decision] = []

@@ -68,12 +68,13 @@ class EvidenceParams:
     search_radius (m) / search_yaw_deg (deg): translation / rotation errors searched around
     the reported pose; vote_bin (m): translation vote cell; max_hypotheses: local maxima
     kept; vote_floor: share of the strongest vote a local maximum needs (weaker ones
-    cannot compete and are not refined); refine_gate (m): matching gate of the refinement; outlier_chi2: what an
-    unexplained box costs (a pair gains ``outlier_chi2 - chi2``, never less than 0);
-    pose_slack_t (m) / pose_slack_r_deg (deg): std added to every pair for the residual
-    misfit of a hypothesis; size_sigma: std of one box's log size (l, w, h);
-    free_space_penalty: chi2 cost of an ego box inside the collaborator's observed disk
-    that none of its boxes explains. use_*: the switches of the terms (module docstring).
+    cannot compete and are not refined); refine_gate (m): matching gate of the
+    refinement; outlier_chi2: what an unexplained box costs (a pair gains
+    ``outlier_chi2 - chi2``, never less than 0); pose_slack_t (m) / pose_slack_r_deg
+    (deg): std added to every pair for the residual misfit of a hypothesis; size_sigma:
+    std of one box's log size (l, w, h); free_space_penalty: chi2 cost of an ego box
+    inside the collaborator's observed disk that none of its boxes explains. use_*: the
+    switches of the terms (module docstring).
     """
 
     search_radius: float = 7.0
