@@ -4,8 +4,9 @@
 Scenes from :func:`roco_env.policies.synthetic.benchmark_scene` (seeded) with
 (agents, objects) = (2, 20), (5, 60), (10, 200); each line gives the median time of one
 ``coalign_align`` / ``roco_align`` / ``antialias_align`` call on the same frame, the
-calls interleaved round by round so that load changes on a shared machine hit all three
-alike, and the ratios to coalign. A second line per size times roco with
+calls interleaved round by round, timed as CPU time of this process (other processes'
+load on a shared machine neither stretches nor favours any of them), and the ratios to
+coalign. A second line per size times roco with
 ``joint_every_round=True`` (the whole pose graph solved in every matching round, the
 literal reading of the paper). Then how roco's cost grows with the object count
 (exponent of a power law fitted through the three sizes), and the env step rate on
@@ -23,7 +24,6 @@ from collections.abc import Callable
 import numpy as np
 
 import roco_env
-from roco_env.perf._timing import median_seconds
 from roco_env.policies import make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.coalign import coalign_align
@@ -46,15 +46,16 @@ def _episode(policy: str, steps: int) -> None:
 
 
 def interleaved_medians(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
-    """Median seconds of each call, timed in turn in every round after one warm-up round."""
+    """Median CPU seconds (``time.process_time``) of each call, timed in turn in every
+    round after one warm-up round."""
     for fn in calls.values():
         fn()
     samples: dict[str, list[float]] = {name: [] for name in calls}
     for _ in range(repeats):
         for name, fn in calls.items():
-            start = time.perf_counter()
+            start = time.process_time()
             fn()
-            samples[name].append(time.perf_counter() - start)
+            samples[name].append(time.process_time() - start)
     return {name: statistics.median(values) for name, values in samples.items()}
 
 
@@ -75,9 +76,9 @@ def run(quick: bool) -> list[str]:
                 repeats,
             ).items()
         }
-        t_joint = (
-            median_seconds(lambda a=args: roco_align(*a, joint_every_round=True), repeats, 1) * 1e3
-        )
+        t_joint = 1e3 * interleaved_medians(
+            {"joint": lambda a=args: roco_align(*a, joint_every_round=True)}, repeats
+        )["joint"]
         roco_ms.append(ms["roco"])
         lines.append(
             f"agents={n_agents:2d} objects={n_objects:3d}: coalign {ms['coalign']:6.2f} ms | "
