@@ -37,7 +37,7 @@ empty slots), ``n_gt``, ``n_pred``, ``frame_scores`` (P,), ``frame_tp`` /
 input), ``fused_boxes`` (P, 7) / ``fused_scores`` (P,) / ``gt_boxes`` (G, 7)
 (ego's true frame), ``evaluated``, ``evaluated_collaborators`` (agent ids by slot
 of the evaluated frame) and, describing the observation returned with the
-info: ``agent`` (its own agent id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
+info: ``collaborators`` (agent ids by slot), ``n_collaborators`` and
 ``privileged`` (true/reported relative poses (N, 3) float64, object ids of the
 observed boxes, -1 = false positive or empty). reset() infos carry the last
 three and ``evaluated``. With ``fusion="intermediate"`` (needs ``features=True``)

@@ -169,6 +169,15 @@ def prepare_inputs(
     )
 
 
+def require_positive(params: object, names: tuple[str, ...]) -> None:
+    """Raise ValueError naming the first of the fields ``names`` of ``params`` that is not a
+    finite number > 0."""
+    for name in names:
+        value = getattr(params, name)
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be finite and > 0; got {value}")
+
+
 def prior_information(sigma_t: float, sigma_r: float) -> np.ndarray:
     """diag(1/sigma_t^2, 1/sigma_t^2, 1/sigma_r^2) for an agent-agent prior (m, rad)."""
     return np.diag([sigma_t**-2, sigma_t**-2, sigma_r**-2])
@@ -244,12 +253,3 @@ def params_from_kwargs(cls: type, kwargs: dict, method: str):
     if unknown:
         raise ValueError(f"unknown {method} parameter(s) {unknown}; allowed: {', '.join(allowed)}")
     return cls(**kwargs)
-
-
-def require_positive(params: object, names: tuple[str, ...]) -> None:
-    """Raise ValueError naming the first of the fields ``names`` of ``params`` that is not a
-    finite number > 0."""
-    for name in names:
-        value = getattr(params, name)
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be finite and > 0; got {value}")

@@ -21,8 +21,8 @@ frame with the current pose estimate):
 5. maximum-weight one-to-one assignment (Kuhn-Munkres) over the gated pairs
    (dis <= tau2); assigned pairs with S < tau1 are rejected.
 
-Every candidate pair is scored at once with numpy broadcasting over
-(candidate pairs x matched leaves). :class:`StarGraphMatcher` serves the
+The gate search and the (candidate pair x matched leaf) sums of S_edge are compiled
+loops (:mod:`roco_env.policies.matching_kernels`). :class:`StarGraphMatcher` serves the
 re-matching rounds of one collaborator against one landmark set: per-box
 features are computed once, and S_edge is reused while the candidate pairs and
 the initial matches stay the same (it does not depend on the pose otherwise).
