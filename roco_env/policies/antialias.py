@@ -218,6 +218,8 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     (``info["agent"]``, collaborator id) (module docstring). ``last_decisions`` holds the
     last call's :class:`Decision` per filled slot."""
 
+    keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+
     def __init__(self, **params) -> None:
         checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
         super().__init__(antialias_align, checked, params)
