@@ -41,3 +41,16 @@ def test_smoke_run_writes_reports(tmp_path, capsys):
     assert "| roco:robust_kernel=null |" in report
     assert main(["--only", "nope"]) == 2
     assert "unknown experiment" in capsys.readouterr().err
+
+
+def test_antialias_ablation_switches_every_component_off():
+    from dataclasses import fields
+
+    from roco_env.policies.antialias import AntiAliasParams
+    from roco_env.policies.roco import RoCoParams
+
+    own = {f.name for f in fields(AntiAliasParams)} - {f.name for f in fields(RoCoParams)}
+    switches = {name for name in own if name.startswith("use_")}
+    assert len(switches) == 5
+    policies = set(experiment("ablation_antialias").policies)
+    assert {f"roco_antialias:{s}=false" for s in switches} | {"roco", "roco_antialias"} == policies

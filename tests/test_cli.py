@@ -96,9 +96,10 @@ def test_demo_preset_and_explicit_options_win():
 
     demo = grid_from_args(build_parser().parse_args(["compare", "--demo"]))
     assert {c.scenario for c in demo} == {"crowded_intersection"}
-    assert [c.policy for c in demo[::3]][:4] == ["identity", "coalign", "roco", "oracle"]
+    policies = ["identity", "coalign", "roco", "roco_antialias", "oracle"]
+    assert [c.policy for c in demo[::3]][:5] == policies
     assert {c.noise for c in demo} == {0.0, 0.4, 0.8}
-    assert len(demo) == 4 * 3 * 3 and {c.steps for c in demo} == {40}
+    assert len(demo) == 5 * 3 * 3 and {c.steps for c in demo} == {40}
     short = grid_from_args(build_parser().parse_args(["compare", "--demo", "--steps", "2"]))
     assert {c.steps for c in short} == {2} and len(short) == len(demo)
 

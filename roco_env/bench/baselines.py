@@ -27,6 +27,10 @@ from roco_env.bench.sweep import run_sweep
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
+WITH_ANTIALIAS = ("identity", "coalign", "roco", "roco_antialias", "oracle")
+ANTIALIAS_NOISE = (0.0, 0.4, 0.8, 1.2, 1.5)
+ANTIALIAS_SWITCHES = ("use_hypotheses", "use_size", "use_free_space", "use_mutual_detection",
+                      "use_track")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 
@@ -72,12 +76,13 @@ class Experiment:
 
 EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("paper_protocol", "Table 1: AP@0.5/0.7 vs noise 0-0.8 (crowded urban, highway)",
-               ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN),
+               ("crowded_intersection", "highway_dense"), PAPER_NOISE, WITH_ANTIALIAS),
     Experiment("crowding_intersection", "Crowding: AP@0.7 vs vehicles per 100 m of lane",
                ("crowded_intersection",), (0.4, 0.8), BUILTIN,
                densities=(2.0, 4.0, 6.0, 9.0, 12.0, 15.0)),
     Experiment("crowding_parking", "Crowding, repetitive: parking-lot fill ratio",
-               ("parking_lot",), (0.4, 0.8), BUILTIN, densities=(0.3, 0.5, 0.7, 0.9, 1.0)),
+               ("parking_lot",), (0.4, 0.8), WITH_ANTIALIAS,
+               densities=(0.3, 0.5, 0.7, 0.9, 1.0)),
     Experiment("ablation_tau2", "Table 2: RoCo's gate tau2 in 1..4 m (single gate, as the paper; "
                "roco = shipped, with the 6 m fallback gate)",
                ("crowded_intersection",), (0.2, 0.4, 0.6, 0.8),
@@ -90,10 +95,21 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                ("crowded_intersection",), (0.2, 0.4, 0.8),
                ("coalign", "roco:robust_kernel=null", "roco:iterate=false", "roco")),
     Experiment("beyond_paper", "Beyond the paper: noise 1.0, 1.5, 2.0",
-               ("crowded_intersection", "highway_dense"), (1.0, 1.5, 2.0), BUILTIN),
+               ("crowded_intersection", "highway_dense"), (1.0, 1.5, 2.0), WITH_ANTIALIAS),
     Experiment("alignment_accuracy", "Pose accuracy: RPE, Success@1m1deg, matching P/R",
                ("urban_intersection", "parking_lot"), (0.2, 0.4, 0.6, 0.8, 1.0, 1.5),
                ("identity", "coalign", "roco"), seeds=2, steps=30),
+    Experiment("antialias_parking", "Aliasing: a full parking lot, roco vs roco_antialias",
+               ("parking_lot",), ANTIALIAS_NOISE, ("identity", "roco", "roco_antialias"),
+               seeds=4, steps=10, densities=(1.0,)),
+    Experiment("antialias_scenes", "roco_antialias on non-repetitive scenes",
+               ("urban_intersection", "highway_dense", "traffic_jam"), ANTIALIAS_NOISE,
+               ("identity", "roco", "roco_antialias"), seeds=2, steps=10),
+    Experiment("ablation_antialias", "roco_antialias: each component switched off, full parking lot",
+               ("parking_lot",), (0.8, 1.5),
+               ("roco", "roco_antialias",
+                *(f"roco_antialias:{switch}=false" for switch in ANTIALIAS_SWITCHES)),
+               seeds=2, steps=10, densities=(1.0,)),
 )
 
 

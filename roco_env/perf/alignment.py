@@ -1,24 +1,62 @@
-"""Per-frame alignment latency of roco and coalign (``python -m roco_env.perf alignment``).
+"""Per-frame alignment latency of coalign, roco and roco_antialias
+(``python -m roco_env.perf alignment``).
 
 Scenes from :func:`roco_env.policies.synthetic.benchmark_scene` (seeded) with
-(agents, objects) = (2, 20), (5, 60), (10, 200); each line gives the median time
-of one ``roco_align`` / ``coalign_align`` call. Baselines measured in the same
-process: coalign, and roco with ``joint_every_round=True`` (the whole pose graph
-solved in every matching round, the literal reading of the paper). The last line
-reports how roco's cost grows with the object count (exponent of a power law
-fitted through the three sizes).
+(agents, objects) = (2, 20), (5, 60), (10, 200); each line gives the median time of one
+``coalign_align`` / ``roco_align`` / ``antialias_align`` call on the same frame, the
+calls interleaved round by round, timed as CPU time of this process (other processes'
+load on a shared machine neither stretches nor favours any of them), and the ratios to
+coalign. A second line per size times roco with
+``joint_every_round=True`` (the whole pose graph solved in every matching round, the
+literal reading of the paper). Then how roco's cost grows with the object count
+(exponent of a power law fitted through the three sizes), and the env step rate on
+``urban_intersection`` (4 CAVs + 1 RSU, every agent an ego with its own policy
+instance, noise 0.8 m/deg) with each policy against the identity policy, whole seeded
+episodes timed in turn.
 """
 
 from __future__ import annotations
 
+import statistics
+import time
+from collections.abc import Callable
+
 import numpy as np
 
-from roco_env.perf._timing import median_seconds
+import roco_env
+from roco_env.policies import make_policy
+from roco_env.policies.antialias import antialias_align
 from roco_env.policies.coalign import coalign_align
 from roco_env.policies.roco import roco_align
 from roco_env.policies.synthetic import benchmark_scene
 
 SIZES = ((2, 20), (5, 60), (10, 200))
+ENV_POLICIES = ("identity", "coalign", "roco", "roco_antialias")
+
+
+def _episode(policy: str, steps: int) -> None:
+    """One seeded urban_intersection episode of ``steps`` steps driven by ``policy``."""
+    env = roco_env.parallel_env("urban_intersection", max_cycles=steps, sigma_t=0.8, sigma_r=0.8)
+    observations, infos = env.reset(seed=0)
+    agents = {agent: make_policy(policy) for agent in env.agents}
+    while env.agents:
+        actions = {a: agents[a](observations[a], infos[a]) for a in env.agents}
+        observations, _, _, _, infos = env.step(actions)
+    env.close()
+
+
+def interleaved_medians(calls: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median CPU seconds (``time.process_time``) of each call, timed in turn in every
+    round after one warm-up round."""
+    for fn in calls.values():
+        fn()
+    samples: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, fn in calls.items():
+            start = time.process_time()
+            fn()
+            samples[name].append(time.process_time() - start)
+    return {name: statistics.median(values) for name, values in samples.items()}
 
 
 def run(quick: bool) -> list[str]:
@@ -27,22 +65,48 @@ def run(quick: bool) -> list[str]:
     for n_agents, n_objects in SIZES:
         scene = benchmark_scene(np.random.default_rng(0), n_agents, n_objects)
         args = scene.args()
-        t_roco = median_seconds(lambda a=args: roco_align(*a), repeats, 2) * 1e3
-        t_joint = (
-            median_seconds(lambda a=args: roco_align(*a, joint_every_round=True), repeats, 1) * 1e3
-        )
-        t_coalign = median_seconds(lambda a=args: coalign_align(*a), repeats, 1) * 1e3
-        roco_ms.append(t_roco)
+        ms = {
+            name: 1e3 * seconds
+            for name, seconds in interleaved_medians(
+                {
+                    "coalign": lambda a=args: coalign_align(*a),
+                    "roco": lambda a=args: roco_align(*a),
+                    "roco_antialias": lambda a=args: antialias_align(*a),
+                },
+                repeats,
+            ).items()
+        }
+        t_joint = 1e3 * interleaved_medians(
+            {"joint": lambda a=args: roco_align(*a, joint_every_round=True)}, repeats
+        )["joint"]
+        roco_ms.append(ms["roco"])
         lines.append(
-            f"agents={n_agents:2d} objects={n_objects:3d}: roco {t_roco:6.2f} ms | "
-            f"roco joint-every-round {t_joint:6.2f} ms ({t_joint / t_roco:.2f}x slower) | "
-            f"coalign {t_coalign:6.2f} ms (roco/coalign {t_roco / t_coalign:.2f}x)"
+            f"agents={n_agents:2d} objects={n_objects:3d}: coalign {ms['coalign']:6.2f} ms | "
+            f"roco {ms['roco']:6.2f} ms ({ms['roco'] / ms['coalign']:.2f}x coalign) | "
+            f"roco_antialias {ms['roco_antialias']:6.2f} ms "
+            f"({ms['roco_antialias'] / ms['coalign']:.2f}x coalign)"
+        )
+        lines.append(
+            f"    roco joint-every-round {t_joint:6.2f} ms ({t_joint / ms['roco']:.2f}x roco)"
         )
     objects = np.array([s[1] for s in SIZES], dtype=float)
     slope = np.polyfit(np.log(objects), np.log(roco_ms), 1)[0]
     lines.append(
         f"roco cost growth: {roco_ms[0]:.2f} -> {roco_ms[1]:.2f} -> {roco_ms[2]:.2f} ms for "
-        f"20 -> 60 -> 200 objects (agents grow too), ~objects^{slope:.2f}; "
-        "target <= 3 ms at (5, 60)"
+        "20 -> 60 -> 200 objects (agents grow too), "
+        f"~objects^{slope:.2f}; target: roco and roco_antialias <= 1.5x coalign"
+    )
+    steps = 10 if quick else 30
+    seconds = interleaved_medians(
+        {name: lambda n=name: _episode(n, steps) for name in ENV_POLICIES}, 1 if quick else 3
+    )
+    rates = {name: steps / value for name, value in seconds.items()}
+    lines.append(
+        "env urban_intersection (5 agents, noise 0.8) steps/s: "
+        + " | ".join(
+            f"{name} {rate:.1f} ({rate / rates['identity']:.2f}x identity)"
+            for name, rate in rates.items()
+        )
+        + "; target roco >= 0.4x identity"
     )
     return lines

@@ -37,6 +37,7 @@ _REGISTRY: dict[str, str] = {
     "roco": "roco_env.policies.roco:RoCoPolicy",
     "coalign_temporal": "roco_env.policies.temporal:coalign_temporal",
     "roco_temporal": "roco_env.policies.temporal:roco_temporal",
+    "roco_antialias": "roco_env.policies.antialias:AntiAliasPolicy",
 }
 
 

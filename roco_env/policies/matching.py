@@ -23,8 +23,8 @@ frame with the current pose estimate):
    S (maximum 1 + lambda); with a term switched off (ablation) the bar is scaled by the
    remaining terms' maximum (:attr:`MatchingParams.similarity_threshold`).
 
-Every candidate pair is scored at once with numpy broadcasting over
-(candidate pairs x matched leaves). :class:`StarGraphMatcher` serves the
+The gate search and the (candidate pair x matched leaf) sums of S_edge are compiled
+loops (:mod:`roco_env.policies.matching_kernels`). :class:`StarGraphMatcher` serves the
 re-matching rounds of one collaborator against one landmark set: per-box
 features are computed once, and S_edge is reused while the candidate pairs and
 the initial matches stay the same (it does not depend on the pose otherwise).
@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from roco_env.policies.matching_kernels import edge_similarity_sums, gated_pairs
 
 __all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
 
@@ -119,6 +121,7 @@ class StarGraphMatcher:
     def __init__(self, landmarks: np.ndarray, boxes_own: np.ndarray, params: MatchingParams):
         self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
         self._land_features = _pose_features(landmarks)
+        self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = _pose_features(boxes_own)
         self._cached_key: tuple | None = None
         self._cached_edge = np.zeros(0)
@@ -139,27 +142,23 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        dx = self.landmarks[:, None, 0] - centres[None, :, 0]
-        dy = self.landmarks[:, None, 1] - centres[None, :, 1]
-        dis = np.sqrt(dx * dx + dy * dy)  # twice as fast as np.hypot on these sizes
-        cand_p, cand_q = np.nonzero(dis <= tau2)
+        cand_p, cand_q, dis, leaves, partner = gated_pairs(
+            self._land_xy, np.ascontiguousarray(centres, dtype=float), float(tau2)
+        )
         if cand_p.size == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
         p = self.params
-        score = p.lam * np.exp(-dis[cand_p, cand_q]) if p.use_distance_similarity else 0.0
+        score = p.lam * np.exp(-dis) if p.use_distance_similarity else 0.0
         if p.use_edge_similarity:
-            score = score + self._edge_similarity(dis, tau2, cand_p, cand_q)
+            score = score + self._edge_similarity(cand_p, cand_q, leaves, partner)
         return _assign(cand_p, cand_q, score, p.similarity_threshold)
 
     def _edge_similarity(
-        self, dis: np.ndarray, tau2: float, cand_p: np.ndarray, cand_q: np.ndarray
+        self, cand_p: np.ndarray, cand_q: np.ndarray, leaves: np.ndarray, partner: np.ndarray
     ) -> np.ndarray:
-        """S_edge (C,) of the candidate pairs, reused when the candidate pairs and the
-        initial matches A are those of the previous call."""
-        # A row's nearest box is within the gate iff the row has a gated box at all.
-        nearest = dis.argmin(axis=1)
-        leaves = np.nonzero(dis[np.arange(dis.shape[0]), nearest] <= tau2)[0]
-        partner = nearest[leaves]  # n = A(m)
+        """S_edge (C,) of the candidate pairs given the initial matches n = A(m) (leaves m
+        (H,), partner n (H,)), reused when the pairs and the initial matches are those of
+        the previous call."""
         key = (
             cand_p.size,
             leaves.size,
@@ -252,7 +251,8 @@ def _edge_similarity_from_features(
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature, so all (C x H) norms are one matrix product.
+    candidate feature and a leaf feature: (C, 11) and (11, H) factors, summed per usable
+    (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity_sums`.
     """
     px, py, p2, pc, ps = land[:, cand_p]
     qx, qy, q2, qc, qs = box[:, cand_q]
@@ -278,20 +278,15 @@ def _edge_similarity_from_features(
         axis=1,
     )
     h = leaves.size
-    leaf = np.zeros((11, h))
+    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
     leaf[0] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
     leaf[1], leaf[2] = -4.0 * cu, -4.0 * su
     leaf[3], leaf[4] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
     leaf[6], leaf[7] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
     leaf[5] = leaf[8] = 1.0
     leaf[9], leaf[10] = -2.0 * cu, -2.0 * su
-    norm2 = cand @ leaf
-    usable = (leaves[None, :] != cand_p[:, None]) & (partner[None, :] != cand_q[:, None])
-    if neighbor_radius is not None:
-        # Direct differences (not the expanded squares above): exact at the radius.
-        r2 = neighbor_radius**2
-        d_pm = (px[:, None] - mx[None, :]) ** 2 + (py[:, None] - my[None, :]) ** 2
-        d_qn = (qx[:, None] - nx[None, :]) ** 2 + (qy[:, None] - ny[None, :]) ** 2
-        usable &= (d_pm <= r2) & (d_qn <= r2)
-    total = (np.exp(-np.sqrt(np.maximum(norm2, 0.0))) * usable).sum(axis=1)
-    return total / np.maximum(usable.sum(axis=1), 1)
+    leaf[11], leaf[12], leaf[13], leaf[14] = mx, my, nx, ny
+    # Pairs outside either star (neighbor_radius; None = no radius) are skipped in the loop.
+    radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2
+    centres = np.stack([px, py, qx, qy], axis=1)
+    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)

@@ -28,6 +28,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roco_env.policies.pose_kernels import (
+    KERNEL_CODES,
+    damped_step,
+    evaluate_edges,
+    normal_sums,
+)
+
 __all__ = [
     "PoseGraph",
     "PoseGraphResult",
@@ -495,24 +502,26 @@ class PoseResult:
 
 class _PoseProblem:
     """One agent vertex observing fixed landmarks (and an optional prior edge from a fixed
-    identity vertex), linearised with few numpy calls.
+    identity vertex), linearised by the compiled loops of
+    :mod:`roco_env.policies.pose_kernels`.
 
     Each observation residual is ``e = C e~`` with ``C = blockdiag(R(-yaw_z), 1)`` and
     ``e~ = (R(-yaw) (t_l - t) - t_z, wrap(yaw_l - yaw_z - yaw))``, so the per-edge
     information is rotated once, ``Omega' = C^T Omega C``. The Jacobian of ``e~`` is
     ``-N Q^T`` with ``Q = blockdiag(R(yaw), 1)`` shared by all edges and
     ``N = I + m e3^T``, ``m = (-e~_y', e~_x', 0)`` built from ``u = R(-yaw)(t_l - t)``;
-    hence ``H = Q (sum w N^T Omega' N) Q^T`` and ``g = -Q sum w N^T Omega' e~``, whose
-    sums are one weighted matrix product over per-edge features.
+    hence ``H = Q (sum w N^T Omega' N) Q^T`` and ``g = -Q sum w N^T Omega' e~``, summed
+    in one pass over the edges.
     """
 
     def __init__(
         self, landmarks, measurement, information, prior, prior_information, kernel, delta
     ):
         self.kernel, self.delta = kernel, delta
-        self.land_xy = landmarks[:, :2]
-        self.t_z = measurement[:, :2]
-        self.angle = landmarks[:, 2] - measurement[:, 2]
+        self.kernel_code = KERNEL_CODES[kernel]
+        self.land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
+        self.t_z = np.ascontiguousarray(measurement[:, :2], dtype=float)
+        self.angle = np.ascontiguousarray(landmarks[:, 2] - measurement[:, 2], dtype=float)
         rot = np.zeros((measurement.shape[0], 3, 3))
         c, s = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
         rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
@@ -532,65 +541,40 @@ class _PoseProblem:
     def evaluate(self, pose: np.ndarray) -> tuple[float, tuple]:
         """(robust cost, linearisation point) at ``pose`` (3,); the point starts with the
         per-edge chi2 (E,) and is what :meth:`normal_equations` takes."""
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        u = (self.land_xy - pose[:2]) @ np.array([[c, -s], [s, c]])
-        e = np.empty((u.shape[0], 3))
-        e[:, :2] = u - self.t_z
-        e[:, 2] = _wrap(self.angle - pose[2])
-        info_e = np.matmul(self.info, e[:, :, None])[:, :, 0]
-        chi2 = np.einsum("ei,ei->e", e, info_e)
-        rho, weight = robust_kernel(chi2, self.kernel, self.delta)
-        cost = float(rho.sum())
+        yaw = float(pose[2])
+        rho_sum, chi2, u, info_e, weight = evaluate_edges(
+            float(pose[0]), float(pose[1]), yaw, self.land_xy, self.t_z, self.angle,
+            self.info, self.kernel_code, float(self.delta),
+        )
+        cost = rho_sum
         e_p = None
         if self.prior is not None:
             j_p, offset, info_p = self.prior[:3]
             e_p = j_p @ pose - offset
             e_p[2] = _wrap_scalar(float(e_p[2]))
             cost += float(e_p @ info_p @ e_p)
-        return cost, (chi2, c, s, u, info_e, weight, e_p)
+        return cost, (chi2, math.cos(yaw), math.sin(yaw), u, info_e, weight, e_p)
 
     def set_information(self, information: np.ndarray) -> None:
         """Replace the per-edge information (E, 3, 3) (rotated as in the constructor)."""
-        self.info = np.matmul(self._rot_t, np.matmul(information, self._rot))
-        self.info_flat = self.info.reshape(-1, 9)
+        self.info = np.ascontiguousarray(np.matmul(self._rot_t, np.matmul(information, self._rot)))
 
     def hessian(self, point: tuple) -> np.ndarray:
         """H (3, 3) of :meth:`normal_equations`, without the gradient."""
-        return self._hessian(point)[0]
-
-    def _hessian(self, point: tuple) -> tuple:
-        _, c, s, u, _, weight, e_p = point
-        m = u[:, ::-1] * _PERPENDICULAR  # (-u_y, u_x)
-        info_m = np.matmul(self.info[:, :, :2], m[:, :, None])[:, :, 0]
-        w_m = weight[:, None] * m
-        o00, o01, o02, o10, o11, o12, o20, o21, o22 = (weight @ self.info_flat).tolist()
-        v0, v1, v2 = (weight @ info_m).tolist()
-        o22 += 2.0 * v2 + float(np.vdot(w_m, info_m[:, :2]))
-        # inner = sum w N^T Omega' N; H = Q inner Q^T, g = -Q (sum w N^T Omega' e~).
-        inner = ((o00, o01, o02 + v0), (o10, o11, o12 + v1), (o20 + v0, o21 + v1, o22))
-        rows = [(c * a0 - s * a1, s * a0 + c * a1, a2) for a0, a1, a2 in inner]  # inner Q^T
-        columns = [
-            (c * rows[0][k] - s * rows[1][k], s * rows[0][k] + c * rows[1][k], rows[2][k])
-            for k in range(3)
-        ]
-        hess = np.array(columns).T
-        if e_p is not None:
-            hess = hess + self.prior[3]
-        return hess, w_m
+        _, c, s, u, info_e, weight, e_p = point
+        hess = normal_sums(c, s, u, self.info, info_e, weight, False)[0]
+        return hess + self.prior[3] if e_p is not None else hess
 
     def normal_equations(self, point: tuple) -> tuple[np.ndarray, np.ndarray]:
         """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
-        _, c, s, _, info_e, weight, e_p = point
-        hess, w_m = self._hessian(point)
-        g0, g1, g2 = (weight @ info_e).tolist()
-        g2 += float(np.vdot(w_m, info_e[:, :2]))
-        grad = np.array([s * g1 - c * g0, -s * g0 - c * g1, -g2])
+        _, c, s, u, info_e, weight, e_p = point
+        hess, grad = normal_sums(c, s, u, self.info, info_e, weight, True)
         if e_p is not None:
+            hess = hess + self.prior[3]
             grad = grad + self.prior[4].T @ e_p
         return hess, grad
 
 
-_PERPENDICULAR = np.array([-1.0, 1.0])
 
 
 def optimize_pose(
@@ -619,13 +603,10 @@ def optimize_pose(
     )
 
     def propose(pose, system, lam):
-        hess, grad = system
-        damped = hess.copy()
-        damped.reshape(-1)[::4] += lam * np.maximum(np.diagonal(hess), _MIN_DIAG)
-        delta = np.linalg.solve(damped, -grad)
+        delta, step = damped_step(*system, lam, _MIN_DIAG)
         trial = pose + delta
         trial[2] = _wrap_scalar(float(trial[2]))
-        return trial, np.abs(delta).max()
+        return trial, step
 
     start = np.asarray(initial, dtype=float).copy()
     pose, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(

@@ -273,11 +273,14 @@ def _optimise_round(
     att.solver += result.iterations
 
 
-def _attempt(inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams) -> _Attempt:
-    """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring)."""
+def _attempt(
+    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
+) -> _Attempt:
+    """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
+    starting from the pose estimate ``start`` (3,)."""
     matcher = StarGraphMatcher(world.poses, inputs.poses[agent], p)
     empty = np.zeros(0, dtype=np.int64)
-    att = _Attempt(inputs.reported[agent - 1].copy(), empty, empty)
+    att = _Attempt(np.array(start, dtype=float), empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
     for _ in range(rounds):
         land, box, _ = matcher.match(att.pose)
@@ -405,6 +408,8 @@ def roco_align(
     collab_boxes: Sequence[np.ndarray],
     collab_unc: Sequence[np.ndarray],
     reported: np.ndarray,
+    *,
+    initial: np.ndarray | None = None,
     **params,
 ) -> AlignmentResult:
     """Correct the collaborators' relative poses with RoCo.
@@ -412,10 +417,18 @@ def roco_align(
     ego_boxes (K0, 7) / ego_unc (K0, 3) in the ego frame; collab_boxes[j] (K_j, 7) /
     collab_unc[j] (K_j, 3) in collaborator j's own frame (uncertainty = sigma_x m,
     sigma_y m, sigma_yaw rad, agent frame); reported (N, 3) reported T_{j->i}.
+    initial (N, 3): where the matching rounds start (default: the reported poses; the
+    prior edges and the do-no-harm test always use the reported ones).
     params: fields of :class:`RoCoParams`. Returns corrected T_{j->i} and diagnostics.
     """
     p = params_from_kwargs(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
+    start = inputs.reported if initial is None else np.asarray(initial, dtype=float)
+    if start.shape != inputs.reported.shape or not np.all(np.isfinite(start)):
+        raise ValueError(
+            f"initial must be finite with the shape of reported {inputs.reported.shape}; "
+            f"got {start.shape}"
+        )
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
     covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
@@ -431,7 +444,7 @@ def roco_align(
         if inputs.poses[agent].shape[0] == 0:
             reasons[agent - 1] = "no boxes"
             continue
-        att = _attempt(inputs, world, agent, p)
+        att = _attempt(inputs, world, agent, p, start[agent - 1])
         outer, solver = outer + att.outer, solver + att.solver
         reasons[agent - 1] = _rejection(inputs, world, agent, att, p, covariance)
         if not reasons[agent - 1]:

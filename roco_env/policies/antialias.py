@@ -1,0 +1,281 @@
+"""RoCo made robust to aliasing: explicit pose hypotheses before RoCo's matching.
+
+Repetitive layouts (rows of parked cars 2.5 m apart) let RoCo's matcher converge to
+a global shift of the truth by one stall and its significance test then *confirms*
+the wrong, consistent correction. :func:`antialias_align` adds a decision stage in
+front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
+
+1. hypotheses for T_{j->i}: the strongest rotation + translation votes of nearby box
+   pairs within ``search_radius`` of the reported pose, the reported pose itself and,
+   when given, the temporal track's prediction; each refined by matching and a robust
+   pose solve against the ego's boxes (:mod:`roco_env.policies.hypotheses`);
+2. each hypothesis h gets the score (chi-square units, -2 ln of a likelihood ratio)
+   ``S(h) = evidence(h) - d(h, reported)^T P d(h, reported) - d(h, track)^T Q d(h, track)``
+   with evidence from box pairs (position, heading modulo pi, log size), free space and
+   mutual detections, P from ``prior_sigma_t`` / ``prior_sigma_r_deg`` and Q from the
+   track's age (``track_sigma_t`` / ``track_sigma_r_deg`` per step);
+3. the best hypothesis is trusted only when it beats the best *distinct* one (more than
+   ``distinct_t`` m or ``distinct_r_deg`` deg away) by ``min_margin``; then it becomes
+   the starting point of RoCo's matching rounds; when the margin is too small the
+   collaborator is left out of RoCo and keeps its reported pose (do no harm).
+
+RoCo (unchanged, with all its parameters: the prior edges and the significance test still
+refer to the reported poses) then matches and solves the joint pose graph from those
+starting points.
+
+:class:`AntiAliasPolicy` keeps one track per (ego, collaborator) agent-id pair from the
+info dict (``info["agent"]`` and ``info["collaborators"]``), so one instance may serve
+several agents; without those ids it uses no track. Call :meth:`AntiAliasPolicy.reset`
+between episodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from roco_env.geometry import validate_boxes, wrap_angle
+from roco_env.policies.base import AlignmentResult, correction_action
+from roco_env.policies.hypotheses import (
+    EvidenceParams,
+    box_set,
+    generate_hypotheses,
+    pose_distance,
+    refine_hypothesis,
+    score_hypotheses,
+)
+from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs, require_positive
+from roco_env.policies.observation import ArrayAlignmentPolicy, unpack_observation
+from roco_env.policies.roco import RoCoParams, roco_align
+
+__all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
+
+
+@dataclass(frozen=True)
+class AntiAliasParams(RoCoParams, EvidenceParams):
+    """RoCo's parameters, the evidence ones (:class:`EvidenceParams`) and the decision's.
+
+    use_hypotheses: the decision stage (False = plain RoCo). min_margin: chi2 units the
+    best hypothesis must beat the best distinct one by (ln likelihood ratio =
+    min_margin / 2). distinct_t (m) / distinct_r_deg (deg): when two hypotheses are
+    distinct. use_track: the temporal prior;
+    track_sigma_t (m) / track_sigma_r_deg (deg): std of its prediction per step of age;
+    track_max_age: steps a track survives without a decision.
+    """
+
+    use_hypotheses: bool = True
+    min_margin: float = 20.0
+    distinct_t: float = 1.0
+    distinct_r_deg: float = 1.0
+    use_track: bool = True
+    track_sigma_t: float = 0.5
+    track_sigma_r_deg: float = 1.0
+    track_max_age: int = 10
+
+    def __post_init__(self) -> None:
+        RoCoParams.__post_init__(self)
+        EvidenceParams.__post_init__(self)
+        require_positive(
+            self,
+            ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg"),
+        )
+        if int(self.track_max_age) < 1:
+            raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
+
+
+_ROCO_FIELDS = tuple(f.name for f in fields(RoCoParams))
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The decision stage's outcome for one collaborator.
+
+    pose (3,) or None: the chosen hypothesis (None = ambiguous or no evidence);
+    margin: its score minus the best distinct hypothesis's (chi2 units; nan when
+    nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
+    runs from the reported pose).
+    """
+
+    pose: np.ndarray | None
+    margin: float
+    hypotheses: int
+
+
+def _prior_chi2(
+    poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: float
+) -> np.ndarray:
+    """Mahalanobis distance (H,) of poses (H, 3) from ``centre`` with isotropic std
+    ``sigma_t`` (m) in translation and ``sigma_r`` (rad) in yaw."""
+    d = poses - centre
+    yaw = wrap_angle(d[:, 2])
+    return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
+
+
+def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
+    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other."""
+    t, r = pose_distance(a, b)
+    return t <= tolerance and np.rad2deg(r) <= tolerance
+
+
+def _decide(
+    ego, collab, reported: np.ndarray, track: tuple[np.ndarray, float] | None, p: AntiAliasParams
+) -> Decision:
+    """Steps 1-3 of the module docstring for one collaborator (ego / collab: BoxSets)."""
+    starts = [generate_hypotheses(ego, collab, reported, p)]
+    for seed in (reported, None if track is None else track[0]):
+        # A seed next to a vote peak would refine to the same pose.
+        if seed is not None and not any(_close(seed, peak, 0.5) for peak in starts[0]):
+            starts.append(seed[None])
+    refined: list[np.ndarray] = []
+    for start in np.concatenate(starts):
+        pose = refine_hypothesis(
+            ego, collab, start, p, p.robust_kernel, p.kernel_delta, p.min_matches
+        )
+        if pose is not None and not any(_close(pose, other, 0.3) for other in refined):
+            refined.append(pose)
+    if not refined:
+        return Decision(None, float("nan"), 0)
+    poses = np.stack(refined)
+    score = score_hypotheses(ego, collab, poses, p)
+    score -= _prior_chi2(poses, reported, p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    if track is not None:
+        centre, age = track
+        score -= _prior_chi2(
+            poses, centre, p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
+        )
+    best = int(np.argmax(score))
+    t = np.hypot(*(poses[:, :2] - poses[best, :2]).T)
+    r = np.abs(wrap_angle(poses[:, 2] - poses[best, 2]))
+    distinct = (t > p.distinct_t) | (r > np.deg2rad(p.distinct_r_deg))
+    # Without a distinct rival the alternative is "no hypothesis explains the boxes" (0).
+    runner_up = float(score[distinct].max()) if distinct.any() else 0.0
+    margin = float(score[best]) - runner_up
+    if margin < p.min_margin:
+        return Decision(None, margin, len(refined))
+    return Decision(poses[best], margin, len(refined))
+
+
+def antialias_align(
+    ego_boxes: np.ndarray,
+    ego_unc: np.ndarray,
+    collab_boxes: Sequence[np.ndarray],
+    collab_unc: Sequence[np.ndarray],
+    reported: np.ndarray,
+    tracks: Sequence[tuple[np.ndarray, float] | None] | None = None,
+    **params,
+) -> tuple[AlignmentResult, list[Decision]]:
+    """Correct the collaborators' relative poses (module docstring).
+
+    Arrays as :func:`~roco_env.policies.roco.roco_align`; tracks: per collaborator None or
+    (predicted T_{j->i} (3,), age in steps >= 1) from earlier decisions. params: fields of
+    :class:`AntiAliasParams`. Returns the result and one :class:`Decision` per collaborator.
+    """
+    p = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
+    roco_params = {k: v for k, v in params.items() if k in _ROCO_FIELDS}
+    if not p.use_hypotheses:
+        result = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
+        n = result.corrected.shape[0]
+        return result, [Decision(None, float("nan"), 0)] * n
+    inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
+    n = inputs.n_collaborators
+    tracks = list(tracks) if tracks is not None and p.use_track else [None] * n
+    if len(tracks) != n:
+        raise ValueError(f"tracks must have one entry per reported pose ({n}); got {len(tracks)}")
+    boxes = [validate_boxes(ego_boxes, "ego boxes")] + [
+        validate_boxes(b, f"collab[{j}] boxes") for j, b in enumerate(collab_boxes)
+    ]
+    sets = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]
+    start = inputs.reported.copy()
+    kept_boxes = list(boxes[1:])
+    decisions = []
+    for j in range(n):
+        decision = _decide(sets[0], sets[j + 1], inputs.reported[j], tracks[j], p)
+        decisions.append(decision)
+        if decision.pose is not None:
+            start[j] = decision.pose
+        elif decision.hypotheses:
+            kept_boxes[j] = boxes[j + 1][:0]  # ambiguous: RoCo leaves it at its reported pose
+    kept_unc = [np.asarray(u)[: b.shape[0]] for u, b in zip(collab_unc, kept_boxes, strict=True)]
+    result = roco_align(
+        boxes[0], ego_unc, kept_boxes, kept_unc, inputs.reported, initial=start, **roco_params
+    )
+    ambiguous = [j for j, d in enumerate(decisions) if d.pose is None and d.hypotheses]
+    notes = [
+        f"slot {j}: ambiguous (margin {decisions[j].margin:.1f} < {p.min_margin:g}), "
+        "reported pose kept"
+        for j in ambiguous
+    ]
+    emptied = {f"slot {j}: no boxes" for j in ambiguous}
+    notes += [r for r in result.reason.split("; ") if r and r not in emptied]
+    reason = "; ".join(notes)
+    return replace(result, reason=reason), decisions
+
+
+class AntiAliasPolicy(ArrayAlignmentPolicy):
+    """``AntiAliasPolicy(**params)(obs, info=None) -> action (N, 3)``; tracks keyed by
+    (``info["agent"]``, collaborator id) (module docstring). ``last_decisions`` holds the
+    last call's :class:`Decision` per filled slot."""
+
+    keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+
+    def __init__(self, **params) -> None:
+        checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
+        super().__init__(antialias_align, checked, params)
+        self._tracks: dict[Hashable, list[tuple[int, np.ndarray]]] = {}
+        self._steps: dict[Hashable, int] = {}
+        self.last_decisions: list[Decision] = []
+
+    def reset(self) -> None:
+        """Forget every track (call between episodes)."""
+        super().reset()
+        self._tracks.clear()
+        self._steps.clear()
+        self.last_decisions = []
+
+    @staticmethod
+    def _ego_and_keys(info: dict | None, slots: np.ndarray) -> tuple[Hashable | None, list]:
+        """The ego's id and the track key of each filled slot (None without ids)."""
+        names = (info or {}).get("collaborators")
+        ego = (info or {}).get("agent")
+        if ego is None or names is None:
+            return None, [None] * slots.size
+        return ego, [(ego, names[s]) if s < len(names) else None for s in slots]
+
+    def _prediction(self, key: Hashable | None, step: int) -> tuple[np.ndarray, float] | None:
+        history = self._tracks.get(key) if key is not None else None
+        if not history or step - history[-1][0] > self.params.track_max_age:
+            return None
+        last_step, last = history[-1]
+        age = step - last_step
+        if len(history) == 2:
+            first_step, first = history[0]
+            rate = (last - first) / (last_step - first_step)
+            rate[2] = wrap_angle(last[2] - first[2]) / (last_step - first_step)
+            last = last + rate * age
+            last[2] = wrap_angle(last[2])
+        return last, float(age)
+
+    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
+        view = unpack_observation(observation)
+        ego, slot_keys = self._ego_and_keys(info, view.slots)
+        step = self._steps.get(ego, 0) + 1
+        if ego is not None:
+            self._steps[ego] = step
+        tracks = [self._prediction(k, step) for k in slot_keys]
+        result, decisions = antialias_align(
+            view.ego_boxes,
+            view.ego_unc,
+            view.collab_boxes,
+            view.collab_unc,
+            view.reported,
+            tracks=tracks,
+            **self._kwargs,
+        )
+        for key, decision in zip(slot_keys, decisions, strict=True):
+            if key is not None and decision.pose is not None:
+                self._tracks[key] = [*self._tracks.get(key, [])[-1:], (step, decision.pose.copy())]
+        self.last_decisions = decisions
+        self.last_result = view.expand(result)
+        return correction_action(view.reported_full, self.last_result.corrected)

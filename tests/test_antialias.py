@@ -1,0 +1,188 @@
+"""roco_antialias: aliasing in repetitive layouts is resolved or left alone, every switch
+matters on a scene built to need it, tracks are per (ego, collaborator), degenerate inputs."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from roco_env.policies import make_policy
+from roco_env.policies.antialias import antialias_align
+from roco_env.policies.base import apply_correction
+from roco_env.policies.roco import roco_align
+from roco_env.policies.synthetic import make_scene, parking_rows, pose_error, to_observation
+
+ROW_CAR = np.array([0.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0])
+
+
+def error_m(corrected, scene) -> float:
+    return float(np.hypot(*(corrected[0, :2] - scene.true[0, :2])))
+
+
+def without_self(scene):
+    """Nobody detects its own vehicle: drop each agent's box at its own origin."""
+
+    def keep(boxes):
+        return np.hypot(boxes[:, 0], boxes[:, 1]) > 0.5
+
+    ego, collab = keep(scene.ego_boxes), keep(scene.collab_boxes[0])
+    return replace(
+        scene,
+        ego_boxes=scene.ego_boxes[ego],
+        ego_unc=scene.ego_unc[ego],
+        ego_ids=scene.ego_ids[ego],
+        collab_boxes=[scene.collab_boxes[0][collab]],
+        collab_unc=[scene.collab_unc[0][collab]],
+        collab_ids=[scene.collab_ids[0][collab]],
+    )
+
+
+def lot(
+    seed,
+    error_x=-1.4,
+    rows=2,
+    per_row=60,
+    origin=-75.0,
+    size_jitter=0.0,
+    place_jitter=(0.0, 0.0, 0.0),
+    collab_x=15.0,
+    ego_x=0.0,
+    cars_at_agents=False,
+    sensor_range=30.0,
+):
+    """Rows of parked cars 2.5 m apart (rows 7 m apart, aisles at y = 3.5 + 7 k), the ego and
+    one collaborator in the first aisle, the collaborator reported ``error_x`` m off along
+    the rows (so nearer the one-stall alias than the truth when |error_x| > 1.25)."""
+    rng = np.random.default_rng(seed)
+    objects = parking_rows(
+        rows, per_row, origin=(origin, 0.0), jitter=place_jitter, rng=rng
+    )
+    objects[:, 3:6] *= np.exp(rng.normal(0.0, size_jitter, (objects.shape[0], 3)))
+    agents = np.array([[ego_x, 3.5, 0.0], [collab_x, 3.5, 0.0]])
+    if cars_at_agents:
+        cars = np.tile(ROW_CAR, (2, 1))
+        cars[:, [0, 1, 6]] = agents
+        objects = np.vstack([objects, cars])
+    direction = 0.0 if error_x > 0 else np.pi
+    error = pose_error(abs(error_x), 0.3, direction)
+    scene = make_scene(
+        objects, agents, [error], sensor_range=sensor_range, noise=(0.05, 0.05, 0.01), rng=rng
+    )
+    return without_self(scene) if cars_at_agents else scene
+
+
+@pytest.mark.parametrize("error_x", [-2.0, -1.4, 1.6, 2.4, 3.0])
+def test_one_stall_shift_is_resolved_where_roco_aliases(error_x):
+    """Finite rows of cars of varied sizes: RoCo locks onto a neighbouring stall, the
+    hypotheses find the truth; never worse than the reported pose."""
+    scene = lot(0, error_x, rows=3, per_row=16, origin=-18.0, size_jitter=0.06,
+                place_jitter=(0.05, 0.05, 1.0), collab_x=12.0, sensor_range=70.0)
+    reported = error_m(scene.reported, scene)
+    result, decisions = antialias_align(*scene.args())
+    assert error_m(result.corrected, scene) < 0.1
+    assert decisions[0].pose is not None and decisions[0].margin >= 20.0
+    assert error_m(roco_align(*scene.args()).corrected, scene) > 2.0 - 0.5 * (reported < 2.5)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ambiguous_lot_keeps_the_reported_pose(seed):
+    """Identical cars, no jitter, rows longer than the sensors: every stall shift explains the
+    boxes equally well, so the reported pose is kept (never made worse)."""
+    scene = lot(seed)
+    result, decisions = antialias_align(*scene.args())
+    assert decisions[0].pose is None and decisions[0].margin < 20.0
+    assert not result.applied[0]
+    np.testing.assert_allclose(result.corrected, scene.reported)
+
+
+def test_size_switch_resolves_a_lot_of_varied_cars():
+    scene = lot(1, size_jitter=0.06)
+    on, _ = antialias_align(*scene.args())
+    off, decisions = antialias_align(*scene.args(), use_size=False)
+    assert error_m(on.corrected, scene) < 0.1
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+
+
+def test_mutual_detection_switch_uses_the_agents_own_cars():
+    """Identical cars; the ego and the collaborator are cars in the aisle, each seen only by
+    the other: only the mutual detections tell the stall shifts apart."""
+    scene = lot(1, cars_at_agents=True)
+    on, _ = antialias_align(*scene.args())
+    off, decisions = antialias_align(*scene.args(), use_mutual_detection=False)
+    assert error_m(on.corrected, scene) < 0.1
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+
+
+def test_free_space_switch_sees_the_end_of_the_rows():
+    """Identical cars; the collaborator sits near the end of the rows and is reported towards
+    their interior: the inward shift explains all its boxes, only free space notices the
+    ego's end-of-row cars it should see but does not."""
+    scene = lot(1, rows=4, per_row=20, origin=0.0, ego_x=25.0, collab_x=40.0)
+    on, _ = antialias_align(*scene.args())
+    off, decisions = antialias_align(*scene.args(), use_free_space=False)
+    assert error_m(on.corrected, scene) < 0.1
+    assert decisions[0].pose is None
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+
+
+def test_track_switch_carries_an_earlier_decision():
+    scene = lot(1)
+    track = [(scene.true[0], 1.0)]
+    on, _ = antialias_align(*scene.args(), tracks=track)
+    off, _ = antialias_align(*scene.args(), tracks=track, use_track=False)
+    assert error_m(on.corrected, scene) < 0.1
+    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
+
+
+def test_hypotheses_switch_off_is_plain_roco():
+    scene = lot(0, -1.4, rows=3, per_row=16, origin=-18.0, size_jitter=0.06, collab_x=12.0,
+                sensor_range=70.0)
+    off, _ = antialias_align(*scene.args(), use_hypotheses=False)
+    np.testing.assert_array_equal(off.corrected, roco_align(*scene.args()).corrected)
+    on, _ = antialias_align(*scene.args())
+    assert error_m(on.corrected, scene) < 0.1 < error_m(off.corrected, scene)
+
+
+def observation(scene):
+    return to_observation(scene, max_boxes=160, max_collaborators=2)
+
+
+def test_policy_tracks_are_per_ego_and_collaborator():
+    """One instance serving two egos: a decision for (ego A, cav_1) informs A's next
+    ambiguous step, never ego B's; without ids in the info no track is used."""
+    clear = lot(1, size_jitter=0.06)
+    ambiguous = lot(1)
+    policy = make_policy("roco_antialias")
+    policy(observation(clear), {"agent": "cav_0", "collaborators": ["cav_1"]})
+    follow_a = policy(observation(ambiguous), {"agent": "cav_0", "collaborators": ["cav_1"]})
+    follow_b = policy(observation(ambiguous), {"agent": "cav_2", "collaborators": ["cav_1"]})
+    anonymous = policy(observation(ambiguous))
+    obs = observation(ambiguous)
+    fixed = apply_correction(obs["collab_rel_poses"], follow_a)[:1]
+    assert error_m(fixed, ambiguous) < 0.1
+    np.testing.assert_allclose(follow_b, 0.0, atol=1e-6)
+    np.testing.assert_allclose(anonymous, 0.0, atol=1e-6)
+    policy.reset()
+    after_reset = policy(obs, {"agent": "cav_0", "collaborators": ["cav_1"]})
+    np.testing.assert_allclose(after_reset, 0.0, atol=1e-6)
+
+
+def test_degenerate_inputs():
+    scene = lot(0, size_jitter=0.06)
+    empty = np.zeros((0, 7)), np.zeros((0, 3))
+    result, decisions = antialias_align(*empty, [*empty[:1]], [empty[1]], scene.reported)
+    assert not result.applied[0] and decisions[0].hypotheses == 0
+    result, decisions = antialias_align(*scene.args()[:2], [], [], np.zeros((0, 3)))
+    assert result.corrected.shape == (0, 3) and decisions == []
+    far = antialias_align(*scene.args()[:4], scene.reported + np.array([[40.0, 0.0, 0.0]]))[0]
+    np.testing.assert_allclose(far.corrected[0], scene.reported[0] + [40.0, 0.0, 0.0])
+    for bad in ({"min_margin": 0.0}, {"search_radius": -1.0}, {"max_hypotheses": 0},
+                {"track_max_age": 0}, {"tau2": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            antialias_align(*scene.args(), **bad)
+    with pytest.raises(ValueError, match="tracks must have one entry"):
+        antialias_align(*scene.args(), tracks=[])
+    with pytest.raises(ValueError, match="unknown roco_antialias parameter"):
+        make_policy("roco_antialias", tau3=1.0)
