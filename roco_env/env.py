@@ -27,15 +27,21 @@ AP/frame/box entries (``info["evaluated"]`` is False).
 
 Rewards (``evaluation.reward``, override ``reward=``): ``ap70`` (default),
 ``ap50``, ``ap30`` = the per-step AP of the agent's fused detections at that
-IoU, a NaN AP (no GT and no predictions) counting as 0; ``neg_rpe`` = minus the
+IoU, an undefined AP (no GT and no predictions) counting as 0; ``neg_rpe`` = minus the
 mean (translation m + rotation deg) error of the corrected relative poses.
 
-Info after a step, per agent: ``ap30/ap50/ap70`` (NaN rule above), ``rpe_before``
-/ ``rpe_after`` (N, 2) [m, deg] by slot of the evaluated frame (NaN rows for
-empty slots), ``n_gt``, ``n_pred``, ``frame_scores`` (P,), ``frame_tp`` /
-``frame_fp`` (3, P), ``frame_n_gt`` (the exact :meth:`APAccumulator.add_stats`
-input), ``fused_boxes`` (P, 7) / ``fused_scores`` (P,) / ``gt_boxes`` (G, 7)
-(ego's true frame), ``evaluated``, ``evaluated_collaborators`` (agent ids by slot
+Info after a step, per agent (fixed shapes and no NaN, so infos compare equal
+with ``==`` and vector envs stack them; -1 marks "undefined", see
+:data:`roco_env.evaluation.UNDEFINED`): ``ap30/ap50/ap70`` (-1 when the frame
+has no GT and no predictions), ``rpe_before`` / ``rpe_after`` (N, 2) [m, deg] by
+slot of the evaluated frame (-1 rows for empty slots), ``n_gt``, ``n_pred``,
+``frame_scores`` (M,), ``frame_tp`` / ``frame_fp`` (3, M), ``frame_n_gt``,
+``fused_boxes`` (M, 7) / ``fused_scores`` (M,) with ``fused_mask`` (M,) bool
+(real rows first, descending score), ``gt_boxes`` (M, 7) with ``gt_mask`` (ego's
+true frame, nearest first; ``n_gt`` is the full count), where M = (N + 1) x K
+(:func:`roco_env.evaluation.info_capacity`; :func:`roco_env.evaluation.info_frame_stats`
+turns an info into the exact :meth:`APAccumulator.add_stats` input), ``evaluated``,
+``evaluated_collaborators`` (agent ids by slot
 of the evaluated frame) and, describing the observation returned with the
 info: ``collaborators`` (agent ids by slot), ``n_collaborators`` and
 ``privileged`` (true/reported relative poses (N, 3) float64, object ids of the
@@ -64,7 +70,14 @@ import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from roco_env.evaluation import evaluate_egos, metric_info, reward, slot_errors
+from roco_env.evaluation import (
+    evaluate_egos,
+    info_capacity,
+    metric_info,
+    reward,
+    rpe_info,
+    slot_errors,
+)
 from roco_env.fusion import FusedDetections, merge_many, suppress
 from roco_env.observation import (
     EgoView,
@@ -266,14 +279,16 @@ class CollabPerceptionEnv(ParallelEnv):
                 [views[a] for a in fused], list(fused.values()), [corrected[a] for a in fused],
                 frame.state, frame.visibility.visible, cfg.evaluation.x_range,
                 cfg.evaluation.y_range, cfg.max_collaborators)
+            capacity = info_capacity(cfg.max_boxes, cfg.max_collaborators)
             for agent, evaluation in zip(fused, evaluations, strict=True):
-                infos[agent] = metric_info(evaluation)
+                infos[agent] = metric_info(evaluation, capacity)
                 rewards[agent] = reward(evaluation, cfg.evaluation.reward)
             others = [a for a in self.possible_agents if a not in fused]
             for agent, (before, after) in zip(others, slot_errors(
                     [views[a] for a in others], [corrected[a] for a in others],
                     cfg.max_collaborators), strict=True):
-                infos[agent], rewards[agent] = {"rpe_before": before, "rpe_after": after}, 0.0
+                infos[agent] = {"rpe_before": rpe_info(before), "rpe_after": rpe_info(after)}
+                rewards[agent] = 0.0
         for agent, view in views.items():
             if agent in fused and cfg.fusion.method == "intermediate":
                 infos[agent]["fused_features"] = self._fuse_features(view, corrected[agent])
