@@ -68,6 +68,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.evaluation import (
@@ -344,9 +345,26 @@ def aec_env(scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
     """The AEC version: ``parallel_to_aec`` (which adds PettingZoo's OrderEnforcingWrapper).
 
     No action-clipping wrapper: finite corrections outside the action bounds are
-    applied as given, and the env itself rejects NaN/inf and wrong shapes.
+    applied as given. Each agent's action is validated at that agent's own step
+    (NaN/inf or a wrong shape raise ValueError there and the action is not
+    stored, so the agent may act again and later steps are unaffected).
     """
-    return parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides))
+    return _CheckedActions(
+        parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides)))
+
+
+class _CheckedActions(BaseWrapper):
+    """Validates an AEC action when it is given, not when the last agent completes the cycle.
+
+    ``parallel_to_aec`` only stores actions and steps the parallel env after the last
+    agent, so a bad action would otherwise surface at another agent's step.
+    """
+
+    def step(self, action: Any) -> None:
+        agent = self.agent_selection
+        if not (self.terminations[agent] or self.truncations[agent]):
+            action = check_action(action, agent, self.unwrapped.config.max_collaborators)
+        super().step(action)
 
 
 class _CallableModule(types.ModuleType):
