@@ -52,7 +52,8 @@ BEV maps warped with the corrected poses and max-fused; decoding them into
 boxes is a later issue, so AP is still computed on late-fused boxes.
 
 The environment has no terminal state; ``max_cycles`` steps truncate the
-episode, after which ``agents`` is empty and ``step`` raises until ``reset``.
+episode, and so does the last frame of a replay or of the user's frames (each
+frame is scored once; the final observation is the last frame's), after which ``agents`` is empty and ``step`` raises until ``reset``.
 ``seed`` makes whole episodes reproducible; ``reset()`` without a seed starts
 the next episode of the last seeded sequence.
 """
@@ -185,11 +186,13 @@ class CollabPerceptionEnv(ParallelEnv):
         rewards, infos = self._score(frame, corrected, fused_by_agent)
         self._shown = (frame, fused_by_agent)
         self._cycles += 1
-        self._frame = self.pipeline.advance()
+        out_of_frames = self.pipeline.finished
+        if not out_of_frames:
+            self._frame = self.pipeline.advance()
         observations = self._observations(self._frame)
         for agent, view in zip(self.possible_agents, self._frame.views, strict=True):
             infos[agent].update(self._view_info(view))
-        truncated = self._cycles >= self.max_cycles
+        truncated = self._cycles >= self.max_cycles or out_of_frames
         terminations = dict.fromkeys(self.agents, False)
         truncations = dict.fromkeys(self.agents, truncated)
         if truncated:

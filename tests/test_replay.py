@@ -263,3 +263,17 @@ def test_bad_dair_input_names_the_path(tmp_path, damage, fragment):
     assert fragment in str(info.value)
     with pytest.raises(ReplayError, match="dataset folder not found"):
         make_traffic_source(dair_config(tmp_path / "nope"))
+
+
+def test_replay_episode_truncates_at_the_last_frame(tmp_path):
+    import roco_env
+
+    env = roco_env.parallel_env("opv2v_replay", max_cycles=50,
+                                **{"traffic.path": str(write_opv2v(tmp_path))})
+    env.reset(seed=0)
+    steps = 0
+    while env.agents:
+        _, _, _, truncations, _ = env.step(
+            {a: np.zeros(env.action_space(a).shape) for a in env.agents})
+        steps += 1
+    assert steps == 2 and all(truncations.values())  # the fixture has two frames

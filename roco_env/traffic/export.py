@@ -19,6 +19,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import shutil
+
 import numpy as np
 import yaml
 
@@ -31,11 +33,48 @@ def _carla_pose(x: float, y: float, z: float, yaw: float) -> list[float]:
     return [float(x), float(-y), float(z), 0.0, float(-np.rad2deg(yaw)), 0.0]
 
 
-def export_opv2v(states: Sequence[WorldState], folder: str | Path) -> list[Path]:
-    """Write ``states`` (one per frame) under ``folder``; returns the agent folders written."""
+def _is_agent_folder(path: Path) -> bool:
+    """An OPV2V agent folder: an integer name holding only ``*.yaml`` label files."""
+    try:
+        int(path.name)
+    except ValueError:
+        return False
+    return path.is_dir() and all(p.is_file() and p.suffix == ".yaml" for p in path.iterdir())
+
+
+def _clear_export(folder: Path, overwrite: bool) -> None:
+    """Make ``folder`` ready for a fresh export: refuse a non-empty one unless ``overwrite``.
+
+    Overwriting removes only earlier exports' agent folders; anything else in the
+    folder is left alone and makes the export refuse (two scenes must never mix).
+    """
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"export folder {folder} is a file, not a folder")
+    if not folder.exists() or not any(folder.iterdir()):
+        return
+    if not overwrite:
+        raise ValueError(f"export folder {folder} is not empty; exporting into it would mix "
+                         "two scenes: choose an empty folder or pass overwrite (--overwrite)")
+    foreign = sorted(p.name for p in folder.iterdir() if not _is_agent_folder(p))
+    if foreign:
+        raise ValueError(f"export folder {folder} holds {foreign[:3]}, which are not OPV2V agent "
+                         "folders; overwrite only replaces an earlier export: choose another "
+                         "folder")
+    for agent_folder in folder.iterdir():
+        shutil.rmtree(agent_folder)
+
+
+def export_opv2v(states: Sequence[WorldState], folder: str | Path,
+                 overwrite: bool = False) -> list[Path]:
+    """Write ``states`` (one per frame) under ``folder``; returns the agent folders written.
+
+    A non-empty ``folder`` is refused unless ``overwrite``, which replaces an
+    earlier export there (and refuses a folder holding anything else).
+    """
     if not states:
         raise ValueError("states must contain at least one WorldState to export")
     folder = Path(folder)
+    _clear_export(folder, overwrite)
     first = states[0]
     n_cav = first.agent_kinds.count("cav")  # CAVs come first (WorldState contract)
     names = [str(oid) for oid in first.agent_object_ids[:n_cav].tolist()]

@@ -97,11 +97,13 @@ def stress_config(layout: str, density: float, cavs: int, rsus: int, seed: int,
 
 def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
              output: str | Path | None = None, export_dir: str | Path | None = None,
-             frames: int = 10, min_gap: float | None = None) -> tuple[ScenarioConfig, Summary]:
+             frames: int = 10, min_gap: float | None = None,
+             overwrite: bool = False) -> tuple[ScenarioConfig, Summary]:
     """Build, preview (seeded) and optionally write a stress scenario.
 
     output: YAML path to write (re-validated by loading it back). export_dir: write
-    ``frames`` preview frames there as OPV2V label folders.
+    ``frames`` preview frames there as OPV2V label folders (a non-empty folder only
+    with ``overwrite``, see :func:`roco_env.traffic.export.export_opv2v`).
     """
     config = stress_config(layout, density, cavs, rsus, seed, min_gap)
     source = make_synthetic(config)
@@ -116,5 +118,5 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
         if frames < 1:
             raise ValueError(f"frames must be >= 1; got {frames}")
         states += [source.step(config.traffic.dt) for _ in range(frames - 1)]
-        export_opv2v(states, export_dir)
+        export_opv2v(states, export_dir, overwrite=overwrite)
     return config, summary

@@ -65,7 +65,11 @@ class WorldState:
 
 
 class TrafficSource(Protocol):
-    """Where objects and agents are, step by step. Deterministic given the rng."""
+    """Where objects and agents are, step by step. Deterministic given the rng.
+
+    Sources with a fixed number of frames (replays, user frames) also have a
+    ``finished`` property, True once the current frame is the last one.
+    """
 
     def reset(self, rng: np.random.Generator) -> WorldState: ...
 
