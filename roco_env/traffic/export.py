@@ -16,10 +16,9 @@ ids are in increasing order, the order in which the replay sorts CAV folders).
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
-
-import shutil
 
 import numpy as np
 import yaml
