@@ -127,3 +127,18 @@ def test_ray_address_without_a_cluster_is_a_clear_error(monkeypatch, capsys, tmp
             "--noise", "0", "--seeds", "1", "--steps", "1", "--quiet", "--out", str(tmp_path)]
     assert main(argv) == 2
     assert "no Ray cluster reachable at address 'auto'" in capsys.readouterr().err
+
+
+def test_compare_recomputes_after_the_scenario_file_is_edited(capsys, tmp_path):
+    scenario = tmp_path / "my.yaml"
+    scenario.write_text("agents:\n  cavs: 2\n  rsus: 0\n")
+    argv = ["compare", "--scenario", str(scenario), "--policies", "identity", "--noise", "0.4",
+            "--seeds", "1", "--steps", "2", "--workers", "1", "--quiet", "--no-plots",
+            "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    scenario.write_text("agents:\n  cavs: 3\n  rsus: 0\n")
+    capsys.readouterr()
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "(1 run, 0 resumed, 1 recomputed as stale, 0 failed)" in captured.out
+    assert "1 cell(s) recomputed" in captured.err
