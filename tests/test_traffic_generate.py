@@ -71,8 +71,10 @@ def test_export_into_a_non_empty_folder_needs_overwrite(tmp_path, capsys):
 
     assert export_seed(3) == 0
     first = agent_folders()
+    yaml_before = out.read_text()
     assert export_seed(4) == 2  # a second scene would mix with the first
     assert "not empty" in capsys.readouterr().err and agent_folders() == first
+    assert out.read_text() == yaml_before  # refused before anything was written
     assert export_seed(4, "--overwrite") == 0
     second = agent_folders()
     replay = make_traffic_source(scenario_from_dict(

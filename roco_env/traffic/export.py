@@ -41,12 +41,13 @@ def _is_agent_folder(path: Path) -> bool:
     return path.is_dir() and all(p.is_file() and p.suffix == ".yaml" for p in path.iterdir())
 
 
-def _clear_export(folder: Path, overwrite: bool) -> None:
+def prepare_export_folder(folder: str | Path, overwrite: bool) -> None:
     """Make ``folder`` ready for a fresh export: refuse a non-empty one unless ``overwrite``.
 
     Overwriting removes only earlier exports' agent folders; anything else in the
     folder is left alone and makes the export refuse (two scenes must never mix).
     """
+    folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"export folder {folder} is a file, not a folder")
     if not folder.exists() or not any(folder.iterdir()):
@@ -73,7 +74,7 @@ def export_opv2v(states: Sequence[WorldState], folder: str | Path,
     if not states:
         raise ValueError("states must contain at least one WorldState to export")
     folder = Path(folder)
-    _clear_export(folder, overwrite)
+    prepare_export_folder(folder, overwrite)
     first = states[0]
     n_cav = first.agent_kinds.count("cav")  # CAVs come first (WorldState contract)
     names = [str(oid) for oid in first.agent_object_ids[:n_cav].tolist()]

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from roco_env.geometry import box_corners_bev
 from roco_env.scenario import ScenarioConfig, load_scenario, scenario_from_dict, scenario_to_dict
-from roco_env.traffic.export import export_opv2v
+from roco_env.traffic.export import export_opv2v, prepare_export_folder
 from roco_env.traffic.state import WorldState
 from roco_env.traffic.synthetic import make_synthetic
 
@@ -106,6 +106,10 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
     with ``overwrite``, see :func:`roco_env.traffic.export.export_opv2v`).
     """
     config = stress_config(layout, density, cavs, rsus, seed, min_gap)
+    if export_dir is not None:  # refuse before writing anything
+        if frames < 1:
+            raise ValueError(f"frames must be >= 1; got {frames}")
+        prepare_export_folder(export_dir, overwrite)
     source = make_synthetic(config)
     states = [source.reset(np.random.default_rng(seed))]
     summary = summarize(states[0])
@@ -115,8 +119,6 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
         path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
         load_scenario(path)
     if export_dir is not None:
-        if frames < 1:
-            raise ValueError(f"frames must be >= 1; got {frames}")
         states += [source.step(config.traffic.dt) for _ in range(frames - 1)]
         export_opv2v(states, export_dir, overwrite=overwrite)
     return config, summary
