@@ -5,8 +5,8 @@ current code computes for its cell: a hash of the scenario's *content* after the
 cell's overrides (so editing a scenario YAML in place, or a default changing,
 invalidates it; its path alone would not), every override (noise, density and
 ``--set`` values), the policy spec, seed and steps, the package version and a
-hash of the package's source files. Anything else is stale and is recomputed.
-A replayed dataset's files are not hashed: ``traffic.path`` is part of the
+hash of the package's files (source and packaged data). Anything else is stale
+and is recomputed. A replayed dataset's files are not hashed: ``traffic.path`` is part of the
 content, the recording behind it is assumed not to change.
 """
 
@@ -27,10 +27,11 @@ PACKAGE_ROOT = Path(roco_env.__file__).resolve().parent
 
 @functools.cache
 def source_hash() -> str:
-    """SHA-256 over the package's Python files and packaged data (paths and bytes)."""
+    """SHA-256 over every file of the package (paths and bytes): code and packaged data
+    such as detector weights; bytecode caches are left out."""
     digest = hashlib.sha256()
     for path in sorted(PACKAGE_ROOT.rglob("*")):
-        if path.is_file() and path.suffix in (".py", ".yaml", ".yml", ".json"):
+        if path.is_file() and "__pycache__" not in path.parts and path.suffix != ".pyc":
             digest.update(path.relative_to(PACKAGE_ROOT).as_posix().encode())
             digest.update(b"\0")
             digest.update(path.read_bytes())
