@@ -27,8 +27,9 @@ AP/frame/box entries (``info["evaluated"]`` is False).
 
 Rewards (``evaluation.reward``, override ``reward=``): ``ap70`` (default),
 ``ap50``, ``ap30`` = the per-step AP of the agent's fused detections at that
-IoU, an undefined AP (no GT and no predictions) counting as 0; ``neg_rpe`` = minus the
-mean (translation m + rotation deg) error of the corrected relative poses.
+IoU, an undefined AP (no GT and no predictions) counting as 0; ``neg_rpe`` =
+minus the mean (translation m + rotation deg) error of the corrected relative
+poses.
 
 Info after a step, per agent (fixed shapes and no NaN, so infos compare equal
 with ``==`` and vector envs stack them; -1 marks "undefined", see
@@ -40,9 +41,9 @@ slot of the evaluated frame (-1 rows for empty slots), ``n_gt``, ``n_pred``,
 (real rows first, descending score), ``gt_boxes`` (M, 7) with ``gt_mask`` (ego's
 true frame, nearest first; ``n_gt`` is the full count), where M = (N + 1) x K
 (:func:`roco_env.evaluation.info_capacity`; :func:`roco_env.evaluation.info_frame_stats`
-turns an info into the exact :meth:`APAccumulator.add_stats` input), ``evaluated``,
-``evaluated_collaborators`` (agent ids by slot
-of the evaluated frame) and, describing the observation returned with the
+turns an info into the exact :meth:`APAccumulator.add_stats` input),
+``evaluated``, ``evaluated_collaborators`` (agent ids by slot of the evaluated
+frame) and, describing the observation returned with the
 info: ``collaborators`` (agent ids by slot), ``n_collaborators`` and
 ``privileged`` (true/reported relative poses (N, 3) float64, object ids of the
 observed boxes, -1 = false positive or empty). reset() infos carry the last
@@ -53,7 +54,8 @@ boxes is a later issue, so AP is still computed on late-fused boxes.
 
 The environment has no terminal state; ``max_cycles`` steps truncate the
 episode, and so does the last frame of a replay or of the user's frames (each
-frame is scored once; the final observation is the last frame's), after which ``agents`` is empty and ``step`` raises until ``reset``.
+frame is scored once; the final observation is the last frame's), after which
+``agents`` is empty and ``step`` raises until ``reset``.
 ``seed`` makes whole episodes reproducible; ``reset()`` without a seed starts
 the next episode of the last seeded sequence.
 """

@@ -402,3 +402,13 @@ def test_opv2v_cav_car_from_true_ego_pos_when_no_one_lists_it(tmp_path):
     assert 650 in state.object_ids.tolist()  # CAV 650 is not an agent here, still a car
     box = state.object_boxes[state.object_ids.tolist().index(650)]
     np.testing.assert_allclose(box[[0, 1, 6]], [30.0, -5.0, math.radians(30.0)], atol=1e-9)
+
+
+def test_export_of_a_raised_replay_round_trips_its_ground(tmp_path):
+    folder = write_opv2v(tmp_path / "raised")
+    raise_opv2v(folder, 10.0)
+    state = make_traffic_source(opv2v_config(folder)).reset(None)
+    export_opv2v([state], tmp_path / "again")
+    back = make_traffic_source(opv2v_config(tmp_path / "again")).reset(None)
+    np.testing.assert_allclose(back.ground_heights, state.ground_heights, atol=1e-9)
+    np.testing.assert_allclose(back.object_boxes[:, :6], state.object_boxes[:, :6], atol=1e-6)

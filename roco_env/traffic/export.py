@@ -4,8 +4,8 @@ Layout: ``<folder>/<agent id>/<frame:06d>.yaml`` with CARLA conventions
 (left-handed: y -> -y, yaw -> -yaw, degrees). CAV folders are named by the
 CAV's object id (>= 0, as in OPV2V where it is the CARLA actor id), RSU
 folders ``-1, -2, ...`` (V2XSet style). Each file holds the agent's
-``lidar_pose`` (sensor at its height), ``true_ego_pos`` (ground level; the
-RSU's equals its lidar pose), ``ego_speed`` (km/h), and ``vehicles``: every
+``lidar_pose`` (sensor at its height above the ground under the agent),
+``true_ego_pos`` (ground level; the RSU's equals its lidar pose), ``ego_speed`` (km/h), and ``vehicles``: every
 object but the agent itself, with ``location`` = (x, y, 0), ``center`` =
 (0, 0, z), ``angle`` = [0, yaw, 0], ``extent`` = half sizes, ``speed`` (km/h)
 and ``obj_type`` (car/van/truck/bus). Reading it back with
@@ -100,11 +100,12 @@ def export_opv2v(states: Sequence[WorldState], folder: str | Path,
             x, y, yaw = state.agent_poses[a]
             own = int(state.agent_object_ids[a])
             ego_speed = float(speed[state.object_ids == own][0]) if own >= 0 else 0.0
+            ground = float(state.ground_heights[a])
+            lidar_z = ground + float(state.sensor_heights[a])
             data = {
                 "ego_speed": ego_speed,
-                "lidar_pose": _carla_pose(x, y, state.sensor_heights[a], yaw),
-                "true_ego_pos": _carla_pose(x, y, 0.0 if own >= 0 else state.sensor_heights[a],
-                                            yaw),
+                "lidar_pose": _carla_pose(x, y, lidar_z, yaw),
+                "true_ego_pos": _carla_pose(x, y, ground if own >= 0 else lidar_z, yaw),
                 "vehicles": {oid: obj for oid, obj in objects.items() if oid != own},
             }
             path = folder / name / f"{index:06d}.yaml"
