@@ -8,7 +8,7 @@ PIP := $(PY) -m pip install --quiet --disable-pip-version-check
 # pip from pulling a multi-GB CUDA build to satisfy the range in pyproject.toml.
 TORCH_PIN ?= torch==2.13.0
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench lint wheel-check clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,18 @@ bench: $(VENV)/.dev-installed
 
 lint: $(VENV)/.dev-installed
 	$(VENV)/bin/ruff check roco_env tests examples baselines
+
+# Build the wheel, install it into a fresh environment (the CPU torch first, as
+# above) and step every shipped scenario from it, outside the checkout.
+WHEEL_DIR ?= build/wheel-check
+wheel-check: $(VENV)/.base-installed
+	rm -rf $(WHEEL_DIR)
+	$(PY) -m pip wheel --quiet --disable-pip-version-check --no-deps -w $(WHEEL_DIR)/dist .
+	$(PYTHON) -m venv $(WHEEL_DIR)/venv
+	$(WHEEL_DIR)/venv/bin/python -m pip install --quiet --disable-pip-version-check $(TORCH_PIN)
+	$(WHEEL_DIR)/venv/bin/python -m pip install --quiet --disable-pip-version-check \
+		$(WHEEL_DIR)/dist/roco_env-*.whl
+	cd $(WHEEL_DIR) && venv/bin/python -I $(CURDIR)/.ci/wheel_smoke.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -5,8 +5,12 @@
     aec = roco_env.env("urban_intersection")          # AEC version
     roco_env.list_scenarios()
 
-Importing the package is cheap (the environment, torch included, loads on first
-use) and registers ``roco/CollabPerception-v0`` in PettingZoo's registry
+Scenarios: :func:`load_scenario` (name or YAML path), :func:`scenario_from_dict` /
+:func:`scenario_to_dict` (plain mappings with the YAML keys, validated) and
+:func:`save_scenario` (a config to a YAML file that loads back equal).
+
+Importing the package is cheap (the environment loads on first use; torch only
+when BEV features are on) and registers ``roco/CollabPerception-v0`` in PettingZoo's registry
 (``pettingzoo.make("parallel" | "aec", "roco/CollabPerception-v0", **overrides)``)
 and the single-agent view ``roco/CollabPerceptionEgo-v0`` in Gymnasium's.
 """
@@ -15,12 +19,23 @@ from __future__ import annotations
 
 import importlib
 import os
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import pettingzoo
 
-from roco_env.scenario import list_scenarios
+from roco_env.scenario import (
+    ScenarioConfig,
+    list_scenarios,
+    load_scenario,
+    save_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+
+if TYPE_CHECKING:
+    from roco_env.env import CollabPerceptionEnv
 
 __version__ = '0.1.0'
 
@@ -28,13 +43,22 @@ ENV_ID = "roco/CollabPerception-v0"
 EGO_ENV_ID = "roco/CollabPerceptionEgo-v0"
 DEFAULT_MAX_CYCLES = 100
 
-__all__ = ["EGO_ENV_ID", "ENV_ID", "__version__", "env", "list_scenarios", "parallel_env"]
+__all__ = ["EGO_ENV_ID", "ENV_ID", "ScenarioConfig", "__version__", "env", "list_scenarios",
+           "load_scenario", "parallel_env", "save_scenario", "scenario_from_dict",
+           "scenario_to_dict"]
 
 
-def parallel_env(scenario: str | os.PathLike = "urban_intersection",
-                 max_cycles: int = DEFAULT_MAX_CYCLES, render_mode: str | None = None,
-                 **overrides: Any):
-    """The PettingZoo ParallelEnv (:class:`roco_env.env.CollabPerceptionEnv`)."""
+def parallel_env(scenario: str | os.PathLike | Mapping[str, Any] | ScenarioConfig
+                 = "urban_intersection", max_cycles: int = DEFAULT_MAX_CYCLES,
+                 render_mode: str | None = None, **overrides: Any) -> CollabPerceptionEnv:
+    """The PettingZoo ParallelEnv (:class:`roco_env.env.CollabPerceptionEnv`).
+
+    scenario: a name from :func:`list_scenarios`, a path to a YAML file, a plain
+    mapping with the YAML keys (checked by :func:`roco_env.scenario.scenario_from_dict`)
+    or a :class:`~roco_env.scenario.ScenarioConfig`; overrides: validated scenario
+    fields (``sigma_t=0.4``, ``**{"traffic.min_gap": 1.0}``). Building the env
+    imports the simulation stack; ``import roco_env`` alone stays light.
+    """
     from roco_env.env import parallel_env as make
 
     return make(scenario, max_cycles=max_cycles, render_mode=render_mode, **overrides)

@@ -1,63 +1,12 @@
-"""The PettingZoo environment (DESIGN.md section 9): glue between the stages, nothing more.
+"""The PettingZoo environment: glue between the stages, nothing more.
 
 Stages (each in its own module): traffic -> pose noise -> sensing -> messages
 (:mod:`roco_env.pipeline`) -> the agents' actions -> fusion (:mod:`roco_env.fusion`)
 -> metrics (:mod:`roco_env.evaluation`), observations packed by
-:mod:`roco_env.observation`, pictures by :mod:`roco_env.render`.
-
-Step t: the action corrects the observation returned at t-1 (one (dx, dy, dyaw)
-correction per collaborator slot, ``T_corrected = SE2(action) * T_reported``);
-each evaluated agent's detections are fused with the corrected poses and scored
-on that frame; then the traffic advances and the new observations are produced.
-Action bounds: |dx|, |dy| <= 2 x ``agents.comm_range`` m (any pair within comm
-range needs less), |dyaw| <= pi; finite values outside are applied as given,
-NaN/inf or a wrong shape raise ValueError. Empty slots ignore their action.
-
-Late fusion drops every box that overlaps the ego's own vehicle (BEV IoU with
-its footprint above ``fusion.nms_iou``; CAV egos only, RSUs have no
-footprint): collaborators detect the ego's car, the ground truth leaves it out
-(DESIGN.md section 8), so those boxes could only be false positives (see
-:mod:`roco_env.fusion.late`). With the ideal detector and clean poses the fused
-AP is then exactly 1 wherever every ground-truth object is detected.
-
-Every agent is an ego for its own fused perception. ``agents.evaluated`` (a
-scenario field) may restrict which agents are scored: the others still get
-observations and act, but their reward is always 0 and their info has no
-AP/frame/box entries (``info["evaluated"]`` is False).
-
-Rewards (``evaluation.reward``, override ``reward=``): ``ap70`` (default),
-``ap50``, ``ap30`` = the per-step AP of the agent's fused detections at that
-IoU, an undefined AP (no GT and no predictions) counting as 0; ``neg_rpe`` =
-minus the mean (translation m + rotation deg) error of the corrected relative
-poses.
-
-Info after a step, per agent (fixed shapes and no NaN, so infos compare equal
-with ``==`` and vector envs stack them; -1 marks "undefined", see
-:data:`roco_env.evaluation.UNDEFINED`): ``ap30/ap50/ap70`` (-1 when the frame
-has no GT and no predictions), ``rpe_before`` / ``rpe_after`` (N, 2) [m, deg] by
-slot of the evaluated frame (-1 rows for empty slots), ``n_gt``, ``n_pred``,
-``frame_scores`` (M,), ``frame_tp`` / ``frame_fp`` (3, M), ``frame_n_gt``,
-``fused_boxes`` (M, 7) / ``fused_scores`` (M,) with ``fused_mask`` (M,) bool
-(real rows first, descending score), ``gt_boxes`` (M, 7) with ``gt_mask`` (ego's
-true frame, nearest first; ``n_gt`` is the full count), where M = (N + 1) x K
-(:func:`roco_env.evaluation.info_capacity`; :func:`roco_env.evaluation.info_frame_stats`
-turns an info into the exact :meth:`APAccumulator.add_stats` input),
-``evaluated``, ``evaluated_collaborators`` (agent ids by slot of the evaluated
-frame) and, describing the observation returned with the
-info: ``collaborators`` (agent ids by slot), ``n_collaborators`` and
-``privileged`` (true/reported relative poses (N, 3) float64, object ids of the
-observed boxes, -1 = false positive or empty). reset() infos carry the last
-three and ``evaluated``. With ``fusion="intermediate"`` (needs ``features=True``)
-evaluated agents' infos also hold ``fused_features`` (C, H, W): collaborators'
-BEV maps warped with the corrected poses and max-fused; decoding them into
-boxes is a later issue, so AP is still computed on late-fused boxes.
-
-The environment has no terminal state; ``max_cycles`` steps truncate the
-episode, and so does the last frame of a replay or of the user's frames (each
-frame is scored once; the final observation is the last frame's), after which
-``agents`` is empty and ``step`` raises until ``reset``.
-``seed`` makes whole episodes reproducible; ``reset()`` without a seed starts
-the next episode of the last seeded sequence.
+:mod:`roco_env.observation`, the global state by :mod:`roco_env.global_state`,
+pictures by :mod:`roco_env.render`. The contract (observation, action, reward,
+episode end, arguments) is the docstring of :class:`CollabPerceptionEnv`; the
+design notes are in the repository's docs/ folder (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -83,6 +32,8 @@ from roco_env.evaluation import (
     slot_errors,
 )
 from roco_env.fusion import FusedDetections, merge_many, suppress
+from roco_env.geometry import apply_correction
+from roco_env.global_state import pack_state, state_space
 from roco_env.observation import (
     EgoView,
     action_space,
@@ -92,20 +43,112 @@ from roco_env.observation import (
     privileged_truth,
 )
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
-from roco_env.policies.base import apply_correction
-from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario
+from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario, scenario_from_dict
 
 RENDER_MODES = ("rgb_array", "human")
+# A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
+ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
 
 class CollabPerceptionEnv(ParallelEnv):
-    """Collaborative perception under pose noise; see the module docstring for the contract.
+    """Collaborative perception under pose noise, as a PettingZoo ParallelEnv.
 
-    scenario: a scenario name from ``roco_env.list_scenarios()``, a YAML path, or a
-    :class:`ScenarioConfig`; overrides: validated scenario overrides (``sigma_t=0.4``,
-    ``"traffic.min_gap"``-style dotted names via ``**{...}``); frames: your own scene
-    (a sequence of :class:`roco_env.traffic.frames.Frame`) with
-    ``**{"traffic.source": "frames"}``.
+    ## Description
+
+    Connected vehicles (``cav_0``...) and roadside units (``rsu_0``...) perceive one
+    traffic scene. Each agent reports a noisy world pose and shares its 3D boxes;
+    every agent is an ego that corrects the relative poses of its collaborators
+    (its action), fuses their boxes with its own and is scored on the result.
+    Frames, units and the noise models: docs/conventions.md; the metrics:
+    docs/metrics.md; the alignment algorithms: docs/alignment.md.
+
+    ## Observation
+
+    A ``gymnasium.spaces.Dict`` per agent, padded to K = ``max_boxes`` box slots and
+    N = ``max_collaborators`` collaborator slots (nearest collaborator first, empty
+    slots zero): ``pose`` (3,) the agent's reported world pose (x m, y m, yaw rad);
+    ``boxes`` (K, 7) (x, y, z, l, w, h, yaw) in the agent's own frame,
+    ``uncertainty`` (K, 3) (sigma_x m, sigma_y m, sigma_yaw rad), ``scores`` (K,),
+    ``box_mask`` (K,); ``collab_poses`` (N, 3) the collaborators' reported world
+    poses, ``collab_rel_poses`` (N, 3) the reported ``T_{j->i}``, ``collab_mask``
+    (N,); ``collab_boxes`` (N, K, 7), ``collab_uncertainty``, ``collab_scores``,
+    ``collab_box_mask``, each collaborator's boxes in its own frame; ``features``
+    (C, H, W) BEV maps when ``features=True``.
+
+    ## Action
+
+    A ``Box`` (N, 3): one correction (dx m, dy m, dyaw rad) per collaborator slot of
+    the observation returned last, in the ego frame:
+    ``T_corrected = SE2(action) * T_reported``. Zeros trust the reported poses.
+    Bounds: |dx|, |dy| <= 2 x ``agents.comm_range``, |dyaw| <= pi; finite values
+    outside are applied as given; NaN/inf, complex or bool values and wrong shapes
+    raise ValueError. Empty slots ignore their action.
+
+    ## Reward
+
+    ``evaluation.reward`` (override ``reward=``): ``ap70`` (default), ``ap50``,
+    ``ap30``, the per-step AP of the agent's late-fused detections at that IoU in
+    its true frame (an undefined AP, no ground truth and no predictions, counts as
+    0), or
+    ``neg_rpe``, minus the mean (translation m + rotation deg) error of the
+    corrected relative poses. Agents outside ``agents.evaluated`` (a scenario field;
+    default all) act and observe but always get 0 and no AP entries in their info.
+    Late fusion drops boxes on a CAV ego's own footprint: the ground truth leaves
+    the ego's car out (docs/metrics.md), so they could only be false positives.
+
+    ## Info
+
+    Fixed shapes and no NaN, so infos compare equal with ``==`` and vector envs
+    stack them; -1 (:data:`roco_env.evaluation.UNDEFINED`) marks "undefined"
+    (docs/results-you-can-trust.md). After a step, per agent: ``ap30/ap50/ap70``
+    (-1 when the frame has no ground truth and no predictions), ``rpe_before`` /
+    ``rpe_after`` (N, 2) [m, deg] by slot of the scored frame (-1 rows for empty
+    slots), ``n_gt``, ``n_pred``, ``frame_scores`` (M,), ``frame_tp`` / ``frame_fp``
+    (3, M), ``frame_n_gt``, ``fused_boxes`` (M, 7) / ``fused_scores`` (M,) with
+    ``fused_mask`` (M,) (real rows first, descending score), ``gt_boxes`` (M, 7)
+    with ``gt_mask`` (nearest first; ``n_gt`` is the full count) in the ego's true
+    frame, where M = (N + 1) x K (:func:`roco_env.evaluation.info_capacity`;
+    :func:`roco_env.evaluation.info_frame_stats` gives the exact
+    :meth:`roco_env.metrics.APAccumulator.add_stats` input), ``evaluated``, ``evaluated_collaborators`` (agent ids by slot of the
+    scored frame) and, describing the observation returned with it: ``agent`` (the
+    agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
+    ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
+    the observed boxes, -1 = false positive or empty slot; read by ``oracle``).
+    ``reset()`` infos carry the last four and ``evaluated``. With
+    ``fusion="intermediate"`` (needs ``features=True``) evaluated agents' infos also
+    hold ``fused_features`` (C, H, W), the collaborators' BEV maps warped with the
+    corrected poses and max-fused; AP is still computed on late-fused boxes.
+
+    ## State
+
+    ``state()`` / ``state_space``: a fixed-size float32 vector for centralised
+    critics, the true and reported poses of every agent and ``max_objects`` padded
+    ground-truth boxes with their mask (layout in :mod:`roco_env.global_state`).
+
+    ## Episode end
+
+    There is no terminal state (``terminations`` are always False); after
+    ``max_cycles`` steps, or at the last frame of a replay or of the user's frames
+    (each frame is scored once; the final observation is the last frame's), every
+    agent is truncated, ``agents`` is empty and ``step`` raises until ``reset``. ``reset(seed=s)`` makes the whole episode reproducible;
+    ``reset()`` without a seed starts the next episode of the last seeded sequence.
+
+    ## Arguments
+
+    - ``scenario``: a name from ``roco_env.list_scenarios()``, a YAML path, a plain
+      mapping with the YAML keys, or a :class:`ScenarioConfig`.
+    - ``max_cycles``: steps per episode (>= 1).
+    - ``render_mode``: None, ``"rgb_array"`` (``render()`` returns an (H, W, 3) uint8
+      bird's-eye picture) or ``"human"`` (a matplotlib window).
+    - ``frames``: your own scene, a sequence of :class:`roco_env.traffic.frames.Frame`,
+      with ``**{"traffic.source": "frames"}``.
+    - ``render_ego``: the agent whose fused boxes the picture shows (default: the
+      first evaluated agent); also a settable attribute.
+    - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
+      ``sigma_r``, ``noise_model``, ``density``, ``cavs``, ``rsus``, ``detector``,
+      ``fusion``, ``reward``, ``features``) or dotted name
+      (``**{"traffic.min_gap": 1.0}``); a bad key or value raises ValueError naming
+      the field and the allowed values.
     """
 
     metadata = {
@@ -115,19 +158,25 @@ class CollabPerceptionEnv(ParallelEnv):
         "render_fps": 10,
     }
 
-    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
+    def __init__(self, scenario: ScenarioLike = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None,
-                 frames: Sequence | None = None, **overrides: Any) -> None:
+                 frames: Sequence | None = None, render_ego: str | None = None,
+                 **overrides: Any) -> None:
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}; "
                              f"got {render_mode!r}")
         if isinstance(max_cycles, bool) or not isinstance(max_cycles, (int, np.integer)) \
                 or max_cycles < 1:
             raise ValueError(f"max_cycles must be an integer >= 1; got {max_cycles!r}")
+        if isinstance(scenario, Mapping):
+            scenario = scenario_from_dict(scenario)
         if isinstance(scenario, ScenarioConfig):
             config = apply_overrides(scenario, overrides)
         else:
             config = load_scenario(scenario, **overrides)
+        if config.agents.cavs + config.agents.rsus < 1:
+            raise ValueError("agents.cavs + agents.rsus must be >= 1: an env needs at least one "
+                             "agent (cavs=0, rsus=0 describes traffic only)")
         if config.fusion.method == "intermediate" and not config.features.enabled:
             raise ValueError("fusion='intermediate' needs BEV features: set features=True "
                              "(features.enabled)")
@@ -145,12 +194,33 @@ class CollabPerceptionEnv(ParallelEnv):
             a: observation_space(k, n, feature_shape) for a in self.possible_agents}
         self._action_spaces = {
             a: action_space(n, 2.0 * config.agents.comm_range) for a in self.possible_agents}
+        self.state_space = state_space(len(self.possible_agents), config.max_objects)
+        self.render_ego = render_ego
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
         self._frame: PerceptionFrame | None = None
         self._shown: tuple[PerceptionFrame, dict] | None = None
         self._cycles = 0
         self._viewer = None
+
+    @property
+    def render_ego(self) -> str:
+        """The agent whose fused boxes ``render()`` draws (default: the first evaluated one)."""
+        return self._render_ego
+
+    @render_ego.setter
+    def render_ego(self, agent: str | None) -> None:
+        self._render_ego = self.evaluated_agents[0] if agent is None else self._known(agent)
+
+    def state(self) -> np.ndarray:
+        """Global state of the frame the agents observe now, for centralised critics.
+
+        True and reported poses of every agent, the padded ground-truth boxes and
+        their mask; layout in :mod:`roco_env.global_state` (``state_space`` is its Box).
+        """
+        if self._frame is None:
+            raise ValueError("state() called before reset()")
+        return pack_state(self._frame.state, self._frame.reported_poses, self.config.max_objects)
 
     def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
         return self._observation_spaces[self._known(agent)]
@@ -223,9 +293,10 @@ class CollabPerceptionEnv(ParallelEnv):
             if not self._viewer.interactive:
                 return None
         frame, fused = self._shown if self._shown is not None else (self._frame, {})
-        ego = self.evaluated_agents[0]
+        ego = self.render_ego
         image = rendering.render_bev(frame, self.possible_agents.index(ego), fused.get(ego),
-                                     title=f"step {self._cycles}  ego {ego}")
+                                     title=f"step {self._cycles}  ego {ego}",
+                                     agent_ids=self.possible_agents)
         if self.render_mode == "rgb_array":
             return image
         self._viewer.show(image)
@@ -268,6 +339,7 @@ class CollabPerceptionEnv(ParallelEnv):
     def _view_info(self, view: EgoView) -> dict:
         collaborators = [self.possible_agents[j] for j in view.collaborators]
         return {
+            "agent": self.possible_agents[view.agent],
             "collaborators": collaborators,
             "n_collaborators": len(collaborators),
             "privileged": privileged_truth(view, self.config.max_boxes,
@@ -337,7 +409,7 @@ def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:
     return [a for a in agents if a in chosen]
 
 
-def parallel_env(scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
+def parallel_env(scenario: ScenarioLike = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None,
                  **overrides: Any) -> CollabPerceptionEnv:
     """The PettingZoo ParallelEnv (see :class:`CollabPerceptionEnv`)."""
@@ -345,7 +417,7 @@ def parallel_env(scenario: str | os.PathLike | ScenarioConfig = "urban_intersect
                                **overrides)
 
 
-def aec_env(scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
+def aec_env(scenario: ScenarioLike = "urban_intersection",
             max_cycles: int = 100, render_mode: str | None = None, **overrides: Any) -> AECEnv:
     """The AEC version: ``parallel_to_aec`` (which adds PettingZoo's OrderEnforcingWrapper).
 
@@ -375,7 +447,7 @@ class _CheckedActions(BaseWrapper):
 class _CallableModule(types.ModuleType):
     """Makes ``roco_env.env(...)`` build the AEC env although ``roco_env.env`` is this module.
 
-    The public API (DESIGN.md section 9) calls ``roco_env.env(...)`` and the
+    The public API calls ``roco_env.env(...)`` (PettingZoo's convention) and the
     package layout puts the environment in ``roco_env/env.py``; Python binds the
     submodule to the package attribute ``env`` on import, so the module itself
     must be the callable.

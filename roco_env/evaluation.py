@@ -1,12 +1,12 @@
 """Per-ego evaluation of one step: ground truth, fused-detection AP, RPE, reward, info.
 
 Frames: everything here is in the ego's TRUE frame. The ego's own boxes are
-already there (sensors see the world correctly, DESIGN.md contract); the
+already there (sensors see the world correctly, docs/conventions.md); the
 collaborators' boxes got there through the corrected relative poses, so a
 wrong correction shows up as misplaced boxes. Ground truth for ego i = the
 objects visible to at least one agent of i's collaboration (i and its
 collaborator slots), minus i's own vehicle, kept only when all BEV corners lie
-inside the evaluation range (DESIGN.md section 8). Fused predictions are range
+inside the evaluation range (docs/metrics.md). Fused predictions are range
 filtered the same way (OpenCOOD filters predictions before matching too).
 Relative pose errors are [translation m, rotation deg].
 """

@@ -1,6 +1,6 @@
 """SE(2) poses, 3D boxes, exact rotated-rectangle IoU in BEV and rotated NMS.
 
-Conventions (DESIGN.md section 3): right-handed frames, x forward, y left, z up;
+Conventions (docs/conventions.md): right-handed frames, x forward, y left, z up;
 yaw in radians, counter-clockwise from +x, wrapped to (-pi, pi]. A pose is
 ``(x, y, yaw)``; a box is ``(x, y, z, l, w, h, yaw)`` with its centre and full
 sizes in metres. ``T_{j->i} = E_i^{-1} E_j`` maps points of frame j into frame i.
@@ -17,6 +17,7 @@ __all__ = [
     "se2_to_matrix",
     "matrix_to_se2",
     "se2_compose",
+    "apply_correction",
     "se2_inverse",
     "se2_relative",
     "se2_apply",
@@ -70,6 +71,14 @@ def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
     return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def apply_correction(reported: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """The env's action rule: ``T_corrected = SE2(action) * T_reported``, per slot (N, 3).
+
+    Lives here, below both the env and the policies, so neither imports the other.
+    """
+    return se2_compose(np.asarray(action, dtype=float), np.asarray(reported, dtype=float))
 
 
 def se2_inverse(a: np.ndarray) -> np.ndarray:

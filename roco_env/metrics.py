@@ -1,6 +1,6 @@
 """Detection and alignment metrics: the OpenCOOD/CoAlign AP protocol, RPE, success rate.
 
-AP protocol (DESIGN.md section 8), on BEV footprints of boxes (x, y, z, l, w, h, yaw):
+AP protocol (docs/metrics.md), on BEV footprints of boxes (x, y, z, l, w, h, yaw):
 
 * Per frame, predictions are visited by descending score (stable: ties keep
   input order). Each takes the *remaining* ground-truth box with maximum BEV IoU

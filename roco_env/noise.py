@@ -1,4 +1,4 @@
-"""Pose-noise models: what each agent *reports* as its world pose (DESIGN.md section 4).
+"""Pose-noise models: what each agent *reports* as its world pose (docs/conventions.md).
 
 Every model adds an error to the true world pose ``(x, y, yaw)`` of every agent
 (the ego included, CoAlign protocol), in the world frame; yaw is wrapped to
@@ -40,6 +40,7 @@ poses stay noisy). Every random draw comes from the generator passed in.
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -48,27 +49,13 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.geometry import se2_relative, wrap_angle
-from roco_env.scenario import NoiseConfig
+from roco_env.scenario import NOISE_PARAMS, NoiseConfig
+from roco_env.schema import build
 
 __all__ = ["MODELS", "PoseNoise", "make_pose_noise"]
 
-# Allowed params per model and their defaults (None: derived from the levels).
-_MODEL_PARAMS: dict[str, dict[str, float | None]] = {
-    "gaussian": {},
-    "laplace": {},
-    "bias": {},
-    "drift": {},
-    "ar1": {"rho": 0.9},
-    "localization": {
-        "gnss_sigma": None,
-        "heading_sigma": None,
-        "gnss_rate": 1.0,
-        "dropout": 0.05,
-        "odom_sigma_t": None,
-        "odom_sigma_r": None,
-    },
-}
-MODELS: tuple[str, ...] = tuple(_MODEL_PARAMS)
+# The models and their parameters are declared in roco_env.scenario.NOISE_PARAMS.
+MODELS: tuple[str, ...] = tuple(NOISE_PARAMS)
 
 # Variance floor (m^2, rad^2) keeping the Kalman filter invertible at zero noise.
 _MIN_VARIANCE = 1e-18
@@ -309,19 +296,9 @@ def _levels(config: NoiseConfig, agent_ids: Sequence[str]) -> np.ndarray:
 
 
 def _params(model: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
-    allowed = _MODEL_PARAMS[model]
-    given = dict(params or {})
-    unknown = sorted(set(given) - set(allowed))
-    if unknown:
-        raise ValueError(
-            f"noise.params has unknown keys {unknown} for model {model!r}; "
-            f"allowed: {sorted(allowed) or 'none'}"
-        )
-    merged = {**allowed, **given}
-    return {
-        key: None if value is None else _non_negative(value, f"noise.params.{key}")
-        for key, value in merged.items()
-    }
+    """The model's parameters, defaults filled in, checked against NOISE_PARAMS."""
+    return dataclasses.asdict(build(NOISE_PARAMS[model], dict(params or {}), where="noise",
+                                    prefix="noise.params."))
 
 
 def _std(levels: np.ndarray) -> np.ndarray:
@@ -331,7 +308,7 @@ def _std(levels: np.ndarray) -> np.ndarray:
 
 def make_pose_noise(config: NoiseConfig, agent_ids: Sequence[str], dt: float) -> PoseNoise:
     """Build the pose-noise model of ``config`` for ``agent_ids`` stepping every ``dt`` s."""
-    if config.model not in _MODEL_PARAMS:
+    if config.model not in NOISE_PARAMS:
         raise ValueError(f"noise.model must be one of {list(MODELS)}; got {config.model!r}")
     agent_ids = tuple(agent_ids)
     if len(set(agent_ids)) != len(agent_ids):
@@ -346,8 +323,6 @@ def make_pose_noise(config: NoiseConfig, agent_ids: Sequence[str], dt: float) ->
     if config.model in simple:
         return simple[config.model](agent_ids, dt, _std(levels), ego)
     if config.model == "ar1":
-        if params["rho"] >= 1.0:
-            raise ValueError(f"noise.params.rho must be in [0, 1); got {params['rho']}")
         return AR1Noise(agent_ids, dt, _std(levels), ego, rho=params["rho"])
     return _make_localization(config, agent_ids, dt, levels, params, ego)
 
@@ -364,9 +339,5 @@ def _make_localization(config: NoiseConfig, agent_ids: tuple[str, ...], dt: floa
     for column, key in enumerate(("odom_sigma_t", "odom_sigma_r")):
         if params[key] is not None:
             odom[:, column] = params[key]
-    if params["gnss_rate"] <= 0.0:
-        raise ValueError(f"noise.params.gnss_rate must be > 0 Hz; got {params['gnss_rate']}")
-    if params["dropout"] >= 1.0:
-        raise ValueError(f"noise.params.dropout must be in [0, 1); got {params['dropout']}")
     return LocalizationNoise(agent_ids, dt, _std(gnss), _std(odom), ego,
                              gnss_rate=params["gnss_rate"], dropout=params["dropout"])

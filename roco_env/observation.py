@@ -1,4 +1,4 @@
-"""What one agent holds at one step, and its fixed-size observation (DESIGN.md section 9).
+"""What one agent holds at one step, and its fixed-size observation.
 
 :class:`EgoView` is the unpadded truth-annotated content of agent i's
 observation (float64); :func:`observation_space` / :func:`pack_observation`
@@ -175,11 +175,15 @@ def check_action(action: object, agent: str, max_collaborators: int) -> np.ndarr
     bounds describe the useful range, the correction is applied as given.
     """
     try:
-        arr = np.asarray(action, dtype=float)
+        raw = np.asarray(action)
+        if raw.dtype.kind not in "iuf":  # bool and complex would convert silently
+            raise TypeError(f"dtype {raw.dtype}")
+        arr = raw.astype(float)
     except (TypeError, ValueError) as exc:
         raise ValueError(
-            f"action for agent {agent!r} must be a numeric array of shape "
-            f"({max_collaborators}, 3) = (dx m, dy m, dyaw rad) per collaborator slot"
+            f"action for agent {agent!r} must be an array of real numbers (int or float) of "
+            f"shape ({max_collaborators}, 3) = (dx m, dy m, dyaw rad) per collaborator slot; "
+            f"got {exc}"
         ) from exc
     if arr.shape != (max_collaborators, 3):
         raise ValueError(

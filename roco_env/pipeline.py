@@ -19,16 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roco_env import sensing
 from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
 from roco_env.noise import make_pose_noise
 from roco_env.observation import EgoView, top_k
 from roco_env.scenario import ScenarioConfig
 from roco_env.sensing import (
-    CHANNELS,
     AgentDetections,
-    BevGrid,
     Visibility,
-    bev_features,
     build_messages,
     compute_visibility,
     make_detector,
@@ -99,8 +97,8 @@ class Pipeline:
         self.detector = make_detector(config.detector)
         evaluation = config.evaluation
         self.grid = (
-            BevGrid(tuple(evaluation.x_range), tuple(evaluation.y_range),
-                    config.features.resolution)
+            sensing.BevGrid(tuple(evaluation.x_range), tuple(evaluation.y_range),
+                            config.features.resolution)
             if config.features.enabled else None
         )
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
@@ -110,7 +108,7 @@ class Pipeline:
         """(C, H, W) of the BEV feature maps, None when features are off."""
         if self.grid is None:
             return None
-        return (len(CHANNELS), self.grid.H, self.grid.W)
+        return (len(sensing.CHANNELS), self.grid.H, self.grid.W)
 
     def reset(self, rng: np.random.Generator) -> PerceptionFrame:
         """Start an episode: independent child streams for traffic, noise and sensing."""
@@ -155,7 +153,7 @@ class Pipeline:
         features = None
         if self.grid is not None:
             with self.clock.measure("features"):
-                features = tuple(bev_features(visibility, a, self.grid)
+                features = tuple(sensing.bev_features(visibility, a, self.grid)
                                  for a in range(state.num_agents))
         with self.clock.measure("messages"):
             views = self._views(state, reported, detections, features)

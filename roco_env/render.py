@@ -1,10 +1,12 @@
-"""BEV pictures of a frame (DESIGN.md section 9) with matplotlib's Agg canvas.
+"""BEV pictures of a frame with matplotlib's Agg canvas.
 
 World frame, x to the right, y up, metres. Drawn: ground truth (grey
 footprints), every agent's detections placed with its REPORTED pose (so pose
 errors show as misplaced boxes, one colour per agent), the ego's fused boxes
 (black, dashed) placed with its true pose, each agent's true pose (filled
-triangle pointing along its heading) and reported pose (hollow triangle).
+triangle pointing along its heading) and reported pose (hollow triangle); a
+legend names the colours and a scale bar gives the metres. The env chooses the
+ego with ``render_ego`` (constructor argument or attribute).
 """
 
 from __future__ import annotations
@@ -14,6 +16,9 @@ from gymnasium import logger
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from roco_env.fusion import FusedDetections
 from roco_env.geometry import box_corners_bev, transform_boxes
@@ -21,17 +26,30 @@ from roco_env.pipeline import PerceptionFrame
 
 _MARGIN_M = 30.0
 _MIN_SPAN_M = 80.0
+# Scale-bar lengths (m) to choose from: the longest at most a fifth of the view.
+_SCALE_STEPS_M = (5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0)
+# The axes sit inside the figure with a margin, so no border line falls off the canvas.
+_AXES_RECT = (0.01, 0.01, 0.98, 0.92)
 
 
 def render_bev(frame: PerceptionFrame, ego: int, fused: FusedDetections | None, title: str = "",
-               size_px: int = 640) -> np.ndarray:
-    """RGB image (size_px, size_px, 3) uint8 of ``frame`` seen from above.
+               size_px: int = 640, agent_ids: list[str] | None = None) -> np.ndarray:
+    """RGB image (size_px, size_px, 3) uint8 of ``frame`` seen from above (see :func:`bev_figure`)."""
+    fig = bev_figure(frame, ego, fused, title, size_px, agent_ids)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
-    ego: index of the agent whose fused detections ``fused`` (ego true frame) are drawn.
+
+def bev_figure(frame: PerceptionFrame, ego: int, fused: FusedDetections | None, title: str = "",
+               size_px: int = 640, agent_ids: list[str] | None = None) -> Figure:
+    """The matplotlib figure of ``frame`` seen from above (``size_px`` square at 100 dpi).
+
+    ego: index of the agent whose fused detections ``fused`` (ego true frame) are
+    drawn; agent_ids: names for the legend (default ``frame.state.agent_ids``).
     """
     fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 0.94))
+    ax = fig.add_axes(_AXES_RECT)
     state = frame.state
     true_poses = np.asarray(state.agent_poses, dtype=float)
     ax.add_collection(PolyCollection(box_corners_bev(state.object_boxes), facecolors="0.85",
@@ -57,9 +75,33 @@ def render_bev(frame: PerceptionFrame, ego: int, fused: FusedDetections | None, 
     ax.set_aspect("equal")
     ax.set_xticks([])
     ax.set_yticks([])
+    _legend(ax, list(agent_ids or state.agent_ids), colours, ego)
+    ax.add_artist(_scale_bar(ax, 2 * half))
     fig.suptitle(title, fontsize=9, y=0.99)
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+    return fig
+
+
+def _legend(ax, names: list[str], colours: list[str], ego: int) -> None:
+    """What each colour and line style means; the ego is named."""
+    handles = [
+        Patch(facecolor="0.85", edgecolor="0.45", label="ground truth"),
+        Line2D([], [], color="black", linestyle="--", label=f"fused ({names[ego]}, true pose)"),
+        Line2D([], [], color="0.3", marker="^", linestyle="none", label="true pose"),
+        Line2D([], [], color="0.3", marker="^", markerfacecolor="none", linestyle="none",
+               label="reported pose"),
+    ]
+    handles += [Patch(facecolor="none", edgecolor=colour, label=f"{name} boxes")
+                for name, colour in zip(names, colours, strict=True)]
+    ax.legend(handles=handles, loc="upper left", fontsize=6.5, framealpha=0.85,
+              ncols=2 if len(handles) > 8 else 1)
+
+
+def _scale_bar(ax, span_m: float) -> AnchoredSizeBar:
+    """A bar of a round number of metres, at most a fifth of the view's width."""
+    length = max([step for step in _SCALE_STEPS_M if step <= span_m / 5], default=1.0)
+    return AnchoredSizeBar(ax.transData, length, f"{length:g} m", "lower right", pad=0.5,
+                           borderpad=0.6, sep=3, frameon=True, size_vertical=span_m / 250,
+                           fontproperties={"size": 7})
 
 
 def _pose_marker(ax, pose: np.ndarray, colour: str, filled: bool) -> None:

@@ -11,29 +11,30 @@ stable top-level aliases in :data:`ALIASES` (``sigma_t=0.4``).
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import os
-import types
-import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
+
+from roco_env.schema import ScenarioError, build, load_yaml, spec, unknown_key_message
 
 SCENARIO_DIR_ENV = "ROCO_ENV_SCENARIOS"
 
 
-class ScenarioError(ValueError):
-    """A scenario file or override is invalid; the message names where and why."""
+_spec = spec
 
-
-def _spec(default: Any, *, choices: tuple | None = None, low: float | None = None,
-          high: float | None = None, doc: str = "") -> Any:
-    """A dataclass field carrying its allowed values (choices or [low, high])."""
-    meta = {"choices": choices, "low": low, "high": high, "doc": doc}
-    if isinstance(default, (list, dict, tuple)):
-        return field(default_factory=lambda: type(default)(default), metadata=meta)
-    return field(default=default, metadata=meta)
+# traffic.layout values each traffic.source understands (replay/frames ignore the layout).
+SOURCE_LAYOUTS: dict[str, tuple[str, ...]] = {
+    "synthetic": ("highway", "intersection", "roundabout", "parking_lot", "traffic_jam"),
+    "highway_env": ("highway", "merge", "roundabout", "intersection"),
+}
+LAYOUTS: tuple[str, ...] = tuple(dict.fromkeys(sum(SOURCE_LAYOUTS.values(), ())))
 
 
 @dataclass
@@ -43,7 +44,7 @@ class TrafficConfig:
     source: str = _spec("synthetic", choices=("synthetic", "highway_env", "opv2v", "dair", "frames"))
     layout: str = _spec(
         "intersection",
-        choices=("highway", "intersection", "roundabout", "parking_lot", "traffic_jam", "merge"),
+        choices=LAYOUTS,
         doc="synthetic: highway|intersection|roundabout|parking_lot|traffic_jam; "
         "highway_env: highway|merge|roundabout|intersection",
     )
@@ -86,25 +87,92 @@ class AgentsConfig:
 
 
 @dataclass
-class NoiseConfig:
-    """Pose noise (DESIGN.md section 4); sigmas are standard deviations."""
+class NoParams:
+    """A noise model without parameters."""
 
-    model: str = _spec(
-        "gaussian", choices=("gaussian", "laplace", "bias", "drift", "ar1", "localization")
-    )
+
+@dataclass
+class AR1Params:
+    """``ar1`` noise: the error's lag-1 autocorrelation per step."""
+
+    rho: float = _spec(0.9, low=0.0, high=1.0, high_open=True, doc="autocorrelation per step")
+
+
+@dataclass
+class LocalizationParams:
+    """``localization`` noise: a Kalman filter fed with GNSS fixes and odometry."""
+
+    gnss_sigma: float | None = _spec(None, low=0.0, high=100.0,
+                                     doc="GNSS position std, m; null = the agent's sigma_t")
+    heading_sigma: float | None = _spec(None, low=0.0, high=180.0,
+                                        doc="GNSS heading std, deg; null = the agent's sigma_r")
+    gnss_rate: float = _spec(1.0, low=0.0, high=100.0, low_open=True, doc="GNSS fixes per s, Hz")
+    dropout: float = _spec(0.05, low=0.0, high=1.0, high_open=True,
+                           doc="probability that a fix is lost")
+    odom_sigma_t: float | None = _spec(None, low=0.0, high=100.0,
+                                       doc="odometry std, m per sqrt(s); null = gnss_sigma / 2")
+    odom_sigma_r: float | None = _spec(None, low=0.0, high=180.0,
+                                       doc="odometry std, deg per sqrt(s); null = heading_sigma / 2")
+
+
+# Pose-noise models (roco_env.noise) and the parameters each accepts in noise.params.
+NOISE_PARAMS: dict[str, type] = {
+    "gaussian": NoParams,
+    "laplace": NoParams,
+    "bias": NoParams,
+    "drift": NoParams,
+    "ar1": AR1Params,
+    "localization": LocalizationParams,
+}
+
+
+@dataclass
+class NoiseConfig:
+    """Pose noise (see roco_env.noise); sigmas are standard deviations."""
+
+    model: str = _spec("gaussian", choices=tuple(NOISE_PARAMS))
     sigma_t: float = _spec(0.2, low=0.0, high=20.0, doc="translation std, m")
     sigma_r: float = _spec(0.2, low=0.0, high=45.0, doc="rotation std, degrees")
     perturb_ego: bool = _spec(True)
     per_agent: dict = _spec({}, doc="agent id -> [sigma_t, sigma_r] overriding the levels")
-    params: dict = _spec({}, doc="model-specific parameters (e.g. ar1 rho, localization GNSS)")
+    params: dict = _spec({}, doc="the model's parameters (NOISE_PARAMS), checked on load")
+
+
+@dataclass
+class DetectorParams:
+    """The detector model's parameters (roco_env.sensing.detector): the defaults are
+    the ``realistic`` preset; metres, radians, probabilities."""
+
+    noisy: bool = _spec(True, doc="perturb boxes, scores and sizes")
+    min_fraction: float = _spec(0.0, low=0.0, high=1.0, doc="visible fraction needed")
+    p_max: float = _spec(0.97, low=0.0, high=1.0, doc="detection probability, many returns")
+    returns_50: float = _spec(12.0, low=0.0, doc="LiDAR returns at half p_max")
+    returns_slope: float = _spec(1.5, low=0.0, high=20.0, low_open=True)
+    sigma_xy: float = _spec(0.06, low=0.0, high=10.0, low_open=True, doc="centre std, m")
+    sigma_xy_per_m: float = _spec(0.002, low=0.0, high=1.0, doc="centre std growth, m per m")
+    sigma_xy_occlusion: float = _spec(0.25, low=0.0, high=10.0, doc="m at full occlusion")
+    sigma_yaw: float = _spec(0.02, low=0.0, high=3.141592653589793, low_open=True,
+                             doc="yaw std, rad")
+    sigma_yaw_per_m: float = _spec(0.0004, low=0.0, high=0.1, doc="yaw std growth, rad per m")
+    sigma_yaw_occlusion: float = _spec(0.1, low=0.0, high=3.141592653589793,
+                                       doc="rad at full occlusion")
+    sigma_size: float = _spec(0.03, low=0.0, high=1.0, doc="log-size std")
+    sigma_size_occlusion: float = _spec(0.05, low=0.0, high=1.0)
+    flip_prob: float = _spec(0.03, low=0.0, high=1.0, doc="probability of a heading flip")
+    fp_rate: float = _spec(1.0, low=0.0, high=1000.0, doc="false positives per frame")
+    fp_score_max: float = _spec(0.45, low=0.01, high=1.0, low_open=True)
+    score_floor: float = _spec(0.4, low=0.0, high=1.0)
+    score_noise: float = _spec(0.05, low=0.0, high=1.0)
+    calibration: float = _spec(1.0, low=0.0, high=100.0, low_open=True,
+                               doc="reported / true uncertainty")
 
 
 @dataclass
 class DetectorConfig:
-    """What each agent detects (DESIGN.md section 5)."""
+    """What each agent detects (see roco_env.sensing.detector)."""
 
     preset: str = _spec("realistic", choices=("ideal", "realistic"))
-    params: dict = _spec({}, doc="explicit detector parameters overriding the preset")
+    params: dict = _spec({}, doc="DetectorParams values overriding the preset, checked on load")
 
 
 @dataclass
@@ -143,9 +211,11 @@ class ScenarioConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
+    max_objects: int = _spec(256, low=1, high=4096,
+                             doc="M: ground-truth box slots of the global state()")
 
 
-# Stable top-level override names (DESIGN.md section 9) -> dotted field paths.
+# Stable top-level override names (the env's Arguments) -> dotted field paths.
 ALIASES: dict[str, str] = {
     "sigma_t": "noise.sigma_t",
     "sigma_r": "noise.sigma_r",
@@ -160,10 +230,19 @@ ALIASES: dict[str, str] = {
 }
 
 
+def library_dir() -> Path:
+    """The shipped scenario library, package data ``roco_env/scenarios``.
+
+    In the repository ``roco_env/scenarios`` links to the top-level ``scenarios/``
+    folder (the editable source); a wheel holds the YAML files themselves.
+    """
+    return Path(str(importlib.resources.files("roco_env") / "scenarios"))
+
+
 def scenario_dirs() -> list[Path]:
-    """Folders searched for ``<name>.yaml``: $ROCO_ENV_SCENARIOS, then the repo's scenarios/."""
+    """Folders searched for ``<name>.yaml``: $ROCO_ENV_SCENARIOS, then the shipped library."""
     dirs = [Path(p) for p in os.environ.get(SCENARIO_DIR_ENV, "").split(os.pathsep) if p]
-    dirs.append(Path(__file__).resolve().parents[1] / "scenarios")
+    dirs.append(library_dir())
     return dirs
 
 
@@ -195,11 +274,12 @@ def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
     """Load and validate a scenario, then apply validated overrides."""
     path = scenario_path(name_or_path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
     if raw is None:
-        raw = {}
+        raise ScenarioError(f"{path}: the file is empty; a scenario needs at least one key "
+                            "(see the shipped scenarios for every field)")
     if not isinstance(raw, dict):
         raise ScenarioError(f"{path}: top level must be a mapping of keys, got {type(raw).__name__}")
     raw.setdefault("name", path.stem)
@@ -207,14 +287,33 @@ def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
     return apply_overrides(config, overrides)
 
 
-def scenario_from_dict(data: dict, where: str = "<dict>") -> ScenarioConfig:
-    """Validate a plain mapping (same keys as the YAML files) into a config."""
+def scenario_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> ScenarioConfig:
+    """Validate a plain mapping into a config.
+
+    The keys are those of the YAML files (``{"traffic": {"density": 5}, "agents":
+    {"cavs": 3}}``); a missing key keeps its default. Raises :class:`ScenarioError`
+    naming ``where``, the key and the allowed values, as :func:`load_scenario` does.
+    """
     return _build_scenario(dict(data), where=where)
 
 
 def scenario_to_dict(config: ScenarioConfig) -> dict:
-    """Plain nested dict (YAML-ready) of a config."""
+    """Plain nested dict of a config, every field included; ``scenario_from_dict`` of it
+    (or the YAML :func:`save_scenario` writes) gives the same config back."""
     return dataclasses.asdict(config)
+
+
+def save_scenario(config: ScenarioConfig, path: str | os.PathLike) -> Path:
+    """Write ``config`` as a scenario YAML file (every field) and return its path.
+
+    The file loads back equal with :func:`load_scenario` and can be passed to
+    ``roco_env.parallel_env`` or ``roco-env compare --scenario``.
+    """
+    path = Path(path)
+    if path.suffix not in (".yaml", ".yml"):
+        raise ScenarioError(f"save_scenario: {path} must end in .yaml or .yml")
+    path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
+    return path
 
 
 def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> ScenarioConfig:
@@ -226,31 +325,60 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
         node = data
         for depth, part in enumerate(parts[:-1]):
             if not isinstance(node.get(part), dict):
-                raise ScenarioError(_unknown_key_message("override", ".".join(parts[: depth + 1]),
+                raise ScenarioError(unknown_key_message("override", ".".join(parts[: depth + 1]),
                                                          _valid_override_names()))
             node = node[part]
-        if parts[-1] not in node:
-            raise ScenarioError(_unknown_key_message("override", key, _valid_override_names()))
+        if parts[-1] not in node and parts[-2:-1] not in (["params"], ["per_agent"]):
+            raise ScenarioError(unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
     return _build_scenario(data, where="override")
 
 
-# traffic.layout values each traffic.source understands (replay/frames ignore the layout).
-SOURCE_LAYOUTS: dict[str, tuple[str, ...]] = {
-    "synthetic": ("highway", "intersection", "roundabout", "parking_lot", "traffic_jam"),
-    "highway_env": ("highway", "merge", "roundabout", "intersection"),
-}
-
-
 def _build_scenario(data: dict, where: str) -> ScenarioConfig:
-    config = _build(ScenarioConfig, data, where=where, prefix="")
-    allowed = SOURCE_LAYOUTS.get(config.traffic.source)
-    if allowed is not None and config.traffic.layout not in allowed:
+    """The config of ``data`` with every field checked, then the rules that join fields."""
+    config = build(ScenarioConfig, data, where=where)
+    traffic = config.traffic
+    allowed = SOURCE_LAYOUTS.get(traffic.source)
+    if allowed is not None and traffic.layout not in allowed:
         raise ScenarioError(
-            f"{where}: traffic.layout={config.traffic.layout!r} is not allowed with "
-            f"traffic.source={config.traffic.source!r}; choose one of {list(allowed)}"
+            f"{where}: traffic.layout={traffic.layout!r} is not allowed with "
+            f"traffic.source={traffic.source!r}; choose one of {list(allowed)}"
         )
+    if traffic.source == "synthetic" and traffic.layout == "parking_lot" \
+            and traffic.density > 1.0:
+        raise ScenarioError(
+            f"{where}: traffic.density={traffic.density!r} is out of range for layout "
+            "'parking_lot', where it is the fill ratio of the stalls; allowed [0, 1]")
+    if traffic.source == "highway_env" and config.agents.cavs < 1:
+        raise ScenarioError(f"{where}: agents.cavs must be >= 1 with traffic.source="
+                            "'highway_env' (its controlled vehicle is a CAV); got 0")
+    if traffic.params and traffic.source != "highway_env":
+        raise ScenarioError(
+            f"{where}: traffic.params is only read by traffic.source='highway_env' (extra "
+            f"highway-env config); got {traffic.params!r} with source {traffic.source!r}")
+    for name in ("x_range", "y_range"):
+        setattr(config.evaluation, name,
+                _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
+    config.noise.params = _given(build(NOISE_PARAMS[config.noise.model], config.noise.params,
+                                       where, "noise.params."), config.noise.params)
+    config.detector.params = _given(build(DetectorParams, config.detector.params, where,
+                                          "detector.params."), config.detector.params)
     return config
+
+
+def _given(params: Any, given: Mapping[str, Any]) -> dict:
+    """The checked values of the keys a user gave (the rest stay with the preset)."""
+    return {key: getattr(params, key) for key in given}
+
+
+def _check_range(value: list, where: str, key: str) -> list[float]:
+    """[low, high] as floats (numpy numbers accepted) with low < high."""
+    numbers = len(value) == 2 and all(isinstance(v, Real) and not isinstance(v, (bool, np.bool_))
+                                      for v in value)
+    if not numbers or not value[0] < value[1]:
+        raise ScenarioError(f"{where}: {key} must be [low, high] in m with low < high; "
+                            f"got {value!r}")
+    return [float(v) for v in value]
 
 
 def _valid_override_names() -> list[str]:
@@ -262,49 +390,3 @@ def _valid_override_names() -> list[str]:
         else:
             names.append(top.name)
     return names
-
-
-def _unknown_key_message(where: str, key: str, allowed: list[str]) -> str:
-    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed)}"
-
-
-def _build(cls: type, data: dict, where: str, prefix: str) -> Any:
-    if not isinstance(data, dict):
-        raise ScenarioError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ScenarioError(_unknown_key_message(where, prefix + unknown[0],
-                                                 [prefix + name for name in fields]))
-    values = {}
-    for name, value in data.items():
-        key, hint = prefix + name, hints[name]
-        if dataclasses.is_dataclass(hint):
-            values[name] = _build(hint, value, where, key + ".")
-        else:
-            values[name] = _check_value(value, hint, fields[name].metadata, where, key)
-    return cls(**values)
-
-
-def _check_value(value: Any, hint: Any, meta: Any, where: str, key: str) -> Any:
-    allowed_types = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
-    if value is None:
-        if type(None) in allowed_types:
-            return None
-        raise ScenarioError(f"{where}: {key} must not be null")
-    base = next(t for t in allowed_types if t is not type(None))
-    if base is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    if base is list and isinstance(value, tuple):
-        value = list(value)
-    if not isinstance(value, base) or (base in (int, float) and isinstance(value, bool)):
-        raise ScenarioError(
-            f"{where}: {key} must be of type {base.__name__}, got {type(value).__name__} ({value!r})"
-        )
-    choices, low, high = meta.get("choices"), meta.get("low"), meta.get("high")
-    if choices is not None and value not in choices:
-        raise ScenarioError(f"{where}: {key}={value!r} is not allowed; choose one of {list(choices)}")
-    if low is not None and not (low <= value <= high):
-        raise ScenarioError(f"{where}: {key}={value!r} is out of range; allowed [{low}, {high}]")
-    return value

@@ -55,6 +55,7 @@ class EgoEnv(gymnasium.Env):
         self.agent = agent if agent is not None else base.evaluated_agents[0]
         if self.agent not in base.possible_agents:
             raise ValueError(f"agent must be one of {base.possible_agents}; got {self.agent!r}")
+        base.render_ego = self.agent  # pictures show the controlled agent's fused view
         self.others = others if others is not None else IdentityPolicy()
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)

@@ -1,15 +1,25 @@
-"""Shared test setup: headless plotting and the `slow` marker policy.
+"""Shared test setup and helpers: headless plotting, the `slow` marker policy,
+hand-built scenes for the sensing tests and a stand-in sweep cell for the bench tests.
 
 Tests marked ``@pytest.mark.slow`` run only when ROCO_SLOW=1; the default run
 (and CI) keeps a representative fast sample so the suite stays well under ten
-minutes on a 2-core machine.
+minutes on a 2-core machine. Test modules take the helpers from here
+(``from conftest import car, make_state``), never from one another.
 """
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import matplotlib
+import numpy as np
 import pytest
 from hypothesis import settings
+
+from roco_env.bench.grid import Cell
+from roco_env.bench.records import ok_record
+from roco_env.traffic.state import WorldState
 
 # CI (CI=true) replays the same examples every run so a green main stays green;
 # local runs keep exploring new random examples (and the example database).
@@ -29,3 +39,69 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+def run_python(code: str) -> str:
+    """Stdout (stripped) of ``code`` run by a fresh interpreter in the repository root:
+    what a new process imports, untouched by modules this test session loaded."""
+    done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                          text=True, cwd=Path(__file__).resolve().parents[1])
+    return done.stdout.strip()
+
+
+# --- Hand-built scenes (sensing tests) -----------------------------------------------
+
+CAR_SIZE = (4.5, 1.9, 1.5)
+
+
+def car(x: float, y: float, yaw: float = 0.0) -> list[float]:
+    length, width, height = CAR_SIZE
+    return [x, y, height / 2, length, width, height, yaw]
+
+
+def bus(x: float, y: float, yaw: float = 0.0) -> list[float]:
+    return [x, y, 1.6, 12.0, 2.6, 3.2, yaw]
+
+
+def make_state(boxes, poses, kinds=None, own_ids=None, heights=None, ranges=None,
+               comm_ranges=None) -> WorldState:
+    """A hand-built WorldState: objects get ids 0..M-1; agents default to CAVs at 1.9 m."""
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 7)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    n_agents, n_obj = poses.shape[0], boxes.shape[0]
+    kinds = tuple(kinds or ("cav",) * n_agents)
+    default_height = [5.5 if k == "rsu" else 1.9 for k in kinds]
+    return WorldState(
+        time=0.0,
+        object_ids=np.arange(n_obj),
+        object_classes=np.zeros(n_obj, dtype=np.int64),
+        object_boxes=boxes,
+        object_velocities=np.zeros((n_obj, 2)),
+        agent_ids=tuple(f"{k}_{i}" for i, k in enumerate(kinds)),
+        agent_kinds=kinds,
+        agent_poses=poses,
+        agent_object_ids=np.asarray(own_ids if own_ids is not None else [-1] * n_agents),
+        sensor_heights=np.asarray(heights if heights is not None else default_height, float),
+        sensor_ranges=np.asarray(ranges if ranges is not None else [70.0] * n_agents, float),
+        comm_ranges=np.asarray(comm_ranges if comm_ranges is not None else [70.0] * n_agents,
+                               float),
+    )
+
+
+# --- A stand-in sweep cell (bench tests) ---------------------------------------------
+
+CALLS: list[str] = []
+FAILING_NOISE: set[float] = set()
+
+
+def fake_cell(cell: Cell) -> dict:
+    """Deterministic stand-in for an episode; raises for noise levels in FAILING_NOISE."""
+    CALLS.append(cell.key)
+    if cell.noise in FAILING_NOISE:
+        raise RuntimeError(f"boom at noise {cell.noise}")
+    rng = np.random.default_rng([cell.seed, int(cell.noise * 10)])
+    errors = np.abs(rng.normal(cell.noise, 0.1, size=(20, 2)))
+    metrics = {"ap30": 0.9 - cell.noise / 2, "ap50": 0.8 - cell.noise / 2,
+               "ap70": float(0.7 - cell.noise / 2 + 0.01 * cell.seed)}
+    samples = {"before": errors.tolist(), "after": (errors / 10).tolist()}
+    return ok_record(cell, metrics, samples, 0.0)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import csv
 
 import numpy as np
+from conftest import FAILING_NOISE, fake_cell
 from PIL import Image
-from test_bench_store import FAILING_NOISE, fake_cell
 
 from roco_env.bench.grid import build_grid
 from roco_env.bench.report import write_report

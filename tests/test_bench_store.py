@@ -8,31 +8,14 @@ from __future__ import annotations
 import json
 import sys
 
-import numpy as np
 import pytest
+from conftest import CALLS, FAILING_NOISE, fake_cell
 
 import roco_env
 from roco_env.bench import provenance
-from roco_env.bench.grid import Cell, build_grid
-from roco_env.bench.records import ok_record
+from roco_env.bench.grid import build_grid
 from roco_env.bench.store import ResultStore
 from roco_env.bench.sweep import run_sweep, stored_results
-
-CALLS: list[str] = []
-FAILING_NOISE: set[float] = set()
-
-
-def fake_cell(cell: Cell) -> dict:
-    """Deterministic stand-in for an episode; raises for noise levels in FAILING_NOISE."""
-    CALLS.append(cell.key)
-    if cell.noise in FAILING_NOISE:
-        raise RuntimeError(f"boom at noise {cell.noise}")
-    rng = np.random.default_rng([cell.seed, int(cell.noise * 10)])
-    errors = np.abs(rng.normal(cell.noise, 0.1, size=(20, 2)))
-    metrics = {"ap30": 0.9 - cell.noise / 2, "ap50": 0.8 - cell.noise / 2,
-               "ap70": float(0.7 - cell.noise / 2 + 0.01 * cell.seed)}
-    samples = {"before": errors.tolist(), "after": (errors / 10).tolist()}
-    return ok_record(cell, metrics, samples, 0.0)
 
 
 @pytest.fixture(autouse=True)

@@ -88,8 +88,9 @@ def test_metadata_spaces_and_agents():
     obs, infos = env.reset(seed=1)
     for agent in env.possible_agents:
         assert obs[agent] in env.observation_space(agent)
-        assert set(infos[agent]) == {"evaluated", "collaborators", "n_collaborators",
+        assert set(infos[agent]) == {"evaluated", "agent", "collaborators", "n_collaborators",
                                      "privileged"}
+        assert infos[agent]["agent"] == agent
     for _ in range(3):  # agents stay constant until truncation
         obs, *_ = env.step({a: np.zeros((5, 3)) for a in env.agents})
         assert env.agents == env.possible_agents

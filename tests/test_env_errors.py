@@ -41,7 +41,7 @@ def test_non_finite_action(env, bad):
 def test_non_numeric_action(env):
     actions = zeros(env)
     actions["cav_0"] = "left"
-    with pytest.raises(ValueError, match="'cav_0' must be a numeric array"):
+    with pytest.raises(ValueError, match="'cav_0' must be an array of real numbers"):
         env.step(actions)
 
 

@@ -64,7 +64,7 @@ def test_overrides_reach_traffic_fields():
     "text, fragments",
     [
         ("traffic:\n  lanez: 3\n", ["traffic.lanez", "traffic.lanes", "allowed"]),
-        ("traffic:\n  density: many\n", ["traffic.density", "float", "many"]),
+        ("traffic:\n  density: many\n", ["traffic.density", "a number", "many"]),
         ("traffic:\n  density: -1\n", ["traffic.density", "out of range", "[0.0, 100.0]"]),
         ("traffic:\n  layout: spaghetti\n", ["traffic.layout", "spaghetti", "parking_lot"]),
         ("agents:\n  cavs: 99\n", ["agents.cavs", "out of range"]),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_sensing_visibility import bus, car, make_state
+from conftest import bus, car, make_state
 
 from roco_env.geometry import se2_inverse, transform_boxes, wrap_angle
 from roco_env.scenario import DetectorConfig
@@ -154,7 +154,7 @@ def test_never_detects_itself():
 def test_invalid_preset_and_params_rejected():
     with pytest.raises(ValueError, match="preset 'perfect'.*ideal.*realistic"):
         make_detector(DetectorConfig(preset="perfect"))
-    with pytest.raises(ValueError, match="'sigma_z'.*allowed:.*sigma_xy"):
+    with pytest.raises(ValueError, match="sigma_z'.*allowed:.*sigma_xy"):
         detector(sigma_z=0.1)
     for name, value in (("sigma_xy", -0.1), ("p_max", 1.5), ("fp_rate", float("nan")),
                         ("calibration", 0.0), ("noisy", "yes"), ("flip_prob", "0.1")):

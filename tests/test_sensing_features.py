@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import car, make_state
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_sensing_visibility import car, make_state
 
 from roco_env.geometry import se2_apply, se2_inverse
 from roco_env.sensing import CHANNELS, BevGrid, bev_features, compute_visibility, warp_bev

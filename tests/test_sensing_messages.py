@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from test_sensing_visibility import car, make_state
+from conftest import car, make_state
 
 from roco_env.scenario import DetectorConfig
 from roco_env.sensing import (

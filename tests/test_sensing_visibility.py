@@ -1,55 +1,16 @@
-"""Visibility: range, ray-cast occlusion, RSU height, returns (hand-built scenes).
-
-Also holds the scene builders the other test_sensing_* files import.
-"""
+"""Visibility: range, ray-cast occlusion, RSU height, returns (hand-built scenes)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import CAR_SIZE, bus, car, make_state
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from shapely.geometry import LineString, Polygon
 
 from roco_env.geometry import box_corners_bev
 from roco_env.sensing import LidarModel, compute_visibility
-from roco_env.traffic.state import WorldState
-
-CAR_SIZE = (4.5, 1.9, 1.5)
-
-
-def car(x: float, y: float, yaw: float = 0.0) -> list[float]:
-    length, width, height = CAR_SIZE
-    return [x, y, height / 2, length, width, height, yaw]
-
-
-def bus(x: float, y: float, yaw: float = 0.0) -> list[float]:
-    return [x, y, 1.6, 12.0, 2.6, 3.2, yaw]
-
-
-def make_state(boxes, poses, kinds=None, own_ids=None, heights=None, ranges=None,
-               comm_ranges=None) -> WorldState:
-    """A hand-built WorldState: objects get ids 0..M-1; agents default to CAVs at 1.9 m."""
-    boxes = np.asarray(boxes, dtype=float).reshape(-1, 7)
-    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
-    n_agents, n_obj = poses.shape[0], boxes.shape[0]
-    kinds = tuple(kinds or ("cav",) * n_agents)
-    default_height = [5.5 if k == "rsu" else 1.9 for k in kinds]
-    return WorldState(
-        time=0.0,
-        object_ids=np.arange(n_obj),
-        object_classes=np.zeros(n_obj, dtype=np.int64),
-        object_boxes=boxes,
-        object_velocities=np.zeros((n_obj, 2)),
-        agent_ids=tuple(f"{k}_{i}" for i, k in enumerate(kinds)),
-        agent_kinds=kinds,
-        agent_poses=poses,
-        agent_object_ids=np.asarray(own_ids if own_ids is not None else [-1] * n_agents),
-        sensor_heights=np.asarray(heights if heights is not None else default_height, float),
-        sensor_ranges=np.asarray(ranges if ranges is not None else [70.0] * n_agents, float),
-        comm_ranges=np.asarray(comm_ranges if comm_ranges is not None else [70.0] * n_agents,
-                               float),
-    )
 
 
 def test_car_behind_bus_hidden_and_car_beside_visible():

@@ -78,9 +78,10 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                densities=(2.0, 4.0, 6.0, 9.0, 12.0, 15.0)),
     Experiment("crowding_parking", "Crowding, repetitive: parking-lot fill ratio",
                ("parking_lot",), (0.4, 0.8), BUILTIN, densities=(0.3, 0.5, 0.7, 0.9, 1.0)),
-    Experiment("ablation_tau2", "Table 2: RoCo's candidate gate tau2 in 1..4 m",
+    Experiment("ablation_tau2", "Table 2: RoCo's gate tau2 in 1..4 m (single gate, as the paper; "
+               "roco = shipped, with the 6 m fallback gate)",
                ("crowded_intersection",), (0.2, 0.4, 0.6, 0.8),
-               ("roco:tau2=1", "roco:tau2=2", "roco:tau2=3", "roco:tau2=4")),
+               (*(f"roco:coarse_tau2=null,tau2={t}" for t in (1, 2, 3, 4)), "roco")),
     Experiment("ablation_similarity", "Table 3: distance / edge similarity (coalign = neither)",
                ("crowded_intersection",), (0.2, 0.4, 0.8),
                ("coalign", "roco:use_edge_similarity=false",

@@ -1,6 +1,6 @@
 """Run one sweep cell: one env episode with one policy instance per agent, scored.
 
-Scores (DESIGN.md section 8), pooled over every evaluated agent and step:
+Scores (docs/metrics.md), pooled over every evaluated agent and step:
 * dataset AP@0.3/0.5/0.7 from the infos' exact per-frame data
   (``frame_scores``, ``frame_tp``, ``frame_fp``, ``frame_n_gt``);
 * relative pose error of every filled collaborator slot before and after the

@@ -1,7 +1,9 @@
 """Text specs shared by the sweep and the CLI: policy specs and ``KEY=VALUE`` overrides.
 
 Policy spec syntax (shell-safe, no brackets): ``NAME`` or ``NAME:KEY=VALUE,KEY=VALUE``,
-e.g. ``roco``, ``roco:tau2=2``, ``roco:use_edge_similarity=false,tau2=1.5``.
+e.g. ``roco``, ``roco:tau2=2``, ``roco:use_edge_similarity=false,tau2=1.5``; NAME is a
+registered policy or an import target ``my_pkg.module:make_policy`` (then
+``my_pkg.module:make_policy:KEY=VALUE``).
 Values are YAML scalars (``2`` -> int, ``1.5`` -> float, ``false`` -> bool,
 ``null`` -> None, e.g. ``roco:robust_kernel=null``; anything else -> str). The canonical form sorts the keys, so ``roco:b=1,a=2`` and
 ``roco:a=2,b=1`` name the same sweep cell.
@@ -14,7 +16,8 @@ from dataclasses import dataclass
 
 import yaml
 
-from roco_env.policies import available_policies, make_policy
+from roco_env.policies import available_policies, is_import_target, make_policy
+from roco_env.schema import load_yaml
 
 Scalar = bool | int | float | str | None
 
@@ -22,7 +25,7 @@ Scalar = bool | int | float | str | None
 def parse_scalar(text: str, name: str) -> Scalar:
     """A YAML scalar from ``text``; ValueError naming ``name`` for lists and maps."""
     try:
-        value = yaml.safe_load(text)
+        value = load_yaml(text)
     except yaml.YAMLError as exc:
         raise ValueError(f"{name}: cannot parse value {text!r}: {exc}") from exc
     if value is None or isinstance(value, bool | int | float | str):
@@ -83,13 +86,19 @@ class PolicySpec:
 
 
 def parse_policy_spec(text: str) -> PolicySpec:
-    """Parse ``NAME[:KEY=VALUE,...]``; the name must be registered (parameters unchecked)."""
+    """Parse ``NAME[:KEY=VALUE,...]`` or ``module:factory[:KEY=VALUE,...]``; the name must be
+    registered or have the import-target form (parameters unchecked)."""
     name, _, rest = text.strip().partition(":")
     name = name.strip()
-    if name not in available_policies():
+    factory, sep, after = rest.partition(":")
+    if name not in available_policies() and factory.strip() and "=" not in factory:
+        # an import target 'my_pkg.module:make_policy'
+        name, rest = f"{name}:{factory.strip()}", after
+    if name not in available_policies() and not is_import_target(name):
         raise ValueError(
             f"unknown policy {name!r} in policy spec {text!r}; "
-            f"available: {', '.join(available_policies())}"
+            f"available: {', '.join(available_policies())} or an import target "
+            "'my_pkg.module:make_policy'"
         )
     params: dict[str, Scalar] = {}
     if rest.strip():

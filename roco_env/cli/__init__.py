@@ -39,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # validation errors: a clear message, no traceback
         print(f"roco-env {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # e.g. an output path under a file, a folder without write access
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"roco-env {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from roco_env.policies import available_policies
+from roco_env.policies import available_policies, make_policy
 from roco_env.scenario import list_scenarios, load_scenario
 
 
@@ -20,13 +20,28 @@ def _scenario_lines() -> list[str]:
     return lines
 
 
+def _policy_lines() -> list[str]:
+    """One line per policy; stateful ones say what they keep (every instance can be shared
+    by all agents of an env: state is keyed by the ego)."""
+    lines = []
+    for name in available_policies():
+        try:
+            state = getattr(make_policy(name), "keeps_state", None)
+        except (ValueError, TypeError) as exc:  # a broken plug-in must not hide the others
+            lines.append(f"  {name:<28} (cannot build: {exc})")
+            continue
+        lines.append(f"  {name:<28} stateful: keeps state {state}; pass infos, and one "
+                     "instance serves all agents" if state else f"  {name}")
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
     if args.what in ("all", "scenarios"):
         print("scenarios:")
         print("\n".join(_scenario_lines()) or "  (none found)")
     if args.what in ("all", "policies"):
-        print("policies (spec NAME[:KEY=VALUE,...], e.g. roco:tau2=2):")
-        print("\n".join(f"  {name}" for name in available_policies()))
+        print("policies (spec NAME[:KEY=VALUE,...], e.g. roco:tau2=2, or my_pkg.module:factory):")
+        print("\n".join(_policy_lines()))
     return 0
 
 

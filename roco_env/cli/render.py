@@ -38,6 +38,8 @@ def run(args: argparse.Namespace) -> int:
     frames: list[Image.Image] = []
 
     def on_step(step: int, env, actions: dict, infos: dict) -> None:
+        if args.ego is not None:
+            env.render_ego = args.ego  # ValueError naming the agents when unknown
         frames.append(_frame(env))
         if out is not None:
             frames[-1].save(out / f"frame_{step:04d}.png")
@@ -61,5 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_episode_options(parser, steps=10)
     parser.add_argument("--out", default=None, metavar="DIR", help="folder for PNG frames")
     parser.add_argument("--gif", default=None, metavar="FILE", help="animated GIF to write")
+    parser.add_argument("--ego", default=None, metavar="AGENT",
+                        help="agent whose fused boxes are drawn (default: the first evaluated "
+                        "one, e.g. cav_0)")
     parser.add_argument("--fps", type=float, default=5.0, help="GIF frame rate (default: 5)")
     parser.set_defaults(func=run)

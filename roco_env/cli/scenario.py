@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from roco_env.scenario import list_scenarios
+from roco_env.scenario import SOURCE_LAYOUTS, list_scenarios
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -15,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen = actions.add_parser(
         "generate", help="write a crowded synthetic scenario YAML and print a summary")
     gen.add_argument("--layout", required=True,
-                     help="highway | intersection | roundabout | parking_lot | traffic_jam")
+                     help=" | ".join(SOURCE_LAYOUTS["synthetic"]))
     gen.add_argument("--density", type=float, required=True,
                      help="vehicles per 100 m of lane (parking_lot: stall fill ratio 0..1)")
     gen.add_argument("--cavs", type=int, default=4)

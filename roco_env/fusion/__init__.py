@@ -1,4 +1,4 @@
-"""Fusion of an ego's own outputs with its collaborators' (DESIGN.md section 7).
+"""Fusion of an ego's own outputs with its collaborators' (docs/architecture.md, step 3).
 
 ``late_fusion`` merges boxes (the default; ``merge_many`` and ``suppress``
 merge and NMS many egos at once); ``roco_env.fusion.intermediate``

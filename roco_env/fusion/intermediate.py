@@ -4,7 +4,7 @@ Each collaborator's map (C, H, W), in its own true sensor frame on the shared
 :class:`~roco_env.sensing.BevGrid`, is resampled into the ego frame with the
 *corrected* relative pose T_{j->i} (bilinear, zero padding, via
 :func:`roco_env.sensing.warp_bev`), then fused with the ego's map by an
-element-wise maximum (DESIGN.md section 7). Decoding fused maps into boxes is
+element-wise maximum. Decoding fused maps into boxes is
 not part of this module (a later issue).
 """
 

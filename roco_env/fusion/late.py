@@ -1,4 +1,4 @@
-"""Late fusion of boxes (DESIGN.md section 7).
+"""Late fusion of boxes (docs/architecture.md, step 3).
 
 Each collaborator's boxes, given in that collaborator's own (true sensor)
 frame, are moved into the ego frame with the *corrected* relative pose
@@ -8,7 +8,7 @@ highest first. Units: metres and radians; every box is (x, y, z, l, w, h, yaw).
 
 Ego footprint: collaborators see the ego's own vehicle, but nothing the ego
 detects can stand where the ego stands, and the ground truth leaves the ego
-out (DESIGN.md section 8), so such boxes can only be false positives. A CAV
+out (docs/metrics.md), so such boxes can only be false positives. A CAV
 ego passes its own footprint (its object box in its own true frame; RSUs have
 none) and every merged box whose BEV IoU with it exceeds the NMS threshold is
 dropped before the NMS. This is exactly NMS with the footprint as an extra box

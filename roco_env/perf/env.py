@@ -1,6 +1,6 @@
 """Environment throughput: steps per second and the cost split by stage.
 
-Setting (issue 5): ``urban_intersection`` with 4 CAVs + 1 RSU (5 agents, every
+Setting: ``urban_intersection`` with 4 CAVs + 1 RSU (5 agents, every
 one evaluated as an ego), the lowest density (step 0.5) giving at least 100
 vehicles at reset, identity policy, late fusion. The per-step cost varies along
 an episode (signal phases, queues), so whole episodes from a seeded reset are

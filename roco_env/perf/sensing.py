@@ -4,7 +4,7 @@ Scene: ``urban_intersection`` with the density raised to about 200 vehicles
 (4 CAVs + 1 RSU = 5 agents). Baseline for visibility: the obvious dense
 ray casting (every ray of every agent against every in-range footprint edge,
 2D first hit), measured in the same process.
-Targets (issue 4): visibility + detection < 5 ms; features for one agent at
+Targets: visibility + detection < 5 ms; features for one agent at
 0.4 m over 140 m x 80 m < 10 ms.
 """
 

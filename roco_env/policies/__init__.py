@@ -1,12 +1,24 @@
-"""Alignment policies and their registry (DESIGN.md section 6).
+"""Alignment policies and their registry (algorithms and equations: docs/alignment.md).
 
-``make_policy(name, **params)`` builds a built-in policy; ``available_policies()``
-lists the names. A user policy is any callable ``policy(obs, info=None) -> action``.
+``make_policy(name, **params)`` builds a registered policy; ``available_policies()``
+lists the names. A user policy is any callable ``policy(obs, info=None) -> action``;
+three ways make it a name everywhere a policy name is accepted (``make_policy``,
+``roco-env compare --policies``, ``roco-env run --policy``):
+
+* ``"my_pkg.module:make_policy"``: an import target, ``module:factory``;
+* ``register_policy("mine", "my_pkg.module:make_policy")`` in your own code;
+* an installed package's entry point in the group :data:`ENTRY_POINT_GROUP`::
+
+      [project.entry-points."roco_env.policies"]
+      mine = "my_pkg.module:make_policy"
+
+The factory is called with the spec's parameters and returns the callable.
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 from collections.abc import Callable
 from typing import Any
 
@@ -28,9 +40,27 @@ _REGISTRY: dict[str, str] = {
 }
 
 
+# Installed packages register policies under this entry-point group.
+ENTRY_POINT_GROUP = "roco_env.policies"
+
+
+def _registry() -> dict[str, str]:
+    """Built-in and registered policies, plus installed packages' entry points (which
+    never replace a name already taken)."""
+    found = {ep.name: ep.value for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
+    return {**found, **_REGISTRY}
+
+
 def available_policies() -> list[str]:
-    """Names accepted by :func:`make_policy`."""
-    return sorted(_REGISTRY)
+    """Registered names accepted by :func:`make_policy` (import targets are accepted too)."""
+    return sorted(_registry())
+
+
+def is_import_target(name: str) -> bool:
+    """Whether ``name`` has the ``module:factory`` form of an import target."""
+    module_name, sep, factory = name.partition(":")
+    return bool(sep) and all(part.isidentifier() for part in module_name.split(".")) \
+        and factory.isidentifier()
 
 
 def register_policy(name: str, target: str) -> None:
@@ -42,18 +72,32 @@ def register_policy(name: str, target: str) -> None:
 
 
 def make_policy(name: str, **params: Any) -> Callable:
-    """Build the policy registered as ``name`` with its parameters."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown policy {name!r}; available: {', '.join(available_policies())}")
-    module_name, factory = _REGISTRY[name].split(":")
-    return getattr(importlib.import_module(module_name), factory)(**params)
+    """Build the policy registered as ``name``, or imported from ``module:factory``."""
+    registry = _registry()
+    if name in registry:
+        target = registry[name]
+    elif is_import_target(name):
+        target = name
+    else:
+        raise ValueError(f"unknown policy {name!r}; available: {', '.join(sorted(registry))} "
+                         "or an import target 'my_pkg.module:make_policy'")
+    module_name, factory = target.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(f"policy {name!r}: cannot import module {module_name!r}: {exc}") from exc
+    if not callable(getattr(module, factory, None)):
+        raise ValueError(f"policy {name!r}: module {module_name!r} has no callable {factory!r}")
+    return getattr(module, factory)(**params)
 
 
 __all__ = [
     "AlignmentResult",
     "apply_correction",
+    "ENTRY_POINT_GROUP",
     "available_policies",
     "correction_action",
+    "is_import_target",
     "make_policy",
     "register_policy",
     "reported_relative_poses",

@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from roco_env.geometry import se2_compose, se2_inverse, se2_relative
+from roco_env.geometry import apply_correction, se2_compose, se2_inverse, se2_relative
+
+__all__ = ["AlignmentResult", "apply_correction", "correction_action", "reported_relative_poses"]
 
 
 @dataclass
@@ -57,6 +59,3 @@ def correction_action(reported: np.ndarray, corrected: np.ndarray) -> np.ndarray
     return se2_compose(np.asarray(corrected, dtype=float), se2_inverse(reported)).astype(np.float32)
 
 
-def apply_correction(reported: np.ndarray, action: np.ndarray) -> np.ndarray:
-    """T_corrected = SE2(action) * T_reported, per slot (N, 3)."""
-    return se2_compose(np.asarray(action, dtype=float), np.asarray(reported, dtype=float))

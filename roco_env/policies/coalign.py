@@ -1,4 +1,4 @@
-"""CoAlign's box alignment as its released code behaves (DESIGN.md section 6).
+"""CoAlign's box alignment as its released code behaves (docs/alignment.md).
 
 :func:`coalign_align` works on plain arrays in the ego's reported frame (ego =
 identity; metres, radians), which equals CoAlign's "world under the noisy poses"

@@ -20,6 +20,7 @@ import numpy as np
 
 from roco_env.geometry import validate_boxes
 from roco_env.policies.posegraph import PoseGraph
+from roco_env.schema import build
 
 __all__ = [
     "AlignmentInputs",
@@ -242,4 +243,4 @@ def params_from_kwargs(cls: type, kwargs: dict, method: str):
     unknown = sorted(set(kwargs) - set(allowed))
     if unknown:
         raise ValueError(f"unknown {method} parameter(s) {unknown}; allowed: {', '.join(allowed)}")
-    return cls(**kwargs)
+    return build(cls, kwargs, where=method)  # types checked: "tau2 expects a number"

@@ -1,4 +1,4 @@
-"""RoCo's graph-guided object matching (paper section 4.2, DESIGN.md section 6 steps 2-5).
+"""RoCo's graph-guided object matching (paper section 4.2; docs/alignment.md).
 
 Given the landmark set P (poses in the ego frame) and one collaborator's boxes Q
 (poses in the collaborator's own frame, and the same boxes mapped into the ego
@@ -19,7 +19,9 @@ frame with the current pose estimate):
    collaborator's own frame); 0 when no leaf qualifies;
 4. distance similarity S_dis = exp(-dis(p, q)); S = S_edge + lambda * S_dis;
 5. maximum-weight one-to-one assignment (Kuhn-Munkres) over the gated pairs
-   (dis <= tau2); assigned pairs with S < tau1 are rejected.
+   (dis <= tau2); assigned pairs with S < tau1 are rejected. tau1 is set for the full
+   S (maximum 1 + lambda); with a term switched off (ablation) the bar is scaled by the
+   remaining terms' maximum (:attr:`MatchingParams.similarity_threshold`).
 
 Every candidate pair is scored at once with numpy broadcasting over
 (candidate pairs x matched leaves). :class:`StarGraphMatcher` serves the
@@ -42,7 +44,7 @@ _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
 
 @dataclass(frozen=True)
 class MatchingParams:
-    """tau1 (similarity threshold), tau2 (gate, m), lam (weight of S_dis),
+    """tau1 (similarity threshold of the full S), tau2 (gate, m), lam (weight of S_dis),
     use_edge_similarity / use_distance_similarity (ablation switches),
     neighbor_radius (m, leaves of a star graph; None = all boxes are leaves)."""
 
@@ -62,8 +64,24 @@ class MatchingParams:
             raise ValueError(f"lam must be finite and >= 0; got {self.lam}")
         if not (self.use_edge_similarity or self.use_distance_similarity):
             raise ValueError("use_edge_similarity and use_distance_similarity cannot both be False")
+        if not (self.use_edge_similarity or self.lam > 0):
+            raise ValueError("lam must be > 0 when use_edge_similarity is False (S = lam * S_dis)")
         if self.neighbor_radius is not None and not self.neighbor_radius > 0:
             raise ValueError(f"neighbor_radius must be None or > 0 m; got {self.neighbor_radius}")
+
+    @property
+    def similarity_threshold(self) -> float:
+        """The bar on S that tau1 sets for the terms switched on.
+
+        tau1 is defined on the full S = S_edge + lam * S_dis, whose maximum is 1 + lam
+        (S_edge, S_dis <= 1). Switching a term off removes its share of that maximum, so
+        the bar is tau1 * (remaining maximum) / (1 + lam): every variant then asks for the
+        same fraction tau1 / (1 + lam) of the score it can attain (0.25 at the defaults:
+        S_edge >= 0.25 alone, or S_dis >= 0.25, i.e. dis <= ln 4 = 1.39 m, alone), and an
+        ablation removes the term, not the term and half the acceptance band with it.
+        """
+        remaining = float(self.use_edge_similarity) + self.lam * float(self.use_distance_similarity)
+        return self.tau1 * remaining / (1.0 + self.lam)
 
 
 def edge_consistency(rel_a: np.ndarray, rel_b: np.ndarray) -> np.ndarray:
@@ -131,7 +149,7 @@ class StarGraphMatcher:
         score = p.lam * np.exp(-dis[cand_p, cand_q]) if p.use_distance_similarity else 0.0
         if p.use_edge_similarity:
             score = score + self._edge_similarity(dis, tau2, cand_p, cand_q)
-        return _assign(cand_p, cand_q, score, p.tau1)
+        return _assign(cand_p, cand_q, score, p.similarity_threshold)
 
     def _edge_similarity(
         self, dis: np.ndarray, tau2: float, cand_p: np.ndarray, cand_q: np.ndarray

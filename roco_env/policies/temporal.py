@@ -2,9 +2,12 @@
 
 :class:`TemporalSmoothing` runs the inner policy every step and tracks, per
 collaborator, its correction (dx m, dy m, dyaw rad; the action of one slot) with
-a filterpy Kalman filter under a random-walk model (F = I, H = I). Collaborators
-are keyed by agent id from ``info["collaborators"]`` when the info has it (so
-slot reordering does not mix filters), else by slot index.
+a filterpy Kalman filter under a random-walk model (F = I, H = I). Filters are
+keyed by (ego, collaborator): the ego from ``info["agent"]`` and the collaborator
+by agent id from ``info["collaborators"]`` when the info has them (so slot
+reordering does not mix filters), else by slot index. One instance can therefore
+serve every agent of an env (``{a: policy(obs[a], infos[a]) for a in env.agents}``);
+called without infos it serves a single ego only.
 
 * A step where the inner policy applied a correction to a slot is a measurement
   (yaw innovation wrapped to (-pi, pi]); the filter's estimate is the output.
@@ -20,6 +23,7 @@ Call :meth:`reset` between episodes.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -36,13 +40,16 @@ class TemporalSmoothing:
     estimate survives without a measurement.
     """
 
+    # State kept across steps, per (ego, collaborator); ``roco-env list`` shows it.
+    keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+
     def __init__(
         self,
         policy: str | Callable,
         process_std: tuple[float, float, float] = (0.05, 0.05, np.deg2rad(0.05)),
         measurement_std: tuple[float, float, float] = (0.05, 0.05, np.deg2rad(0.05)),
         max_age: int = 20,
-        **policy_params,
+        **policy_params: Any,
     ) -> None:
         if isinstance(policy, str):
             from roco_env.policies import make_policy
@@ -97,9 +104,10 @@ class TemporalSmoothing:
         applied = self._applied(action)
         filled = np.asarray(observation["collab_mask"]) > 0
         names = (info or {}).get("collaborators")
+        ego = (info or {}).get("agent")
         out = action.copy()
         for slot in np.nonzero(filled)[0]:
-            key = names[slot] if names is not None and slot < len(names) else int(slot)
+            key = (ego, names[slot] if names is not None and slot < len(names) else int(slot))
             kf = self._filters.get(key)
             if applied[slot]:
                 if kf is None:

@@ -25,40 +25,23 @@ Draw order per agent is fixed, so the same generator state gives the same output
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from roco_env.geometry import se2_inverse, transform_boxes, wrap_angle
-from roco_env.scenario import DetectorConfig
+from roco_env.scenario import DetectorConfig, DetectorParams
+from roco_env.schema import build
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
 __all__ = ["PRESETS", "AgentDetections", "Detector", "make_detector"]
 
-_REALISTIC: dict[str, Any] = {
-    "noisy": True,
-    "min_fraction": 0.0,
-    "p_max": 0.97,
-    "returns_50": 12.0,
-    "returns_slope": 1.5,
-    "sigma_xy": 0.06,
-    "sigma_xy_per_m": 0.002,
-    "sigma_xy_occlusion": 0.25,
-    "sigma_yaw": 0.02,
-    "sigma_yaw_per_m": 0.0004,
-    "sigma_yaw_occlusion": 0.1,
-    "sigma_size": 0.03,
-    "sigma_size_occlusion": 0.05,
-    "flip_prob": 0.03,
-    "fp_rate": 1.0,
-    "fp_score_max": 0.45,
-    "score_floor": 0.4,
-    "score_noise": 0.05,
-    "calibration": 1.0,
-}
+# The realistic preset is DetectorParams' defaults (declared with their bounds in
+# roco_env.scenario, so scenario files are checked when they load).
+_REALISTIC: dict[str, Any] = dataclasses.asdict(DetectorParams())
 
 PRESETS: dict[str, dict[str, Any]] = {
     "ideal": {
@@ -77,28 +60,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         "score_noise": 0.0,
     },
     "realistic": dict(_REALISTIC),
-}
-
-# Allowed interval per numeric parameter: (low, high, low_inclusive).
-_BOUNDS: dict[str, tuple[float, float, bool]] = {
-    "min_fraction": (0.0, 1.0, True),
-    "p_max": (0.0, 1.0, True),
-    "returns_50": (0.0, math.inf, True),
-    "returns_slope": (0.0, 20.0, False),
-    "sigma_xy": (0.0, 10.0, False),
-    "sigma_xy_per_m": (0.0, 1.0, True),
-    "sigma_xy_occlusion": (0.0, 10.0, True),
-    "sigma_yaw": (0.0, math.pi, False),
-    "sigma_yaw_per_m": (0.0, 0.1, True),
-    "sigma_yaw_occlusion": (0.0, math.pi, True),
-    "sigma_size": (0.0, 1.0, True),
-    "sigma_size_occlusion": (0.0, 1.0, True),
-    "flip_prob": (0.0, 1.0, True),
-    "fp_rate": (0.0, 1000.0, True),
-    "fp_score_max": (0.01, 1.0, False),
-    "score_floor": (0.0, 1.0, True),
-    "score_noise": (0.0, 1.0, True),
-    "calibration": (0.0, 100.0, False),
 }
 
 # Car-sized clutter boxes: (mean, std) of l, w, h in metres.
@@ -126,35 +87,13 @@ class AgentDetections:
         return cls(np.zeros((0, 7)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
 
 
-def _validate_params(params: dict[str, Any]) -> dict[str, Any]:
-    for name, value in params.items():
-        if name not in _REALISTIC:
-            raise ValueError(
-                f"unknown detector parameter {name!r}; allowed: {', '.join(sorted(_REALISTIC))}"
-            )
-        if name == "noisy":
-            if not isinstance(value, bool):
-                raise ValueError(f"detector parameter noisy must be true or false; got {value!r}")
-            continue
-        low, high, low_incl = _BOUNDS[name]
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        ok = ok and math.isfinite(value) and value <= high and (value >= low if low_incl
-                                                               else value > low)
-        if not ok:
-            bracket = "[" if low_incl else "("
-            raise ValueError(
-                f"detector parameter {name}={value!r} is invalid; allowed {bracket}{low}, {high}]"
-            )
-    return {name: (value if name == "noisy" else float(value)) for name, value in params.items()}
-
-
 class Detector:
     """The detector model of the module docstring with fixed, validated parameters."""
 
     def __init__(self, params: dict[str, Any]) -> None:
         """params: any subset of the parameter names; the rest take `realistic` defaults."""
-        merged = {**_REALISTIC, **params}
-        self.params: dict[str, Any] = _validate_params(merged)
+        self.params: dict[str, Any] = dataclasses.asdict(
+            build(DetectorParams, params, where="detector", prefix="detector.params."))
 
     def sigmas(self, distance: np.ndarray, fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Std of the centre (m, per axis) and yaw (rad) noise at distance (m), visible fraction."""
@@ -251,6 +190,4 @@ def make_detector(config: DetectorConfig) -> Detector:
         raise ValueError(
             f"unknown detector preset {config.preset!r}; choose one of {sorted(PRESETS)}"
         )
-    params = dict(config.params or {})
-    _validate_params(params)
-    return Detector({**PRESETS[config.preset], **params})
+    return Detector({**PRESETS[config.preset], **(config.params or {})})

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from roco_env.sensing.detector import AgentDetections
 from roco_env.traffic.state import WorldState
+
+if TYPE_CHECKING:  # features are torch tensors; torch loads only when features are on
+    import torch
 
 __all__ = ["Message", "select_collaborators", "build_messages"]
 

@@ -1,4 +1,4 @@
-"""Where objects and agents are, step by step (DESIGN.md section 2, issue 3).
+"""Where objects and agents are, step by step (docs/architecture.md).
 
 ``make_traffic_source(config)`` builds the source named by ``config.traffic.source``:
 

@@ -9,8 +9,8 @@ Usage::
     source = make_traffic_source(load_scenario("urban_intersection", **{"traffic.source": "frames"}),
                                  frames=frames)
 
-Boxes are world-frame (x, y, z, l, w, h, yaw) in metres/radians (DESIGN.md
-section 3); the CAVs are objects named by id (their box gives the agent pose),
+Boxes are world-frame (x, y, z, l, w, h, yaw) in metres/radians
+(docs/conventions.md); the CAVs are objects named by id (their box gives the agent pose),
 RSUs are fixed poses. Each ``step`` advances one frame (``dt`` is not used);
 on the last frame ``finished`` turns True (the env then truncates the episode;
 a further ``step`` holds the last frame).

@@ -17,12 +17,18 @@ import yaml
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import box_corners_bev
-from roco_env.scenario import ScenarioConfig, load_scenario, scenario_from_dict, scenario_to_dict
+from roco_env.scenario import (
+    SOURCE_LAYOUTS,
+    ScenarioConfig,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
 from roco_env.traffic.export import export_opv2v, prepare_export_folder
 from roco_env.traffic.state import WorldState
 from roco_env.traffic.synthetic import make_synthetic
 
-SYNTHETIC_LAYOUTS = ("highway", "intersection", "roundabout", "parking_lot", "traffic_jam")
+SYNTHETIC_LAYOUTS = SOURCE_LAYOUTS["synthetic"]
 # Tight spawn gaps (m) per layout: crowding makes matching ambiguous.
 STRESS_MIN_GAP = {"highway": 1.5, "intersection": 1.5, "roundabout": 1.5, "parking_lot": 0.5,
                   "traffic_jam": 1.0}

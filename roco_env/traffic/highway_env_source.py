@@ -2,7 +2,7 @@
 
 The scene runs headless (``render_mode=None``, SDL dummy video driver) and is
 stepped with the IDLE meta-action, so every vehicle follows highway-env's own
-IDM/MOBIL behaviour. Conversions at this boundary only (DESIGN.md section 3):
+IDM/MOBIL behaviour. Conversions at this boundary only (docs/conventions.md):
 
 - highway-env's y axis points right (left-handed screen frame): world y = -y,
   world yaw = -heading, world velocity = (vx, -vy).
@@ -37,15 +37,15 @@ from typing import Any
 import numpy as np
 
 from roco_env.geometry import wrap_angle
-from roco_env.scenario import ScenarioConfig
+from roco_env.scenario import SOURCE_LAYOUTS, ScenarioConfig
 from roco_env.traffic.agents import make_world, rsu_poses, select_cavs
 from roco_env.traffic.state import WorldState
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
-ENV_IDS = {"highway": "highway-v0", "merge": "merge-v0", "roundabout": "roundabout-v0",
-           "intersection": "intersection-v0"}
+# highway-env's scene per layout (the layouts are SOURCE_LAYOUTS["highway_env"]).
+ENV_IDS = {layout: f"{layout}-v0" for layout in SOURCE_LAYOUTS["highway_env"]}
 MULTI_CONTROLLED = ("highway", "intersection")
 VEHICLE_HEIGHT = 1.5  # m, highway-env vehicles are 2D
 # Road-side RSU spots in highway-env's own frame (x, y_right, heading): mirrored like vehicles.

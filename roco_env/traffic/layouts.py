@@ -1,6 +1,6 @@
 """Road layouts of the synthetic traffic: lane polylines, signals, RSU spots.
 
-World frame of DESIGN.md section 3; metres and radians; right-hand traffic.
+World frame of docs/conventions.md; metres and radians; right-hand traffic.
 The scene centre is the origin. Every layout is a pure function of the
 traffic config (no randomness): the rng only places vehicles on it.
 

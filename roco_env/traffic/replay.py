@@ -3,7 +3,7 @@
 Only labels and poses are read (no point clouds). Everything is loaded and
 validated when the source is built, so a bad file raises :class:`ReplayError`
 (a ValueError naming the path and the problem) and nothing half-loaded is
-ever returned. Conversions happen here and nowhere else (DESIGN.md section 3).
+ever returned. Conversions happen here and nowhere else (frames: docs/conventions.md).
 
 OPV2V / V2XSet (``traffic.source: opv2v``, ``traffic.path`` = one scenario folder)
   ``<scenario>/<agent id>/<frame>.yaml``; CARLA frame: left-handed, degrees.

@@ -1,6 +1,6 @@
 """The per-step world snapshot every later stage reads.
 
-All boxes and poses are in the world frame of DESIGN.md section 3 (right-handed,
+All boxes and poses are in the world frame of docs/conventions.md (right-handed,
 x forward, y left, yaw in radians CCW from +x). Sizes are full lengths in metres.
 """
 

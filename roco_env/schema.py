@@ -1,0 +1,139 @@
+"""One declarative validation mechanism for every configuration value.
+
+A setting is a dataclass field declared once with :func:`spec`: its type (the
+annotation), its default and what is allowed (``choices`` or an interval
+``[low, high]``, either end open). :func:`build` turns a plain mapping into
+such a dataclass, checking every key and value; the messages name the place
+(a file, ``override``, a policy), the dotted key and what is allowed. Scenario
+files, overrides, noise-model and detector parameters (:mod:`roco_env.scenario`)
+and alignment-policy parameters all go through it.
+
+Accepted as given by users: numpy scalars (``np.int64(2)``, ``np.float32(.4)``,
+``np.bool_(True)``) become Python numbers; an int is a valid float; a tuple is a
+valid list. :func:`load_yaml` reads YAML with the YAML 1.2 number rules, so
+``1e1`` is the float 10.0 (PyYAML's YAML 1.1 rules read it as a string).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import types
+import typing
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import yaml
+
+__all__ = ["ConfigError", "ScenarioError", "build", "check_value", "load_yaml", "spec"]
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message names where, the key and why."""
+
+
+# The name scenario code has always raised and caught.
+ScenarioError = ConfigError
+
+
+def spec(default: Any, *, choices: tuple | None = None, low: float | None = None,
+         high: float | None = None, low_open: bool = False, high_open: bool = False,
+         doc: str = "") -> Any:
+    """A dataclass field carrying its allowed values: ``choices``, or ``low``..``high``
+    (closed ends unless ``low_open`` / ``high_open``; either bound may be omitted)."""
+    meta = {"choices": choices, "low": low, "high": high, "low_open": low_open,
+            "high_open": high_open, "doc": doc}
+    if isinstance(default, (list, dict, tuple)):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def allowed_text(meta: Mapping[str, Any]) -> str:
+    """The allowed values of a field, as its error messages write them."""
+    if meta.get("choices") is not None:
+        return f"one of {list(meta['choices'])}"
+    low, high = meta.get("low"), meta.get("high")
+    left = "(" if meta.get("low_open") or low is None else "["
+    right = ")" if meta.get("high_open") or high is None else "]"
+    return f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
+
+
+def build(cls: type, data: Any, where: str, prefix: str = "") -> Any:
+    """An instance of dataclass ``cls`` from ``data`` (a mapping; missing keys keep their
+    defaults), nested dataclasses included. Raises :class:`ScenarioError`."""
+    if not isinstance(data, Mapping):
+        raise ScenarioError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping of "
+                            f"keys; got {type(data).__name__} ({data!r})")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    unknown = sorted(set(data) - set(fields), key=str)
+    if unknown:
+        raise ScenarioError(unknown_key_message(where, prefix + str(unknown[0]),
+                                                [prefix + name for name in fields]))
+    values = {}
+    for name, value in data.items():
+        key, hint = prefix + name, hints[name]
+        if dataclasses.is_dataclass(hint):
+            values[name] = build(hint, value, where, key + ".")
+        else:
+            values[name] = check_value(value, hint, fields[name].metadata, where, key)
+    return cls(**values)
+
+
+def unknown_key_message(where: str, key: str, allowed: list[str]) -> str:
+    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed)}"
+
+
+_EXPECTS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+            list: "a list", tuple: "a list", dict: "a mapping"}
+
+
+def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key: str) -> Any:
+    """``value`` checked against the annotation ``hint`` and the field's allowed values;
+    returns it as the plain Python type (numpy scalars converted)."""
+    union = isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union
+    allowed_types = typing.get_args(hint) if union else (hint,)
+    if value is None:
+        if type(None) in allowed_types:
+            return None
+        raise ScenarioError(f"{where}: {key} must not be null")
+    base = next(t for t in allowed_types if t is not type(None))
+    base = typing.get_origin(base) or base
+    if isinstance(value, np.generic):
+        value = value.item()
+    if base is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if base in (list, tuple) and isinstance(value, (list, tuple)):
+        value = base(value)
+    if not isinstance(value, base) or (base in (int, float) and isinstance(value, bool)):
+        raise ScenarioError(f"{where}: {key} expects {_EXPECTS.get(base, base.__name__)}; "
+                            f"got {value!r} ({type(value).__name__})")
+    if base is float and not math.isfinite(value):
+        raise ScenarioError(f"{where}: {key}={value!r} must be finite")
+    choices, low, high = meta.get("choices"), meta.get("low"), meta.get("high")
+    if choices is not None and value not in choices:
+        raise ScenarioError(f"{where}: {key}={value!r} is not allowed; choose "
+                            f"{allowed_text(meta)}")
+    below = low is not None and (value <= low if meta.get("low_open") else value < low)
+    above = high is not None and (value >= high if meta.get("high_open") else value > high)
+    if below or above:
+        raise ScenarioError(f"{where}: {key}={value!r} is out of range; allowed "
+                            f"{allowed_text(meta)}")
+    return value
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader plus the YAML 1.2 exponent floats YAML 1.1 reads as strings
+    (``1e1``, ``2.5e0``: no dot or no exponent sign)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML text safely (no object construction) with YAML 1.2 number rules."""
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader

@@ -1,0 +1,102 @@
+"""Users' own policies by import target and entry point; one policy instance for all agents."""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+import roco_env
+from roco_env.bench.spec import parse_policy_spec, validate_policy_spec
+from roco_env.cli import main
+from roco_env.policies import available_policies, make_policy
+
+PLUGIN = textwrap.dedent('''
+    import numpy as np
+
+    def make_policy(gain=0.0):
+        def policy(obs, info=None):
+            return np.full((obs["collab_mask"].shape[0], 3), gain, dtype=np.float32)
+        return policy
+''')
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    """A module my_plugin_mod on sys.path and an installed distribution registering it."""
+    (tmp_path / "my_plugin_mod.py").write_text(PLUGIN)
+    dist = tmp_path / "my_plugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: my-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(
+        "[roco_env.policies]\nmine = my_plugin_mod:make_policy\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
+def test_import_target_builds_the_users_policy(plugin):
+    policy = make_policy("my_plugin_mod:make_policy", gain=0.0)
+    obs = {"collab_mask": np.ones(5, dtype=np.int8)}
+    assert policy(obs).shape == (5, 3)
+    spec = parse_policy_spec("my_plugin_mod:make_policy:gain=0.5")
+    assert spec.name == "my_plugin_mod:make_policy" and dict(spec.params) == {"gain": 0.5}
+    assert spec.label == "my_plugin_mod:make_policy:gain=0.5"
+    assert parse_policy_spec(spec.label) == spec
+
+
+def test_entry_point_registers_a_name(plugin):
+    assert "mine" in available_policies()
+    assert make_policy("mine", gain=1.0)({"collab_mask": np.ones(2)})[0, 0] == 1.0
+
+
+def test_compare_runs_a_users_policy_from_the_cli(plugin, tmp_path, capsys):
+    code = main(["compare", "--policies", "my_plugin_mod:make_policy", "mine", "--noise", "0.2",
+                 "--seeds", "1", "--steps", "2", "--workers", "1", "--no-plots", "--quiet",
+                 "--set", "cavs=2", "--set", "rsus=0", "--out", str(tmp_path / "out")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "my_plugin_mod:make_policy" in out and "mine" in out
+
+
+def test_bad_targets_say_what_is_wrong(plugin):
+    with pytest.raises(ValueError, match="cannot import module 'no_such_mod'"):
+        make_policy("no_such_mod:make")
+    with pytest.raises(ValueError, match="has no callable 'nothing'"):
+        make_policy("my_plugin_mod:nothing")
+    with pytest.raises(ValueError, match="unknown policy 'magic'"):
+        make_policy("magic")
+
+
+def test_policy_parameter_of_the_wrong_type_is_named():
+    with pytest.raises(ValueError, match="tau2 expects a number; got 'abc'"):
+        validate_policy_spec("roco:tau2=abc")
+    assert make_policy("roco", tau2=np.float32(2.0)).params.tau2 == 2.0
+
+
+def _episode_actions(policy_for, steps=3):
+    env = roco_env.parallel_env("urban_intersection", max_cycles=steps, cavs=3, rsus=1,
+                                density=2.0, sigma_t=0.6, sigma_r=0.6, noise_model="bias")
+    obs, infos = env.reset(seed=3)
+    actions_seen = []
+    while env.agents:
+        actions = {a: policy_for(a)(obs[a], infos[a]) for a in env.agents}
+        actions_seen.append(actions)
+        obs, _, _, _, infos = env.step(actions)
+    return actions_seen
+
+
+@pytest.mark.parametrize("name", ["roco_temporal", "coalign_temporal"])
+def test_a_shared_temporal_policy_acts_as_one_per_agent(name):
+    shared = make_policy(name)
+    own = {}
+    per_agent = _episode_actions(lambda a: own.setdefault(a, make_policy(name)))
+    together = _episode_actions(lambda a: shared)
+    for step_a, step_b in zip(per_agent, together, strict=True):
+        for agent in step_a:
+            np.testing.assert_array_equal(step_a[agent], step_b[agent])
+
+
+def test_list_names_the_stateful_policies(capsys):
+    assert main(["list", "policies"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    stateful = {line.split()[0] for line in lines if "stateful" in line}
+    assert stateful == {"roco_temporal", "coalign_temporal"}
