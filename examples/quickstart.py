@@ -11,7 +11,8 @@ import argparse
 import os
 
 import roco_env
-from roco_env.metrics import APAccumulator, FrameStats
+from roco_env.evaluation import info_frame_stats
+from roco_env.metrics import APAccumulator
 from roco_env.policies import make_policy
 
 
@@ -37,8 +38,7 @@ def main() -> None:
         observations, rewards, terminations, truncations, infos = env.step(actions)
         for info in infos.values():
             if info.get("evaluated", True):
-                accumulator.add_stats(FrameStats(info["frame_scores"], info["frame_tp"],
-                                                 info["frame_fp"], info["frame_n_gt"]))
+                accumulator.add_stats(info_frame_stats(info))
         mean_reward = sum(rewards.values()) / len(rewards)
         print(f"mean per-step AP@0.7 reward: {mean_reward:.3f}")
     ap = accumulator.ap()

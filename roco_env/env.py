@@ -20,9 +20,17 @@ from typing import Any
 import gymnasium
 import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from roco_env.evaluation import evaluate_egos, metric_info, reward, slot_errors
+from roco_env.evaluation import (
+    evaluate_egos,
+    info_capacity,
+    metric_info,
+    reward,
+    rpe_info,
+    slot_errors,
+)
 from roco_env.fusion import FusedDetections, merge_many, suppress
 from roco_env.geometry import apply_correction
 from roco_env.global_state import pack_state, state_space
@@ -80,7 +88,8 @@ class CollabPerceptionEnv(ParallelEnv):
 
     ``evaluation.reward`` (override ``reward=``): ``ap70`` (default), ``ap50``,
     ``ap30``, the per-step AP of the agent's late-fused detections at that IoU in
-    its true frame (a NaN AP, no ground truth and no predictions, counts as 0), or
+    its true frame (an undefined AP, no ground truth and no predictions, counts as
+    0), or
     ``neg_rpe``, minus the mean (translation m + rotation deg) error of the
     corrected relative poses. Agents outside ``agents.evaluated`` (a scenario field;
     default all) act and observe but always get 0 and no AP entries in their info.
@@ -89,12 +98,18 @@ class CollabPerceptionEnv(ParallelEnv):
 
     ## Info
 
-    After a step, per agent: ``ap30/ap50/ap70``, ``rpe_before`` / ``rpe_after`` (N, 2)
-    [m, deg] by slot of the scored frame (NaN rows for empty slots), ``n_gt``,
-    ``n_pred``, ``frame_scores`` (P,), ``frame_tp`` / ``frame_fp`` (3, P),
-    ``frame_n_gt`` (the exact :meth:`roco_env.metrics.APAccumulator.add_stats` input),
-    ``fused_boxes`` (P, 7) / ``fused_scores`` (P,) / ``gt_boxes`` (G, 7) in the ego's
-    true frame, ``evaluated``, ``evaluated_collaborators`` (agent ids by slot of the
+    Fixed shapes and no NaN, so infos compare equal with ``==`` and vector envs
+    stack them; -1 (:data:`roco_env.evaluation.UNDEFINED`) marks "undefined"
+    (docs/results-you-can-trust.md). After a step, per agent: ``ap30/ap50/ap70``
+    (-1 when the frame has no ground truth and no predictions), ``rpe_before`` /
+    ``rpe_after`` (N, 2) [m, deg] by slot of the scored frame (-1 rows for empty
+    slots), ``n_gt``, ``n_pred``, ``frame_scores`` (M,), ``frame_tp`` / ``frame_fp``
+    (3, M), ``frame_n_gt``, ``fused_boxes`` (M, 7) / ``fused_scores`` (M,) with
+    ``fused_mask`` (M,) (real rows first, descending score), ``gt_boxes`` (M, 7)
+    with ``gt_mask`` (nearest first; ``n_gt`` is the full count) in the ego's true
+    frame, where M = (N + 1) x K (:func:`roco_env.evaluation.info_capacity`;
+    :func:`roco_env.evaluation.info_frame_stats` gives the exact
+    :meth:`roco_env.metrics.APAccumulator.add_stats` input), ``evaluated``, ``evaluated_collaborators`` (agent ids by slot of the
     scored frame) and, describing the observation returned with it: ``agent`` (the
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
@@ -113,8 +128,9 @@ class CollabPerceptionEnv(ParallelEnv):
     ## Episode end
 
     There is no terminal state (``terminations`` are always False); after
-    ``max_cycles`` steps every agent is truncated, ``agents`` is empty and ``step``
-    raises until ``reset``. ``reset(seed=s)`` makes the whole episode reproducible;
+    ``max_cycles`` steps, or at the last frame of a replay or of the user's frames
+    (each frame is scored once; the final observation is the last frame's), every
+    agent is truncated, ``agents`` is empty and ``step`` raises until ``reset``. ``reset(seed=s)`` makes the whole episode reproducible;
     ``reset()`` without a seed starts the next episode of the last seeded sequence.
 
     ## Arguments
@@ -242,11 +258,13 @@ class CollabPerceptionEnv(ParallelEnv):
         rewards, infos = self._score(frame, corrected, fused_by_agent)
         self._shown = (frame, fused_by_agent)
         self._cycles += 1
-        self._frame = self.pipeline.advance()
+        out_of_frames = self.pipeline.finished
+        if not out_of_frames:
+            self._frame = self.pipeline.advance()
         observations = self._observations(self._frame)
         for agent, view in zip(self.possible_agents, self._frame.views, strict=True):
             infos[agent].update(self._view_info(view))
-        truncated = self._cycles >= self.max_cycles
+        truncated = self._cycles >= self.max_cycles or out_of_frames
         terminations = dict.fromkeys(self.agents, False)
         truncations = dict.fromkeys(self.agents, truncated)
         if truncated:
@@ -339,14 +357,16 @@ class CollabPerceptionEnv(ParallelEnv):
                 [views[a] for a in fused], list(fused.values()), [corrected[a] for a in fused],
                 frame.state, frame.visibility.visible, cfg.evaluation.x_range,
                 cfg.evaluation.y_range, cfg.max_collaborators)
+            capacity = info_capacity(cfg.max_boxes, cfg.max_collaborators)
             for agent, evaluation in zip(fused, evaluations, strict=True):
-                infos[agent] = metric_info(evaluation)
+                infos[agent] = metric_info(evaluation, capacity)
                 rewards[agent] = reward(evaluation, cfg.evaluation.reward)
             others = [a for a in self.possible_agents if a not in fused]
             for agent, (before, after) in zip(others, slot_errors(
                     [views[a] for a in others], [corrected[a] for a in others],
                     cfg.max_collaborators), strict=True):
-                infos[agent], rewards[agent] = {"rpe_before": before, "rpe_after": after}, 0.0
+                infos[agent] = {"rpe_before": rpe_info(before), "rpe_after": rpe_info(after)}
+                rewards[agent] = 0.0
         for agent, view in views.items():
             if agent in fused and cfg.fusion.method == "intermediate":
                 infos[agent]["fused_features"] = self._fuse_features(view, corrected[agent])
@@ -402,9 +422,26 @@ def aec_env(scenario: ScenarioLike = "urban_intersection",
     """The AEC version: ``parallel_to_aec`` (which adds PettingZoo's OrderEnforcingWrapper).
 
     No action-clipping wrapper: finite corrections outside the action bounds are
-    applied as given, and the env itself rejects NaN/inf and wrong shapes.
+    applied as given. Each agent's action is validated at that agent's own step
+    (NaN/inf or a wrong shape raise ValueError there and the action is not
+    stored, so the agent may act again and later steps are unaffected).
     """
-    return parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides))
+    return _CheckedActions(
+        parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides)))
+
+
+class _CheckedActions(BaseWrapper):
+    """Validates an AEC action when it is given, not when the last agent completes the cycle.
+
+    ``parallel_to_aec`` only stores actions and steps the parallel env after the last
+    agent, so a bad action would otherwise surface at another agent's step.
+    """
+
+    def step(self, action: Any) -> None:
+        agent = self.agent_selection
+        if not (self.terminations[agent] or self.truncations[agent]):
+            action = check_action(action, agent, self.unwrapped.config.max_collaborators)
+        super().step(action)
 
 
 class _CallableModule(types.ModuleType):

@@ -13,7 +13,7 @@ Relative pose errors are [translation m, rotation deg].
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -160,21 +160,78 @@ def reward(evaluation: EgoEvaluation, kind: str) -> float:
     return 0.0 if np.isnan(value) else float(value)
 
 
-def metric_info(evaluation: EgoEvaluation) -> dict:
-    """The metric entries of a step's info (keys of the env contract plus the boxes)."""
+UNDEFINED = -1.0
+"""Info sentinel: an AP with nothing to score (no GT, no predictions) and the RPE row of
+an empty collaborator slot. Both quantities are >= 0 when defined, and infos hold no
+NaN, so two runs' infos compare equal with ``==`` (PettingZoo's and Gymnasium's
+determinism checks do so)."""
+
+
+def info_capacity(max_boxes: int, max_collaborators: int) -> int:
+    """Rows of the padded per-frame info arrays: (N + 1) x K.
+
+    An ego fuses at most its own K boxes and K boxes of each of its N collaborator
+    slots, so the fused predictions never exceed this; ground truth beyond it is cut
+    (nearest first, ``n_gt`` keeps the full count).
+    """
+    return int(max_boxes) * (int(max_collaborators) + 1)
+
+
+def rpe_info(errors: np.ndarray) -> np.ndarray:
+    """An (N, 2) RPE array for an info: NaN rows of empty slots become :data:`UNDEFINED`."""
+    return np.where(np.isnan(errors), UNDEFINED, errors)
+
+
+def filled_rpe_rows(errors: np.ndarray) -> np.ndarray:
+    """The rows of an info's (N, 2) ``rpe_before``/``rpe_after`` that belong to filled slots."""
+    errors = np.asarray(errors, dtype=float).reshape(-1, 2)
+    return errors[(errors >= 0).all(axis=1)]
+
+
+def info_frame_stats(info: Mapping) -> FrameStats:
+    """The frame's matching (:meth:`APAccumulator.add_stats` input) from a step info."""
+    keep = np.asarray(info["fused_mask"], dtype=bool)
+    return FrameStats(np.asarray(info["frame_scores"])[keep], np.asarray(info["frame_tp"])[:, keep],
+                      np.asarray(info["frame_fp"])[:, keep], int(info["frame_n_gt"]),
+                      DEFAULT_IOU_THRESHOLDS)
+
+
+def _padded(rows: np.ndarray, capacity: int, axis: int = 0) -> np.ndarray:
+    """``rows`` zero-padded along ``axis`` to ``capacity`` entries (same dtype)."""
+    pad = [(0, 0)] * rows.ndim
+    pad[axis] = (0, capacity - rows.shape[axis])
+    return np.pad(rows, pad)
+
+
+def metric_info(evaluation: EgoEvaluation, capacity: int) -> dict:
+    """The metric entries of a step's info (keys of the env contract plus the boxes).
+
+    Fixed shapes, no NaN: the per-prediction arrays are padded to ``capacity`` rows
+    (:func:`info_capacity`; ``fused_mask`` marks the real ones, which come first,
+    in descending score), ``gt_boxes`` likewise (``gt_mask``), undefined APs and
+    empty RPE slots hold :data:`UNDEFINED`.
+    """
     stats = evaluation.stats
-    info = {key: float(evaluation.ap[thr]) for thr, key in AP_KEYS.items()}
+    n_pred = int(evaluation.pred_scores.shape[0])
+    if n_pred > capacity:
+        raise ValueError(f"{n_pred} fused predictions exceed the info capacity {capacity}")
+    gt = evaluation.gt_boxes
+    nearest = np.argsort(np.hypot(gt[:, 0], gt[:, 1]), kind="stable")[:capacity]
+    info = {key: UNDEFINED if np.isnan(evaluation.ap[thr]) else float(evaluation.ap[thr])
+            for thr, key in AP_KEYS.items()}
     info.update(
-        rpe_before=evaluation.rpe_before,
-        rpe_after=evaluation.rpe_after,
-        n_gt=int(evaluation.gt_boxes.shape[0]),
-        n_pred=int(evaluation.pred_scores.shape[0]),
-        frame_scores=stats.scores,
-        frame_tp=stats.tp,
-        frame_fp=stats.fp,
+        rpe_before=rpe_info(evaluation.rpe_before),
+        rpe_after=rpe_info(evaluation.rpe_after),
+        n_gt=int(gt.shape[0]),
+        n_pred=n_pred,
+        fused_mask=np.arange(capacity) < n_pred,
+        frame_scores=_padded(stats.scores, capacity),
+        frame_tp=_padded(stats.tp, capacity, axis=1),
+        frame_fp=_padded(stats.fp, capacity, axis=1),
         frame_n_gt=stats.n_gt,
-        fused_boxes=evaluation.pred_boxes,
-        fused_scores=evaluation.pred_scores,
-        gt_boxes=evaluation.gt_boxes,
+        fused_boxes=_padded(evaluation.pred_boxes, capacity),
+        fused_scores=_padded(evaluation.pred_scores, capacity),
+        gt_boxes=_padded(gt[nearest], capacity),
+        gt_mask=np.arange(capacity) < nearest.shape[0],
     )
     return info

@@ -125,6 +125,12 @@ class Pipeline:
         self.noise.reset(noise_rng)
         return self._observe(state)
 
+    @property
+    def finished(self) -> bool:
+        """True when the traffic has no frame after the current one (the end of a replay or
+        of the user's frames); sources that simulate never finish."""
+        return bool(getattr(self.traffic, "finished", False))
+
     def advance(self) -> PerceptionFrame:
         """Move the traffic one step (config.traffic.dt seconds) and observe it."""
         if self._rngs is None:

@@ -37,9 +37,9 @@ class EgoEnv(gymnasium.Env):
     controlled agent (default: the first evaluated agent); others: the policy
     ``policy(obs, info) -> action`` of every other agent (default identity).
     Observation, action, reward and info are that agent's (see roco_env.env).
-    Note: infos hold NaN for empty collaborator slots and for AP on a frame with
-    no GT and no predictions; equality-based checks (Gymnasium's determinism
-    check) then need a setting whose slots are all filled.
+    Infos have fixed shapes and no NaN (see roco_env.env), so Gymnasium's vector
+    envs (``gymnasium.make_vec(..., vectorization_mode="sync" | "async")``) stack
+    them and its determinism check compares them.
     """
 
     def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",

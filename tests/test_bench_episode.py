@@ -30,7 +30,10 @@ def test_dataset_ap_equals_an_independent_accumulation():
     def on_step(step, env, actions, infos):
         for info in infos.values():
             if info.get("evaluated", True):
-                direct.add_frame(info["fused_boxes"], info["fused_scores"], info["gt_boxes"])
+                real = info["fused_mask"]
+                assert info["gt_mask"].sum() == info["n_gt"]
+                direct.add_frame(info["fused_boxes"][real], info["fused_scores"][real],
+                                 info["gt_boxes"][info["gt_mask"]])
 
     metrics, _ = run_episode(_cell("roco"), on_step=on_step)
     expected = direct.ap()

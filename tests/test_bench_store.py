@@ -11,9 +11,11 @@ import sys
 import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
 
+import roco_env
+from roco_env.bench import provenance
 from roco_env.bench.grid import build_grid
 from roco_env.bench.store import ResultStore
-from roco_env.bench.sweep import run_sweep
+from roco_env.bench.sweep import run_sweep, stored_results
 
 
 @pytest.fixture(autouse=True)
@@ -106,3 +108,54 @@ def test_ray_backend_without_ray_says_how_to_install(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # makes `import ray` fail
     with pytest.raises(ValueError, match=r"pip install roco-env\[ray\]"):
         run_sweep(_grid(), tmp_path / "r.jsonl", backend="ray", cell_fn=fake_cell)
+
+
+def test_unreadable_lines_are_counted_and_reported(tmp_path, capsys):
+    cells = _grid()[:3]
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    with path.open("a") as handle:
+        handle.write("not json\n[1, 2]\n{\"key\": \"x\"}\n\n")
+    outcome = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert outcome.unreadable == 3 and outcome.skipped == 3
+    assert "3 unreadable line(s) skipped" in capsys.readouterr().err
+
+
+def _yaml_scenario(path, cavs):
+    path.write_text(f"agents:\n  cavs: {cavs}\n  rsus: 0\n")
+    return str(path)
+
+
+def test_a_record_of_other_scenario_content_is_recomputed(tmp_path, capsys):
+    """Editing the scenario YAML in place (same path, same key) makes the record stale."""
+    scenario = _yaml_scenario(tmp_path / "my.yaml", cavs=2)
+    cells = build_grid([scenario], [0.4], ["identity"], [0], 2)
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    CALLS.clear()
+    again = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert (again.ran, again.skipped, again.stale) == (0, 1, 0) and CALLS == []
+    _yaml_scenario(tmp_path / "my.yaml", cavs=3)
+    edited = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert (edited.ran, edited.skipped, edited.stale) == (1, 0, 1) and CALLS == [cells[0].key]
+    assert "1 cell(s) recomputed" in capsys.readouterr().err
+
+
+def test_a_record_of_other_code_is_recomputed(tmp_path, monkeypatch):
+    cells = _grid()[:2]
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    monkeypatch.setattr(provenance, "source_hash", lambda: "edited source")
+    assert run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False).stale == 2
+    monkeypatch.setattr(roco_env, "__version__", "9.9")
+    outcome = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert (outcome.ran, outcome.stale) == (2, 2)
+    assert stored_results(path).stale == 0  # the latest records are current again
+    monkeypatch.undo()
+    assert stored_results(path).stale == 2  # ... for the code that wrote them only
+
+
+def test_source_hash_covers_the_package_files():
+    assert len(provenance.source_hash()) == 64
+    assert provenance.Provenance().of(_grid()[0]) == provenance.Provenance().of(_grid()[0])
+    assert provenance.Provenance().of(_grid()[0]) != provenance.Provenance().of(_grid()[1])

@@ -91,3 +91,61 @@ def test_ray_and_local_backends_give_identical_records(tmp_path):
     remote = run_sweep(cells, tmp_path / "ray.jsonl", backend="ray", workers=2, progress=False)
     assert all(r["status"] == "ok" for r in local.records)
     assert _strip(local.records) == _strip(remote.records)
+
+
+def _children(pid: int) -> set[int]:
+    """Pids of the live processes whose parent is ``pid`` (from /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process table from /proc")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, sig):
+    out = tmp_path / "stopped"
+    command = [str(Path(sys.executable).with_name("roco-env")), "compare", "--scenario",
+               "urban_roundabout", "--policies", "identity", "--noise", "0", "0.4", "--seeds",
+               "2", "--steps", "2", "--workers", "2", "--quiet", "--no-plots", "--out", str(out),
+               "--set", "cavs=2", "--set", "rsus=0"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        deadline = time.monotonic() + 60
+        workers: set[int] = set()
+        while time.monotonic() < deadline and process.poll() is None and len(workers) < 2:
+            workers = _children(process.pid)
+            time.sleep(0.05)
+        assert len(workers) == 2, process.stderr.read() if process.poll() is not None else ""
+        process.send_signal(sig)  # the parent only, as `kill <pid>` does
+        _, stderr = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 128 + sig, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"stopped by {sig.name}" in lines[0], stderr
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.05)
+    orphans = [w for w in workers if _alive(w)]
+    for pid in orphans:  # leave nothing behind even when the check fails
+        os.kill(pid, signal.SIGKILL)
+    assert not orphans, "pool workers outlived the sweep"
+    written = len(_lines(out / "results.jsonl"))
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert finished.returncode == 0, finished.stderr
+    assert f"{4 - written} run, {written} resumed" in finished.stdout

@@ -70,12 +70,25 @@ def test_compare_writes_report_and_resumes(capsys, tmp_path):
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "### AP@0.7 (%)" in out and "| oracle |" in out
-    assert "(4 run, 0 resumed, 0 failed)" in out
+    assert "(4 run, 0 resumed, 0 recomputed as stale, 0 failed)" in out
     for name in ("results.jsonl", "report.md", "summary.csv", "ap70_vs_noise.png",
                  "rpe_distribution.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert main(argv) == 0
-    assert "(0 run, 4 resumed, 0 failed)" in capsys.readouterr().out
+    assert "(0 run, 4 resumed, 0 recomputed as stale, 0 failed)" in capsys.readouterr().out
+
+
+def test_compare_report_covers_every_result_in_the_folder(capsys, tmp_path):
+    base = ["compare", "--noise", "0.4", "--seeds", "1", "--steps", "2", "--workers", "1",
+            "--quiet", "--no-plots", "--out", str(tmp_path), *TINY]
+    assert main([*base, "--policies", "identity"]) == 0
+    assert main([*base, "--policies", "oracle"]) == 0
+    out = capsys.readouterr().out
+    assert "including 1 from earlier runs" in out
+    summary = (tmp_path / "summary.csv").read_text()
+    report = (tmp_path / "report.md").read_text()
+    for policy in ("identity", "oracle"):
+        assert f"| {policy} |" in report and f",{policy}," in summary
 
 
 def test_render_writes_png_frames_and_a_gif(tmp_path, capsys):
@@ -115,3 +128,18 @@ def test_ray_address_without_a_cluster_is_a_clear_error(monkeypatch, capsys, tmp
             "--noise", "0", "--seeds", "1", "--steps", "1", "--quiet", "--out", str(tmp_path)]
     assert main(argv) == 2
     assert "no Ray cluster reachable at address 'auto'" in capsys.readouterr().err
+
+
+def test_compare_recomputes_after_the_scenario_file_is_edited(capsys, tmp_path):
+    scenario = tmp_path / "my.yaml"
+    scenario.write_text("agents:\n  cavs: 2\n  rsus: 0\n")
+    argv = ["compare", "--scenario", str(scenario), "--policies", "identity", "--noise", "0.4",
+            "--seeds", "1", "--steps", "2", "--workers", "1", "--quiet", "--no-plots",
+            "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    scenario.write_text("agents:\n  cavs: 3\n  rsus: 0\n")
+    capsys.readouterr()
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "(1 run, 0 resumed, 1 recomputed as stale, 0 failed)" in captured.out
+    assert "1 cell(s) recomputed" in captured.err

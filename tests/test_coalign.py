@@ -146,3 +146,61 @@ def test_greedy_clustering_matches_the_dense_definition(points):
     owner = np.array([p[2] for p in points], dtype=np.int64)
     got = [c.tolist() for c in greedy_clusters(xy, owner, 1.5)]
     assert got == dense_greedy_clusters(xy, owner, 1.5)
+
+
+def _near_pi_scene(offset=0.0):
+    """Five landmarks whose two boxes are 0.04 rad apart across the +-pi seam."""
+    ego = np.array([[5, 0, 0, 4, 2, 1.5, np.pi - 0.02]] * 5, dtype=float)
+    ego[:, 0] = [5, 15, 25, -10, -20]
+    collab = ego.copy()
+    collab[:, 6] = -np.pi + 0.02
+    unc = np.full((5, 3), 0.1)
+    return ego, unc, [collab], [unc], np.zeros((1, 3))
+
+
+def test_released_yaw_variance_reproduces_the_frame_dependent_np_var():
+    scene = _near_pi_scene()
+    circular = coalign_align(*scene)
+    released = coalign_align(*scene, yaw_variance="released")
+    assert circular.applied.all()
+    # np.var of [pi - 0.02, -pi + 0.02] is ~ pi^2: every landmark is "hard"
+    assert not released.applied.any() and "5 of 5 landmarks are hard" in released.reason
+    # ... unless the world frame is turned so that the yaws no longer straddle the seam
+    turned = coalign_align(*scene, yaw_variance="released", ego_yaw=np.pi / 2)
+    assert turned.applied.all()
+    np.testing.assert_allclose(turned.corrected, circular.corrected, atol=1e-9)
+
+
+def test_released_yaw_variance_in_the_policy_reads_the_ego_world_yaw():
+    ego, unc, collab, cunc, reported = _near_pi_scene()
+    k = 8
+    obs = {"pose": np.zeros(3, np.float32), "boxes": np.zeros((k, 7), np.float32),
+           "uncertainty": np.zeros((k, 3), np.float32), "box_mask": np.zeros(k, np.int8),
+           "collab_mask": np.array([1], np.int8), "collab_poses": np.zeros((1, 3), np.float32),
+           "collab_rel_poses": np.array([[0.3, -0.2, 0.01]], np.float32),
+           "collab_boxes": np.zeros((1, k, 7), np.float32),
+           "collab_uncertainty": np.zeros((1, k, 3), np.float32),
+           "collab_box_mask": np.zeros((1, k), np.int8)}
+    obs["boxes"][:5], obs["uncertainty"][:5], obs["box_mask"][:5] = ego, unc, 1
+    obs["collab_boxes"][0, :5], obs["collab_uncertainty"][0, :5] = collab[0], cunc[0]
+    obs["collab_box_mask"][0, :5] = 1
+    obs["scores"] = np.ones(k, np.float32)
+    obs["collab_scores"] = np.ones((1, k), np.float32)
+    policy = make_policy("coalign", yaw_variance="released")
+    assert np.abs(policy(obs)).max() < 1e-9  # world yaw 0: hard landmarks, priors kept
+    obs["pose"][2] = np.pi / 2
+    assert np.abs(policy(obs)).max() > 0.1  # the same boxes in a turned world frame
+    assert np.abs(make_policy("coalign")(obs)).max() > 0.1
+    with pytest.raises(ValueError, match=r"yaw_variance must be one of \['circular', 'released'\]"):
+        make_policy("coalign", yaw_variance="np.var")
+
+
+def test_collaborator_without_a_landmark_path_keeps_its_pose_and_says_so():
+    scene = sparse_scene()
+    far = [scene.collab_boxes[0], scene.collab_boxes[1] + [500, 0, 0, 0, 0, 0, 0]]
+    for mode in ("circular", "released"):
+        result = coalign_align(scene.ego_boxes, scene.ego_unc, far, scene.collab_unc,
+                               scene.reported, yaw_variance=mode)
+        assert result.applied.tolist() == [True, False]
+        assert result.reason == "slots [1]: no landmark path to the ego"
+        assert np.array_equal(result.corrected[1], scene.reported[1])

@@ -25,8 +25,7 @@ from roco_env.wrappers import EgoEnv, FlattenObservations
 
 # Small, fast settings (5 agents, ~30 vehicles) used throughout.
 FAST = dict(scenario="urban_intersection", density=1.5, max_boxes=24)
-# Two agents that always see each other: every slot filled, so infos carry no NaN
-# (Gymnasium's determinism check compares infos with ==, which fails on NaN).
+# Two agents that always see each other (small and fast).
 TINY = dict(scenario="v2x_crossroad", density=1.5, max_boxes=24, max_collaborators=1)
 
 
@@ -47,7 +46,6 @@ def test_aec_api_test():
 
 
 def test_parallel_seed_test():
-    # PettingZoo compares infos with ==: use TINY (no NaN entries), see above.
     parallel_seed_test(lambda: roco_env.parallel_env(**TINY, max_cycles=6), num_cycles=6)
 
 

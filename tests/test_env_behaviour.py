@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import roco_env
+from roco_env.evaluation import UNDEFINED, filled_rpe_rows, info_frame_stats
 from roco_env.geometry import bev_iou, se2_relative
-from roco_env.metrics import APAccumulator, FrameStats, frame_ap
+from roco_env.metrics import APAccumulator, frame_ap
 from roco_env.policies import make_policy
 
 FAST = dict(scenario="urban_intersection", density=1.5, max_boxes=24)
@@ -105,11 +106,12 @@ def test_ideal_detector_on_clean_poses_scores_exactly_one(policy):
             info = infos[agent]
             assert info["n_gt"] > 0 and info["n_pred"] == info["n_gt"]
             assert [info["ap30"], info["ap50"], info["ap70"]] == [1.0, 1.0, 1.0]
-            assert info["frame_tp"].all()
+            assert info["frame_tp"][:, info["fused_mask"]].all()
             footprint = frame.footprints[k]
             assert (footprint is None) == (k >= n_cav)
             if footprint is not None:
-                assert np.all(bev_iou(info["fused_boxes"], footprint[None]) == 0.0)
+                assert np.all(bev_iou(info["fused_boxes"][info["fused_mask"]],
+                                      footprint[None]) == 0.0)
                 own_car = frame.state.object_ids == frame.state.agent_object_ids[k]
                 collaborators = list(frame.views[k].collaborators)
                 ego_car_seen_by_collaborators += int(
@@ -120,14 +122,15 @@ def test_ideal_detector_on_clean_poses_scores_exactly_one(policy):
 def test_oracle_beats_identity_under_heavy_noise():
     def mean_ap70(policy):
         _, steps = run_episode(policy, 12, sigma_t=0.8, sigma_r=0.8)
-        return np.nanmean([info["ap70"] for _, _, infos in steps for info in infos.values()])
+        return np.mean([info["ap70"] for _, _, infos in steps for info in infos.values()
+                        if info["ap70"] != UNDEFINED])
 
     identity, oracle = mean_ap70("identity"), mean_ap70("oracle")
     assert oracle > identity + 0.2, (identity, oracle)
     _, steps = run_episode("oracle", 3, sigma_t=0.8, sigma_r=0.8)
     for _, _, infos in steps:
         for info in infos.values():
-            done = ~np.isnan(info["rpe_after"][:, 0])
+            done = info["rpe_after"][:, 0] != UNDEFINED
             assert np.all(info["rpe_after"][done] < 1e-3)
             assert np.all(info["rpe_before"][done].sum(axis=1) > 0)
 
@@ -137,11 +140,13 @@ def test_ap_accumulated_from_infos_equals_direct_accumulation():
     from_infos, direct = APAccumulator(), APAccumulator()
     for _, _, infos in steps:
         for info in infos.values():
-            from_infos.add_stats(FrameStats(info["frame_scores"], info["frame_tp"],
-                                            info["frame_fp"], info["frame_n_gt"]))
-            direct.add_frame(info["fused_boxes"], info["fused_scores"], info["gt_boxes"])
-            per_step = frame_ap(info["fused_boxes"], info["fused_scores"], info["gt_boxes"])
-            assert_same([info["ap30"], info["ap50"], info["ap70"]],
+            from_infos.add_stats(info_frame_stats(info))
+            assert info["gt_mask"].sum() == info["n_gt"]  # nothing cut at this size
+            fused = info["fused_boxes"][info["fused_mask"]], info["fused_scores"][info["fused_mask"]]
+            direct.add_frame(*fused, info["gt_boxes"][info["gt_mask"]])
+            per_step = frame_ap(*fused, info["gt_boxes"][info["gt_mask"]])
+            assert_same([np.nan if info[k] == UNDEFINED else info[k]
+                         for k in ("ap30", "ap50", "ap70")],
                         [per_step[0.3], per_step[0.5], per_step[0.7]])
     assert from_infos.n_gt == direct.n_gt > 0
     assert from_infos.ap() == direct.ap()
@@ -198,10 +203,10 @@ def test_reward_kinds(kind):
     for agent, value in rewards.items():
         info = infos[agent]
         if kind == "neg_rpe":
-            rows = info["rpe_after"][~np.isnan(info["rpe_after"][:, 0])]
+            rows = filled_rpe_rows(info["rpe_after"])
             assert value == pytest.approx(-rows.sum(axis=1).mean() if len(rows) else 0.0)
         else:
-            assert value == (0.0 if np.isnan(info[kind]) else info[kind])
+            assert value == (0.0 if info[kind] == UNDEFINED else info[kind])
 
 
 def test_intermediate_fusion_exposes_warped_max_fused_features():

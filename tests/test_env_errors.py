@@ -118,3 +118,18 @@ def test_render_without_mode_or_before_reset():
     env = roco_env.parallel_env(**FAST, render_mode="rgb_array")
     with pytest.raises(ValueError, match="before reset"):
         env.render()
+
+
+def test_aec_nan_action_raises_at_the_offending_agents_own_step():
+    aec = roco_env.env("v2x_crossroad", density=1.5, max_boxes=24, max_cycles=4)
+    aec.reset(seed=0)
+    first = aec.agent_selection
+    shape = aec.action_space(first).shape
+    bad = np.full(shape, np.nan)
+    with pytest.raises(ValueError, match=f"action for agent '{first}' contains NaN"):
+        aec.step(bad)
+    assert aec.agent_selection == first  # nothing stored, still its turn
+    for _ in range(2 * len(aec.possible_agents)):  # two full cycles of valid actions
+        aec.step(np.zeros(aec.action_space(aec.agent_selection).shape))
+    with pytest.raises(ValueError, match="must have shape"):
+        aec.step(np.zeros(3))

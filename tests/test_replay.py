@@ -165,14 +165,18 @@ def test_round_trip_synthetic_export_replay(tmp_path, layout):
 
 # --- DAIR-V2X cooperative fixture -----------------------------------------------------
 
-def corners(box):
+def corners(box, pitch=0.0):
+    """The 8 corners in DAIR's order (0-3 bottom: front-right, front-left, rear-left,
+    rear-right; 4-7 the top), optionally pitched (rad) about the box's own y axis."""
     x, y, z, length, w, h, yaw = box
     c, s = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
     pts = []
     half = length / 2
     for dz in (-h / 2, h / 2):
-        for dx, dy in ((half, w / 2), (-half, w / 2), (-half, -w / 2), (half, -w / 2)):
-            pts.append([x + c * dx - s * dy, y + s * dx + c * dy, z + dz])
+        for dx, dy in ((half, -w / 2), (half, w / 2), (-half, w / 2), (-half, -w / 2)):
+            fx, fz = cp * dx + sp * dz, -sp * dx + cp * dz
+            pts.append([x + c * fx - s * dy, y + s * fx + c * dy, z + fz])
     return pts
 
 
@@ -184,7 +188,8 @@ def rot_z(yaw):
 DAIR_BOXES = [[100.0, 50.0, 0.8, 4.4, 1.8, 1.6, 0.3], [120.0, 40.0, 1.6, 11.0, 2.5, 3.2, -1.2]]
 
 
-def write_dair(root: Path) -> Path:
+def write_dair(root: Path, dz: float = 0.0) -> Path:
+    """The DAIR fixture; ``dz`` raises the whole recording (world z) by that many metres."""
     def dump(rel, data):
         path = root / rel
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -201,13 +206,14 @@ def write_dair(root: Path) -> Path:
         dump(f"vehicle-side/calib/lidar_to_novatel/{veh}.json",
              {"transform": {"rotation": rot_z(0.1), "translation": [[1.0], [0.0], [1.9]]}})
         dump(f"vehicle-side/calib/novatel_to_world/{veh}.json",
-             {"rotation": rot_z(0.5), "translation": [[90.0 + k], [45.0], [0.0]]})
+             {"rotation": rot_z(0.5), "translation": [[90.0 + k], [45.0], [dz]]})
         dump(f"infrastructure-side/calib/virtuallidar_to_world/{inf}.json",
-             {"rotation": rot_z(-2.0), "translation": [[110.0], [60.0], [5.5]]})
-        labels = [{"type": "Car" if i == 0 else "Bus", "world_8_points": corners(b)}
+             {"rotation": rot_z(-2.0), "translation": [[110.0], [60.0], [5.5 + dz]]})
+        labels = [{"type": "Car" if i == 0 else "Bus",
+                   "world_8_points": corners([*b[:2], b[2] + dz, *b[3:]])}
                   for i, b in enumerate(DAIR_BOXES)]
         labels.append({"type": "Pedestrian", "world_8_points": corners(
-            [105.0, 55.0, 0.9, 0.6, 0.6, 1.8, 0.0])})
+            [105.0, 55.0, 0.9 + dz, 0.6, 0.6, 1.8, 0.0])})
         dump(f"cooperative/label_world/{veh}.json", labels)
     dump("cooperative/data_info.json", info)
     return root
@@ -232,8 +238,8 @@ def test_dair_fixture_loads_poses_and_boxes(tmp_path):
     np.testing.assert_array_equal(state.object_classes, [0, 0, 3])
     np.testing.assert_allclose(state.object_boxes[1:, :6], np.array(DAIR_BOXES)[:, :6],
                                atol=1e-9)
-    np.testing.assert_allclose(np.mod(state.object_boxes[1:, 6] - np.array(DAIR_BOXES)[:, 6]
-                                      + 0.1, np.pi), 0.1, atol=1e-9)  # heading mod pi
+    np.testing.assert_allclose(state.object_boxes[1:, 6], np.array(DAIR_BOXES)[:, 6],
+                               atol=1e-9)  # DAIR's corner order gives the full heading
     assert state.agent_object_ids[0] == state.object_ids[0]
     assert source.step(0.1).agent_poses[0, 0] == pytest.approx(x + 1.0)
 
@@ -263,3 +269,146 @@ def test_bad_dair_input_names_the_path(tmp_path, damage, fragment):
     assert fragment in str(info.value)
     with pytest.raises(ReplayError, match="dataset folder not found"):
         make_traffic_source(dair_config(tmp_path / "nope"))
+
+
+def test_replay_episode_truncates_at_the_last_frame(tmp_path):
+    import roco_env
+
+    env = roco_env.parallel_env("opv2v_replay", max_cycles=50,
+                                **{"traffic.path": str(write_opv2v(tmp_path))})
+    env.reset(seed=0)
+    steps = 0
+    while env.agents:
+        _, _, _, truncations, _ = env.step(
+            {a: np.zeros(env.action_space(a).shape) for a in env.agents})
+        steps += 1
+    assert steps == 2 and all(truncations.values())  # the fixture has two frames
+
+
+def raise_opv2v(scenario: Path, dz: float) -> None:
+    """Raise every height of an OPV2V/V2XSet folder (poses and vehicles) by ``dz`` m."""
+    for path in scenario.glob("*/*.yaml"):
+        data = yaml.safe_load(path.read_text())
+        for key in ("lidar_pose", "true_ego_pos"):
+            data[key][2] += dz
+        for entry in (data.get("vehicles") or {}).values():
+            entry["location"][2] += dz
+        path.write_text(yaml.safe_dump(data))
+
+
+def _visibility(config):
+    from roco_env.sensing.visibility import compute_visibility
+
+    state = make_traffic_source(config).reset(None)
+    return state, compute_visibility(state)
+
+
+@pytest.mark.parametrize("dz", [10.0, -3.0])
+def test_opv2v_scene_raised_is_seen_as_on_the_ground(tmp_path, dz):
+    flat_state, flat = _visibility(opv2v_config(write_opv2v(tmp_path / "flat")))
+    raised_folder = write_opv2v(tmp_path / "raised")
+    raise_opv2v(raised_folder, dz)
+    state, raised = _visibility(opv2v_config(raised_folder))
+    np.testing.assert_allclose(state.ground_heights, flat_state.ground_heights + dz)
+    np.testing.assert_allclose(state.object_boxes[:, 2], flat_state.object_boxes[:, 2] + dz)
+    assert flat.returns.sum() > 0
+    np.testing.assert_allclose(raised.fraction, flat.fraction, atol=1e-12)
+    np.testing.assert_allclose(raised.returns, flat.returns, rtol=1e-9)
+
+
+def test_dair_scene_at_20m_is_seen_as_on_the_ground(tmp_path):
+    flat_state, flat = _visibility(dair_config(write_dair(tmp_path / "flat")))
+    state, raised = _visibility(dair_config(write_dair(tmp_path / "raised", dz=20.0)))
+    np.testing.assert_allclose(flat_state.ground_heights, 0.0, atol=1e-9)
+    np.testing.assert_allclose(state.ground_heights, 20.0, atol=1e-9)
+    assert flat.returns.sum() > 0
+    np.testing.assert_allclose(raised.fraction, flat.fraction, atol=1e-12)
+    np.testing.assert_allclose(raised.returns, flat.returns, rtol=1e-9)
+
+
+def test_dair_realistic_detector_scores_a_raised_scene_like_a_flat_one(tmp_path):
+    import roco_env
+
+    def ap(root):
+        env = roco_env.parallel_env("opv2v_replay", max_cycles=2, sigma_t=0.0, sigma_r=0.0,
+                                    detector="realistic", **{"traffic.source": "dair",
+                                    "traffic.path": str(root), "agents.cavs": 1,
+                                    "agents.rsus": 1})
+        env.reset(seed=0)
+        _, _, _, _, infos = env.step({a: np.zeros(env.action_space(a).shape)
+                                      for a in env.agents})
+        return [(i["n_gt"], i["n_pred"], i["ap50"]) for i in infos.values()]
+
+    flat = ap(write_dair(tmp_path / "flat"))
+    assert sum(n_pred for _, n_pred, _ in flat) > 0
+    assert ap(write_dair(tmp_path / "raised", dz=20.0)) == flat
+
+
+@pytest.mark.parametrize("yaw", [0.3, 2.5, -2.9])
+def test_box_from_dair_corners_keeps_heading_and_the_tilted_height(yaw):
+    box = [3.0, -2.0, 1.0, 6.0, 2.0, 2.5, yaw]
+    pts = corners(box, pitch=math.radians(8.0))  # on a slope: the z extent exceeds h
+    out = box_from_8_points(Path("x.json"), pts)
+    np.testing.assert_allclose(out[:6], box[:6], atol=1e-9)
+    assert out[6] == pytest.approx(yaw, abs=1e-9)
+    assert np.ptp(np.array(pts)[:, 2]) > box[5] + 0.3
+    assert box_from_8_points(Path("x.json"), pts, height=2.4)[5] == 2.4
+
+
+def test_dair_label_height_wins_and_bad_values_name_the_file(tmp_path):
+    root = write_dair(tmp_path)
+    label = root / "cooperative/label_world/015344.json"
+    objects = json.loads(label.read_text())
+    objects[0]["3d_dimensions"] = {"h": 1.55, "w": 1.8, "l": 4.4}
+    label.write_text(json.dumps(objects))
+    state = make_traffic_source(dair_config(root)).reset(None)
+    assert state.object_boxes[1, 5] == 1.55
+    objects[0]["3d_dimensions"]["h"] = "tall"
+    label.write_text(json.dumps(objects))
+    with pytest.raises(ReplayError, match="015344.json: 3d_dimensions.h"):
+        make_traffic_source(dair_config(root))
+
+
+def test_dair_bad_system_error_offset_names_the_file(tmp_path):
+    root = write_dair(tmp_path)
+    info_path = root / "cooperative/data_info.json"
+    info = json.loads(info_path.read_text())
+    info[1]["system_error_offset"]["delta_x"] = "abc"
+    info_path.write_text(json.dumps(info))
+    with pytest.raises(ReplayError, match=r"data_info.json: system_error_offset"):
+        make_traffic_source(dair_config(root))
+    assert make_traffic_source(dair_config(root, rsus=0)).num_frames == 2  # RSU unused
+
+
+def test_dair_without_rsu_needs_no_rsu_calibration(tmp_path):
+    root = write_dair(tmp_path)
+    for path in (root / "infrastructure-side").rglob("*.json"):
+        path.unlink()
+    state = make_traffic_source(dair_config(root, rsus=0)).reset(None)
+    assert state.agent_ids == ("cav_0",)
+    with pytest.raises(ReplayError, match="virtuallidar_to_world"):
+        make_traffic_source(dair_config(root, rsus=1))
+
+
+def test_opv2v_cav_car_from_true_ego_pos_when_no_one_lists_it(tmp_path):
+    scenario = write_opv2v(tmp_path)
+    for frame in ("000068", "000070"):  # nobody lists CAV 650 any more
+        path = scenario / "641" / f"{frame}.yaml"
+        data = yaml.safe_load(path.read_text())
+        del data["vehicles"][650]
+        path.write_text(yaml.safe_dump(data))
+    state = make_traffic_source(opv2v_config(scenario, cavs=1, rsus=1)).reset(None)
+    assert state.agent_ids == ("cav_0", "rsu_0")
+    assert 650 in state.object_ids.tolist()  # CAV 650 is not an agent here, still a car
+    box = state.object_boxes[state.object_ids.tolist().index(650)]
+    np.testing.assert_allclose(box[[0, 1, 6]], [30.0, -5.0, math.radians(30.0)], atol=1e-9)
+
+
+def test_export_of_a_raised_replay_round_trips_its_ground(tmp_path):
+    folder = write_opv2v(tmp_path / "raised")
+    raise_opv2v(folder, 10.0)
+    state = make_traffic_source(opv2v_config(folder)).reset(None)
+    export_opv2v([state], tmp_path / "again")
+    back = make_traffic_source(opv2v_config(tmp_path / "again")).reset(None)
+    np.testing.assert_allclose(back.ground_heights, state.ground_heights, atol=1e-9)
+    np.testing.assert_allclose(back.object_boxes[:, :6], state.object_boxes[:, :6], atol=1e-6)

@@ -160,3 +160,21 @@ def test_invalid_preset_and_params_rejected():
                         ("calibration", 0.0), ("noisy", "yes"), ("flip_prob", "0.1")):
         with pytest.raises(ValueError, match=name):
             detector(**{name: value})
+
+
+def test_false_positives_stand_on_the_ground_under_the_agent():
+    from dataclasses import replace
+
+    flat = make_state(np.zeros((0, 7)), [[10, 10, 1.0]], ranges=[60.0])
+    raised = replace(flat, ground_heights=np.array([20.0]))
+    det = detector(fp_rate=5.0)
+
+    def fp_boxes(state):
+        rng = np.random.default_rng(3)
+        return np.concatenate([det.detect(state, compute_visibility(state), rng)[0].boxes
+                               for _ in range(20)])
+
+    low, high = fp_boxes(flat), fp_boxes(raised)
+    assert low.shape[0] > 0
+    np.testing.assert_allclose(high[:, 2], low[:, 2] + 20.0)
+    np.testing.assert_allclose(np.delete(high, 2, axis=1), np.delete(low, 2, axis=1))

@@ -75,3 +75,21 @@ def test_env_runs_a_users_scene_with_ideal_detections():
     _, rewards, *_ = env.step({a: np.zeros(env.action_space(a).shape, np.float32)
                                for a in env.agents})
     assert rewards["cav_0"] == 1.0  # ideal detector, clean poses: every box found exactly
+
+
+def test_users_frames_end_the_episode_at_the_last_frame():
+    import roco_env
+
+    env = roco_env.parallel_env("urban_intersection", max_cycles=10, frames=frames(3),
+                                detector="ideal", sigma_t=0.0, sigma_r=0.0,
+                                **{"traffic.source": "frames", "agents.cavs": 1,
+                                   "agents.rsus": 1})
+    env.reset(seed=0)
+    truncations, scored = {}, []
+    while env.agents:
+        _, _, _, truncations, infos = env.step(
+            {a: np.zeros(env.action_space(a).shape, np.float32) for a in env.agents})
+        scored.append(infos["cav_0"]["gt_boxes"][infos["cav_0"]["gt_mask"]][:, 0].tolist())
+    assert all(truncations.values())
+    # car 9 at x = 20 seen from the CAV (car 7 at x = t): each frame scored exactly once
+    np.testing.assert_allclose(scored, [[20.0], [19.0], [18.0]])

@@ -56,3 +56,31 @@ def test_cli_generate_and_export(tmp_path, capsys):
     assert main(["scenario", "generate", "--layout", "spaghetti", "--density", "1",
                  "-o", str(out)]) == 2
     assert "spaghetti" in capsys.readouterr().err
+
+
+def test_export_into_a_non_empty_folder_needs_overwrite(tmp_path, capsys):
+    out, export = tmp_path / "my.yaml", tmp_path / "opv2v"
+
+    def export_seed(seed, *extra):
+        return main(["scenario", "generate", "--layout", "traffic_jam", "--density", "12",
+                     "--cavs", "2", "--rsus", "0", "--seed", str(seed), "-o", str(out),
+                     "--export-opv2v", str(export), "--frames", "2", *extra])
+
+    def agent_folders():
+        return sorted(p.name for p in export.iterdir())
+
+    assert export_seed(3) == 0
+    first = agent_folders()
+    yaml_before = out.read_text()
+    assert export_seed(4) == 2  # a second scene would mix with the first
+    assert "not empty" in capsys.readouterr().err and agent_folders() == first
+    assert out.read_text() == yaml_before  # refused before anything was written
+    assert export_seed(4, "--overwrite") == 0
+    second = agent_folders()
+    replay = make_traffic_source(scenario_from_dict(
+        {"traffic": {"source": "opv2v", "path": str(export)}, "agents": {"cavs": 2, "rsus": 0}}))
+    assert replay.num_frames == 2 and len(second) == 2  # only the new scene's agents
+    (export / "notes.txt").write_text("mine")
+    assert export_seed(5, "--overwrite") == 2  # never deletes what it did not write
+    assert "not OPV2V agent folders" in capsys.readouterr().err
+    assert (export / "notes.txt").exists()

@@ -11,6 +11,7 @@ killed, a result that cannot be shipped back) that cell gets an error record.
 from __future__ import annotations
 
 import os
+import signal
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -31,10 +32,33 @@ def default_workers() -> int:
 
 
 def _single_thread_worker() -> None:
-    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2."""
+    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2.
+
+    Workers ignore SIGINT: Ctrl-C reaches the whole process group, and the parent
+    alone decides (it stops the workers, see :func:`_stop_workers`). SIGTERM gets its
+    default action back (a forked worker inherits the sweep's handler).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     import torch
 
     torch.set_num_threads(1)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Kill the pool's worker processes now (a stopped sweep must not leave them).
+
+    ``shutdown`` would wait for the running cells. SIGKILL, not SIGTERM: a worker
+    still starting has the parent's SIGTERM handler, and workers hold nothing to
+    save (the parent writes the records). ``kill_workers`` only exists from Python
+    3.14, so older versions kill the pool's processes directly.
+    """
+    kill = getattr(pool, "kill_workers", None)
+    if kill is not None:
+        kill()
+        return
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.kill()
 
 
 def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None) -> Results:
@@ -62,6 +86,9 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
             except Exception as exc:  # noqa: BLE001 - machinery failure, recorded per cell
                 record = error_record(cell, exc, time.perf_counter() - start)
             yield cell, record
+    except BaseException:  # stopped (signal, consumer gone): the workers stop too
+        _stop_workers(pool)
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 

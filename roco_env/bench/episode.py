@@ -27,7 +27,8 @@ from roco_env.bench.grid import Cell
 from roco_env.bench.records import error_record, ok_record
 from roco_env.bench.spec import parse_policy_spec
 from roco_env.bench.stats import nanmean, pose_error_summary
-from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, FrameStats
+from roco_env.evaluation import filled_rpe_rows, info_frame_stats
+from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.evaluation import matching_precision_recall
 
@@ -36,11 +37,6 @@ _ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"
 
 PolicyFactory = Callable[[], Callable]
 StepCallback = Callable[[int, Any, dict, dict], None]
-
-
-def _finite_rows(errors: Any) -> np.ndarray:
-    arr = np.asarray(errors, dtype=float).reshape(-1, 2)
-    return arr[np.isfinite(arr).all(axis=1)]
 
 
 @dataclass
@@ -75,11 +71,10 @@ class EpisodeScorer:
     def add_outcome(self, info: dict) -> None:
         """Pool an agent's post-step info (its fused frame and RPE rows)."""
         if "frame_scores" in info:
-            self.ap.add_stats(FrameStats(info["frame_scores"], info["frame_tp"], info["frame_fp"],
-                                         int(info["frame_n_gt"]), DEFAULT_IOU_THRESHOLDS))
+            self.ap.add_stats(info_frame_stats(info))
         if "rpe_before" in info:
-            self.before.append(_finite_rows(info["rpe_before"]))
-            self.after.append(_finite_rows(info["rpe_after"]))
+            self.before.append(filled_rpe_rows(info["rpe_before"]))
+            self.after.append(filled_rpe_rows(info["rpe_after"]))
 
     def summary(self) -> tuple[dict[str, float], dict[str, list]]:
         """(metrics, samples): scalar metrics and rounded RPE samples [[t m, r deg], ...]."""

@@ -2,7 +2,9 @@
 
 One JSON object per line, written with flush + fsync as each cell finishes, so a
 killed sweep loses at most the cell being written. A torn last line (killed mid
-write) is ignored on reading and sealed with a newline before the next append.
+write) is sealed with a newline before the next append. Lines that are not a
+record (torn, edited, foreign) are skipped on reading and counted
+(:attr:`ResultStore.unreadable`), so callers can report them.
 Records carry ``key`` and ``status`` ("ok" or "error"); when a key appears more
 than once (a failed cell retried later) the last record wins.
 """
@@ -33,20 +35,26 @@ class ResultStore:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+        self.unreadable = 0  # non-blank lines the last read could not use
 
     def records(self) -> list[dict]:
-        """Every readable record in file order (torn or foreign lines skipped)."""
+        """Every readable record in file order (others skipped, counted in ``unreadable``)."""
+        self.unreadable = 0
         if not self.path.exists():
             return []
         records = []
-        with self.path.open(encoding="utf-8") as handle:
+        with self.path.open(encoding="utf-8", errors="replace") as handle:
             for line in handle:
+                if not line.strip():
+                    continue
                 try:
                     record = json.loads(line)
                 except json.JSONDecodeError:
-                    continue
+                    record = None
                 if isinstance(record, dict) and "key" in record and "status" in record:
                     records.append(record)
+                else:
+                    self.unreadable += 1
         return records
 
     def latest(self) -> dict[str, dict]:

@@ -1,32 +1,100 @@
 """Run a grid of cells into a results file, resuming where a previous run stopped.
 
-Cells whose latest record in the file is ``ok`` are skipped; the rest (new or
-previously failed) run on the chosen backend and each record is appended as soon
-as it arrives. A tqdm bar shows progress and the failure count.
+A cell whose latest record in the file is ``ok`` *and* carries the provenance the
+current code computes for it (:mod:`roco_env.bench.provenance`) is reused; the
+rest (new, previously failed, or stale: produced by other code or scenario
+content) run on the chosen backend and each record is appended as soon as it
+arrives. Stale and unreadable lines are counted and said on stderr. A tqdm bar
+shows progress and the failure count.
+
+SIGTERM (like Ctrl-C) stops the sweep: the workers are stopped with it, finished
+cells stay in the file and :class:`SweepStopped` is raised, so the same call
+later resumes.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 from tqdm import tqdm
 
 from roco_env.bench.backends import CellFn, run_cells
 from roco_env.bench.episode import run_cell
 from roco_env.bench.grid import Cell
+from roco_env.bench.provenance import Provenance
 from roco_env.bench.store import ResultStore
+
+
+class SweepStopped(KeyboardInterrupt):
+    """The sweep was stopped by SIGINT or SIGTERM; finished cells are in the results file."""
+
+    def __init__(self, signal_name: str, results_path: Path) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+        self.results_path = results_path
 
 
 @dataclass
 class SweepOutcome:
-    """Records of the grid's cells (grid order) and what this run did."""
+    """Records of the grid's cells (grid order) and what this run did.
+
+    stale: cells whose earlier ``ok`` record was produced by other code or scenario
+    content and were recomputed; unreadable: lines of the results file that are not
+    records (skipped).
+    """
 
     records: list[dict]
     ran: int
     skipped: int
     failed: int
+    stale: int = 0
+    unreadable: int = 0
+
+
+@dataclass
+class StoredResults:
+    """The current records of a results file (any cell) and what was left out."""
+
+    records: list[dict]
+    stale: int
+    unreadable: int
+
+
+def stored_results(results_path: str | os.PathLike,
+                   provenance: Provenance | None = None) -> StoredResults:
+    """Latest record of every cell in the file whose provenance is current (for reports)."""
+    store = ResultStore(results_path)
+    latest = store.latest()
+    provenance = provenance or Provenance()
+    current = [r for r in latest.values() if provenance.current(r)]
+    return StoredResults(current, len(latest) - len(current), store.unreadable)
+
+
+@contextmanager
+def _stop_on_signals(results_path: Path) -> Iterator[None]:
+    """Turn SIGTERM and SIGINT into :class:`SweepStopped` while the sweep runs (main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, _frame: object) -> None:
+        for sig in previous:  # let the clean-up (stopping the workers) finish
+            signal.signal(sig, signal.SIG_IGN)
+        raise SweepStopped(signal.Signals(signum).name, results_path)
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def run_sweep(
@@ -38,18 +106,33 @@ def run_sweep(
     cell_fn: CellFn = run_cell,
     progress: bool = True,
 ) -> SweepOutcome:
-    """Run the cells not yet finished in ``results_path`` and return every cell's record."""
+    """Run the cells not yet (currently) finished in ``results_path``; every cell's record."""
     store = ResultStore(results_path)
+    provenance = Provenance()
     unique = list({cell.key: cell for cell in cells}.values())
-    done = store.completed_keys()
-    pending = [cell for cell in unique if cell.key not in done]
+    fingerprints = {cell.key: provenance.of(cell) for cell in unique}
+    latest = store.latest()
+    unreadable = store.unreadable
+    ok = {cell.key for cell in unique
+          if latest.get(cell.key, {}).get("status") == "ok"}
+    reusable = {key for key in ok if latest[key].get("provenance") == fingerprints[key]}
+    stale = len(ok) - len(reusable)
+    if unreadable:
+        print(f"{store.path}: {unreadable} unreadable line(s) skipped", file=sys.stderr)
+    if stale:
+        print(f"{store.path}: {stale} cell(s) recomputed: their results were produced by "
+              "other code or scenario content", file=sys.stderr)
+    pending = [cell for cell in unique if cell.key not in reusable]
     failed = 0
-    with tqdm(total=len(unique), initial=len(unique) - len(pending), unit="cell",
-              desc="sweep", disable=not progress, dynamic_ncols=True) as bar:
-        for _, record in run_cells(pending, cell_fn, backend, workers, address):
-            store.append(record)
+    with _stop_on_signals(store.path), tqdm(
+            total=len(unique), initial=len(unique) - len(pending), unit="cell", desc="sweep",
+            disable=not progress, dynamic_ncols=True) as bar, closing(
+            run_cells(pending, cell_fn, backend, workers, address)) as results:
+        for cell, record in results:
+            store.append({**record, "provenance": fingerprints[cell.key]})
             failed += record["status"] != "ok"
             bar.update(1)
             bar.set_postfix(failed=failed, refresh=False)
     return SweepOutcome(records=store.select(c.key for c in unique), ran=len(pending),
-                        skipped=len(unique) - len(pending), failed=failed)
+                        skipped=len(unique) - len(pending), failed=failed, stale=stale,
+                        unreadable=unreadable)

@@ -1,15 +1,19 @@
 """``roco-env compare``: sweep policies x noise x density x seeds, then tables and plots.
 
 Results go to ``OUT/results.jsonl`` as cells finish; re-running the same command
-resumes (finished cells are skipped, failed ones retried). The report
-(``report.md``, ``summary.csv``, PNG plots) is rewritten from all results.
-Exit code 0 when every cell succeeded, 1 when some failed (listed in the report),
-2 for bad options.
+resumes (finished cells are skipped, failed ones retried, and results produced by
+other code or scenario content are recomputed, which the run says). The report
+(``report.md``, ``summary.csv``, PNG plots) is rewritten from all current results
+in the folder, including earlier runs' other policies or settings.
+SIGTERM or Ctrl-C stops the sweep and its workers with one line; re-running the
+command resumes. Exit code 0 when every cell succeeded, 1 when some failed
+(listed in the report), 2 for bad options, 128 + the signal number when stopped.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -18,7 +22,7 @@ from roco_env.bench.grid import Cell, build_grid, validate_grid
 from roco_env.bench.options import DEFAULT_SCENARIO
 from roco_env.bench.report import write_report
 from roco_env.bench.spec import parse_overrides
-from roco_env.bench.sweep import run_sweep
+from roco_env.bench.sweep import SweepStopped, run_sweep, stored_results
 
 # Defaults, and the `--demo` preset (crowded default scenario, the four built-in
 # policies plus roco_antialias, three noise levels).
@@ -52,12 +56,24 @@ def run(args: argparse.Namespace) -> int:
     validate_grid(cells)
     check_backend(args.backend, args.workers, args.address)
     out = Path(_setting(args, "out"))
-    outcome = run_sweep(cells, out / "results.jsonl", backend=args.backend, workers=args.workers,
-                        address=args.address, progress=not args.quiet)
-    report = write_report(outcome.records, out, title=args.title, with_plots=not args.no_plots)
+    try:
+        outcome = run_sweep(cells, out / "results.jsonl", backend=args.backend,
+                            workers=args.workers, address=args.address, progress=not args.quiet)
+    except SweepStopped as stop:
+        print(f"roco-env compare: stopped by {stop.signal_name}; finished cells are saved in "
+              f"{stop.results_path}, run the same command again to resume", file=sys.stderr)
+        return 128 + int(getattr(signal, stop.signal_name))
+    stored = stored_results(out / "results.jsonl")
+    report = write_report(stored.records, out, title=args.title, with_plots=not args.no_plots)
     print(report.markdown)
     print(f"cells: {len(outcome.records)} ({outcome.ran} run, {outcome.skipped} resumed, "
-          f"{outcome.failed} failed)")
+          f"{outcome.stale} recomputed as stale, {outcome.failed} failed)")
+    if len(stored.records) > len(outcome.records):
+        print(f"report: {len(stored.records)} cells, including {len(stored.records) - len(outcome.records)} "
+              "from earlier runs into this folder")
+    if stored.stale or stored.unreadable:
+        print(f"report leaves out {stored.stale} stale record(s) and {stored.unreadable} "
+              "unreadable line(s) of results.jsonl")
     print("wrote: " + ", ".join(str(p) for p in [out / "results.jsonl", *report.files]))
     failed = sum(r["status"] != "ok" for r in outcome.records)
     if failed:

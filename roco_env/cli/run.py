@@ -15,6 +15,7 @@ import numpy as np
 from roco_env.bench.episode import run_episode
 from roco_env.bench.options import add_episode_options, episode_cell
 from roco_env.bench.stats import nanmean
+from roco_env.evaluation import UNDEFINED, filled_rpe_rows
 
 COLUMNS = ("step", "AP@0.5", "AP@0.7", "RPE t before", "RPE t after", "RPE r before",
            "RPE r after", "GT", "pred", "moved")
@@ -26,16 +27,15 @@ def _fmt(value: float, digits: int) -> str:
 
 
 def _median(infos: dict, key: str, column: int) -> float:
-    rows = [np.asarray(i[key], dtype=float).reshape(-1, 2) for i in infos.values() if key in i]
+    rows = [filled_rpe_rows(i[key]) for i in infos.values() if key in i]
     values = np.concatenate(rows)[:, column] if rows else np.zeros(0)
-    values = values[np.isfinite(values)]
     return float(np.median(values)) if values.size else math.nan
 
 
 def step_row(step: int, actions: dict, infos: dict) -> list[str]:
     """The table cells of one step."""
-    ap50 = nanmean([i.get("ap50", math.nan) for i in infos.values()])
-    ap70 = nanmean([i.get("ap70", math.nan) for i in infos.values()])
+    ap50 = nanmean([i["ap50"] for i in infos.values() if i.get("ap50", UNDEFINED) != UNDEFINED])
+    ap70 = nanmean([i["ap70"] for i in infos.values() if i.get("ap70", UNDEFINED) != UNDEFINED])
     moved = sum(bool(np.any(np.abs(a) > 1e-9)) for a in actions.values())
     return [str(step), _fmt(100 * ap50, 1), _fmt(100 * ap70, 1),
             _fmt(_median(infos, "rpe_before", 0), 3), _fmt(_median(infos, "rpe_after", 0), 3),

@@ -26,6 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen.add_argument("--export-opv2v", metavar="DIR", default=None,
                      help="also write the preview episode as OPV2V label folders")
     gen.add_argument("--frames", type=int, default=10, help="frames to export (default 10)")
+    gen.add_argument("--overwrite", action="store_true",
+                     help="replace an earlier export in --export-opv2v DIR (a non-empty DIR "
+                     "is refused otherwise)")
     gen.set_defaults(func=_generate)
 
 
@@ -39,7 +42,8 @@ def _generate(args: argparse.Namespace) -> int:
 
     config, summary = generate(args.layout, args.density, args.cavs, args.rsus, args.seed,
                                output=args.output, export_dir=args.export_opv2v,
-                               frames=args.frames, min_gap=args.min_gap)
+                               frames=args.frames, min_gap=args.min_gap,
+                               overwrite=args.overwrite)
     print(f"wrote {args.output} ({config.name})")
     for line in summary.lines():
         print(line)

@@ -141,7 +141,7 @@ class Detector:
         else:
             scores = np.ones(cand.size)
         unc = p["calibration"] * np.stack([sigma_xy, sigma_xy, sigma_yaw], axis=1)
-        fp = self._clutter(float(state.sensor_ranges[a]), rng)
+        fp = self._clutter(float(state.sensor_ranges[a]), float(state.ground_heights[a]), rng)
         return AgentDetections(
             boxes=np.concatenate([boxes, fp.boxes]),
             uncertainty=np.concatenate([unc, fp.uncertainty]),
@@ -161,8 +161,10 @@ class Detector:
         out[:, 6] = wrap_angle(out[:, 6] + sigma_yaw * rng.standard_normal(n) + np.pi * flips)
         return out
 
-    def _clutter(self, sensor_range: float, rng: np.random.Generator) -> AgentDetections:
-        """Poisson false positives: car-sized boxes uniform over the sensor disk."""
+    def _clutter(self, sensor_range: float, ground: float,
+                 rng: np.random.Generator) -> AgentDetections:
+        """Poisson false positives: car-sized boxes uniform over the sensor disk, standing
+        on the ground under the agent (world z ``ground``, m)."""
         p = self.params
         n = int(rng.poisson(p["fp_rate"]))
         if n == 0:
@@ -172,7 +174,7 @@ class Detector:
         size = np.maximum(_FP_SIZE_MEAN + _FP_SIZE_STD * rng.standard_normal((n, 3)), 0.5)
         yaw = rng.uniform(-np.pi, np.pi, n)
         boxes = np.column_stack([radius * np.cos(bearing), radius * np.sin(bearing),
-                                 0.5 * size[:, 2], size, yaw])
+                                 ground + 0.5 * size[:, 2], size, yaw])
         sigma_xy, sigma_yaw = self.sigmas(np.full(n, sensor_range), np.zeros(n))
         unc = p["calibration"] * np.stack([sigma_xy, sigma_xy, sigma_yaw], axis=1)
         scores = rng.uniform(0.01, p["fp_score_max"], n)

@@ -13,6 +13,9 @@ Model (all agents and objects at once, vectorised with numpy):
   vehicle and any footprint containing the sensor are left out. An object is
   *in range* when its centre distance is at most ``sensor_range``; a ray only
   produces returns where it enters a footprint within range.
+* **Heights** are measured from the ground under the agent
+  (``state.ground_heights``; 0 for simulated scenes), so a recording whose
+  world z is offset (DAIR-V2X at ~20 m) is seen as on flat ground.
 * **Occlusion (2.5D).** Along each ray the pairs are sorted by entry
   distance. Every object in front of a target casts a vertical shadow: the
   line of sight from the sensor (height ``h``) over the occluder's top edge
@@ -96,7 +99,7 @@ class RayHits:
 
     agent (P,) agent index; obj (P,) object index (into WorldState objects);
     ray (P,) ray index; x, y (P,) entry point in the agent's true sensor frame (m);
-    top (P,) height of the highest visible point on that ray (m above ground);
+    top (P,) height of the highest visible point on that ray (m above the ground under the agent);
     returns (P,) expected LiDAR points on that ray.
     """
 
@@ -335,8 +338,10 @@ def compute_visibility(
     agent, obj, entry = pairs["agent"], pairs["obj"], pairs["entry"]
 
     # 2.5D occlusion: the highest shadow cast by anything in front on the same ray.
-    top = boxes[obj, 2] + 0.5 * boxes[obj, 5]
-    bottom = boxes[obj, 2] - 0.5 * boxes[obj, 5]
+    # Heights are measured from the ground under the agent (state.ground_heights).
+    ground = np.asarray(state.ground_heights, dtype=float).reshape(n_agents)[agent]
+    top = boxes[obj, 2] + 0.5 * boxes[obj, 5] - ground
+    bottom = boxes[obj, 2] - 0.5 * boxes[obj, 5] - ground
     h_occ = occl_heights[agent]
     slope = np.maximum((top - h_occ) / entry, (top - h_occ) / pairs["exit"])
     low = np.maximum(bottom, h_occ + _shadow_slopes(pairs["key"], slope) * entry)

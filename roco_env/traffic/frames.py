@@ -12,7 +12,8 @@ Usage::
 Boxes are world-frame (x, y, z, l, w, h, yaw) in metres/radians
 (docs/conventions.md); the CAVs are objects named by id (their box gives the agent pose),
 RSUs are fixed poses. Each ``step`` advances one frame (``dt`` is not used);
-after the last frame the source holds it (``finished`` turns True).
+on the last frame ``finished`` turns True (the env then truncates the episode;
+a further ``step`` holds the last frame).
 """
 
 from __future__ import annotations

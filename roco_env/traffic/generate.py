@@ -24,7 +24,7 @@ from roco_env.scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
-from roco_env.traffic.export import export_opv2v
+from roco_env.traffic.export import export_opv2v, prepare_export_folder
 from roco_env.traffic.state import WorldState
 from roco_env.traffic.synthetic import make_synthetic
 
@@ -103,13 +103,19 @@ def stress_config(layout: str, density: float, cavs: int, rsus: int, seed: int,
 
 def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
              output: str | Path | None = None, export_dir: str | Path | None = None,
-             frames: int = 10, min_gap: float | None = None) -> tuple[ScenarioConfig, Summary]:
+             frames: int = 10, min_gap: float | None = None,
+             overwrite: bool = False) -> tuple[ScenarioConfig, Summary]:
     """Build, preview (seeded) and optionally write a stress scenario.
 
     output: YAML path to write (re-validated by loading it back). export_dir: write
-    ``frames`` preview frames there as OPV2V label folders.
+    ``frames`` preview frames there as OPV2V label folders (a non-empty folder only
+    with ``overwrite``, see :func:`roco_env.traffic.export.export_opv2v`).
     """
     config = stress_config(layout, density, cavs, rsus, seed, min_gap)
+    if export_dir is not None:  # refuse before writing anything
+        if frames < 1:
+            raise ValueError(f"frames must be >= 1; got {frames}")
+        prepare_export_folder(export_dir, overwrite)
     source = make_synthetic(config)
     states = [source.reset(np.random.default_rng(seed))]
     summary = summarize(states[0])
@@ -119,8 +125,6 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
         path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
         load_scenario(path)
     if export_dir is not None:
-        if frames < 1:
-            raise ValueError(f"frames must be >= 1; got {frames}")
         states += [source.step(config.traffic.dt) for _ in range(frames - 1)]
-        export_opv2v(states, export_dir)
+        export_opv2v(states, export_dir, overwrite=overwrite)
     return config, summary

@@ -14,8 +14,9 @@ OPV2V / V2XSet (``traffic.source: opv2v``, ``traffic.path`` = one scenario folde
   id, the first ``agents.cavs`` are used), negative ids are RSUs (V2XSet; ordered
   -1, -2, ...). A CAV's pose is its ``lidar_pose``; its own box is taken from
   another agent's ``vehicles`` list, or built from ``true_ego_pos`` with a
-  typical car size when no other agent lists it. Objects = union of all agents'
-  lists. An optional ``obj_type`` (car/van/truck/bus) restores the class.
+  typical car size when no other agent lists it (for every CAV folder read, used
+  or not). Objects = union of all agents' lists. An optional ``obj_type``
+  (car/van/truck/bus) restores the class.
 
 DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
   ``cooperative/data_info.json`` lists frame pairs; vehicle pose =
@@ -24,9 +25,20 @@ DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
   to its translation (the corrected pose); objects from
   ``cooperative/label_world/*.json`` ``world_8_points`` (right-handed, metres);
   label types other than car/van/truck/bus (pedestrians, cyclists) are skipped.
+  A box follows DAIR's corner order (corners 0-3 one face, 4-7 the other, heading
+  = corner 3 -> 0, length |0-3|, width |0-1|, as the dataset tools write them);
+  its height is the label's ``3d_dimensions.h`` when given, else the length of
+  the edges 0-4 .. 3-7 (not the z extent of a tilted box). Corners in any other
+  order fall back to an order-free fit whose heading is only known modulo pi.
   DAIR cooperative frames are independent samples: object ids are per frame.
   The vehicle's own box is built from its LiDAR pose with a typical car size.
-  One CAV (``cav_0``) and at most one RSU (``rsu_0``).
+  One CAV (``cav_0``) and at most one RSU (``rsu_0``); the RSU's calibration and
+  ``system_error_offset`` are read only when ``agents.rsus`` is 1.
+
+Ground: every agent's ground height (``WorldState.ground_heights``) is its LiDAR
+z minus the scenario's sensor height (``agents.cav_height`` / ``rsu_height``), so
+sensing measures heights above the ground under the agent whatever the
+recording's world z.
 """
 
 from __future__ import annotations
@@ -160,14 +172,14 @@ def load_opv2v(root: str | Path, config: ScenarioConfig) -> tuple[list[WorldStat
     states = []
     for index, frame in enumerate(frames):
         objects: dict[int, tuple[np.ndarray, float, int]] = {}
-        poses, egos = {}, {}
+        poses, egos, lidar_z = {}, {}, {}
         for agent in cav_folders + rsu_folders:
             path = root / str(agent) / f"{frame}.yaml"
             if agent not in agents and not path.is_file():
                 continue  # unused agents only contribute the objects they list
             data = load_yaml(path)
-            poses[agent] = carla_pose_to_world(_numbers(path, _get(path, data, "lidar_pose"),
-                                                        "lidar_pose", 6))
+            lidar = _numbers(path, _get(path, data, "lidar_pose"), "lidar_pose", 6)
+            poses[agent], lidar_z[agent] = carla_pose_to_world(lidar), lidar[2]
             if agent >= 0:
                 ego = _numbers(path, _get(path, data, "true_ego_pos"), "true_ego_pos", 6)
                 egos[agent] = (ego, path)
@@ -177,7 +189,7 @@ def load_opv2v(root: str | Path, config: ScenarioConfig) -> tuple[list[WorldStat
             for key, entry in vehicles.items():
                 oid, box, speed, cls = _opv2v_object(path, key, entry)
                 objects.setdefault(oid, (box, speed, cls))
-        for agent in agents[:n_cav]:
+        for agent in egos:  # a CAV's own car, when no other agent lists it
             if agent not in objects:
                 ego, _ = egos[agent]
                 pose = carla_pose_to_world(ego)
@@ -194,14 +206,16 @@ def load_opv2v(root: str | Path, config: ScenarioConfig) -> tuple[list[WorldStat
                            config.agents)
         cav_poses = np.array([poses[a] for a in agents[:n_cav]]).reshape(-1, 3)
         poses_all = np.vstack([cav_poses, rsu])
-        states.append(_with_agent_poses(state, poses_all))
+        states.append(_with_sensors(state, poses_all, [lidar_z[a] for a in agents]))
     return states, agents
 
 
-def _with_agent_poses(state: WorldState, poses: np.ndarray) -> WorldState:
-    """The same state with the agents' sensor poses replaced (LiDAR pose, not box pose)."""
+def _with_sensors(state: WorldState, poses: np.ndarray, lidar_z: Any) -> WorldState:
+    """The same state with the agents' sensor poses (LiDAR pose, not box pose) and the
+    ground under them (LiDAR z minus the sensor height) filled in."""
     fields = {name: getattr(state, name) for name in state.__dataclass_fields__}
     fields["agent_poses"] = poses
+    fields["ground_heights"] = np.asarray(lidar_z, dtype=float) - state.sensor_heights
     return WorldState(**fields)
 
 
@@ -219,11 +233,38 @@ def _matrix_to_pose(mat: np.ndarray) -> np.ndarray:
     return np.array([mat[0, 3], mat[1, 3], np.arctan2(mat[1, 0], mat[0, 0])])
 
 
-def box_from_8_points(path: Path, points: Any) -> np.ndarray:
-    """Box (x, y, z, l, w, h, yaw) of a cuboid given by its 8 corners (m); the longer
-    horizontal edge is the length, yaw its direction (a cuboid's heading is ambiguous by pi)."""
+def _in_dair_order(pts: np.ndarray, tol: float = 0.05) -> bool:
+    """Whether 8 corners are in DAIR's order: 0-3 a rectangle (0-1 and 3-2 the width
+    edges, 3->0 and 2->1 the length edges), 4-7 the same face shifted along the box's
+    vertical edges. ``tol``: metres, and the cosine allowed between length and width."""
+    low, up = pts[:4], pts[4:]
+    length, width = low[0] - low[3], low[0] - low[1]
+    rectangle = (np.linalg.norm(low[1] - low[2] - length) < tol
+                 and np.linalg.norm(low[3] - low[2] - width) < tol)
+    norms = np.linalg.norm(length) * np.linalg.norm(width)
+    square = norms > 0 and abs(length @ width) < tol * norms
+    shift = up - low
+    prism = bool(np.all(np.linalg.norm(shift - shift.mean(axis=0), axis=1) < tol))
+    return bool(rectangle and square and prism)
+
+
+def box_from_8_points(path: Path, points: Any, height: float | None = None) -> np.ndarray:
+    """Box (x, y, z, l, w, h, yaw) of a cuboid given by its 8 corners (m).
+
+    Corners in DAIR's order (see the module docstring) give the heading 3 -> 0,
+    length |0-3|, width |0-1| and height = the vertical edges' length (exact for a
+    tilted box too). Any other order: the longer horizontal edge is the length and
+    the heading its direction, known only modulo pi (folded into +-90 deg), the
+    height the z extent. ``height`` (the label's own, m) overrides either.
+    """
     pts = _numbers(path, points, "world_8_points", 24).reshape(8, 3)
     centre = pts.mean(axis=0)
+    if _in_dair_order(pts):
+        forward = pts[[0, 1, 4, 5]].mean(axis=0) - pts[[3, 2, 7, 6]].mean(axis=0)
+        side = pts[[0, 3, 4, 7]].mean(axis=0) - pts[[1, 2, 5, 6]].mean(axis=0)
+        edge = float(np.linalg.norm(pts[4:] - pts[:4], axis=1).mean())
+        return np.array([*centre, np.linalg.norm(forward), np.linalg.norm(side),
+                         edge if height is None else height, np.arctan2(forward[1], forward[0])])
     bottom = pts[np.argsort(pts[:, 2], kind="stable")[:4], :2]
     ring = bottom[np.argsort(np.arctan2(*(bottom - bottom.mean(0)).T[::-1]))]
     edges = np.roll(ring, -1, axis=0) - ring
@@ -232,7 +273,8 @@ def box_from_8_points(path: Path, points: Any) -> np.ndarray:
     yaw = np.arctan2(edges[k, 1], edges[k, 0])
     if abs(wrap_angle(yaw)) > np.pi / 2:
         yaw += np.pi
-    height = np.ptp(pts[:, 2])
+    if height is None:
+        height = np.ptp(pts[:, 2])
     return np.array([*centre, lengths[k], lengths[(k + 1) % 4], height, wrap_angle(yaw)])
 
 
@@ -252,24 +294,19 @@ def load_dair(root: str | Path, config: ScenarioConfig) -> list[WorldState]:
     states = []
     for index, item in enumerate(info):
         veh_frame = Path(_get(info_path, item, "vehicle_pointcloud_path")).stem
-        inf_frame = Path(_get(info_path, item, "infrastructure_pointcloud_path")).stem
-        offset = _get(info_path, item, "system_error_offset")
-        delta = np.array([_get(info_path, offset, "delta_x"), _get(info_path, offset, "delta_y")],
-                         dtype=float)
         calib = root / "vehicle-side" / "calib"
         p1, p2 = calib / "lidar_to_novatel" / f"{veh_frame}.json", \
             calib / "novatel_to_world" / f"{veh_frame}.json"
         veh = _transform(p2, load_json(p2)) @ _transform(p1, load_json(p1), "transform")
-        p3 = root / "infrastructure-side" / "calib" / "virtuallidar_to_world" / f"{inf_frame}.json"
-        inf = _transform(p3, load_json(p3))
-        inf[:2, 3] += delta
+        inf = _dair_rsu(root, info_path, item) if config.agents.rsus else None
         label_path = root / _get(info_path, item, "cooperative_label_path")
         labels = load_json(label_path)
         if not isinstance(labels, list):
             raise ReplayError(f"{label_path}: must be a list of labelled objects")
         vehicles = [obj for obj in labels
                     if class_index(_get(label_path, obj, "type")) is not None]
-        boxes = [box_from_8_points(label_path, _get(label_path, obj, "world_8_points"))
+        boxes = [box_from_8_points(label_path, _get(label_path, obj, "world_8_points"),
+                                   _label_height(label_path, obj))
                  for obj in vehicles]
         classes = [class_index(obj["type"]) for obj in vehicles]
         veh_pose = _matrix_to_pose(veh)
@@ -277,11 +314,36 @@ def load_dair(root: str | Path, config: ScenarioConfig) -> list[WorldState]:
                     DEFAULT_CAR, veh_pose[2]]
         all_boxes = np.vstack([ego[None], np.array(boxes).reshape(-1, 7)])
         ids = np.arange(all_boxes.shape[0], dtype=np.int64)
-        rsu = _matrix_to_pose(inf)[None] if config.agents.rsus else np.zeros((0, 3))
+        rsu = np.zeros((0, 3)) if inf is None else _matrix_to_pose(inf)[None]
         state = make_world(index * config.traffic.dt, ids, np.r_[0, classes].astype(np.int64),
                            all_boxes, np.zeros((ids.size, 2)), [0], rsu, config.agents)
-        states.append(_with_agent_poses(state, np.vstack([veh_pose[None], rsu])))
+        lidar_z = [veh[2, 3]] + ([] if inf is None else [inf[2, 3]])
+        states.append(_with_sensors(state, np.vstack([veh_pose[None], rsu]), lidar_z))
     return states
+
+
+def _dair_rsu(root: Path, info_path: Path, item: Any) -> np.ndarray:
+    """4x4 RSU LiDAR-to-world of a frame pair, corrected by its ``system_error_offset``."""
+    inf_frame = Path(_get(info_path, item, "infrastructure_pointcloud_path")).stem
+    offset = _get(info_path, item, "system_error_offset")
+    delta = _numbers(info_path, [_get(info_path, offset, "delta_x"),
+                                 _get(info_path, offset, "delta_y")],
+                     "system_error_offset (delta_x, delta_y)", 2)
+    path = root / "infrastructure-side" / "calib" / "virtuallidar_to_world" / f"{inf_frame}.json"
+    inf = _transform(path, load_json(path))
+    inf[:2, 3] += delta
+    return inf
+
+
+def _label_height(path: Path, obj: Any) -> float | None:
+    """The label's ``3d_dimensions.h`` (m) when it has one."""
+    dims = obj.get("3d_dimensions") if isinstance(obj, dict) else None
+    if dims is None or "h" not in dims:
+        return None
+    height = float(_numbers(path, dims["h"], "3d_dimensions.h", 1)[0])
+    if height <= 0:
+        raise ReplayError(f"{path}: 3d_dimensions.h must be > 0, got {height}")
+    return height
 
 
 def _require_path(config: ScenarioConfig) -> str:

@@ -29,8 +29,12 @@ class WorldState:
       agent_poses (A, 3) true world poses (x, y, yaw) of the sensor origin.
       agent_object_ids (A,) int64: the object id of the agent's own vehicle,
         -1 for an RSU (an RSU is not an object others can see).
-      sensor_heights (A,) metres above ground; sensor_ranges (A,) metres;
-      comm_ranges (A,) metres.
+      sensor_heights (A,) metres above the ground under the agent;
+      sensor_ranges (A,) metres; comm_ranges (A,) metres.
+      ground_heights (A,) world z (m) of the ground under each agent (default 0):
+        sensing measures heights (box tops and bottoms, the sensor) from it, so
+        a recording whose world z is far from 0 (a DAIR-V2X scene at ~20 m, a
+        V2XSet town on a hill) is seen as on flat ground at z = 0.
     """
 
     time: float
@@ -45,11 +49,15 @@ class WorldState:
     sensor_heights: np.ndarray
     sensor_ranges: np.ndarray
     comm_ranges: np.ndarray
+    ground_heights: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.ground_heights is None:
+            object.__setattr__(self, "ground_heights", np.zeros(len(self.agent_ids)))
         for name in (
             "object_ids", "object_classes", "object_boxes", "object_velocities",
             "agent_poses", "agent_object_ids", "sensor_heights", "sensor_ranges", "comm_ranges",
+            "ground_heights",
         ):
             arr = np.array(getattr(self, name))  # private copy, then frozen
             arr.setflags(write=False)
@@ -65,7 +73,11 @@ class WorldState:
 
 
 class TrafficSource(Protocol):
-    """Where objects and agents are, step by step. Deterministic given the rng."""
+    """Where objects and agents are, step by step. Deterministic given the rng.
+
+    Sources with a fixed number of frames (replays, user frames) also have a
+    ``finished`` property, True once the current frame is the last one.
+    """
 
     def reset(self, rng: np.random.Generator) -> WorldState: ...
 
