@@ -84,8 +84,8 @@ def _episode_actions(policy_for, steps=3):
     return actions_seen
 
 
-@pytest.mark.parametrize("name", ["roco_temporal", "coalign_temporal"])
-def test_a_shared_temporal_policy_acts_as_one_per_agent(name):
+@pytest.mark.parametrize("name", available_policies())
+def test_a_shared_policy_acts_as_one_per_agent(name):
     shared = make_policy(name)
     own = {}
     per_agent = _episode_actions(lambda a: own.setdefault(a, make_policy(name)))
@@ -99,4 +99,4 @@ def test_list_names_the_stateful_policies(capsys):
     assert main(["list", "policies"]) == 0
     lines = capsys.readouterr().out.splitlines()
     stateful = {line.split()[0] for line in lines if "stateful" in line}
-    assert stateful == {"roco_temporal", "coalign_temporal"}
+    assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias"}
