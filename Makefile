@@ -32,7 +32,7 @@ test: $(VENV)/.dev-installed
 
 # The benchmarks compare against shapely loops, a dev extra.
 bench: $(VENV)/.dev-installed
-	$(PY) -m roco_env.perf
+	$(PY) -m roco_env.benchmarks
 
 lint: $(VENV)/.dev-installed
 	$(VENV)/bin/ruff check roco_env tests examples baselines

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from roco_env.bench import build_grid, run_sweep, write_report
+from roco_env.sweeps import build_grid, run_sweep, write_report
 
 
 def main() -> None:

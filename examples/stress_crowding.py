@@ -16,7 +16,7 @@ import argparse
 import os
 from pathlib import Path
 
-from roco_env.bench import build_grid, run_sweep, write_report
+from roco_env.sweeps import build_grid, run_sweep, write_report
 from roco_env.traffic.generate import generate
 
 

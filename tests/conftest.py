@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from roco_env.bench.grid import Cell
-from roco_env.bench.records import ok_record
+from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.records import ok_record
 from roco_env.traffic.state import WorldState
 
 # CI (CI=true) replays the same examples every run so a green main stays green;

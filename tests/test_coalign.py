@@ -5,12 +5,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from roco_env.metrics import relative_pose_error
+from roco_env.metrics import matching_precision_recall, relative_pose_error
 from roco_env.policies import make_policy
 from roco_env.policies.base import apply_correction
 from roco_env.policies.coalign import circular_variance, coalign_align, greedy_clusters
-from roco_env.policies.evaluation import matching_precision_recall
-from roco_env.policies.synthetic import make_scene, pose_error, random_objects, to_observation
+from roco_env.policies.constructed_scenes import (
+    make_scene,
+    pose_error,
+    random_objects,
+    to_observation,
+)
 
 AGENTS = np.array([[0.0, 0.0, 0.0], [15.0, 5.0, 0.5], [-10.0, 12.0, -1.0]])
 ERRORS = np.array([pose_error(0.8, 0.8, 0.3), pose_error(0.8, -0.8, 2.0)])

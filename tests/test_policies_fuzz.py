@@ -7,8 +7,13 @@ from hypothesis import strategies as st
 
 from roco_env.policies import make_policy
 from roco_env.policies.coalign import coalign_align
+from roco_env.policies.constructed_scenes import (
+    make_scene,
+    pose_error,
+    random_objects,
+    to_observation,
+)
 from roco_env.policies.roco import roco_align
-from roco_env.policies.synthetic import make_scene, pose_error, random_objects, to_observation
 
 ALIGNERS = [coalign_align, roco_align]
 PAIR = np.array([[0.0, 0.0, 0.0], [10.0, -8.0, 0.7]])

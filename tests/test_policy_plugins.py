@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import roco_env
-from roco_env.bench.spec import parse_policy_spec, validate_policy_spec
 from roco_env.cli import main
 from roco_env.policies import available_policies, make_policy
+from roco_env.sweeps.spec import parse_policy_spec, validate_policy_spec
 
 PLUGIN = textwrap.dedent('''
     import numpy as np

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from roco_env.bench.episode import run_episode
-from roco_env.bench.options import add_episode_options, episode_cell
+from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.options import add_episode_options, episode_cell
 
 
 def _frame(env) -> Image.Image:

@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 
-from roco_env.bench.episode import run_episode
-from roco_env.bench.options import add_episode_options, episode_cell
-from roco_env.bench.stats import nanmean
 from roco_env.evaluation import UNDEFINED, filled_rpe_rows
+from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.options import add_episode_options, episode_cell
+from roco_env.sweeps.stats import nanmean
 
 COLUMNS = ("step", "AP@0.5", "AP@0.7", "RPE t before", "RPE t after", "RPE r before",
            "RPE r after", "GT", "pred", "moved")

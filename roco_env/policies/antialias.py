@@ -37,6 +37,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from roco_env.geometry import validate_boxes, wrap_angle
+from roco_env.policies.adapter import ArrayAlignmentPolicy, unpack_observation
 from roco_env.policies.base import AlignmentResult, correction_action
 from roco_env.policies.hypotheses import (
     EvidenceParams,
@@ -47,7 +48,6 @@ from roco_env.policies.hypotheses import (
     score_hypotheses,
 )
 from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs, require_positive
-from roco_env.policies.observation import ArrayAlignmentPolicy, unpack_observation
 from roco_env.policies.roco import RoCoParams, roco_align
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]

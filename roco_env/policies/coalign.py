@@ -51,6 +51,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     UncertaintyParams,
@@ -59,7 +60,6 @@ from roco_env.policies.landmarks import (
     params_from_kwargs,
     prepare_inputs,
 )
-from roco_env.policies.observation import ArrayAlignmentPolicy
 from roco_env.policies.posegraph import optimize
 
 __all__ = [

@@ -63,6 +63,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
 from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     AlignmentInputs,
@@ -74,7 +75,6 @@ from roco_env.policies.landmarks import (
     prior_information,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher
-from roco_env.policies.observation import ArrayAlignmentPolicy
 from roco_env.policies.posegraph import (
     ROBUST_KERNELS,
     PoseGraphResult,

@@ -1,4 +1,4 @@
-"""The record stored per finished cell (one JSONL line; see :mod:`roco_env.bench.store`).
+"""The record stored per finished cell (one JSONL line; see :mod:`roco_env.sweeps.store`).
 
 ``{"key", "cell", "version", "status": "ok" | "error", "elapsed_s",
    "metrics": {...}, "samples": {"before": [[t m, r deg], ...], "after": [...]}}``
@@ -11,7 +11,7 @@ from __future__ import annotations
 import traceback
 from typing import Any
 
-from roco_env.bench.grid import Cell
+from roco_env.sweeps.grid import Cell
 
 RECORD_VERSION = 1
 TRACEBACK_FRAMES = 6

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from roco_env.bench.stats import nanmean, nanstd, pose_error_summary
+from roco_env.sweeps.stats import nanmean, nanstd, pose_error_summary
 
 AP_KEYS = ("ap30", "ap50", "ap70")
 MEAN_KEYS = ("match_precision", "match_recall", "correction_share")

@@ -1,7 +1,7 @@
 """Run a grid of cells into a results file, resuming where a previous run stopped.
 
 A cell whose latest record in the file is ``ok`` *and* carries the provenance the
-current code computes for it (:mod:`roco_env.bench.provenance`) is reused; the
+current code computes for it (:mod:`roco_env.sweeps.provenance`) is reused; the
 rest (new, previously failed, or stale: produced by other code or scenario
 content) run on the chosen backend and each record is appended as soon as it
 arrives. Stale and unreadable lines are counted and said on stderr. A tqdm bar
@@ -25,11 +25,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from roco_env.bench.backends import CellFn, run_cells
-from roco_env.bench.episode import run_cell
-from roco_env.bench.grid import Cell
-from roco_env.bench.provenance import Provenance
-from roco_env.bench.store import ResultStore
+from roco_env.sweeps.backends import CellFn, run_cells
+from roco_env.sweeps.episode import run_cell
+from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.provenance import Provenance
+from roco_env.sweeps.store import ResultStore
 
 
 class SweepStopped(KeyboardInterrupt):

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from roco_env.bench.grid import Cell, build_grid
-from roco_env.bench.store import ResultStore
-from roco_env.bench.sweep import run_sweep
+from roco_env.sweeps.grid import Cell, build_grid
+from roco_env.sweeps.store import ResultStore
+from roco_env.sweeps.sweep import run_sweep
 
 TINY = {"cavs": 2, "rsus": 1}  # few agents: fast cells
 SCENARIO = "crowded_intersection"

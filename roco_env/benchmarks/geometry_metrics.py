@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
+from roco_env.benchmarks._timing import median_seconds
 from roco_env.geometry import bev_iou, box_corners_bev
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, LabelledFrame
-from roco_env.perf._timing import median_seconds
 
 
 def _vehicles(rng: np.random.Generator, n: int, x_span: float, y_span: float) -> np.ndarray:

@@ -14,10 +14,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from roco_env.bench import plots
-from roco_env.bench.aggregate import SummaryRow, summarize
-from roco_env.bench.spec import format_scalar
-from roco_env.bench.tables import (
+from roco_env.sweeps import plots
+from roco_env.sweeps.aggregate import SummaryRow, summarize
+from roco_env.sweeps.spec import format_scalar
+from roco_env.sweeps.tables import (
     ap_by_density,
     ap_by_noise,
     density_label,

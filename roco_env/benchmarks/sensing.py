@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from roco_env.benchmarks._timing import median_seconds
 from roco_env.geometry import box_corners_bev, se2_inverse, transform_boxes
-from roco_env.perf._timing import median_seconds
 from roco_env.scenario import load_scenario
 from roco_env.sensing import BevGrid, bev_features, compute_visibility, make_detector, warp_bev
 from roco_env.traffic import make_traffic_source

@@ -15,10 +15,10 @@ import statistics
 import tempfile
 from pathlib import Path
 
-from roco_env.bench.backends import default_workers
-from roco_env.bench.grid import build_grid
-from roco_env.bench.sweep import run_sweep
-from roco_env.perf._timing import median_seconds
+from roco_env.benchmarks._timing import median_seconds
+from roco_env.sweeps.backends import default_workers
+from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.sweep import run_sweep
 
 
 def _grid(quick: bool):

@@ -1,7 +1,7 @@
 """Where cells run: ``local`` (a process pool on this machine) or ``ray`` (a Ray cluster).
 
 Both take a picklable module-level ``cell_fn(cell) -> record`` that never raises
-(see :func:`roco_env.bench.episode.run_cell`) and yield ``(cell, record)`` in
+(see :func:`roco_env.sweeps.episode.run_cell`) and yield ``(cell, record)`` in
 completion order; the caller (the parent process) writes the records. A cell is a
 pure function of its settings and seed, so both backends give identical records
 apart from ``elapsed_s``. If the machinery itself fails for a cell (a worker
@@ -16,8 +16,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
-from roco_env.bench.grid import Cell
-from roco_env.bench.records import error_record
+from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.records import error_record
 
 BACKENDS = ("local", "ray")
 RAY_MISSING = "the ray backend needs Ray, which is not installed: pip install roco-env[ray]"

@@ -1,4 +1,4 @@
-"""Run the micro-benchmarks: ``python -m roco_env.perf [--quick] [module ...]``."""
+"""Run the micro-benchmarks: ``python -m roco_env.benchmarks [--quick] [module ...]``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import importlib
 import pkgutil
 
-import roco_env.perf as perf_pkg
+import roco_env.benchmarks as perf_pkg
 
 
 def main() -> None:
@@ -18,7 +18,7 @@ def main() -> None:
         m.name for m in pkgutil.iter_modules(perf_pkg.__path__) if not m.name.startswith("_")
     )
     for name in names:
-        module = importlib.import_module(f"roco_env.perf.{name}")
+        module = importlib.import_module(f"roco_env.benchmarks.{name}")
         print(f"== {name} ==", flush=True)
         for line in module.run(quick=args.quick):
             print(line, flush=True)

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from roco_env.bench.aggregate import SummaryRow
-from roco_env.bench.tables import density_label, noise_label
+from roco_env.sweeps.aggregate import SummaryRow
+from roco_env.sweeps.tables import density_label, noise_label
 
 MAX_NOISE_ROWS = 4  # Figure-7 panels: at most this many noise levels (the highest ones)
 

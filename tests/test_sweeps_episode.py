@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from roco_env.bench.episode import run_episode
-from roco_env.bench.grid import Cell
 from roco_env.metrics import APAccumulator
 from roco_env.policies import make_policy
+from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.grid import Cell
 
 TINY = (("cavs", 2), ("rsus", 1))
 

@@ -23,14 +23,13 @@ from typing import Any
 import numpy as np
 
 import roco_env
-from roco_env.bench.grid import Cell
-from roco_env.bench.records import error_record, ok_record
-from roco_env.bench.spec import parse_policy_spec
-from roco_env.bench.stats import nanmean, pose_error_summary
 from roco_env.evaluation import filled_rpe_rows, info_frame_stats
-from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator
+from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_precision_recall
 from roco_env.policies.base import AlignmentResult
-from roco_env.policies.evaluation import matching_precision_recall
+from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.records import error_record, ok_record
+from roco_env.sweeps.spec import parse_policy_spec
+from roco_env.sweeps.stats import nanmean, pose_error_summary
 
 SAMPLE_DECIMALS = 3  # RPE samples are stored to 1 mm / 0.001 deg (plots, pooled percentiles)
 _ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"

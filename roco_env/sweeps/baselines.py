@@ -1,9 +1,9 @@
 """The reproducible baseline experiments of ``baselines/`` and their runner.
 
-    python -m roco_env.bench.baselines                      # all, into baselines/results/
-    python -m roco_env.bench.baselines --only paper_protocol ablation_tau2
-    python -m roco_env.bench.baselines --smoke              # tiny version, into runs/
-    python -m roco_env.bench.baselines --print-commands     # the same as roco-env commands
+    python -m roco_env.sweeps.baselines                      # all, into baselines/results/
+    python -m roco_env.sweeps.baselines --only paper_protocol ablation_tau2
+    python -m roco_env.sweeps.baselines --smoke              # tiny version, into runs/
+    python -m roco_env.sweeps.baselines --print-commands     # the same as roco-env commands
 
 Each experiment is one sweep (resumable) written to ``OUT/<name>/`` (results.jsonl,
 report.md, summary.csv, plots). Noise level s = sigma_t s m and sigma_r s deg on
@@ -19,11 +19,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from roco_env.bench.backends import BACKENDS
-from roco_env.bench.grid import Cell, build_grid, validate_grid
-from roco_env.bench.report import write_report
-from roco_env.bench.spec import Scalar, format_scalar
-from roco_env.bench.sweep import run_sweep
+from roco_env.sweeps.backends import BACKENDS
+from roco_env.sweeps.grid import Cell, build_grid, validate_grid
+from roco_env.sweeps.report import write_report
+from roco_env.sweeps.spec import Scalar, format_scalar
+from roco_env.sweeps.sweep import run_sweep
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
@@ -142,7 +142,7 @@ def run_experiments(names: Sequence[str], out: Path, smoke: bool = False, backen
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m roco_env.bench.baselines",
+    parser = argparse.ArgumentParser(prog="python -m roco_env.sweeps.baselines",
                                      description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="+", metavar="NAME",

@@ -9,8 +9,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 
-from roco_env.bench.aggregate import SummaryRow
-from roco_env.bench.spec import format_scalar
+from roco_env.sweeps.aggregate import SummaryRow
+from roco_env.sweeps.spec import format_scalar
 
 
 def noise_label(noise: float) -> str:

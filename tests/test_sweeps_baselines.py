@@ -6,10 +6,10 @@ import shlex
 
 import pytest
 
-from roco_env.bench.baselines import EXPERIMENTS, experiment, main
-from roco_env.bench.grid import validate_grid
 from roco_env.cli import build_parser
 from roco_env.cli.compare import grid_from_args
+from roco_env.sweeps.baselines import EXPERIMENTS, experiment, main
+from roco_env.sweeps.grid import validate_grid
 
 
 @pytest.mark.parametrize("item", EXPERIMENTS, ids=lambda e: e.name)

@@ -1,6 +1,6 @@
 """Results store, resume and failure handling of the sweep, with an injected cell function.
 
-The real-env versions (subprocess kill, Ray) are in test_bench_sweep.py.
+The real-env versions (subprocess kill, Ray) are in test_sweeps_sweep.py.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
 
 import roco_env
-from roco_env.bench import provenance
-from roco_env.bench.grid import build_grid
-from roco_env.bench.store import ResultStore
-from roco_env.bench.sweep import run_sweep, stored_results
+from roco_env.sweeps import provenance
+from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.store import ResultStore
+from roco_env.sweeps.sweep import run_sweep, stored_results
 
 
 @pytest.fixture(autouse=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from roco_env.perf._timing import median_seconds
+from roco_env.benchmarks._timing import median_seconds
 from roco_env.scenario import scenario_from_dict
 from roco_env.traffic import make_traffic_source
 

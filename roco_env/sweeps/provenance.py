@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import roco_env
-from roco_env.bench.grid import Cell
 from roco_env.scenario import load_scenario, scenario_to_dict
+from roco_env.sweeps.grid import Cell
 
 PACKAGE_ROOT = Path(roco_env.__file__).resolve().parent
 
