@@ -40,10 +40,14 @@ of the evaluated frame) and, describing the observation returned with the
 info: ``collaborators`` (agent ids by slot), ``n_collaborators`` and
 ``privileged`` (true/reported relative poses (N, 3) float64, object ids of the
 observed boxes, -1 = false positive or empty). reset() infos carry the last
-three and ``evaluated``. With ``fusion="intermediate"`` (needs ``features=True``)
-evaluated agents' infos also hold ``fused_features`` (C, H, W): collaborators'
-BEV maps warped with the corrected poses and max-fused; decoding them into
-boxes is a later issue, so AP is still computed on late-fused boxes.
+three and ``evaluated``.
+
+Fusion (``fusion=``): ``late`` merges the boxes of the ego and its
+collaborators (moved with the corrected poses) and suppresses duplicates;
+``intermediate`` (needs ``detector="learned"``) warps the collaborators'
+encoder maps into the ego frame with the corrected poses, max-fuses them with
+the ego's on a canvas covering the evaluation range and decodes the fused map (:mod:`roco_env.fusion.intermediate`); AP
+and reward then come from those decoded boxes (own footprint kept clear the same way).
 
 The environment has no terminal state; ``max_cycles`` steps truncate the
 episode, after which ``agents`` is empty and ``step`` raises until ``reset``.
@@ -111,9 +115,6 @@ class CollabPerceptionEnv(ParallelEnv):
             config = apply_overrides(scenario, overrides)
         else:
             config = load_scenario(scenario, **overrides)
-        if config.fusion.method == "intermediate" and not config.features.enabled:
-            raise ValueError("fusion='intermediate' needs BEV features: set features=True "
-                             "(features.enabled)")
         self.config = config
         self.max_cycles = int(max_cycles)
         self.render_mode = render_mode
@@ -275,8 +276,6 @@ class CollabPerceptionEnv(ParallelEnv):
                     cfg.max_collaborators), strict=True):
                 infos[agent], rewards[agent] = {"rpe_before": before, "rpe_after": after}, 0.0
         for agent, view in views.items():
-            if agent in fused and cfg.fusion.method == "intermediate":
-                infos[agent]["fused_features"] = self._fuse_features(view, corrected[agent])
             infos[agent]["evaluated"] = agent in fused
             infos[agent]["evaluated_collaborators"] = [self.possible_agents[j]
                                                        for j in view.collaborators]
@@ -284,25 +283,27 @@ class CollabPerceptionEnv(ParallelEnv):
                 {a: infos[a] for a in self.possible_agents})
 
     def _fuse(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray]) -> dict:
-        """Late-fused detections of every evaluated agent (one batched NMS), own footprint clear."""
+        """Fused detections of every evaluated agent (one batched NMS), own footprint clear."""
         with self.clock.measure("fusion"):
             egos = [k for k, agent in enumerate(self.possible_agents)
                     if agent in self.evaluated_agents]
-            merged = merge_many([
-                (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
-                 frame.views[k].collab_scores, corrected[self.possible_agents[k]])
-                for k in egos
-            ])
+            if self.config.fusion.method == "intermediate":
+                from roco_env.fusion.intermediate import intermediate_fusion
+
+                merged = intermediate_fusion(
+                    self.pipeline.detector, frame.encoder_maps, frame.state, egos,
+                    [frame.views[k].collaborators for k in egos],
+                    [corrected[self.possible_agents[k]] for k in egos],
+                    self.config.evaluation.x_range, self.config.evaluation.y_range)
+            else:
+                merged = merge_many([
+                    (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
+                     frame.views[k].collab_scores, corrected[self.possible_agents[k]])
+                    for k in egos
+                ])
             fused = suppress(merged, self.config.fusion.nms_iou,
                              [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
-
-    def _fuse_features(self, view: EgoView, corrected: np.ndarray) -> np.ndarray:
-        from roco_env.fusion.intermediate import fuse_features
-
-        with self.clock.measure("feature_fusion"):
-            return fuse_features(view.features, view.collab_features, corrected,
-                                 self.pipeline.grid).numpy()
 
 
 def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:

@@ -103,13 +103,16 @@ class NoiseConfig:
 class DetectorConfig:
     """What each agent detects (DESIGN.md section 5)."""
 
-    preset: str = _spec("realistic", choices=("ideal", "realistic"))
-    params: dict = _spec({}, doc="explicit detector parameters overriding the preset")
+    preset: str = _spec("realistic", choices=("ideal", "realistic", "learned"))
+    params: dict = _spec({}, doc="explicit detector parameters overriding the preset "
+                         "(learned: weights, device, score_threshold)")
 
 
 @dataclass
 class FusionConfig:
-    method: str = _spec("late", choices=("late", "intermediate"))
+    method: str = _spec("late", choices=("late", "intermediate"),
+                        doc="intermediate decodes fused BEV feature maps: needs detector.preset "
+                        "learned")
     nms_iou: float = _spec(0.15, low=0.0, high=1.0, doc="BEV IoU threshold of late-fusion NMS")
 
 
@@ -249,6 +252,12 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
         raise ScenarioError(
             f"{where}: traffic.layout={config.traffic.layout!r} is not allowed with "
             f"traffic.source={config.traffic.source!r}; choose one of {list(allowed)}"
+        )
+    if config.fusion.method == "intermediate" and config.detector.preset != "learned":
+        raise ScenarioError(
+            f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
+            f"feature maps, so it needs detector.preset='learned' (detector='learned'); got "
+            f"detector.preset={config.detector.preset!r}"
         )
     return config
 

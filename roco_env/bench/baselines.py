@@ -93,6 +93,10 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("alignment_accuracy", "Pose accuracy: RPE, Success@1m1deg, matching P/R",
                ("urban_intersection", "parking_lot"), (0.2, 0.4, 0.6, 0.8, 1.0, 1.5),
                ("identity", "coalign", "roco"), seeds=2, steps=30),
+    Experiment("paper_protocol_intermediate",
+               "Table 1 with intermediate fusion of the learned detector (noise 0-0.8)",
+               ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN, seeds=1, steps=10,
+               overrides={**PROTOCOL, "detector": "learned", "fusion": "intermediate"}),
 )
 
 
