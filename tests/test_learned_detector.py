@@ -134,7 +134,7 @@ def test_a_wrong_pose_decodes_worse_than_the_true_pose(detector, scene):
     assert true_ap > wrong_ap + 0.05
 
 
-def test_training_smoke_run_lowers_the_loss():
+def test_training_smoke_run_lowers_the_loss_and_is_deterministic():
     from roco_env.training.train import TrainConfig, train
 
     config = TrainConfig(x_range=(-25.6, 25.6), y_range=(-12.8, 12.8), widths=(4, 8, 8),
@@ -143,6 +143,9 @@ def test_training_smoke_run_lowers_the_loss():
     result = train(config, progress=False)
     total = result.history["total"]
     assert len(total) == 16 and np.mean(total[-4:]) < np.mean(total[:4])
+    again = train(config, progress=False)  # same seed, same machine: same weights
+    for name, value in result.net.state_dict().items():
+        assert torch.equal(value, again.net.state_dict()[name]), name
 
 
 def _episode(seed: int):
