@@ -87,7 +87,7 @@ class CollabPerceptionEnv(ParallelEnv):
     ## Reward
 
     ``evaluation.reward`` (override ``reward=``): ``ap70`` (default), ``ap50``,
-    ``ap30``, the per-step AP of the agent's late-fused detections at that IoU in
+    ``ap30``, the per-step AP of the agent's fused detections at that IoU in
     its true frame (an undefined AP, no ground truth and no predictions, counts as
     0), or
     ``neg_rpe``, minus the mean (translation m + rotation deg) error of the
@@ -114,10 +114,17 @@ class CollabPerceptionEnv(ParallelEnv):
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
     the observed boxes, -1 = false positive or empty slot; read by ``oracle``).
-    ``reset()`` infos carry the last four and ``evaluated``. With
-    ``fusion="intermediate"`` (needs ``features=True``) evaluated agents' infos also
-    hold ``fused_features`` (C, H, W), the collaborators' BEV maps warped with the
-    corrected poses and max-fused; AP is still computed on late-fused boxes.
+    ``reset()`` infos carry the last four and ``evaluated``.
+
+    ## Fusion
+
+    ``fusion="late"`` (default) merges the boxes of the ego and its collaborators
+    (moved with the corrected poses) and suppresses duplicates (rotated NMS).
+    ``fusion="intermediate"`` (needs ``detector="learned"``) warps the collaborators'
+    encoder maps into the ego frame with the corrected poses, max-fuses them with the
+    ego's on a canvas covering the evaluation range and decodes the fused map
+    (:mod:`roco_env.fusion.intermediate`); AP and reward then come from those decoded
+    boxes (the ego's own footprint kept clear the same way). docs/perception.md.
 
     ## State
 
@@ -177,9 +184,6 @@ class CollabPerceptionEnv(ParallelEnv):
         if config.agents.cavs + config.agents.rsus < 1:
             raise ValueError("agents.cavs + agents.rsus must be >= 1: an env needs at least one "
                              "agent (cavs=0, rsus=0 describes traffic only)")
-        if config.fusion.method == "intermediate" and not config.features.enabled:
-            raise ValueError("fusion='intermediate' needs BEV features: set features=True "
-                             "(features.enabled)")
         self.config = config
         self.max_cycles = int(max_cycles)
         self.render_mode = render_mode
@@ -368,8 +372,6 @@ class CollabPerceptionEnv(ParallelEnv):
                 infos[agent] = {"rpe_before": rpe_info(before), "rpe_after": rpe_info(after)}
                 rewards[agent] = 0.0
         for agent, view in views.items():
-            if agent in fused and cfg.fusion.method == "intermediate":
-                infos[agent]["fused_features"] = self._fuse_features(view, corrected[agent])
             infos[agent]["evaluated"] = agent in fused
             infos[agent]["evaluated_collaborators"] = [self.possible_agents[j]
                                                        for j in view.collaborators]
@@ -377,25 +379,27 @@ class CollabPerceptionEnv(ParallelEnv):
                 {a: infos[a] for a in self.possible_agents})
 
     def _fuse(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray]) -> dict:
-        """Late-fused detections of every evaluated agent (one batched NMS), own footprint clear."""
+        """Fused detections of every evaluated agent (one batched NMS), own footprint clear."""
         with self.clock.measure("fusion"):
             egos = [k for k, agent in enumerate(self.possible_agents)
                     if agent in self.evaluated_agents]
-            merged = merge_many([
-                (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
-                 frame.views[k].collab_scores, corrected[self.possible_agents[k]])
-                for k in egos
-            ])
+            if self.config.fusion.method == "intermediate":
+                from roco_env.fusion.intermediate import intermediate_fusion
+
+                merged = intermediate_fusion(
+                    self.pipeline.detector, frame.encoder_maps, frame.state, egos,
+                    [frame.views[k].collaborators for k in egos],
+                    [corrected[self.possible_agents[k]] for k in egos],
+                    self.config.evaluation.x_range, self.config.evaluation.y_range)
+            else:
+                merged = merge_many([
+                    (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
+                     frame.views[k].collab_scores, corrected[self.possible_agents[k]])
+                    for k in egos
+                ])
             fused = suppress(merged, self.config.fusion.nms_iou,
                              [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
-
-    def _fuse_features(self, view: EgoView, corrected: np.ndarray) -> np.ndarray:
-        from roco_env.fusion.intermediate import fuse_features
-
-        with self.clock.measure("feature_fusion"):
-            return fuse_features(view.features, view.collab_features, corrected,
-                                 self.pipeline.grid).numpy()
 
 
 def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:

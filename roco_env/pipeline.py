@@ -16,6 +16,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,9 @@ class PerceptionFrame:
     in its true sensor frame; features: per agent (C, H, W) tensors or None;
     views: per agent, what its observation holds; footprints: per agent, its
     own vehicle's box (7,) in its true sensor frame (what late fusion keeps
-    clear of collaborators' boxes), None for an RSU.
+    clear of collaborators' boxes), None for an RSU; encoder_maps: with the
+    learned detector, every agent's encoder map (A, C, h, w) torch tensor (what
+    intermediate fusion warps and decodes), else None.
     """
 
     state: WorldState
@@ -78,6 +81,7 @@ class PerceptionFrame:
     features: tuple | None
     views: tuple[EgoView, ...]
     footprints: tuple[np.ndarray | None, ...]
+    encoder_maps: Any = None
 
 
 class Pipeline:
@@ -146,10 +150,11 @@ class Pipeline:
         with self.clock.measure("visibility"):
             visibility = compute_visibility(state)
         with self.clock.measure("detection"):
-            detections = tuple(
-                _top_k_detections(d, self.config.max_boxes)
-                for d in self.detector.detect(state, visibility, sensing_rng)
-            )
+            if self.config.detector.preset == "learned":
+                raw, encoder_maps = self.detector.perceive(state, visibility, sensing_rng)
+            else:
+                raw, encoder_maps = self.detector.detect(state, visibility, sensing_rng), None
+            detections = tuple(_top_k_detections(d, self.config.max_boxes) for d in raw)
         features = None
         if self.grid is not None:
             with self.clock.measure("features"):
@@ -158,7 +163,7 @@ class Pipeline:
         with self.clock.measure("messages"):
             views = self._views(state, reported, detections, features)
         return PerceptionFrame(state, reported, visibility, detections, features, views,
-                     own_footprints(state))
+                               own_footprints(state), encoder_maps)
 
     def _views(self, state: WorldState, reported: np.ndarray,
                detections: tuple[AgentDetections, ...],

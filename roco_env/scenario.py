@@ -168,16 +168,37 @@ class DetectorParams:
 
 
 @dataclass
+class LearnedDetectorParams:
+    """The learned detector's parameters (roco_env.sensing.learned)."""
+
+    weights: str | None = _spec(None, doc="weights file; None = the shipped weights")
+    device: str = _spec("cpu", doc="torch device, e.g. 'cpu' or 'cuda'")
+    score_threshold: float = _spec(0.05, low=0.0, high=1.0, low_open=True, high_open=True,
+                                   doc="decoded boxes below this score are dropped")
+
+
+# detector.preset -> the dataclass declaring its detector.params.
+DETECTOR_PARAMS: dict[str, type] = {
+    "ideal": DetectorParams,
+    "realistic": DetectorParams,
+    "learned": LearnedDetectorParams,
+}
+
+
+@dataclass
 class DetectorConfig:
     """What each agent detects (see roco_env.sensing.detector)."""
 
-    preset: str = _spec("realistic", choices=("ideal", "realistic"))
-    params: dict = _spec({}, doc="DetectorParams values overriding the preset, checked on load")
+    preset: str = _spec("realistic", choices=tuple(DETECTOR_PARAMS))
+    params: dict = _spec({}, doc="the preset's parameters (DETECTOR_PARAMS) overriding its "
+                         "defaults, checked on load")
 
 
 @dataclass
 class FusionConfig:
-    method: str = _spec("late", choices=("late", "intermediate"))
+    method: str = _spec("late", choices=("late", "intermediate"),
+                        doc="intermediate decodes fused BEV feature maps: needs detector.preset "
+                        "learned")
     nms_iou: float = _spec(0.15, low=0.0, high=1.0, doc="BEV IoU threshold of late-fusion NMS")
 
 
@@ -361,8 +382,15 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.params = _given(build(NOISE_PARAMS[config.noise.model], config.noise.params,
                                        where, "noise.params."), config.noise.params)
-    config.detector.params = _given(build(DetectorParams, config.detector.params, where,
-                                          "detector.params."), config.detector.params)
+    config.detector.params = _given(build(DETECTOR_PARAMS[config.detector.preset],
+                                          config.detector.params, where, "detector.params."),
+                                    config.detector.params)
+    if config.fusion.method == "intermediate" and config.detector.preset != "learned":
+        raise ScenarioError(
+            f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
+            f"feature maps, so it needs detector.preset='learned' (detector='learned'); got "
+            f"detector.preset={config.detector.preset!r}"
+        )
     return config
 
 

@@ -209,22 +209,6 @@ def test_reward_kinds(kind):
             assert value == (0.0 if info[kind] == UNDEFINED else info[kind])
 
 
-def test_intermediate_fusion_exposes_warped_max_fused_features():
-    overrides = dict(features=True, fusion="intermediate", sigma_t=0.0, sigma_r=0.0,
-                     **{"evaluation.x_range": [-30.0, 30.0], "evaluation.y_range": [-20.0, 20.0]})
-    env = roco_env.parallel_env("v2x_crossroad", density=1.5, max_boxes=24, **overrides)
-    obs, infos = env.reset(seed=0)
-    space = env.observation_space("cav_0")
-    assert space["features"].shape == (3, 100, 150)
-    assert obs["cav_0"] in space
-    oracle = make_policy("oracle")
-    own = obs["cav_0"]["features"]
-    _, _, _, _, infos = env.step({a: oracle(obs[a], infos[a]) for a in env.agents})
-    fused = infos["cav_0"]["fused_features"]
-    assert fused.shape == own.shape and np.all(fused >= own)
-    assert fused[2].sum() > own[2].sum()  # the RSU's free space adds observed cells
-
-
 def test_bring_your_own_frames():
     from roco_env.traffic.frames import Frame
 

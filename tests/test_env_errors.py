@@ -87,8 +87,11 @@ def test_bad_constructor_arguments():
         roco_env.parallel_env(**FAST, max_cycles=0)
     with pytest.raises(ValueError, match="agents.evaluated must be a non-empty list"):
         roco_env.parallel_env(**FAST, **{"agents.evaluated": ["cav_7"]})
-    with pytest.raises(ValueError, match="fusion='intermediate' needs BEV features"):
+    with pytest.raises(ValueError, match="needs detector.preset='learned'.*got detector.preset="
+                                         "'realistic'"):
         roco_env.parallel_env(**FAST, fusion="intermediate")
+    with pytest.raises(ValueError, match="needs detector.preset='learned'.*'ideal'"):
+        roco_env.parallel_env(**FAST, fusion="intermediate", detector="ideal", features=True)
 
 
 def test_oracle_without_info(env):

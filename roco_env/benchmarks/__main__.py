@@ -6,7 +6,7 @@ import argparse
 import importlib
 import pkgutil
 
-import roco_env.benchmarks as perf_pkg
+import roco_env.benchmarks as benchmarks_pkg
 
 
 def main() -> None:
@@ -15,7 +15,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
     args = parser.parse_args()
     names = args.modules or sorted(
-        m.name for m in pkgutil.iter_modules(perf_pkg.__path__) if not m.name.startswith("_")
+        m.name for m in pkgutil.iter_modules(benchmarks_pkg.__path__) if not m.name.startswith("_")
     )
     for name in names:
         module = importlib.import_module(f"roco_env.benchmarks.{name}")

@@ -1,37 +1,106 @@
-"""Intermediate-fusion plumbing: warp collaborators' BEV maps into the ego grid and max-fuse.
+"""Intermediate fusion: warp collaborators' BEV feature maps into the ego frame, max-fuse, decode.
 
-Each collaborator's map (C, H, W), in its own true sensor frame on the shared
-:class:`~roco_env.sensing.BevGrid`, is resampled into the ego frame with the
-*corrected* relative pose T_{j->i} (bilinear, zero padding, via
-:func:`roco_env.sensing.warp_bev`), then fused with the ego's map by an
-element-wise maximum. Decoding fused maps into boxes is
-not part of this module (a later issue).
+Each collaborator's map (C, h, w), in its own true sensor frame on the shared
+feature grid, is resampled into the ego frame with the *corrected* relative
+pose T_{j->i} (bilinear, zero padding, via :func:`roco_env.sensing.warp_bev`)
+and fused with the ego's map by an element-wise maximum (the maps are
+non-negative, so the zero padding outside a collaborator's view adds nothing).
+:func:`intermediate_fusion` then decodes the fused maps with the learned
+detector's heads: a wrong pose misaligns the maps before decoding, so it
+shows up in the boxes and their AP. Needs torch (imported on demand by the env).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
+from roco_env.fusion.late import EGO_SOURCE, FusedDetections
 from roco_env.sensing import BevGrid, warp_bev
+from roco_env.sensing.lidar import ground_references
+from roco_env.traffic.state import WorldState
+
+__all__ = ["fuse_features", "fuse_maps", "fusion_canvas", "intermediate_fusion"]
+
+
+def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
+              poses: Sequence[np.ndarray], grid: BevGrid) -> torch.Tensor:
+    """Max-fused maps (E, C, h, w), all egos in one warp.
+
+    features (N, C, h, w) on ``grid``, one per agent; egos: rows of the egos;
+    collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
+    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with.
+    """
+    if not (len(egos) == len(collaborators) == len(poses)):
+        raise ValueError(f"egos, collaborators and poses must have one entry per ego; got "
+                         f"{len(egos)}, {len(collaborators)} and {len(poses)}")
+    poses = [np.asarray(p, dtype=float).reshape(-1, 3) for p in poses]
+    for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
+        if p.shape[0] != len(c):
+            raise ValueError(f"poses[{e}] must hold one pose per collaborator map; got "
+                             f"{p.shape[0]} poses for {len(c)} maps")
+    own = features[list(egos)]
+    rows = [j for c in collaborators for j in c]
+    if not rows:
+        return own
+    warped = warp_bev(features[rows], np.concatenate(poses), grid)
+    per_ego = torch.split(warped, [len(c) for c in collaborators])
+    return torch.stack([torch.maximum(mine, theirs.amax(dim=0)) if theirs.shape[0] else mine
+                        for mine, theirs in zip(own, per_ego, strict=True)])
 
 
 def fuse_features(ego_features: torch.Tensor, collab_features: Sequence[torch.Tensor],
                   relative_poses: np.ndarray, grid: BevGrid) -> torch.Tensor:
-    """Max-fused map (C, H, W) in the ego frame.
-
-    relative_poses (N, 3): corrected T_{j->i} per collaborator (x m, y m, yaw rad),
-    one per entry of ``collab_features``.
-    """
+    """Max-fused map (C, H, W) of one ego; relative_poses (N, 3): T_{j->i} per collaborator."""
     relative_poses = np.asarray(relative_poses, dtype=float).reshape(-1, 3)
     if relative_poses.shape[0] != len(collab_features):
         raise ValueError(
             "relative_poses must hold one pose per collaborator map; got "
             f"{relative_poses.shape[0]} poses for {len(collab_features)} maps"
         )
-    if not collab_features:
-        return ego_features.clone()
-    warped = warp_bev(torch.stack(list(collab_features)), relative_poses, grid)
-    return torch.maximum(ego_features, warped.amax(dim=0))
+    stacked = torch.stack([ego_features, *collab_features])
+    return fuse_maps(stacked, [0], [list(range(1, stacked.shape[0]))], [relative_poses], grid)[0]
+
+
+def fusion_canvas(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[float]
+                  ) -> tuple[BevGrid, tuple[int, int, int, int]]:
+    """The smallest grid of ``grid``'s cells covering ``grid`` and the given ranges (m).
+
+    Returns the canvas and the whole cells (left, right, bottom, top) it adds on each
+    side, so a map on ``grid`` is placed on the canvas by zero padding (exact: the map
+    is zero outside its own extent anyway).
+    """
+    res = grid.resolution
+    pads = (max(0, math.ceil((grid.x_range[0] - x_range[0]) / res - 1e-6)),
+            max(0, math.ceil((x_range[1] - grid.x_range[1]) / res - 1e-6)),
+            max(0, math.ceil((grid.y_range[0] - y_range[0]) / res - 1e-6)),
+            max(0, math.ceil((y_range[1] - grid.y_range[1]) / res - 1e-6)))
+    canvas = BevGrid((grid.x_range[0] - pads[0] * res, grid.x_range[1] + pads[1] * res),
+                     (grid.y_range[0] - pads[2] * res, grid.y_range[1] + pads[3] * res), res)
+    return canvas, pads
+
+
+def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
+                        egos: Sequence[int], collaborators: Sequence[Sequence[int]],
+                        poses: Sequence[np.ndarray], x_range: Sequence[float],
+                        y_range: Sequence[float]) -> list[FusedDetections]:
+    """Decoded boxes of every ego's fused map, in its true frame (scores descending).
+
+    detector: a :class:`roco_env.sensing.learned.LearnedDetector`; features (A, C, h, w):
+    every agent's encoder map of this step; egos, collaborators (agent indices) and
+    poses (the corrected T_{j->i}) as in :func:`fuse_maps`. The maps are fused on a
+    canvas covering the detector grid and the ego-frame range ``x_range`` x ``y_range``
+    (m; the evaluation range), so a collaborator's view beyond the ego's own sensor grid
+    is decoded too (the heads are convolutional). Every box's source is the ego
+    (:data:`EGO_SOURCE`): it comes from the ego's fused map.
+    """
+    canvas, (left, right, bottom, top) = fusion_canvas(detector.feature_grid, x_range, y_range)
+    padded = F.pad(features, (left, right, bottom, top))
+    fused = fuse_maps(padded, egos, collaborators, poses, canvas)
+    decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
+    return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
+                            np.arange(len(d.scores), dtype=np.int64)) for d in decoded]

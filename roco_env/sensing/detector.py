@@ -184,8 +184,14 @@ class Detector:
 def make_detector(config: DetectorConfig) -> Detector:
     """Build the detector of ``config.preset`` with ``config.params`` overriding it.
 
+    ``learned`` builds :class:`roco_env.sensing.learned.LearnedDetector` (loads torch
+    and the weights; params: weights, device, score_threshold).
     Raises ValueError naming the preset or parameter and the allowed values.
     """
+    if config.preset == "learned":
+        from roco_env.sensing.learned import make_learned_detector
+
+        return make_learned_detector(config.params)
     if config.preset not in PRESETS:
         raise ValueError(
             f"unknown detector preset {config.preset!r}; choose one of {sorted(PRESETS)}"

@@ -110,6 +110,10 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                ("roco", "roco_antialias",
                 *(f"roco_antialias:{switch}=false" for switch in ANTIALIAS_SWITCHES)),
                seeds=2, steps=10, densities=(1.0,)),
+    Experiment("paper_protocol_intermediate",
+               "Table 1 with intermediate fusion of the learned detector (noise 0-0.8)",
+               ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN, seeds=1, steps=10,
+               overrides={**PROTOCOL, "detector": "learned", "fusion": "intermediate"}),
 )
 
 

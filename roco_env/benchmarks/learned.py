@@ -1,0 +1,72 @@
+"""Learned detector: inference time per agent and environment throughput with it.
+
+Setting: ``urban_intersection`` (4 CAVs + 1 RSU = 5 agents, every one an ego),
+seed 0, the shipped weights on the CPU. Inference = one step's LiDAR scans,
+rasters, batched encoder + heads and decoding of all agents, divided by the
+agent count. Env throughput: identity policy, whole steps, for the parametric
+``realistic`` detector with late fusion, and the learned detector with late
+and with intermediate fusion, all in this process (ratios are meaningful, the
+absolute numbers depend on the machine's load).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from roco_env.benchmarks._timing import median_seconds
+from roco_env.env import CollabPerceptionEnv
+
+SETTING = dict(scenario="urban_intersection", cavs=4, rsus=1)
+TARGET_MS_PER_AGENT = 15.0
+TARGET_STEPS_PER_S = 15.0
+
+
+def _steps_per_second(steps: int, repeats: int, **overrides) -> float:
+    env = CollabPerceptionEnv(**SETTING, max_cycles=10**9, **overrides)
+    env.reset(seed=0)
+    zeros = {a: np.zeros((env.config.max_collaborators, 3)) for a in env.possible_agents}
+
+    def run_steps() -> None:
+        for _ in range(steps):
+            env.step(zeros)
+
+    return steps / median_seconds(run_steps, repeats=repeats)
+
+
+def run(quick: bool) -> list[str]:
+    import torch
+
+    from roco_env.sensing import compute_visibility
+    from roco_env.sensing.learned import LearnedDetector
+
+    torch.set_num_threads(2)
+    repeats = 3 if quick else 7
+    env = CollabPerceptionEnv(**SETTING, max_cycles=10**9, detector="learned")
+    env.reset(seed=0)
+    state = env.unwrapped._frame.state
+    visibility = compute_visibility(state)
+    detector = LearnedDetector()
+    rng = np.random.default_rng(0)
+    n = state.num_agents
+    total = median_seconds(lambda: detector.perceive(state, visibility, rng), repeats=repeats)
+    rasters = detector.rasters(state, visibility, rng)
+    network = median_seconds(lambda: detector.decode(detector.encode(rasters), np.zeros(n)),
+                             repeats=repeats)
+    lines = [
+        f"inference per agent (scan + raster + network + decode, {n} agents in one batch): "
+        f"{1e3 * total / n:.1f} ms (target <= {TARGET_MS_PER_AGENT:.0f} ms); network + decode "
+        f"alone {1e3 * network / n:.1f} ms",
+    ]
+    steps = 2 if quick else 5
+    rates = {
+        "realistic + late": _steps_per_second(steps, repeats, detector="realistic"),
+        "learned + late": _steps_per_second(steps, repeats, detector="learned"),
+        "learned + intermediate": _steps_per_second(steps, repeats, detector="learned",
+                                                    fusion="intermediate"),
+    }
+    base = rates["realistic + late"]
+    for name, rate in rates.items():
+        lines.append(f"env steps/s, {name}: {rate:.1f} ({rate / base:.2f}x the parametric "
+                     f"detector)" + (f"; target >= {TARGET_STEPS_PER_S:.0f}"
+                                     if name == "learned + intermediate" else ""))
+    return lines

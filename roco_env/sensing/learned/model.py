@@ -1,0 +1,242 @@
+"""The learned detector at run time: weights loading, batched inference, box decoding.
+
+A weights file (written by ``roco-env train-detector``, read with
+``torch.load(weights_only=True)``: never unpickled) holds the network's
+``state_dict`` and its metadata: the network shape (:class:`NetConfig`), the
+detector grid (x_range, y_range, resolution of the LiDAR raster, agent frame),
+the raster channel names (:data:`LIDAR_CHANNELS`), the scan noise it was
+trained with and the training command. Every field is checked on load; a
+missing, corrupt or mismatched file raises ValueError naming the problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from roco_env.geometry import se2_inverse, transform_boxes
+from roco_env.sensing.detector import AgentDetections
+from roco_env.sensing.features import BevGrid
+from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
+from roco_env.sensing.learned.targets import SCORE_THRESHOLD, Decoded, decode, feature_grid
+from roco_env.sensing.lidar import (
+    LIDAR_CHANNELS,
+    ScanNoise,
+    ground_references,
+    lidar_raster,
+    sample_scans,
+)
+from roco_env.sensing.visibility import Visibility
+from roco_env.traffic.state import WorldState
+
+__all__ = ["SHIPPED_WEIGHTS", "LearnedDetector", "load_checkpoint", "make_learned_detector",
+           "save_checkpoint", "shipped_weights_path", "sha256_of"]
+
+SHIPPED_WEIGHTS = "bev_detector.pt"
+# A decoded box is labelled with the true object whose centre is nearest, within this
+# distance (m): ground truth for the privileged info only, never used by the model.
+_LABEL_GATE = 2.0
+_PARAMS = ("weights", "device", "score_threshold")
+
+
+def shipped_weights_path() -> Path:
+    """Path of the weights shipped with the package."""
+    return Path(str(resources.files("roco_env.sensing.learned") / "weights" / SHIPPED_WEIGHTS))
+
+
+def sha256_of(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A loaded weights file: network shape, grid, scan noise, state dict, metadata."""
+
+    net: NetConfig
+    grid: BevGrid
+    noise: ScanNoise
+    state_dict: dict[str, torch.Tensor]
+    meta: dict[str, Any]
+
+
+def save_checkpoint(path: str | Path, net: BevDetectorNet, grid: BevGrid, noise: ScanNoise,
+                    meta: dict[str, Any]) -> None:
+    """Write a weights file (plain tensors and builtins only, loadable with weights_only)."""
+    payload = {
+        "format": "roco-env-bev-detector/1",
+        "net": net.config.to_dict(),
+        "grid": {"x_range": list(grid.x_range), "y_range": list(grid.y_range),
+                 "resolution": grid.resolution},
+        "channels": list(LIDAR_CHANNELS),
+        "noise": {k: float(getattr(noise, k)) for k in ScanNoise.__dataclass_fields__},
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+        "meta": meta,
+    }
+    torch.save(payload, Path(path))
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read and check a weights file; ValueError naming the problem when it is unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"learned detector weights file {path} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a damaged or foreign file
+        raise ValueError(f"learned detector weights file {path} is corrupt or not a weights "
+                         f"file written by 'roco-env train-detector' ({exc})") from exc
+    if not isinstance(payload, dict) or payload.get("format") != "roco-env-bev-detector/1":
+        raise ValueError(f"learned detector weights file {path} is not a roco-env BEV detector "
+                         "checkpoint (missing format 'roco-env-bev-detector/1')")
+    channels = tuple(payload.get("channels", ()))
+    if channels != LIDAR_CHANNELS:
+        raise ValueError(
+            f"learned detector weights file {path} was trained on raster channels "
+            f"{list(channels)} ({len(channels)}); this version rasterises {list(LIDAR_CHANNELS)} "
+            f"({len(LIDAR_CHANNELS)}): retrain with 'roco-env train-detector'")
+    try:
+        net = NetConfig.from_dict(payload["net"])
+        g = payload["grid"]
+        grid = BevGrid(tuple(g["x_range"]), tuple(g["y_range"]), g["resolution"])
+        noise = ScanNoise(**payload["noise"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"learned detector weights file {path} has invalid metadata: "
+                         f"{exc}") from exc
+    if net.in_channels != len(LIDAR_CHANNELS):
+        raise ValueError(f"learned detector weights file {path} expects {net.in_channels} input "
+                         f"channels; the LiDAR raster has {len(LIDAR_CHANNELS)}")
+    if grid.H % 4 or grid.W % 4:
+        raise ValueError(f"learned detector weights file {path}: grid {grid.H} x {grid.W} cells "
+                         "must be multiples of 4 on both axes")
+    return Checkpoint(net, grid, noise, payload["state_dict"], dict(payload.get("meta", {})))
+
+
+def build_network(checkpoint: Checkpoint, path: str | Path) -> BevDetectorNet:
+    """The network of a checkpoint with its weights (ValueError on a shape mismatch)."""
+    net = BevDetectorNet(checkpoint.net)
+    try:
+        net.load_state_dict(checkpoint.state_dict)
+    except RuntimeError as exc:
+        raise ValueError(f"learned detector weights file {path} does not match its declared "
+                         f"network {checkpoint.net} (another grid or channel count?): "
+                         f"{exc}") from exc
+    return net.eval()
+
+
+class LearnedDetector:
+    """Boxes, scores and uncertainties of every agent from the network, one batch per step.
+
+    weights: a weights file (default: the shipped one); device: ``"cpu"`` or
+    ``"cuda"``; score_threshold: minimum heatmap score of a decoded box.
+    """
+
+    def __init__(self, weights: str | Path | None = None, device: str = "cpu",
+                 score_threshold: float = SCORE_THRESHOLD) -> None:
+        if device not in ("cpu", "cuda"):
+            raise ValueError(f"learned detector device must be 'cpu' or 'cuda'; got {device!r}")
+        if device == "cuda" and not torch.cuda.is_available():
+            raise ValueError("learned detector device='cuda' but torch sees no CUDA device")
+        if not (isinstance(score_threshold, (int, float)) and 0.0 < score_threshold < 1.0):
+            raise ValueError(f"learned detector score_threshold must be in (0, 1); "
+                             f"got {score_threshold!r}")
+        path = Path(weights) if weights is not None else shipped_weights_path()
+        self.checkpoint = load_checkpoint(path)
+        self.net = build_network(self.checkpoint, path).to(device)
+        self.device = torch.device(device)
+        self.grid = self.checkpoint.grid
+        self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
+        self.noise = self.checkpoint.noise
+        self.score_threshold = float(score_threshold)
+
+    def rasters(self, state: WorldState, visibility: Visibility,
+                rng: np.random.Generator) -> torch.Tensor:
+        """Every agent's LiDAR raster (A, C, H, W), scans drawn from ``rng``."""
+        scans = sample_scans(state, visibility, self.noise, rng)
+        return torch.from_numpy(np.stack(
+            [lidar_raster(s, visibility.ray_ranges[a], self.grid) for a, s in enumerate(scans)]
+        ).reshape(len(scans), len(LIDAR_CHANNELS), self.grid.H, self.grid.W))
+
+    @torch.no_grad()
+    def encode(self, rasters: torch.Tensor) -> torch.Tensor:
+        """Encoder maps (A, C, h, w) on :attr:`feature_grid`, on the detector's device."""
+        return self.net.encode(rasters.to(self.device))
+
+    @torch.no_grad()
+    def decode(self, features: torch.Tensor, grounds: np.ndarray,
+               grid: BevGrid | None = None) -> list[Decoded]:
+        """Boxes of each feature map (own or fused) in its agent's frame.
+
+        grid: the maps' grid when it is not :attr:`feature_grid` (a larger fusion
+        canvas with the same cell size); grounds (N,): ground reference heights (m).
+        """
+        grid = grid or self.feature_grid
+        if grid.resolution != self.feature_grid.resolution or features.shape[-2:] != (
+                grid.H, grid.W):
+            raise ValueError(f"features of shape {tuple(features.shape)} do not lie on a grid "
+                             f"of {grid.H} x {grid.W} cells of {self.feature_grid.resolution} m")
+        return decode(self.net.decode(features.to(self.device)), grid,
+                      np.asarray(grounds, dtype=float), self.score_threshold)
+
+    def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
+                 ) -> tuple[list[AgentDetections], torch.Tensor]:
+        """Per agent its detections (true sensor frame), and all encoder maps (A, C, h, w)."""
+        if state.num_agents == 0:
+            return [], torch.zeros((0, self.checkpoint.net.widths[2], self.feature_grid.H,
+                                    self.feature_grid.W))
+        features = self.encode(self.rasters(state, visibility, rng))
+        grounds = ground_references(state)
+        decoded = self.decode(features, grounds)
+        return [self._labelled(state, a, d) for a, d in enumerate(decoded)], features
+
+    def detect(self, state: WorldState, visibility: Visibility,
+               rng: np.random.Generator) -> list[AgentDetections]:
+        """One :class:`AgentDetections` per agent (the parametric detector's interface)."""
+        return self.perceive(state, visibility, rng)[0]
+
+    def _labelled(self, state: WorldState, agent: int, decoded: Decoded) -> AgentDetections:
+        return AgentDetections(decoded.boxes, decoded.uncertainty, decoded.scores,
+                               label_boxes(state, agent, decoded.boxes))
+
+
+def label_boxes(state: WorldState, agent: int, boxes: np.ndarray) -> np.ndarray:
+    """True object id of each box (agent frame), -1 for a false positive.
+
+    One-to-one assignment by BEV centre distance (Hungarian), gated at 2 m;
+    the agent's own vehicle is never a label.
+    """
+    ids = np.full(boxes.shape[0], -1, dtype=np.int64)
+    others = np.flatnonzero(state.object_ids != state.agent_object_ids[agent])
+    if not boxes.shape[0] or not others.size:
+        return ids
+    truth = transform_boxes(np.asarray(state.object_boxes)[others],
+                            se2_inverse(state.agent_poses[agent]))
+    dist = np.hypot(boxes[:, None, 0] - truth[None, :, 0], boxes[:, None, 1] - truth[None, :, 1])
+    rows, cols = linear_sum_assignment(np.where(dist <= _LABEL_GATE, dist, 1e6))
+    ok = dist[rows, cols] <= _LABEL_GATE
+    ids[rows[ok]] = state.object_ids[others[cols[ok]]]
+    return ids
+
+
+def make_learned_detector(params: dict[str, Any] | None) -> LearnedDetector:
+    """The learned detector from scenario ``detector.params`` (keys: weights, device,
+    score_threshold); ValueError naming an unknown key."""
+    params = dict(params or {})
+    unknown = sorted(set(params) - set(_PARAMS))
+    if unknown:
+        raise ValueError(f"unknown parameter {unknown[0]!r} for detector 'learned'; allowed: "
+                         f"{', '.join(_PARAMS)}")
+    threshold = params.get("score_threshold", SCORE_THRESHOLD)
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) \
+            or not math.isfinite(threshold):
+        raise ValueError(f"detector parameter score_threshold must be a number in (0, 1); "
+                         f"got {threshold!r}")
+    return LearnedDetector(params.get("weights"), params.get("device", "cpu"), float(threshold))

@@ -1,0 +1,117 @@
+"""The learned BEV detector network (torch): encoder to a BEV feature map, then heads.
+
+Input: a LiDAR raster (N, C_in, H, W) on the detector's :class:`BevGrid`
+(:mod:`roco_env.sensing.lidar`). The encoder (two stages, stride 2 then 4,
+upsampled and merged back to stride 2; every stride-2 step is a 2x2 convolution so
+feature values stay centred on their cells) returns non-negative features
+(N, C, H/2, W/2): after a ReLU, so a zero-padded warp adds nothing and the
+element-wise maximum is a sound fusion of maps from several agents. The heads
+(CenterPoint-style, one 3x3 trunk then 1x1 convolutions) read a feature map,
+the agent's own or a fused one, and return per feature cell:
+
+* ``heatmap`` (1) logits of an object centre in the cell;
+* ``offset`` (2) centre position inside the cell, in cells (x, y), in [0, 1];
+* ``size`` (3) log of length, width, height in metres;
+* ``yaw`` (2) sin and cos of the heading (up to the front/back ambiguity of a box);
+* ``log_sigma`` (3) log standard deviation of the centre error (x, y, m) and the
+  yaw error (rad): the model's own uncertainty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+__all__ = ["HEAD_CHANNELS", "NetConfig", "BevDetectorNet"]
+
+HEAD_CHANNELS = {"heatmap": 1, "offset": 2, "size": 3, "yaw": 2, "log_sigma": 3}
+
+# Initial heatmap bias: sigmoid(-2.19) = 0.1, the focal-loss prior of CenterNet.
+_HEATMAP_PRIOR = -2.19
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Network shape: input channels and the widths (channels) of its stages.
+
+    in_channels: raster channels; widths: (stage-1 width at stride 2, stage-2
+    width at stride 4, feature width C of the output map at stride 2).
+    """
+
+    in_channels: int = 4
+    widths: tuple[int, int, int] = (24, 48, 32)
+
+    def to_dict(self) -> dict:
+        return {"in_channels": self.in_channels, "widths": list(self.widths)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> NetConfig:
+        return cls(int(data["in_channels"]), tuple(int(w) for w in data["widths"]))
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.in_channels, int) and self.in_channels >= 1):
+            raise ValueError(f"NetConfig.in_channels must be an int >= 1; got {self.in_channels}")
+        if len(self.widths) != 3 or not all(isinstance(w, int) and w >= 1 for w in self.widths):
+            raise ValueError(f"NetConfig.widths must be 3 ints >= 1; got {self.widths}")
+
+    @property
+    def stride(self) -> int:
+        """Feature map cells per raster cell along each axis (fixed by the architecture)."""
+        return 2
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    """3x3 convolution, or with stride 2 a 2x2 one: each output cell then sees exactly the
+    input cells it covers, so feature values sit at feature-cell centres (what warping and
+    mirroring assume)."""
+    kernel, pad = (3, 1) if stride == 1 else (2, 0)
+    return nn.Sequential(nn.Conv2d(c_in, c_out, kernel, stride, pad, bias=False),
+                         nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class BevDetectorNet(nn.Module):
+    """Encoder + heads of the module docstring."""
+
+    def __init__(self, config: NetConfig) -> None:
+        super().__init__()
+        self.config = config
+        w1, w2, c = config.widths
+        self.stage1 = nn.Sequential(_conv(config.in_channels, w1, 2), _conv(w1, w1))
+        self.stage2 = nn.Sequential(_conv(w1, w2, 2), _conv(w2, w2), _conv(w2, w2))
+        self.up = nn.Sequential(nn.ConvTranspose2d(w2, w1, 2, 2, bias=False),
+                                nn.BatchNorm2d(w1), nn.ReLU(inplace=True))
+        self.merge = nn.Sequential(nn.Conv2d(2 * w1, c, 1, bias=False), nn.BatchNorm2d(c),
+                                   nn.ReLU(inplace=True))
+        self.trunk = _conv(c, c)
+        self.heads = nn.Conv2d(c, sum(HEAD_CHANNELS.values()), 1)
+        with torch.no_grad():
+            self.heads.bias.zero_()
+            self.heads.bias[0] = _HEATMAP_PRIOR
+
+    def encode(self, raster: torch.Tensor) -> torch.Tensor:
+        """(N, C_in, H, W) -> non-negative features (N, C, H/2, W/2); H, W must be even."""
+        if raster.dim() != 4 or raster.shape[1] != self.config.in_channels:
+            raise ValueError(f"raster must have shape (N, {self.config.in_channels}, H, W); "
+                             f"got {tuple(raster.shape)}")
+        if raster.shape[-2] % 4 or raster.shape[-1] % 4:
+            raise ValueError(f"raster H and W must be multiples of 4; got {tuple(raster.shape)}")
+        s1 = self.stage1(raster)
+        s2 = self.stage2(s1)
+        return self.merge(torch.cat([s1, self.up(s2)], dim=1))
+
+    def decode(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Head maps (N, k, h, w) by name (:data:`HEAD_CHANNELS`) of features (N, C, h, w)."""
+        out = self.heads(self.trunk(features))
+        maps = dict(zip(HEAD_CHANNELS, torch.split(out, list(HEAD_CHANNELS.values()), dim=1),
+                        strict=True))
+        maps["offset"] = torch.sigmoid(maps["offset"])
+        maps["log_sigma"] = maps["log_sigma"].clamp(-6.0, 3.0)
+        return maps
+
+    def forward(self, raster: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.decode(self.encode(raster))

@@ -1,0 +1,157 @@
+"""Simulated LiDAR scans and their BEV rasters: the input of the learned detector.
+
+A scan is drawn per agent from the ray model of :mod:`roco_env.sensing.visibility`
+(numpy only, no torch). For every (ray, object) entry point that the ray model
+says is seen, with ``lambda`` expected points (vertical beams on that azimuth):
+
+* **Sampled returns.** The number of points is Poisson(``lambda * keep``), so
+  far and occluded surfaces give few points and sometimes none (range-dependent
+  sparsity comes from ``lambda``, which falls with distance);
+* **dropouts.** ``keep = 1 - dropout - range_dropout * distance / 100 m``
+  (clipped to [0, 1]): missed returns (dark paint, glass) that grow with range;
+* each point lies on the entry point moved along the ray by N(0, ``range_noise``)
+  metres, at a height uniform over the object's vertical extent;
+* **spurious returns.** Poisson(``spurious_rate``) isolated points per scan,
+  uniform over the sensor disk, heights uniform in [0, 2.5] m (dust, rain,
+  reflections).
+
+Heights are relative to the ground under the agent: a CAV's reference is the
+bottom of its own vehicle box; an RSU's is the median bottom of the vehicles
+within 30 m of it (0, the world datum, when there are none). So a detector sees
+the same heights for a car next to it on a hill as on flat ground.
+
+The raster (:data:`LIDAR_CHANNELS`, (C, H, W) float32 on a :class:`BevGrid`,
+the axis convention of :mod:`roco_env.sensing.features`):
+  0 ``log_points``: log(1 + sampled points in the cell);
+  1 ``max_height``: highest point in the cell (m above the reference, 0 if none);
+  2 ``mean_height``: mean point height in the cell (m, 0 if none);
+  3 ``observed``: 1 where the cell centre lies before the first surface hit on
+    its ray and within sensor range (free space the sensor saw), else 0.
+Draws come from the generator given, in a fixed order, so a seed fixes the scan.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from roco_env.sensing.features import BevGrid, _cell_polar
+from roco_env.sensing.visibility import Visibility
+from roco_env.traffic.state import WorldState
+
+__all__ = ["LIDAR_CHANNELS", "LidarScan", "ScanNoise", "ground_references", "lidar_raster",
+           "sample_scans"]
+
+LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "observed")
+
+# RSU ground reference: vehicles within this distance (m) of the mast.
+_RSU_GROUND_RADIUS = 30.0
+# Height span (m) of spurious returns.
+_SPURIOUS_TOP = 2.5
+
+
+@dataclass(frozen=True)
+class ScanNoise:
+    """Imperfections of the simulated scans (see the module docstring for the model).
+
+    dropout: share of returns lost at any range; range_dropout: extra share lost
+    per 100 m of distance; range_noise: std of the range error, m;
+    spurious_rate: mean number of spurious points per scan.
+    """
+
+    dropout: float = 0.05
+    range_dropout: float = 0.15
+    range_noise: float = 0.03
+    spurious_rate: float = 40.0
+
+    def __post_init__(self) -> None:
+        for name, high in (("dropout", 1.0), ("range_dropout", 1.0), ("range_noise", 5.0),
+                           ("spurious_rate", 1.0e5)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and 0.0 <= value <= high):
+                raise ValueError(f"ScanNoise.{name} must be in [0, {high}]; got {value!r}")
+
+
+@dataclass(frozen=True)
+class LidarScan:
+    """One agent's sampled points in its true sensor frame (N of them).
+
+    x, y (N,) m; z (N,) m above the agent's ground reference; obj (N,) object
+    index of the surface hit (into the WorldState objects), -1 for spurious points.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    obj: np.ndarray
+
+
+def ground_references(state: WorldState) -> np.ndarray:
+    """(A,) world height (m) of the ground under each agent (see the module docstring)."""
+    boxes = np.asarray(state.object_boxes, dtype=float).reshape(-1, 7)
+    bottoms = boxes[:, 2] - 0.5 * boxes[:, 5]
+    refs = np.zeros(state.num_agents)
+    for a in range(state.num_agents):
+        own = np.flatnonzero(state.object_ids == state.agent_object_ids[a])
+        if own.size:
+            refs[a] = bottoms[own[0]]
+            continue
+        near = np.hypot(*(boxes[:, :2] - state.agent_poses[a, :2]).T) <= _RSU_GROUND_RADIUS
+        if near.any():
+            refs[a] = float(np.median(bottoms[near]))
+    return refs
+
+
+def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
+                 rng: np.random.Generator) -> list[LidarScan]:
+    """One :class:`LidarScan` per agent (``state.agent_ids`` order), drawn from ``rng``."""
+    hits = visibility.hits
+    boxes = np.asarray(state.object_boxes, dtype=float).reshape(-1, 7)
+    distance = np.hypot(hits.x, hits.y)
+    keep = np.clip(1.0 - noise.dropout - noise.range_dropout * distance / 100.0, 0.0, 1.0)
+    counts = rng.poisson(hits.returns * keep)
+    pick = np.repeat(np.arange(counts.size), counts)
+    along = 1.0 + noise.range_noise * rng.standard_normal(pick.size) / np.maximum(
+        distance[pick], 1e-6)
+    bottom = boxes[hits.obj[pick], 2] - 0.5 * boxes[hits.obj[pick], 5]
+    top = hits.top[pick]
+    height = bottom + rng.random(pick.size) * np.maximum(top - bottom, 0.0)
+    refs = ground_references(state)
+    scans = []
+    for a in range(state.num_agents):
+        mine = hits.agent[pick] == a
+        rows = pick[mine]
+        n_fake = int(rng.poisson(noise.spurious_rate))
+        radius = float(state.sensor_ranges[a]) * np.sqrt(rng.random(n_fake))
+        bearing = rng.uniform(-np.pi, np.pi, n_fake)
+        scans.append(LidarScan(
+            x=np.concatenate([hits.x[rows] * along[mine], radius * np.cos(bearing)]),
+            y=np.concatenate([hits.y[rows] * along[mine], radius * np.sin(bearing)]),
+            z=np.concatenate([height[mine] - refs[a], rng.uniform(0.0, _SPURIOUS_TOP, n_fake)]),
+            obj=np.concatenate([hits.obj[rows], np.full(n_fake, -1, dtype=np.int64)]),
+        ))
+    return scans
+
+
+def lidar_raster(scan: LidarScan, ray_ranges: np.ndarray, grid: BevGrid) -> np.ndarray:
+    """BEV raster (len(LIDAR_CHANNELS), H, W) float32 of one scan.
+
+    ray_ranges (n_rays,): the agent's first-hit distance per ray (m), i.e. a row
+    of :attr:`Visibility.ray_ranges`.
+    """
+    row, col = grid.cell_index(scan.x, scan.y)
+    inside = row >= 0
+    cell = row[inside] * grid.W + col[inside]
+    z = scan.z[inside]
+    n_cells = grid.H * grid.W
+    out = np.zeros((len(LIDAR_CHANNELS), n_cells), dtype=np.float32)
+    count = np.bincount(cell, minlength=n_cells)
+    out[0] = np.log1p(count)
+    np.maximum.at(out[1], cell, np.maximum(z, 0.0))
+    out[2] = np.bincount(cell, weights=z, minlength=n_cells) / np.maximum(count, 1)
+    radius, ray = _cell_polar(grid, ray_ranges.shape[0])
+    out[3] = radius <= ray_ranges[ray]
+    return out.reshape(len(LIDAR_CHANNELS), grid.H, grid.W)

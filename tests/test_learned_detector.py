@@ -1,0 +1,234 @@
+"""The learned BEV detector: network shapes, decoding, shipped weights, fusion, training, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import roco_env
+from roco_env.fusion.intermediate import fuse_maps
+from roco_env.geometry import transform_boxes
+from roco_env.metrics import APAccumulator
+from roco_env.policies import available_policies, make_policy
+from roco_env.scenario import ScenarioError
+from roco_env.sensing import BevGrid
+from roco_env.sensing.learned import (
+    BevDetectorNet,
+    LearnedDetector,
+    NetConfig,
+    load_checkpoint,
+    save_checkpoint,
+    sha256_of,
+    shipped_weights_path,
+)
+from roco_env.sensing.learned.network import HEAD_CHANNELS
+from roco_env.sensing.learned.targets import build_targets, decode, feature_grid
+from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
+from roco_env.training.data import VALIDATION_SEED_BASE, make_scenes
+
+# sha256 of roco_env/sensing/learned/weights/bev_detector.pt, the output of
+# `roco-env train-detector --out roco_env/sensing/learned/weights` (see its report.md).
+SHIPPED_SHA256 = "ba33f3991bacd69b1781c8c6e1e42ed1378ac2bb0f74c2cff1635a5be4dc2929"
+
+GRID = BevGrid((-70.4, 70.4), (-40.0, 40.0), 0.8)
+FGRID = feature_grid(GRID, 2)
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return LearnedDetector()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scenes(("urban_intersection",), 1, VALIDATION_SEED_BASE + 99, GRID, ScanNoise())[0]
+
+
+def test_forward_shapes():
+    net = BevDetectorNet(NetConfig(widths=(8, 16, 12))).eval()
+    raster = torch.rand(3, len(LIDAR_CHANNELS), GRID.H, GRID.W)
+    features = net.encode(raster)
+    assert features.shape == (3, 12, GRID.H // 2, GRID.W // 2) and torch.all(features >= 0)
+    maps = net.decode(features)
+    assert {k: v.shape[1] for k, v in maps.items()} == HEAD_CHANNELS
+    assert all(v.shape[-2:] == (FGRID.H, FGRID.W) for v in maps.values())
+    with pytest.raises(ValueError, match="raster must have shape"):
+        net.encode(torch.rand(1, 3, GRID.H, GRID.W))
+
+
+def test_parameter_budget(detector):
+    assert sum(p.numel() for p in detector.net.parameters()) <= 1_000_000
+
+
+def _perfect_maps(boxes: np.ndarray) -> dict[str, torch.Tensor]:
+    """Head maps that say exactly ``boxes`` (one per feature cell)."""
+    t = build_targets([boxes], FGRID)
+    maps = {k: torch.zeros(1, c, FGRID.H, FGRID.W) for k, c in HEAD_CHANNELS.items()}
+    maps["heatmap"] -= 10.0
+    idx = (t.sample, slice(None), t.row, t.col)
+    maps["heatmap"][t.sample, 0, t.row, t.col] = 5.0
+    maps["offset"][idx] = t.offset
+    maps["size"][idx] = t.log_size
+    maps["yaw"][idx] = torch.stack([torch.sin(t.yaw), torch.cos(t.yaw)], dim=1)
+    return maps
+
+
+def test_targets_decode_back_to_the_boxes():
+    rng = np.random.default_rng(0)
+    xs = rng.choice(np.arange(-60.0, 60.0, 8.0), 12, replace=False) + rng.uniform(0, 1.5, 12)
+    ys = rng.choice([-30.0, -10.0, 10.0, 30.0], 12) + rng.uniform(0, 1.5, 12)
+    boxes = np.column_stack([xs, ys, np.full(12, 0.8), rng.uniform(3.5, 5.5, 12),
+                             rng.uniform(1.7, 2.1, 12), np.full(12, 1.6),
+                             rng.uniform(-np.pi, np.pi, 12)])
+    out = decode(_perfect_maps(boxes), FGRID, np.zeros(1))[0]
+    order = np.lexsort((out.boxes[:, 1], out.boxes[:, 0]))
+    expect = boxes[np.lexsort((boxes[:, 1], boxes[:, 0]))]
+    np.testing.assert_allclose(out.boxes[order], expect, atol=1e-5)
+
+
+def test_shipped_weights_match_their_checksum_and_load(detector):
+    path = shipped_weights_path()
+    assert path.stat().st_size <= 5 * 2**20
+    assert sha256_of(path) == SHIPPED_SHA256
+    checkpoint = load_checkpoint(path)
+    assert checkpoint.grid == GRID and "train-detector" in checkpoint.meta["command"]
+    assert detector.grid == GRID
+
+
+def test_a_shifted_map_decodes_to_shifted_boxes(detector, scene):
+    """Warping an encoder map by a pose moves its decoded boxes by that pose."""
+    features = detector.encode(torch.from_numpy(scene.rasters[:1]))
+    base = detector.decode(features, np.zeros(1))[0]
+    for pose in (np.array([3.2, -4.8, 0.0]), np.array([2.0, 1.0, 0.15])):
+        moved_maps = fuse_maps(torch.zeros_like(features).expand(2, -1, -1, -1).clone()
+                               .index_copy(0, torch.tensor([1]), features),
+                               [0], [[1]], [pose[None]], detector.feature_grid)
+        moved = detector.decode(moved_maps, np.zeros(1))[0]
+        expect = transform_boxes(base.boxes[base.scores > 0.3], pose)
+        inside = (np.abs(expect[:, 0]) < 60.0) & (np.abs(expect[:, 1]) < 30.0)
+        expect = expect[inside]
+        assert expect.shape[0] >= 5
+        dist = np.hypot(expect[:, None, 0] - moved.boxes[None, :, 0],
+                        expect[:, None, 1] - moved.boxes[None, :, 1]).min(axis=1)
+        # Whole-cell translations are exact; a rotation resamples the features (bilinear)
+        # and the network is not rotation-equivariant: within a feature cell (1.6 m).
+        assert np.median(dist) < (0.05 if pose[2] == 0.0 else 1.0)
+
+
+def _fused_ap(detector, scene, error: np.ndarray) -> float:
+    features = detector.encode(torch.from_numpy(scene.rasters))
+    egos = [a for a, c in enumerate(scene.collaborators) if c]
+    poses = [scene.relative[a] + error for a in egos]
+    fused = fuse_maps(features, egos, [list(scene.collaborators[a]) for a in egos], poses,
+                      detector.feature_grid)
+    acc = APAccumulator((0.5,))
+    for a, det in zip(egos, detector.decode(fused, scene.grounds[egos]), strict=True):
+        acc.add_frame(det.boxes, det.scores, scene.group_eval_gt[a])
+    return acc.ap()[0.5]
+
+
+def test_a_wrong_pose_decodes_worse_than_the_true_pose(detector, scene):
+    true_ap = _fused_ap(detector, scene, np.zeros(3))
+    wrong_ap = _fused_ap(detector, scene, np.array([1.5, -1.0, np.deg2rad(3.0)]))
+    assert true_ap > wrong_ap + 0.05
+
+
+def test_training_smoke_run_lowers_the_loss_and_is_deterministic():
+    from roco_env.training.train import TrainConfig, train
+
+    config = TrainConfig(x_range=(-25.6, 25.6), y_range=(-12.8, 12.8), widths=(4, 8, 8),
+                         train_scenes=2, val_scenes=0, steps=16, lr=1e-2,
+                         scenarios=("urban_intersection",), threads=1)
+    result = train(config, progress=False)
+    total = result.history["total"]
+    assert len(total) == 16 and np.mean(total[-4:]) < np.mean(total[:4])
+    again = train(config, progress=False)  # same seed, same machine: same weights
+    for name, value in result.net.state_dict().items():
+        assert torch.equal(value, again.net.state_dict()[name]), name
+
+
+def _episode(seed: int):
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, detector="learned",
+                                fusion="intermediate", density=2.0)
+    obs, _ = env.reset(seed=seed)
+    out = [obs["cav_0"]["boxes"].copy()]
+    while env.agents:
+        obs, rewards, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
+        out += [obs["cav_0"]["boxes"].copy(), infos["cav_0"]["fused_boxes"],
+                np.array(list(rewards.values()))]
+    return out
+
+
+def test_same_seed_same_episode_with_the_learned_detector():
+    a, b = _episode(5), _episode(5)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert any(x.size for x in a[1::3])  # it detected something
+
+
+def test_learned_detector_reports_its_uncertainty(detector, scene):
+    det = detector.decode(detector.encode(torch.from_numpy(scene.rasters[:1])), np.zeros(1))[0]
+    assert det.boxes.shape[0] > 0 and det.uncertainty.shape == (det.boxes.shape[0], 3)
+    assert np.all(det.uncertainty > 0) and np.all(np.isfinite(det.uncertainty))
+
+
+def _payload(tmp_path, **changes):
+    path = tmp_path / "w.pt"
+    save_checkpoint(path, BevDetectorNet(NetConfig(widths=(4, 8, 8))), GRID, ScanNoise(), {})
+    payload = torch.load(path, weights_only=True)
+    payload.update(changes)
+    torch.save(payload, path)
+    return path
+
+
+def test_bad_weights_files_raise_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        LearnedDetector(tmp_path / "missing.pt")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a checkpoint" * 10)
+    with pytest.raises(ValueError, match="is corrupt"):
+        LearnedDetector(corrupt)
+    with pytest.raises(ValueError, match=r"raster channels \['a', 'b', 'c'\] \(3\)"):
+        LearnedDetector(_payload(tmp_path, channels=["a", "b", "c"]))
+    with pytest.raises(ValueError, match="expects 3 input channels"):
+        LearnedDetector(_payload(tmp_path, net={"in_channels": 3, "widths": [4, 8, 8]}))
+    with pytest.raises(ValueError, match="must be multiples of 4"):
+        LearnedDetector(_payload(tmp_path, grid={"x_range": [-70.0, 70.0],
+                                                 "y_range": [-40.0, 40.0], "resolution": 0.8}))
+    with pytest.raises(ValueError, match="does not match its declared network"):
+        LearnedDetector(_payload(tmp_path, net={"in_channels": 4, "widths": [8, 8, 8]}))
+    with pytest.raises(ValueError, match="not a roco-env BEV detector"):
+        LearnedDetector(_payload(tmp_path, format="something else"))
+
+
+def test_learned_detector_options_are_checked():
+    with pytest.raises(ValueError, match="unknown parameter 'sigma_xy' for detector 'learned'"):
+        roco_env.parallel_env(detector="learned", **{"detector.params": {"sigma_xy": 0.1}})
+    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda'"):
+        roco_env.parallel_env(detector="learned", **{"detector.params": {"device": "tpu"}})
+    with pytest.raises(ScenarioError, match="needs detector.preset='learned'"):
+        roco_env.parallel_env(fusion="intermediate")
+
+
+@pytest.mark.parametrize("policy", [
+    pytest.param(name, marks=() if name == "roco" else pytest.mark.slow)
+    for name in available_policies()])
+@pytest.mark.parametrize("fusion", ["late", "intermediate"])
+def test_every_policy_runs_with_the_learned_detector(policy, fusion):
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, detector="learned",
+                                fusion=fusion, density=2.0, sigma_t=0.4, sigma_r=0.4)
+    act = make_policy(policy)
+    obs, infos = env.reset(seed=1)
+    while env.agents:
+        obs, rewards, _, _, infos = env.step({a: act(obs[a], infos[a]) for a in env.agents})
+        assert all(0.0 <= r <= 1.0 for r in rewards.values())
+        assert all(np.isfinite(infos[a]["ap70"]) or infos[a]["n_gt"] == 0 for a in infos)
+
+
+def test_fusion_canvas_covers_the_evaluation_range_in_whole_cells():
+    from roco_env.fusion.intermediate import fusion_canvas
+
+    canvas, pads = fusion_canvas(FGRID, (-140.8, 140.8), (-40.0, 40.0))
+    assert pads == (44, 44, 0, 0) and (canvas.H, canvas.W) == (FGRID.H, FGRID.W + 88)
+    canvas, pads = fusion_canvas(FGRID, (-10.0, 100.0), (-41.0, 20.0))
+    assert pads == (0, 19, 1, 0) and canvas.x_range[1] >= 100.0 and canvas.y_range[0] <= -41.0

@@ -1,0 +1,101 @@
+"""Simulated LiDAR scans and rasters: determinism, sparsity, dropouts, spurious points, heights."""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from roco_env.scenario import load_scenario
+from roco_env.sensing import BevGrid, compute_visibility
+from roco_env.sensing.lidar import (
+    LIDAR_CHANNELS,
+    ScanNoise,
+    ground_references,
+    lidar_raster,
+    sample_scans,
+)
+from roco_env.traffic import make_traffic_source
+
+GRID = BevGrid((-70.4, 70.4), (-40.0, 40.0), 0.8)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    state = make_traffic_source(load_scenario("urban_intersection")).reset(
+        np.random.default_rng(3))
+    return state, compute_visibility(state)
+
+
+def test_same_seed_same_scan_and_raster(scene):
+    state, vis = scene
+    a = sample_scans(state, vis, ScanNoise(), np.random.default_rng(7))
+    b = sample_scans(state, vis, ScanNoise(), np.random.default_rng(7))
+    c = sample_scans(state, vis, ScanNoise(), np.random.default_rng(8))
+    for sa, sb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(lidar_raster(sa, vis.ray_ranges[0], GRID),
+                                      lidar_raster(sb, vis.ray_ranges[0], GRID))
+    assert not np.array_equal(a[0].x, c[0].x)  # sampled, not expected, returns
+
+
+def test_raster_shape_and_channels(scene):
+    state, vis = scene
+    scan = sample_scans(state, vis, ScanNoise(), np.random.default_rng(0))[0]
+    raster = lidar_raster(scan, vis.ray_ranges[0], GRID)
+    assert raster.shape == (len(LIDAR_CHANNELS), GRID.H, GRID.W) and raster.dtype == np.float32
+    occupied = raster[0] > 0
+    assert occupied.any() and np.all(raster[1][~occupied] == 0.0)
+    assert np.all(raster[1] >= raster[2] - 1e-6)  # max height >= mean height
+    assert set(np.unique(raster[3])) <= {0.0, 1.0}
+
+
+def test_points_thin_out_with_range(scene):
+    """Range-dependent sparsity: points per visible object fall with its distance."""
+    state, vis = scene
+    scans = sample_scans(state, vis, ScanNoise(spurious_rate=0.0), np.random.default_rng(1))
+    near, far = [], []
+    for a, scan in enumerate(scans):
+        counts = np.bincount(scan.obj, minlength=state.num_objects)
+        seen = vis.visible[a] & (vis.fraction[a] > 0.5)
+        near += counts[seen & (vis.distance[a] < 20.0)].tolist()
+        far += counts[seen & (vis.distance[a] > 45.0)].tolist()
+    assert near and far and np.mean(near) > 3.0 * np.mean(far)
+
+
+def test_dropouts_and_spurious_returns(scene):
+    state, vis = scene
+    dark = sample_scans(state, vis, ScanNoise(dropout=1.0, spurious_rate=25.0),
+                        np.random.default_rng(2))
+    assert all(np.all(s.obj == -1) for s in dark)  # every true return dropped
+    assert sum(s.x.size for s in dark) > 0  # spurious points remain
+    for a, s in enumerate(dark):
+        assert np.all(np.hypot(s.x, s.y) <= state.sensor_ranges[a] + 1e-9)
+    clean = sample_scans(state, vis, ScanNoise(dropout=0.0, range_dropout=0.0,
+                                               spurious_rate=0.0), np.random.default_rng(2))
+    lossy = sample_scans(state, vis, ScanNoise(dropout=0.3, spurious_rate=0.0),
+                         np.random.default_rng(2))
+    assert sum(s.x.size for s in lossy) < 0.8 * sum(s.x.size for s in clean)
+
+
+def test_heights_are_relative_to_the_agents_ground(scene):
+    """Lifting the whole world (a hill) leaves every scan's heights unchanged."""
+    state, vis = scene
+    boxes = np.array(state.object_boxes)
+    boxes[:, 2] += 12.0
+    lifted = dataclasses.replace(state, object_boxes=boxes)
+    np.testing.assert_allclose(ground_references(lifted), ground_references(state) + 12.0)
+    # The same rays, their surface heights lifted with the world.
+    lifted_vis = SimpleNamespace(hits=dataclasses.replace(vis.hits, top=vis.hits.top + 12.0))
+    for s0, s1 in zip(sample_scans(state, vis, ScanNoise(), np.random.default_rng(4)),
+                      sample_scans(lifted, lifted_vis, ScanNoise(), np.random.default_rng(4)),
+                      strict=True):
+        np.testing.assert_allclose(s0.z, s1.z, atol=1e-9)
+
+
+@pytest.mark.parametrize("field,value", [("dropout", -0.1), ("range_noise", float("nan")),
+                                         ("spurious_rate", "many")])
+def test_scan_noise_rejects_bad_values(field, value):
+    with pytest.raises(ValueError, match=f"ScanNoise.{field}"):
+        ScanNoise(**{field: value})
