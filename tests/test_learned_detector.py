@@ -202,7 +202,7 @@ def test_bad_weights_files_raise_clear_errors(tmp_path):
 
 
 def test_learned_detector_options_are_checked():
-    with pytest.raises(ValueError, match="unknown parameter 'sigma_xy' for detector 'learned'"):
+    with pytest.raises(ValueError, match="unknown key 'detector.params.sigma_xy'; allowed: detector.params.weights"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"sigma_xy": 0.1}})
     with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda'"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"device": "tpu"}})
