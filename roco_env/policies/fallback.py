@@ -110,12 +110,18 @@ def roco_fallback_align(
     second = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, prior, **roco_params)
     applied = second.applied.copy()
     applied[use] = True
+    # Slots RoCo's second pass kept at the estimate: report the fallback's matches.
+    sub = estimate.matched_pairs
+    sub_slots = np.array(stuck)[sub[:, 2]]
+    extra = sub[np.isin(sub_slots, use) & ~second.applied[sub_slots]].copy()
+    extra[:, 2] = np.array(stuck)[extra[:, 2]]
     note = f"slots {use.tolist()}: re-localised by {name}, then refined by roco"
     return replace(
         second,
         applied=applied,
         outer_iterations=first.outer_iterations + second.outer_iterations,
         solver_iterations=first.solver_iterations + second.solver_iterations,
+        matched_pairs=np.concatenate([second.matched_pairs, extra]),
         reason="; ".join(r for r in (second.reason, note) if r),
     )
 

@@ -18,16 +18,18 @@ the same way for every method so that they differ only in how they search:
 3. the candidate with the most inliers is the estimate;
 4. **do-no-harm** (``do_no_harm=True``, the default; False applies the estimate
    whenever one exists, to measure the raw method): the reported pose is kept when
-   (a) the estimate has fewer than ``min_inliers`` inliers, or (b) another *distinct*
-   pose explains nearly as many boxes: a refined candidate or the refined reported
-   pose itself that differs from the estimate by more than ``distinct_distance`` m
-   or ``distinct_yaw_deg`` deg and has at least ``ambiguity_ratio`` times its
-   inliers. (b) is the ratio test of feature matching applied to whole poses: in a
-   periodic layout (a parking row) several shifts explain the boxes equally well
-   and the evidence cannot pick one; and when the reported pose is distinct from the
-   estimate yet explains the boxes as well, nothing says the prior is wrong. A
-   refined reported pose that lands on the estimate is *not* distinct: the estimate is
-   then a refinement of the prior and is applied.
+   (a) the estimate has fewer than ``min_inliers`` inliers; (b) the estimate lies
+   within ``distinct_distance`` m and ``distinct_yaw_deg`` deg of the reported pose:
+   the boxes do not say the prior is off (the estimate's own error, a few
+   centimetres from box noise, would otherwise replace an exact prior); or (c)
+   another *distinct* pose explains nearly as many boxes: a refined candidate or the
+   refined reported pose itself that differs from the estimate by more than
+   ``distinct_distance`` m or ``distinct_yaw_deg`` deg and has at least
+   ``ambiguity_ratio`` times its inliers. (c) is the ratio test of feature matching
+   applied to whole poses: in a periodic layout (a parking row) several shifts explain
+   the boxes equally well and the evidence cannot pick one; and when the reported
+   pose is distinct from the estimate yet explains the boxes as well, nothing says
+   the prior is wrong.
 
 Frames: the ego's reported frame (ego = identity); collaborator boxes in their own
 frame; metres and radians. Agent index convention: 0 = ego, j + 1 = collaborator j.
@@ -83,7 +85,9 @@ class PriorFreeParams(UncertaintyParams):
     refine_gate: association gate (m) of the refinement rounds; refine_iterations:
     association + Kabsch rounds per candidate.
     max_candidates: candidates (best first) that are refined and compared.
-    ambiguity_ratio, distinct_distance, distinct_yaw_deg: rule (b) of do-no-harm.
+    distinct_distance, distinct_yaw_deg: poses closer than both are the same hypothesis
+    (rules (b) and (c) of do-no-harm, and the candidates' non-maximum suppression).
+    ambiguity_ratio: rule (c).
     robust_kernel / kernel_delta: of the final least-squares solve (as roco's).
     max_solver_iterations: Levenberg-Marquardt cap of that solve.
     """
@@ -96,8 +100,8 @@ class PriorFreeParams(UncertaintyParams):
     refine_iterations: int = 3
     max_candidates: int = 4
     ambiguity_ratio: float = 0.8
-    distinct_distance: float = 1.0
-    distinct_yaw_deg: float = 2.0
+    distinct_distance: float = 0.5
+    distinct_yaw_deg: float = 1.0
     robust_kernel: str | None = "cauchy"
     kernel_delta: float = float(np.sqrt(7.815))
     max_solver_iterations: int = 100
@@ -277,6 +281,10 @@ def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
     if p.do_no_harm:
         if n_best < p.min_inliers:
             keep.reason = f"{n_best} inliers < min_inliers={p.min_inliers}"
+            return keep
+        if not poses_distinct(estimate, reported, p):
+            keep.reason = ("estimate within distinct_distance / distinct_yaw_deg of the "
+                           "reported pose: no evidence that the prior is off")
             return keep
         prior = refine_pose(reported, ego, own, p)
         rivals = [(r, int(c)) for r, c in zip(refined, counts, strict=True)]
