@@ -83,10 +83,10 @@ class FreeAlignParams(PriorFreeParams):
 
 def _descriptors(distances: np.ndarray, count: int) -> np.ndarray:
     """Each node's ``count`` smallest distances to other nodes, sorted (K, n), padded
-    with inf where a graph has fewer nodes."""
+    with NaN (which never matches) where a graph has fewer nodes."""
     k = distances.shape[0]
     n = min(count, k - 1)
-    out = np.full((k, count), np.inf)
+    out = np.full((k, count), np.nan)
     if n > 0:
         masked = distances + np.diag(np.full(k, np.inf))
         out[:, :n] = np.sort(np.partition(masked, n - 1, axis=1)[:, :n], axis=1)
