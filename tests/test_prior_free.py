@@ -119,6 +119,32 @@ def test_roco_fallback_reports_the_relocalised_slots(fallback):
     assert result.applied.all() and f"re-localised by {fallback}" in result.reason
 
 
+def test_roco_fallback_replaces_a_wrong_large_roco_correction(monkeypatch):
+    """A large correction RoCo applies itself is checked against the prior-free estimate
+    (RoCo's first pass is replaced by one that moves slot 0 to a wrong pose 4 m away)."""
+    import roco_env.policies.fallback as fallback
+
+    scene = sparse_scene(8)
+    calls = []
+
+    def wrong_first_pass(*args, **kwargs):
+        result = roco_align(*args, **kwargs)
+        if not calls:
+            result.corrected[0] = scene.true[0] + [4.0, 0.0, 0.0]
+            result.applied[0] = True
+        calls.append(result)
+        return result
+
+    monkeypatch.setattr(fallback, "roco_align", wrong_first_pass)
+    unchecked = roco_fallback_align(*scene.args(), verify_beyond_m=None,
+                                    verify_beyond_deg=None)
+    assert relative_pose_error(unchecked.corrected, scene.true)[0, 0] > 3.9
+    calls.clear()
+    checked = roco_fallback_align(*scene.args())
+    assert len(calls) == 2 and "slots [0]: re-localised" in checked.reason
+    assert np.all(relative_pose_error(checked.corrected, scene.true)[:, 0] < 0.15)
+
+
 def test_policies_are_registered_and_act_in_the_ego_frame():
     scene = sparse_scene(5)
     obs = to_observation(scene, max_boxes=20, max_collaborators=4)
@@ -141,6 +167,7 @@ def test_policies_are_registered_and_act_in_the_ego_frame():
     ("roco_fallback", {"fallback": "magic"}, "fallback"),
     ("roco_fallback", {"fallback_nope": 1}, "nope"),
     ("roco_fallback", {"nope": 1}, "nope"),
+    ("roco_fallback", {"verify_beyond_m": -1.0}, "verify_beyond_m"),
     ("v2i_calib", {"tau2": 1}, "tau2"),
 ])
 def test_bad_parameters_name_the_field(name, params, field):

@@ -2,9 +2,10 @@
 
 A setting is a cell without its seed (scenario, density, noise, policy, steps,
 overrides). Per setting: AP@0.3/0.5/0.7 = mean over seeds of each episode's
-dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2 are computed
-on the pooled samples of all seeds (so the tail is not averaged away); matching
-precision/recall and the correction share are means over seeds.
+dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2/@3 are
+computed on the pooled samples of all seeds (so the tail is not averaged away);
+matching precision/recall, the correction share and the time per policy call are
+means over seeds.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from roco_env.bench.stats import nanmean, nanstd, pose_error_summary
 
 AP_KEYS = ("ap30", "ap50", "ap70")
-MEAN_KEYS = ("match_precision", "match_recall", "correction_share")
+MEAN_KEYS = ("match_precision", "match_recall", "correction_share", "time_per_call_ms")
 
 
 @dataclass

@@ -27,6 +27,9 @@ from roco_env.bench.sweep import run_sweep
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
+LARGE_NOISE = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback",
+          "oracle")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 
@@ -93,6 +96,9 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("alignment_accuracy", "Pose accuracy: RPE, Success@1m1deg, matching P/R",
                ("urban_intersection", "parking_lot"), (0.2, 0.4, 0.6, 0.8, 1.0, 1.5),
                ("identity", "coalign", "roco"), seeds=2, steps=30),
+    Experiment("large_noise", "Large noise 1-10 m/deg: prior-free aligners and roco_fallback",
+               ("urban_intersection", "highway_dense", "v2x_crossroad"), LARGE_NOISE, ROSTER,
+               seeds=2, steps=20),
 )
 
 

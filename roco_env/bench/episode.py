@@ -5,12 +5,13 @@ Scores (DESIGN.md section 8), pooled over every evaluated agent and step:
   (``frame_scores``, ``frame_tp``, ``frame_fp``, ``frame_n_gt``);
 * relative pose error of every filled collaborator slot before and after the
   correction (translation m, rotation deg): median, 95th percentile,
-  Success@1m1deg and Success@2m2deg; the samples are kept for distribution plots;
+  Success@1m1deg, @2m2deg and @3m3deg; the samples are kept for distribution plots;
 * matching precision/recall against true object ids, mean over the frames where
   the policy reported a match result (``policy.last_result``), using the privileged
   ids of the info returned *with* the observation the policy saw;
 * correction share: frames (agent-steps with >= 1 collaborator) where the action
-  changed a filled slot's reported pose.
+  changed a filled slot's reported pose;
+* time per call: mean wall time (ms) of one policy call, over every agent-step.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class EpisodeScorer:
     precision: list = field(default_factory=list)
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
+    call_seconds: list = field(default_factory=list)
 
     def add_decision(self, observation: dict, info: dict, action: np.ndarray,
                      result: AlignmentResult | None) -> None:
@@ -91,6 +93,7 @@ class EpisodeScorer:
         metrics["match_precision"] = nanmean(self.precision)
         metrics["match_recall"] = nanmean(self.recall)
         metrics["correction_share"] = nanmean(self.applied)
+        metrics["time_per_call_ms"] = 1e3 * nanmean(self.call_seconds)
         metrics["frames"] = self.ap.n_frames  # evaluated agent-steps
         metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
@@ -129,7 +132,9 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
             for agent in env.agents:
                 policy = policies[agent]
                 previous = getattr(policy, "last_result", None)
+                start = time.perf_counter()
                 action = np.asarray(policy(observations[agent], infos[agent]))
+                scorer.call_seconds.append(time.perf_counter() - start)
                 result = getattr(policy, "last_result", None)
                 scorer.add_decision(observations[agent], infos[agent], action,
                                     None if result is previous else result)  # never a stale one

@@ -10,16 +10,23 @@ consistent matching and keeps the prior. This policy
    is a prior RoCo checked and found right, and is left alone), runs a prior-free
    aligner (``fallback``: ``"ransac"``, ``"v2i_calib"`` or ``"freealign"``, with its
    do-no-harm rule on);
+   and for every collaborator RoCo moved by more than ``verify_beyond_m`` m or
+   ``verify_beyond_deg`` deg (default 1.5 / 1.5; None switches the check off): a
+   large correction is itself evidence that the prior was far off, and there the
+   wide ``coarse_tau2`` gate can lock RoCo onto a wrong but self-consistent matching;
 3. takes the prior-free estimate only when it is *distinct* from the reported pose
    (farther than the fallback's ``distinct_distance`` m or ``distinct_yaw_deg`` deg):
    an estimate next to the prior says the prior was not far off, so RoCo's decision
-   stands (this keeps the clean-pose case untouched);
+   stands (this keeps the clean-pose case untouched); for a collaborator RoCo moved,
+   the estimate must also be distinct from RoCo's pose and explain strictly more boxes
+   (one-to-one inliers within the fallback's gates);
 4. re-runs RoCo with those estimates in place of the reported poses, so RoCo's
    matching and robust pose graph refine them (its prior edge now pulls towards the
    estimate). A collaborator RoCo then keeps at its (new) prior keeps the estimate.
 
-Parameters: ``fallback`` names the aligner; keys prefixed ``fallback_`` go to it with
-the prefix removed (e.g. ``fallback_min_inliers=4``); every other key goes to RoCo.
+Parameters: ``fallback`` names the aligner; ``verify_beyond_m`` / ``verify_beyond_deg``
+as above; keys prefixed ``fallback_`` go to the aligner with the prefix removed (e.g.
+``fallback_min_inliers=4``); every other key goes to RoCo.
 The result's ``applied`` is True where the final pose differs from the reported one;
 ``outer_iterations`` / ``solver_iterations`` add up both RoCo passes.
 """
@@ -31,11 +38,12 @@ from dataclasses import replace
 
 import numpy as np
 
+from roco_env.geometry import wrap_angle
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.freealign import FreeAlignParams, freealign_align
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.policies.observation import ArrayAlignmentPolicy
-from roco_env.policies.prior_free import poses_distinct
+from roco_env.policies.prior_free import consensus, poses_distinct
 from roco_env.policies.ransac import RansacParams, ransac_align
 from roco_env.policies.roco import RoCoParams, roco_align
 from roco_env.policies.v2i_calib import V2ICalibParams, v2i_calib_align
@@ -50,19 +58,25 @@ FALLBACKS = {
 _PREFIX = "fallback_"
 # Prefix of RoCo's reason for a prior it kept because the evidence did not show it wrong.
 _CHECKED_PRIOR = "correction not significant"
+_OWN_DEFAULTS = {"verify_beyond_m": 1.5, "verify_beyond_deg": 1.5}
 
 
-def _split(params: dict) -> tuple[str, dict, dict]:
-    """(fallback name, its params, roco params), each validated."""
+def _split(params: dict) -> tuple[str, dict, dict, dict]:
+    """(fallback name, the policy's own params, the fallback's params, roco params),
+    each validated."""
     params = dict(params)
     name = params.pop("fallback", "ransac")
     if name not in FALLBACKS:
         raise ValueError(f"fallback must be one of {sorted(FALLBACKS)}; got {name!r}")
+    own = {key: params.pop(key, default) for key, default in _OWN_DEFAULTS.items()}
+    for key, value in own.items():
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{key} must be None or > 0; got {value}")
     inner = {k[len(_PREFIX):]: v for k, v in params.items() if k.startswith(_PREFIX)}
     roco = {k: v for k, v in params.items() if not k.startswith(_PREFIX)}
     params_from_kwargs(FALLBACKS[name][1], inner, f"roco_fallback fallback {name!r}")
     params_from_kwargs(RoCoParams, roco, "roco_fallback")
-    return name, inner, roco
+    return name, own, inner, roco
 
 
 def _slot_reasons(result: AlignmentResult) -> dict[int, str]:
@@ -87,34 +101,45 @@ def roco_fallback_align(
 
     Same array call as :func:`roco_env.policies.roco.roco_align`.
     """
-    name, inner, roco_params = _split(params)
+    name, own, inner, roco_params = _split(params)
     reported = np.asarray(reported, dtype=float)
     first = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
     reasons = _slot_reasons(first)
     stuck = [j for j in range(first.applied.size)
              if not first.applied[j] and len(collab_boxes[j])
              and not reasons.get(j, "").startswith(_CHECKED_PRIOR)]
-    if not stuck:
+    moved = _large_corrections(first, reported, own)
+    slots = sorted(stuck + moved)
+    if not slots:
         return first
     align, params_cls = FALLBACKS[name]
     inner.setdefault("do_no_harm", True)
     fallback_params = params_from_kwargs(params_cls, inner, name)
-    estimate = align(ego_boxes, ego_unc, [collab_boxes[j] for j in stuck],
-                     [collab_unc[j] for j in stuck], reported[stuck], **inner)
-    far = poses_distinct(estimate.corrected, reported[stuck], fallback_params)
-    use = np.array(stuck)[estimate.applied & far]
+    estimate = align(ego_boxes, ego_unc, [collab_boxes[j] for j in slots],
+                     [collab_unc[j] for j in slots], reported[slots], **inner)
+    ok = estimate.applied & poses_distinct(estimate.corrected, reported[slots], fallback_params)
+    ego = np.asarray(ego_boxes, dtype=float).reshape(-1, 7)[:, [0, 1, 6]]
+    for pos, j in enumerate(slots):
+        if ok[pos] and j in moved:
+            # RoCo moved this one itself: replace it only by a pose explaining more boxes.
+            own_poses = np.asarray(collab_boxes[j], dtype=float).reshape(-1, 7)[:, [0, 1, 6]]
+            count = [consensus(pose, ego, own_poses, fallback_params)[0].size
+                     for pose in (estimate.corrected[pos], first.corrected[j])]
+            ok[pos] = count[0] > count[1] and bool(poses_distinct(
+                estimate.corrected[pos], first.corrected[j], fallback_params))
+    use = np.array(slots)[ok]
     if use.size == 0:
         return first
     prior = reported.copy()
-    prior[use] = estimate.corrected[np.searchsorted(stuck, use)]
+    prior[use] = estimate.corrected[np.searchsorted(slots, use)]
     second = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, prior, **roco_params)
     applied = second.applied.copy()
     applied[use] = True
     # Slots RoCo's second pass kept at the estimate: report the fallback's matches.
     sub = estimate.matched_pairs
-    sub_slots = np.array(stuck)[sub[:, 2]]
+    sub_slots = np.array(slots)[sub[:, 2]]
     extra = sub[np.isin(sub_slots, use) & ~second.applied[sub_slots]].copy()
-    extra[:, 2] = np.array(stuck)[extra[:, 2]]
+    extra[:, 2] = np.array(slots)[extra[:, 2]]
     note = f"slots {use.tolist()}: re-localised by {name}, then refined by roco"
     return replace(
         second,
@@ -124,6 +149,19 @@ def roco_fallback_align(
         matched_pairs=np.concatenate([second.matched_pairs, extra]),
         reason="; ".join(r for r in (second.reason, note) if r),
     )
+
+
+def _large_corrections(result: AlignmentResult, reported: np.ndarray, own: dict) -> list[int]:
+    """Slots whose applied correction exceeds ``verify_beyond_m`` m or
+    ``verify_beyond_deg`` deg (none when both are None)."""
+    size_m = np.hypot(*(result.corrected[:, :2] - reported[:, :2]).T)
+    size_deg = np.rad2deg(np.abs(wrap_angle(result.corrected[:, 2] - reported[:, 2])))
+    large = np.zeros(size_m.size, dtype=bool)
+    if own["verify_beyond_m"] is not None:
+        large |= size_m > own["verify_beyond_m"]
+    if own["verify_beyond_deg"] is not None:
+        large |= size_deg > own["verify_beyond_deg"]
+    return np.nonzero(large & result.applied)[0].tolist()
 
 
 class RoCoFallbackPolicy(ArrayAlignmentPolicy):
