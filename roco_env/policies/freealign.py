@@ -20,7 +20,10 @@ R[p, q] of the paper; distances are invariant to the unknown relative pose).
    with ``edge_yaw_tolerance_deg`` set, its heading relative to the seed agrees
    within that many degrees modulo pi (an extra edge feature the boxes carry;
    None = distances only, as the paper's graph). The subgraph with the largest mass
-   (node count) wins; the others, ordered by mass, are alternatives.
+   (node count) wins; the others, ordered by mass, are alternatives. Growth stops at
+   ``max_subgraph`` nodes (our choice, for speed: 16 consistent nodes already pin the
+   pose for the refinement, which re-associates every box, and a wrong anchor rarely
+   gathers that many; None grows each subgraph to the end, as the paper).
 3. **Robust transform.** The SVD (Kabsch) fit on the common subgraph's centres gives
    the relative pose; the shared refinement (re-association + SVD, robust least
    squares) and do-no-harm rule of :mod:`roco_env.policies.prior_free` follow.
@@ -57,19 +60,24 @@ __all__ = ["FreeAlignParams", "FreeAlignPolicy", "freealign_align", "common_subg
 class FreeAlignParams(PriorFreeParams):
     """FreeAlign parameters on top of :class:`PriorFreeParams` (module docstring):
     descriptor_neighbors, edge_tolerance (m), anchors, edge_yaw_tolerance_deg (None =
-    distances only), min_subgraph (nodes a subgraph needs to become a candidate)."""
+    distances only), min_subgraph (nodes a subgraph needs to become a candidate),
+    max_subgraph (growth stops there; None = grow to the full common subgraph)."""
 
-    descriptor_neighbors: int = 8
+    descriptor_neighbors: int = 6
     edge_tolerance: float = 0.8
     anchors: int = 4
     edge_yaw_tolerance_deg: float | None = 15.0
     min_subgraph: int = 3
+    max_subgraph: int | None = 16
 
     def __post_init__(self) -> None:
         PriorFreeParams.__post_init__(self)
         for name in ("descriptor_neighbors", "anchors"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
+        if self.max_subgraph is not None and not int(self.max_subgraph) >= self.min_subgraph:
+            raise ValueError(
+                f"max_subgraph must be None or >= min_subgraph; got {self.max_subgraph}")
         if int(self.min_subgraph) < 2:
             raise ValueError(f"min_subgraph must be >= 2 (an SE(2) fit); got {self.min_subgraph}")
         if not (np.isfinite(self.edge_tolerance) and self.edge_tolerance > 0):
@@ -96,15 +104,18 @@ def _descriptors(distances: np.ndarray, count: int) -> np.ndarray:
 def _node_similarity(ego_d: np.ndarray, own_d: np.ndarray, tol: float) -> np.ndarray:
     """sim (M, K): how many of node i's descriptor distances find a distance of node k
     within ``tol`` m (padding never matches)."""
-    diff = np.abs(ego_d[:, None, :, None] - own_d[None, :, None, :])
+    a, b = ego_d.astype(np.float32), own_d.astype(np.float32)
+    diff = np.abs(a[:, None, :, None] - b[None, :, None, :])
     return (diff <= tol).any(axis=3).sum(axis=2).astype(float)
 
 
 def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
-                    tol: float, yaw_ok: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    tol: float, yaw_ok: np.ndarray | None = None,
+                    max_nodes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Grow the common subgraph of two distance matrices (M, M), (K, K) from ``seed``.
 
-    yaw_ok (M, K) bool, optional: node pairs whose headings relative to the seed agree.
+    yaw_ok (M, K) bool, optional: node pairs whose headings relative to the seed agree;
+    max_nodes: stop growing at this many nodes (None = until no pair agrees).
     Returns the matched (ego nodes, own nodes), seed first.
     """
     i, k = seed
@@ -121,7 +132,7 @@ def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
     # its boxes; each acceptance updates all of them at once.
     alive = np.ones(rows.size, dtype=bool)
     nodes_e, nodes_o = [i], [k]
-    while True:
+    while max_nodes is None or len(nodes_e) < max_nodes:
         live = np.flatnonzero(alive)
         if live.size == 0:
             break
@@ -152,7 +163,7 @@ def freealign_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
                                       (own[:, 2] - own[k, 2])[None, :]) <= np.deg2rad(
                 p.edge_yaw_tolerance_deg)
         nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)), p.edge_tolerance,
-                                           yaw_ok)
+                                           yaw_ok, p.max_subgraph)
         if nodes_e.size >= p.min_subgraph:
             found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
     if not found:

@@ -25,7 +25,9 @@ without replacement with a generator seeded from the boxes' bytes
 (:func:`roco_env.policies.prior_free.content_seed`): the same observation always gives
 the same answer. Each hypothesis is scored by its inlier count (collaborator boxes
 whose mapped centre has an ego box within ``inlier_distance`` m with heading within
-``inlier_yaw_deg``, not one-to-one: the usual RANSAC score); the best distinct
+``inlier_yaw_deg``, not one-to-one: the usual RANSAC score), counted on at most
+``score_boxes`` collaborator boxes spread over its list (None = all; the ranking only
+has to find the right basin, the refinement recounts on every box); the best distinct
 hypotheses (non-maximum suppression, ``distinct_distance`` / ``distinct_yaw_deg``) go
 to the shared refinement (re-association + SVD fit, robust least squares) and
 do-no-harm rule of :mod:`roco_env.policies.prior_free`.
@@ -57,15 +59,16 @@ __all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_candidates"]
 class RansacParams(PriorFreeParams):
     """RANSAC parameters (m, deg) on top of :class:`PriorFreeParams`: pair_tolerance,
     min_pair_distance, max_pair_distance, use_yaw_invariants, yaw_tolerance_deg,
-    max_hypotheses (module docstring)."""
+    max_hypotheses, pair_neighbors, score_boxes (module docstring)."""
 
     pair_tolerance: float = 0.6
     min_pair_distance: float = 4.0
     max_pair_distance: float = 80.0
     use_yaw_invariants: bool = True
     yaw_tolerance_deg: float = 10.0
-    max_hypotheses: int = 400
+    max_hypotheses: int = 300
     pair_neighbors: int | None = 8
+    score_boxes: int | None = 24
 
     def __post_init__(self) -> None:
         PriorFreeParams.__post_init__(self)
@@ -79,6 +82,8 @@ class RansacParams(PriorFreeParams):
             )
         if self.pair_neighbors is not None and int(self.pair_neighbors) < 1:
             raise ValueError(f"pair_neighbors must be None or >= 1; got {self.pair_neighbors}")
+        if self.score_boxes is not None and int(self.score_boxes) < 2:
+            raise ValueError(f"score_boxes must be None or >= 2; got {self.score_boxes}")
         if int(self.max_hypotheses) < 1:
             raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
 
@@ -138,7 +143,10 @@ def ransac_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
     tx = e_mid[:, 0] - (c * c_mid[:, 0] - s * c_mid[:, 1])
     ty = e_mid[:, 1] - (s * c_mid[:, 0] + c * c_mid[:, 1])
     poses = np.column_stack([tx, ty, theta])
-    scores = _inlier_counts(poses, ego, own, p)
+    scored = own
+    if p.score_boxes is not None and own.shape[0] > p.score_boxes:
+        scored = own[np.linspace(0, own.shape[0] - 1, int(p.score_boxes)).astype(int)]
+    scores = _inlier_counts(poses, ego, scored, p)
     top = distinct_top(poses, scores.astype(float), p.max_candidates, p)
     return poses[top]
 

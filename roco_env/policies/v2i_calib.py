@@ -69,7 +69,7 @@ class V2ICalibParams(PriorFreeParams):
 
     metric: str = "odist"
     association: str = "sinkhorn"
-    neighbors: int | None = 8
+    neighbors: int | None = 6
     odist_threshold: float = 2.0
     min_affinity: float = 2.0
     sinkhorn_epsilon: float = 0.1
@@ -113,38 +113,40 @@ def affinity_matrix(ego: np.ndarray, own: np.ndarray,
     m, k = ego.shape[0], own.shape[0]
     if ego_local.shape[1] == 0 or own_local.shape[1] == 0:
         return np.zeros((m, k)), np.zeros((m, k))
-    best = np.full((m, k), -np.inf)
-    flip = np.zeros((m, k))
-    for f in (0.0, np.pi):
-        sign = 1.0 if f == 0.0 else -1.0
-        if p.metric == "odist":
-            score = _odist(ego_local, own_local, sign, p)
-        else:
-            score = _oiou(ego, own, ego_local, own_local, ego_near, own_near, f)
-        better = score > best
-        best[better], flip[better] = score[better], f
-    return best, flip
+    if p.metric == "odist":
+        scores = _odist(ego_local, own_local, p)
+    else:
+        scores = [_oiou(ego, own, ego_local, own_local, ego_near, own_near, f)
+                  for f in (0.0, np.pi)]
+    flipped = scores[1] > scores[0]
+    return np.where(flipped, scores[1], scores[0]), np.where(flipped, np.pi, 0.0)
 
 
-def _odist(ego_local: np.ndarray, own_local: np.ndarray, sign: float,
-           p: V2ICalibParams) -> np.ndarray:
-    """sum_m max_n max(0, 1 - d^2/r^2) [heading gate], one matrix product for all anchors."""
+def _odist(ego_local: np.ndarray, own_local: np.ndarray,
+           p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
+    """sum_m max_n max(0, 1 - d^2/r^2) [heading gate] for all anchors, unturned and
+    turned by pi (turning negates the cross term of d^2; the gate is modulo pi)."""
     m, n, _ = ego_local.shape
     k, q, _ = own_local.shape
     # float32 matrix products: the (M N) x (K N) tables dominate the cost.
     a = ego_local[..., :2].reshape(-1, 2).astype(np.float32)
-    b = (sign * own_local[..., :2].reshape(-1, 2)).astype(np.float32)
+    # Columns ordered (neighbour, anchor) so the max over neighbours runs over whole
+    # contiguous rows of K values (a reduction over a short last axis is slow).
+    own_local = own_local.transpose(1, 0, 2)
+    b = own_local[..., :2].reshape(-1, 2).astype(np.float32)
     inv_r2 = np.float32(1.0 / p.odist_threshold**2)
-    sim = (2.0 * inv_r2) * (a @ b.T)
-    sim += (1.0 - inv_r2 * (a * a).sum(1))[:, None]
-    sim -= (inv_r2 * (b * b).sum(1))[None, :]
+    cross = (2.0 * inv_r2) * (a @ b.T)
+    base = (1.0 - inv_r2 * (a * a).sum(1))[:, None] - (inv_r2 * (b * b).sum(1))[None, :]
     two_a, two_b = 2.0 * ego_local[..., 2].reshape(-1), 2.0 * own_local[..., 2].reshape(-1)
     # cos(2 (yaw_a - yaw_b)) >= cos(2 gate) <=> heading difference modulo pi within gate.
     cos2 = np.column_stack([np.cos(two_a), np.sin(two_a)]).astype(np.float32) @ (
         np.column_stack([np.cos(two_b), np.sin(two_b)]).astype(np.float32).T)
-    sim[cos2 < np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))] = 0.0
-    np.maximum(sim, 0.0, out=sim)
-    return sim.reshape(m, n, k, q).max(axis=3).sum(axis=1, dtype=np.float64)
+    base[cos2 < np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))] = -np.inf
+    out = []
+    for sim in (base + cross, base - cross):
+        np.maximum(sim, 0.0, out=sim)
+        out.append(sim.reshape(m, n, q, k).max(axis=2).sum(axis=1, dtype=np.float64))
+    return out[0], out[1]
 
 
 def _oiou(ego: np.ndarray, own: np.ndarray, ego_local: np.ndarray, own_local: np.ndarray,
