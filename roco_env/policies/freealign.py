@@ -36,21 +36,18 @@ of the same step, so only the spatial part is implemented.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from roco_env.policies.base import AlignmentResult
-from roco_env.policies.landmarks import params_from_kwargs
-from roco_env.policies.observation import ArrayAlignmentPolicy
 from roco_env.policies.prior_free import (
     PriorFreeParams,
+    PriorFreePolicy,
+    aligner,
     axial_difference,
     distinct_top,
     fit_se2,
-    prior_free_align,
 )
 
 __all__ = ["FreeAlignParams", "FreeAlignPolicy", "freealign_align", "common_subgraph"]
@@ -174,27 +171,14 @@ def freealign_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
     return poses[top]
 
 
-def freealign_align(
-    ego_boxes: np.ndarray,
-    ego_unc: np.ndarray,
-    collab_boxes: Sequence[np.ndarray],
-    collab_unc: Sequence[np.ndarray],
-    reported: np.ndarray,
-    **params,
-) -> AlignmentResult:
-    """Correct the collaborators' relative poses with FreeAlign (distance-matrix node
-    features instead of the learned GNN).
-
-    Same array call as :func:`roco_env.policies.roco.roco_align`; params: fields of
-    :class:`FreeAlignParams`. The reported poses are used only by the do-no-harm rule.
-    """
-    return prior_free_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
-                            freealign_candidates, FreeAlignParams, params, "freealign")
+freealign_align = aligner(freealign_candidates, FreeAlignParams, "freealign",
+                          "Correct the collaborators' relative poses with FreeAlign "
+                          "(distance-matrix node features instead of the learned GNN).")
 
 
-class FreeAlignPolicy(ArrayAlignmentPolicy):
+class FreeAlignPolicy(PriorFreePolicy):
     """FreeAlign as an env policy: ``FreeAlignPolicy(**params)(obs) -> action (N, 3)``."""
 
-    def __init__(self, **params) -> None:
-        super().__init__(freealign_align,
-                         params_from_kwargs(FreeAlignParams, params, "freealign"), params)
+    ALIGN = staticmethod(freealign_align)
+    PARAMS = FreeAlignParams
+    METHOD = "freealign"

@@ -52,11 +52,14 @@ from roco_env.policies.landmarks import (
     params_from_kwargs,
     prepare_inputs,
 )
+from roco_env.policies.observation import ArrayAlignmentPolicy
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
 
 __all__ = [
     "CandidateSearch",
     "PriorFreeParams",
+    "PriorFreePolicy",
+    "aligner",
     "axial_difference",
     "consensus",
     "content_seed",
@@ -352,3 +355,37 @@ def prior_free_align(
         solver_iterations=solver,
         reason="; ".join(reasons),
     )
+
+
+def aligner(search: CandidateSearch, params_cls: type, method: str,
+            summary: str) -> Callable[..., AlignmentResult]:
+    """The array aligner ``align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
+    **params) -> AlignmentResult`` of a prior-free method (its candidate ``search`` and
+    parameter class); ``summary`` opens its docstring."""
+
+    def align(ego_boxes: np.ndarray, ego_unc: np.ndarray, collab_boxes: Sequence[np.ndarray],
+              collab_unc: Sequence[np.ndarray], reported: np.ndarray,
+              **params) -> AlignmentResult:
+        return prior_free_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
+                                search, params_cls, params, method)
+
+    align.__name__ = align.__qualname__ = f"{method}_align"
+    align.__doc__ = (
+        f"{summary}\n\nSame array call as :func:`roco_env.policies.roco.roco_align`; params: "
+        f"fields of :class:`{params_cls.__name__}`. The reported poses are used only by "
+        "the do-no-harm rule."
+    )
+    return align
+
+
+class PriorFreePolicy(ArrayAlignmentPolicy):
+    """Env policy of a prior-free aligner: ``Policy(**params)(obs, info=None) -> action
+    (N, 3)``. Subclasses set ``ALIGN`` (a staticmethod), ``PARAMS`` and ``METHOD``."""
+
+    ALIGN: Callable[..., AlignmentResult]
+    PARAMS: type = PriorFreeParams
+    METHOD: str = ""
+
+    def __init__(self, **params) -> None:
+        super().__init__(type(self).ALIGN, params_from_kwargs(self.PARAMS, params, self.METHOD),
+                         params)

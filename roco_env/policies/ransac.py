@@ -35,21 +35,18 @@ do-no-harm rule of :mod:`roco_env.policies.prior_free`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from roco_env.policies.base import AlignmentResult
-from roco_env.policies.landmarks import params_from_kwargs
-from roco_env.policies.observation import ArrayAlignmentPolicy
 from roco_env.policies.prior_free import (
     PriorFreeParams,
+    PriorFreePolicy,
+    aligner,
     axial_difference,
     content_seed,
     distinct_top,
-    prior_free_align,
 )
 
 __all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_candidates"]
@@ -167,25 +164,13 @@ def _inlier_counts(poses: np.ndarray, ego: np.ndarray, own: np.ndarray,
     return ok.reshape(poses.shape[0], own.shape[0]).sum(axis=1)
 
 
-def ransac_align(
-    ego_boxes: np.ndarray,
-    ego_unc: np.ndarray,
-    collab_boxes: Sequence[np.ndarray],
-    collab_unc: Sequence[np.ndarray],
-    reported: np.ndarray,
-    **params,
-) -> AlignmentResult:
-    """Correct the collaborators' relative poses by box-correspondence RANSAC.
-
-    Same array call as :func:`roco_env.policies.roco.roco_align`; params: fields of
-    :class:`RansacParams`. The reported poses are used only by the do-no-harm rule.
-    """
-    return prior_free_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
-                            ransac_candidates, RansacParams, params, "ransac")
+ransac_align = aligner(ransac_candidates, RansacParams, "ransac",
+                       "Correct the collaborators' relative poses by box-correspondence RANSAC.")
 
 
-class RansacPolicy(ArrayAlignmentPolicy):
+class RansacPolicy(PriorFreePolicy):
     """RANSAC as an env policy: ``RansacPolicy(**params)(obs, info=None) -> action (N, 3)``."""
 
-    def __init__(self, **params) -> None:
-        super().__init__(ransac_align, params_from_kwargs(RansacParams, params, "ransac"), params)
+    ALIGN = staticmethod(ransac_align)
+    PARAMS = RansacParams
+    METHOD = "ransac"

@@ -41,7 +41,6 @@ assumes which agent is which.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,10 +48,13 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
-from roco_env.policies.base import AlignmentResult
-from roco_env.policies.landmarks import params_from_kwargs
-from roco_env.policies.observation import ArrayAlignmentPolicy
-from roco_env.policies.prior_free import PriorFreeParams, distinct_top, fit_se2, prior_free_align
+from roco_env.policies.prior_free import (
+    PriorFreeParams,
+    PriorFreePolicy,
+    aligner,
+    distinct_top,
+    fit_se2,
+)
 
 __all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align"]
 
@@ -231,26 +233,13 @@ def v2i_calib_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
     return candidates
 
 
-def v2i_calib_align(
-    ego_boxes: np.ndarray,
-    ego_unc: np.ndarray,
-    collab_boxes: Sequence[np.ndarray],
-    collab_unc: Sequence[np.ndarray],
-    reported: np.ndarray,
-    **params,
-) -> AlignmentResult:
-    """Correct the collaborators' relative poses with V2I-Calib(++).
-
-    Same array call as :func:`roco_env.policies.roco.roco_align`; params: fields of
-    :class:`V2ICalibParams`. The reported poses are used only by the do-no-harm rule.
-    """
-    return prior_free_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
-                            v2i_calib_candidates, V2ICalibParams, params, "v2i_calib")
+v2i_calib_align = aligner(v2i_calib_candidates, V2ICalibParams, "v2i_calib",
+                          "Correct the collaborators' relative poses with V2I-Calib(++).")
 
 
-class V2ICalibPolicy(ArrayAlignmentPolicy):
+class V2ICalibPolicy(PriorFreePolicy):
     """V2I-Calib(++) as an env policy: ``V2ICalibPolicy(**params)(obs) -> action (N, 3)``."""
 
-    def __init__(self, **params) -> None:
-        super().__init__(v2i_calib_align,
-                         params_from_kwargs(V2ICalibParams, params, "v2i_calib"), params)
+    ALIGN = staticmethod(v2i_calib_align)
+    PARAMS = V2ICalibParams
+    METHOD = "v2i_calib"
