@@ -12,10 +12,13 @@ the same way for every method so that they differ only in how they search:
    candidate gets a final robust least-squares solve on the box poses (the pose
    graph's single-vertex Levenberg-Marquardt with the box-uncertainty information and
    the robust kernel, :func:`roco_env.policies.posegraph.optimize_pose`);
-2. **consensus** (:func:`consensus`): the number of one-to-one inliers under a pose,
-   a box pair being an inlier when its centres are within ``inlier_distance`` m and
-   its headings within ``inlier_yaw_deg`` degrees (modulo pi);
-3. the candidate with the most inliers is the estimate;
+2. **consensus** (:func:`consensus`, :func:`support`): the one-to-one inliers under a
+   pose, a box pair being an inlier when its centres are within ``inlier_distance`` m
+   and its headings within ``inlier_yaw_deg`` degrees (modulo pi), and their soft
+   support sum exp(-d^2 / (2 ``support_sigma``^2)) (d the centre distance): a pose that
+   lays boxes exactly on each other outscores one that explains as many loosely (a
+   lane of cars slid by one car);
+3. the candidate with the highest support is the estimate;
 4. **do-no-harm** (``do_no_harm=True``, the default; False applies the estimate
    whenever one exists, to measure the raw method): the reported pose is kept when
    (a) the estimate has fewer than ``min_inliers`` inliers; (b) the estimate lies
@@ -25,7 +28,7 @@ the same way for every method so that they differ only in how they search:
    another *distinct* pose explains nearly as many boxes: a refined candidate or the
    refined reported pose itself that differs from the estimate by more than
    ``distinct_distance`` m or ``distinct_yaw_deg`` deg and has at least
-   ``ambiguity_ratio`` times its inliers. (c) is the ratio test of feature matching
+   ``ambiguity_ratio`` times its support. (c) is the ratio test of feature matching
    applied to whole poses: in a periodic layout (a parking row) several shifts explain
    the boxes equally well and the evidence cannot pick one; and when the reported
    pose is distinct from the estimate yet explains the boxes as well, nothing says
@@ -68,6 +71,7 @@ __all__ = [
     "poses_distinct",
     "prior_free_align",
     "refine_pose",
+    "support",
 ]
 
 # A candidate search maps (ego boxes (M, 7), collaborator boxes (K, 7) in its own frame,
@@ -90,6 +94,7 @@ class PriorFreeParams(UncertaintyParams):
     max_candidates: candidates (best first) that are refined and compared.
     distinct_distance, distinct_yaw_deg: poses closer than both are the same hypothesis
     (rules (b) and (c) of do-no-harm, and the candidates' non-maximum suppression).
+    support_sigma (m): scale of the soft support that ranks candidates and rule (c).
     ambiguity_ratio: rule (c).
     robust_kernel / kernel_delta: of the final least-squares solve (as roco's).
     max_solver_iterations: Levenberg-Marquardt cap of that solve.
@@ -102,6 +107,7 @@ class PriorFreeParams(UncertaintyParams):
     refine_gate: float = 3.0
     refine_iterations: int = 3
     max_candidates: int = 4
+    support_sigma: float = 0.3
     ambiguity_ratio: float = 0.8
     distinct_distance: float = 0.5
     distinct_yaw_deg: float = 1.0
@@ -200,6 +206,14 @@ def consensus(
     return e, o
 
 
+def support(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
+            p: PriorFreeParams) -> tuple[int, float]:
+    """(inlier count, soft support sum_inliers exp(-d^2 / (2 support_sigma^2))) of
+    ``pose``, d the inlier's centre distance (m)."""
+    _, _, dist = _associate(pose, ego, own, p.inlier_distance, np.deg2rad(p.inlier_yaw_deg))
+    return dist.size, float(np.exp(-0.5 * (dist / p.support_sigma) ** 2).sum())
+
+
 def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
                 p: PriorFreeParams) -> np.ndarray:
     """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit."""
@@ -278,9 +292,9 @@ def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
         keep.reason = "no pose hypothesis"
         return keep
     refined = np.array([refine_pose(c, ego, own, p) for c in candidates])
-    counts = np.array([consensus(r, ego, own, p)[0].size for r in refined])
-    best = int(np.argmax(counts))
-    estimate, n_best = refined[best], int(counts[best])
+    supports = [support(r, ego, own, p) for r in refined]
+    best = int(np.argmax([score for _, score in supports]))
+    estimate, (n_best, s_best) = refined[best], supports[best]
     if p.do_no_harm:
         if n_best < p.min_inliers:
             keep.reason = f"{n_best} inliers < min_inliers={p.min_inliers}"
@@ -290,12 +304,11 @@ def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
                            "reported pose: no evidence that the prior is off")
             return keep
         prior = refine_pose(reported, ego, own, p)
-        rivals = [(r, int(c)) for r, c in zip(refined, counts, strict=True)]
-        rivals.append((prior, consensus(prior, ego, own, p)[0].size))
-        for rival, n in rivals:
-            if poses_distinct(rival, estimate, p) and n >= p.ambiguity_ratio * n_best:
-                keep.reason = (f"ambiguous: a distinct pose explains {n} of the estimate's "
-                               f"{n_best} inliers (ambiguity_ratio={p.ambiguity_ratio})")
+        rivals = [*zip(refined, supports, strict=True), (prior, support(prior, ego, own, p))]
+        for rival, (_, score) in rivals:
+            if poses_distinct(rival, estimate, p) and score >= p.ambiguity_ratio * s_best:
+                keep.reason = (f"ambiguous: a distinct pose has support {score:.2f} of the "
+                               f"estimate's {s_best:.2f} (ambiguity_ratio={p.ambiguity_ratio})")
                 return keep
     elif n_best < 2:
         keep.reason = f"{n_best} inliers: an SE(2) pose needs >= 2"
