@@ -20,21 +20,24 @@ consistent matching and keeps the prior. This policy
    stands (this keeps the clean-pose case untouched); for a collaborator RoCo moved,
    the estimate must also be distinct from RoCo's pose and explain strictly more boxes
    (one-to-one inliers within the fallback's gates);
-4. re-runs RoCo with those estimates in place of the reported poses, so RoCo's
-   matching and robust pose graph refine them (its prior edge now pulls towards the
-   estimate). A collaborator RoCo then keeps at its (new) prior keeps the estimate.
+4. re-runs RoCo with those estimates in place of the reported poses and without its
+   significance test (the estimate is already within centimetres, so the test would
+   keep it; RoCo's estimate over all boxes is more accurate: 0.054 vs 0.068 m median
+   RPE on urban_intersection), and takes RoCo's result for these collaborators; a
+   collaborator RoCo's other rules (matches, inliers) reject keeps the estimate. The
+   other collaborators keep the first pass's result.
 
 Parameters: ``fallback`` names the aligner; ``verify_beyond_m`` / ``verify_beyond_deg``
 as above; keys prefixed ``fallback_`` go to the aligner with the prefix removed (e.g.
 ``fallback_min_inliers=4``); every other key goes to RoCo.
 The result's ``applied`` is True where the final pose differs from the reported one;
-``outer_iterations`` / ``solver_iterations`` add up both RoCo passes.
+``outer_iterations`` / ``solver_iterations`` add up both RoCo passes; ``landmarks`` are
+the second pass's when there is one.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -132,22 +135,35 @@ def roco_fallback_align(
         return first
     prior = reported.copy()
     prior[use] = estimate.corrected[np.searchsorted(slots, use)]
-    second = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, prior, **roco_params)
-    applied = second.applied.copy()
+    # The estimate is within a few centimetres: RoCo's significance test would keep it as
+    # it is; without the test RoCo's estimate over all boxes replaces it.
+    second = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, prior,
+                        **{**roco_params, "significance": None})
+    corrected, applied = first.corrected.copy(), first.applied.copy()
+    corrected[use] = second.corrected[use]
     applied[use] = True
-    # Slots RoCo's second pass kept at the estimate: report the fallback's matches.
+    # Matches: RoCo's first pass for the other slots, its second pass for these, and the
+    # fallback's for those RoCo's second pass did not accept.
+    slot_a, slot_b = first.matched_pairs[:, 0], first.matched_pairs[:, 2]
+    keep = ~(np.isin(slot_a, use) | np.isin(slot_b, use))
+    slot_a, slot_b = second.matched_pairs[:, 0], second.matched_pairs[:, 2]
+    new = (np.isin(slot_a, use) | np.isin(slot_b, use)) & np.isin(slot_a, [-1, *use]) & (
+        np.isin(slot_b, [-1, *use]))
     sub = estimate.matched_pairs
     sub_slots = np.array(slots)[sub[:, 2]]
     extra = sub[np.isin(sub_slots, use) & ~second.applied[sub_slots]].copy()
     extra[:, 2] = np.array(slots)[extra[:, 2]]
     note = f"slots {use.tolist()}: re-localised by {name}, then refined by roco"
-    return replace(
-        second,
+    reasons = [f"slot {j}: {r}" for j, r in sorted(reasons.items()) if j not in use]
+    return AlignmentResult(
+        corrected=corrected,
         applied=applied,
+        matched_pairs=np.concatenate([first.matched_pairs[keep], second.matched_pairs[new],
+                                      extra]),
+        landmarks=second.landmarks,
         outer_iterations=first.outer_iterations + second.outer_iterations,
         solver_iterations=first.solver_iterations + second.solver_iterations,
-        matched_pairs=np.concatenate([second.matched_pairs, extra]),
-        reason="; ".join(r for r in (second.reason, note) if r),
+        reason="; ".join([*reasons, note]),
     )
 
 
