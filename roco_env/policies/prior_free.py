@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.geometry import se2_apply, wrap_angle
+from roco_env.geometry import wrap_angle
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     AlignmentInputs,
@@ -106,7 +106,7 @@ class PriorFreeParams(UncertaintyParams):
     inlier_yaw_deg: float = 10.0
     refine_gate: float = 3.0
     refine_iterations: int = 3
-    max_candidates: int = 4
+    max_candidates: int = 3
     support_sigma: float = 0.3
     ambiguity_ratio: float = 0.8
     distinct_distance: float = 0.5
@@ -179,11 +179,13 @@ def _associate(
     Returns (ego index, own index, distance)."""
     if ego.shape[0] == 0 or own.shape[0] == 0:
         return _EMPTY, _EMPTY, np.zeros(0)
-    xy = se2_apply(pose, own[:, :2])
-    dx = ego[:, None, 0] - xy[None, :, 0]
-    dy = ego[:, None, 1] - xy[None, :, 1]
-    dist = np.sqrt(dx * dx + dy * dy)
-    ok = dist <= gate
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    x = pose[0] + c * own[:, 0] - s * own[:, 1]
+    y = pose[1] + s * own[:, 0] + c * own[:, 1]
+    dx = ego[:, None, 0] - x[None, :]
+    dy = ego[:, None, 1] - y[None, :]
+    dist2 = dx * dx + dy * dy
+    ok = dist2 <= gate * gate
     rows, cols = np.nonzero(ok)
     if yaw_gate is not None and rows.size:
         good = axial_difference(ego[rows, 2], own[cols, 2] + pose[2]) <= yaw_gate
@@ -191,11 +193,12 @@ def _associate(
         rows, cols = rows[good], cols[good]
     if rows.size == 0:
         return _EMPTY, _EMPTY, np.zeros(0)
-    if np.bincount(rows).max() == 1 and np.bincount(cols).max() == 1:
-        return rows, cols, dist[rows, cols]
-    r, c = linear_sum_assignment(np.where(ok, dist, 1e6))
+    # rows come sorted from np.nonzero: distinct iff no two neighbours are equal.
+    if np.all(rows[1:] != rows[:-1]) and np.bincount(cols).max() == 1:
+        return rows, cols, np.sqrt(dist2[rows, cols])
+    r, c = linear_sum_assignment(np.where(ok, np.sqrt(dist2), 1e6))
     keep = ok[r, c]
-    return r[keep], c[keep], dist[r[keep], c[keep]]
+    return r[keep], c[keep], np.sqrt(dist2[r[keep], c[keep]])
 
 
 def consensus(
@@ -223,7 +226,7 @@ def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
         if e.size < 2:
             break
         new = fit_se2(own[o, :2], ego[e, :2])
-        if np.allclose(new, pose, atol=1e-6):
+        if np.abs(new - pose).max() <= 1e-6:
             break
         pose = new
     return pose

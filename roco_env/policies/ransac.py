@@ -63,7 +63,7 @@ class RansacParams(PriorFreeParams):
     max_pair_distance: float = 80.0
     use_yaw_invariants: bool = True
     yaw_tolerance_deg: float = 10.0
-    max_hypotheses: int = 300
+    max_hypotheses: int = 200
     pair_neighbors: int | None = 8
     score_boxes: int | None = 24
 
@@ -94,9 +94,10 @@ def _pairs(poses: np.ndarray, ordered: bool, p: RansacParams) -> tuple:
         a, b = np.triu_indices(k, 1)
     else:
         _, near = cKDTree(poses[:, :2]).query(poses[:, :2], k=int(p.pair_neighbors) + 1)
-        a = np.repeat(np.arange(k), int(p.pair_neighbors))
-        b = near[:, 1:].ravel()
-        a, b = np.unique(np.sort(np.stack([a, b], axis=1), axis=1), axis=0).T
+        first = np.repeat(np.arange(k), int(p.pair_neighbors))
+        second = near[:, 1:].ravel()
+        code = np.unique(np.minimum(first, second) * k + np.maximum(first, second))
+        a, b = code // k, code % k
     if ordered:
         a, b = np.concatenate([a, b]), np.concatenate([b, a])
     d = poses[b, :2] - poses[a, :2]
