@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from roco_env.bench.grid import Cell, build_grid
-from roco_env.bench.records import ok_record
+from roco_env.bench.records import WALL_TIME_FIELDS, ok_record
 from roco_env.bench.store import ResultStore
 from roco_env.bench.sweep import run_sweep
 
@@ -107,7 +107,7 @@ def test_process_pool_matches_serial(tmp_path):
     pooled = run_sweep(cells, tmp_path / "b.jsonl", workers=2, cell_fn=fake_cell, progress=False)
 
     def strip(records):
-        return [{k: v for k, v in r.items() if k != "elapsed_s"} for r in records]
+        return [{k: v for k, v in r.items() if k not in WALL_TIME_FIELDS} for r in records]
 
     assert strip(serial.records) == strip(pooled.records)
 

@@ -18,7 +18,7 @@ import numpy as np
 from roco_env.bench.stats import nanmean, nanstd, pose_error_summary
 
 AP_KEYS = ("ap30", "ap50", "ap70")
-MEAN_KEYS = ("match_precision", "match_recall", "correction_share", "time_per_call_ms")
+MEAN_KEYS = ("match_precision", "match_recall", "correction_share")
 
 
 @dataclass
@@ -76,6 +76,7 @@ def summarize(records: Iterable[dict]) -> list[SummaryRow]:
             metrics["ap70_std"] = nanstd([_value(r["metrics"], "ap70") for r in ok])
             metrics.update(pose_error_summary(row.before, row.after))
             metrics.update({k: nanmean([_value(r["metrics"], k) for r in ok]) for k in MEAN_KEYS})
+            metrics["time_per_call_ms"] = nanmean([_value(r, "time_per_call_ms") for r in ok])
             row.metrics = metrics
         rows.append(row)
     return rows

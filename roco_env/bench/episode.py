@@ -11,7 +11,8 @@ Scores (DESIGN.md section 8), pooled over every evaluated agent and step:
   ids of the info returned *with* the observation the policy saw;
 * correction share: frames (agent-steps with >= 1 collaborator) where the action
   changed a filled slot's reported pose;
-* time per call: mean wall time (ms) of one policy call, over every agent-step.
+* time per call: mean wall time (ms) of one policy call over every agent-step, stored
+  beside the metrics (a wall time, not reproducible).
 """
 
 from __future__ import annotations
@@ -83,6 +84,10 @@ class EpisodeScorer:
             self.before.append(_finite_rows(info["rpe_before"]))
             self.after.append(_finite_rows(info["rpe_after"]))
 
+    def time_per_call_ms(self) -> float:
+        """Mean wall time of one policy call (ms); NaN before the first call."""
+        return 1e3 * nanmean(self.call_seconds)
+
     def summary(self) -> tuple[dict[str, float], dict[str, list]]:
         """(metrics, samples): scalar metrics and rounded RPE samples [[t m, r deg], ...]."""
         ap = self.ap.ap()
@@ -93,7 +98,6 @@ class EpisodeScorer:
         metrics["match_precision"] = nanmean(self.precision)
         metrics["match_recall"] = nanmean(self.recall)
         metrics["correction_share"] = nanmean(self.applied)
-        metrics["time_per_call_ms"] = 1e3 * nanmean(self.call_seconds)
         metrics["frames"] = self.ap.n_frames  # evaluated agent-steps
         metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
@@ -113,12 +117,15 @@ def make_env(cell: Cell, render_mode: str | None = None):
 
 def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 on_step: StepCallback | None = None,
-                render_mode: str | None = None) -> tuple[dict[str, float], dict[str, list]]:
+                render_mode: str | None = None,
+                on_scorer: Callable[[EpisodeScorer], None] | None = None,
+                ) -> tuple[dict[str, float], dict[str, list]]:
     """Run ``cell`` and return (metrics, samples) as in :meth:`EpisodeScorer.summary`.
 
     ``policy_factory`` builds one policy per agent (default: the cell's policy spec);
     ``on_step(step, env, actions, infos)`` is called after every env step (step from 1),
-    e.g. to print per-step metrics or ``env.render()`` a frame.
+    e.g. to print per-step metrics or ``env.render()`` a frame; ``on_scorer(scorer)``
+    receives the episode's :class:`EpisodeScorer` (its wall times stay out of the metrics).
     """
     factory = policy_factory or parse_policy_spec(cell.policy).build
     env = make_env(cell, render_mode)
@@ -126,6 +133,8 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
         observations, infos = env.reset(seed=cell.seed)
         policies = {agent: factory() for agent in env.agents}
         scorer = EpisodeScorer()
+        if on_scorer is not None:
+            on_scorer(scorer)
         step = 0
         while env.agents and step < cell.steps:
             actions = {}
@@ -156,8 +165,10 @@ def run_cell(cell: Cell) -> dict[str, Any]:
     Module-level and argument-only so process pools and Ray can ship it.
     """
     start = time.perf_counter()
+    scorers: list[EpisodeScorer] = []
     try:
-        metrics, samples = run_episode(cell)
+        metrics, samples = run_episode(cell, on_scorer=scorers.append)
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the sweep goes on
         return error_record(cell, exc, time.perf_counter() - start)
-    return ok_record(cell, metrics, samples, time.perf_counter() - start)
+    return ok_record(cell, metrics, samples, time.perf_counter() - start,
+                     scorers[0].time_per_call_ms())
