@@ -1,4 +1,4 @@
-"""Degenerate inputs and hypothesis fuzzing of the coalign and roco aligners/policies."""
+"""Degenerate inputs and hypothesis fuzzing of every array aligner and its policy."""
 
 import numpy as np
 import pytest
@@ -13,9 +13,21 @@ from roco_env.policies.constructed_scenes import (
     random_objects,
     to_observation,
 )
+from roco_env.policies.fallback import roco_fallback_align
+from roco_env.policies.freealign import freealign_align
+from roco_env.policies.ransac import ransac_align
 from roco_env.policies.roco import roco_align
+from roco_env.policies.v2i_calib import v2i_calib_align
 
-ALIGNERS = [coalign_align, roco_align]
+ALIGNERS = [
+    coalign_align,
+    roco_align,
+    ransac_align,
+    v2i_calib_align,
+    freealign_align,
+    roco_fallback_align,
+]
+ALIGNER_POLICIES = ("coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback")
 PAIR = np.array([[0.0, 0.0, 0.0], [10.0, -8.0, 0.7]])
 REPORTED = np.array([[10.5, -7.5, 0.71]])
 
@@ -60,7 +72,7 @@ def test_degenerate_inputs_keep_prior_or_stay_finite(align, case):
     ego, collab = DEGENERATE[case]
     result = align(ego, unc(len(ego)), collab, [unc(len(c)) for c in collab], REPORTED)
     check(result, REPORTED)
-    if case in ("no boxes", "one box", "no overlap"):
+    if case in ("no boxes", "one box", "no overlap", "collinear"):
         assert not result.applied.any() and result.reason
 
 
@@ -139,7 +151,7 @@ def test_fuzz_policies_on_padded_observations(seed, filled, max_boxes):
     errors = rng.normal(0.0, [0.8, 0.8, 0.02], size=(filled, 3))
     scene = make_scene(objects, agents, errors, noise=(0.1, 0.1, 0.05), rng=rng)
     obs = to_observation(scene, max_boxes=max_boxes, max_collaborators=3)
-    for name in ("coalign", "roco"):
+    for name in ALIGNER_POLICIES:
         policy = make_policy(name)
         action = policy(obs)
         assert action.shape == (3, 3) and action.dtype == np.float32

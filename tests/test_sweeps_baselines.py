@@ -30,6 +30,9 @@ def test_ablations_cover_the_papers_tables():
     assert "roco:robust_kernel=null" in experiment("ablation_modules").policies
     assert experiment("paper_protocol").noises == (0.0, 0.2, 0.4, 0.6, 0.8)
     assert experiment("beyond_paper").noises == (1.0, 1.5, 2.0)
+    large = experiment("large_noise")
+    assert large.noises == (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+    assert {"ransac", "v2i_calib", "freealign", "roco_fallback", "oracle"} <= set(large.policies)
     with pytest.raises(ValueError, match="unknown experiment 'nope'; available: paper_protocol"):
         experiment("nope")
 

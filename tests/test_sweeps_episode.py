@@ -9,7 +9,7 @@ import pytest
 
 from roco_env.metrics import APAccumulator
 from roco_env.policies import make_policy
-from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.episode import run_cell, run_episode
 from roco_env.sweeps.grid import Cell
 
 TINY = (("cavs", 2), ("rsus", 1))
@@ -84,3 +84,12 @@ def test_stale_results_are_not_scored_again():
     # the frozen policy's result is scored on its first call only: at most once per agent
     assert 1 <= frozen["matched_frames"] <= 3 < frozen["decisions"]
     assert frozen["correction_share"] == 0.0
+
+
+def test_record_keeps_the_time_per_call_beside_the_reproducible_metrics(scored):
+    record = run_cell(_cell("roco"))
+    assert record["status"] == "ok" and record["time_per_call_ms"] > 0
+    assert "time_per_call_ms" not in record["metrics"]
+    roco, _ = scored["roco"]
+    assert record["metrics"] == roco  # the same cell reproduces every metric
+    assert roco["success1"] <= roco["success2"] <= roco["success3"]

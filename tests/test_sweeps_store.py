@@ -14,6 +14,7 @@ from conftest import CALLS, FAILING_NOISE, fake_cell
 import roco_env
 from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.records import WALL_TIME_FIELDS
 from roco_env.sweeps.store import ResultStore
 from roco_env.sweeps.sweep import run_sweep, stored_results
 
@@ -92,7 +93,7 @@ def test_process_pool_matches_serial(tmp_path):
     pooled = run_sweep(cells, tmp_path / "b.jsonl", workers=2, cell_fn=fake_cell, progress=False)
 
     def strip(records):
-        return [{k: v for k, v in r.items() if k != "elapsed_s"} for r in records]
+        return [{k: v for k, v in r.items() if k not in WALL_TIME_FIELDS} for r in records]
 
     assert strip(serial.records) == strip(pooled.records)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from roco_env.sweeps.grid import Cell, build_grid
+from roco_env.sweeps.records import WALL_TIME_FIELDS
 from roco_env.sweeps.store import ResultStore
 from roco_env.sweeps.sweep import run_sweep
 
@@ -20,8 +21,8 @@ SCENARIO = "crowded_intersection"
 
 
 def _strip(records: list[dict]) -> list[dict]:
-    """Records without the wall time (the only field allowed to differ between runs)."""
-    return sorted(({k: v for k, v in r.items() if k != "elapsed_s"} for r in records),
+    """Records without the wall times (the only fields allowed to differ between runs)."""
+    return sorted(({k: v for k, v in r.items() if k not in WALL_TIME_FIELDS} for r in records),
                   key=lambda r: r["key"])
 
 

@@ -13,10 +13,16 @@ literal reading of the paper). Then how roco's cost grows with the object count
 ``urban_intersection`` (4 CAVs + 1 RSU, every agent an ego with its own policy
 instance, noise 0.8 m/deg) with each policy against the identity policy, whole seeded
 episodes timed in turn.
+
+Then the per-call time of every registered policy on the (5, 60) scene as an env
+observation (4 collaborators), at the usual 0.8 m / 0.8 deg error and at 5 m / 5 deg,
+where roco_fallback's prior-free fallback runs; ratios are to roco in the same process.
+Budget of the prior-free aligners (ransac, v2i_calib, freealign): <= 10 ms per call.
 """
 
 from __future__ import annotations
 
+import functools
 import statistics
 import time
 from collections.abc import Callable
@@ -24,14 +30,16 @@ from collections.abc import Callable
 import numpy as np
 
 import roco_env
-from roco_env.policies import make_policy
+from roco_env.policies import available_policies, make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.coalign import coalign_align
-from roco_env.policies.constructed_scenes import benchmark_scene
+from roco_env.policies.constructed_scenes import benchmark_scene, to_observation
 from roco_env.policies.roco import roco_align
 
 SIZES = ((2, 20), (5, 60), (10, 200))
 ENV_POLICIES = ("identity", "coalign", "roco", "roco_antialias")
+PRIOR_FREE = ("ransac", "v2i_calib", "freealign")
+PRIOR_FREE_BUDGET_MS = 10.0
 
 
 def _episode(policy: str, steps: int) -> None:
@@ -109,4 +117,24 @@ def run(quick: bool) -> list[str]:
         )
         + "; target roco >= 0.4x identity"
     )
+    return lines + policy_lines(repeats)
+
+
+def policy_lines(repeats: int) -> list[str]:
+    """Median CPU time of one call of every registered policy at (5, 60), two error sizes."""
+    lines = []
+    for error in (0.8, 5.0):
+        scene = benchmark_scene(np.random.default_rng(0), 5, 60, error, error)
+        obs = to_observation(scene, max_boxes=80, max_collaborators=4)
+        info = {"privileged": {"true_relative_poses": scene.true,
+                               "reported_relative_poses": scene.reported}}
+        policies = {name: make_policy(name) for name in available_policies()}
+        calls = {name: functools.partial(policy, obs, info) for name, policy in policies.items()}
+        times = {name: 1e3 * s for name, s in interleaved_medians(calls, repeats).items()}
+        roco = times["roco"]
+        parts = [f"{n} {t:.2f} ms ({t / roco:.2f}x)" for n, t in times.items()]
+        lines.append(f"per call at (5, 60), error {error} m/{error} deg: " + " | ".join(parts))
+        worst = max(PRIOR_FREE, key=times.get)
+        lines.append(f"  slowest prior-free aligner: {worst} {times[worst]:.2f} ms "
+                     f"(budget <= {PRIOR_FREE_BUDGET_MS:.0f} ms)")
     return lines

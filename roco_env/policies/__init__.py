@@ -38,6 +38,10 @@ _REGISTRY: dict[str, str] = {
     "coalign_temporal": "roco_env.policies.temporal:coalign_temporal",
     "roco_temporal": "roco_env.policies.temporal:roco_temporal",
     "roco_antialias": "roco_env.policies.antialias:AntiAliasPolicy",
+    "ransac": "roco_env.policies.ransac:RansacPolicy",
+    "v2i_calib": "roco_env.policies.v2i_calib:V2ICalibPolicy",
+    "freealign": "roco_env.policies.freealign:FreeAlignPolicy",
+    "roco_fallback": "roco_env.policies.fallback:RoCoFallbackPolicy",
 }
 
 

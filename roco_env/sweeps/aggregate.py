@@ -2,9 +2,10 @@
 
 A setting is a cell without its seed (scenario, density, noise, policy, steps,
 overrides). Per setting: AP@0.3/0.5/0.7 = mean over seeds of each episode's
-dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2 are computed
-on the pooled samples of all seeds (so the tail is not averaged away); matching
-precision/recall and the correction share are means over seeds.
+dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2/@3 are
+computed on the pooled samples of all seeds (so the tail is not averaged away);
+matching precision/recall, the correction share and the time per policy call are
+means over seeds.
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ def summarize(records: Iterable[dict]) -> list[SummaryRow]:
             metrics["ap70_std"] = nanstd([_value(r["metrics"], "ap70") for r in ok])
             metrics.update(pose_error_summary(row.before, row.after))
             metrics.update({k: nanmean([_value(r["metrics"], k) for r in ok]) for k in MEAN_KEYS})
+            metrics["time_per_call_ms"] = nanmean([_value(r, "time_per_call_ms") for r in ok])
             row.metrics = metrics
         rows.append(row)
     return rows

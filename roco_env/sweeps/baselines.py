@@ -31,6 +31,9 @@ WITH_ANTIALIAS = ("identity", "coalign", "roco", "roco_antialias", "oracle")
 ANTIALIAS_NOISE = (0.0, 0.4, 0.8, 1.2, 1.5)
 ANTIALIAS_SWITCHES = ("use_hypotheses", "use_size", "use_free_space", "use_mutual_detection",
                       "use_track")
+LARGE_NOISE = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback",
+          "oracle")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 
@@ -114,6 +117,9 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                "Table 1 with intermediate fusion of the learned detector (noise 0-0.8)",
                ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN, seeds=1, steps=10,
                overrides={**PROTOCOL, "detector": "learned", "fusion": "intermediate"}),
+    Experiment("large_noise", "Large noise 1-10 m/deg: prior-free aligners and roco_fallback",
+               ("urban_intersection", "highway_dense", "v2x_crossroad"), LARGE_NOISE, ROSTER,
+               seeds=2, steps=20),
 )
 
 

@@ -5,12 +5,14 @@ Scores (docs/metrics.md), pooled over every evaluated agent and step:
   (``frame_scores``, ``frame_tp``, ``frame_fp``, ``frame_n_gt``);
 * relative pose error of every filled collaborator slot before and after the
   correction (translation m, rotation deg): median, 95th percentile,
-  Success@1m1deg and Success@2m2deg; the samples are kept for distribution plots;
+  Success@1m1deg, @2m2deg and @3m3deg; the samples are kept for distribution plots;
 * matching precision/recall against true object ids, mean over the frames where
   the policy reported a match result (``policy.last_result``), using the privileged
   ids of the info returned *with* the observation the policy saw;
 * correction share: frames (agent-steps with >= 1 collaborator) where the action
-  changed a filled slot's reported pose.
+  changed a filled slot's reported pose;
+* time per call: mean wall time (ms) of one policy call over every agent-step, stored
+  beside the metrics (a wall time, not reproducible).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ class EpisodeScorer:
     precision: list = field(default_factory=list)
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
+    call_seconds: list = field(default_factory=list)
 
     def add_decision(self, observation: dict, info: dict, action: np.ndarray,
                      result: AlignmentResult | None) -> None:
@@ -74,6 +77,10 @@ class EpisodeScorer:
         if "rpe_before" in info:
             self.before.append(filled_rpe_rows(info["rpe_before"]))
             self.after.append(filled_rpe_rows(info["rpe_after"]))
+
+    def time_per_call_ms(self) -> float:
+        """Mean wall time of one policy call (ms); NaN before the first call."""
+        return 1e3 * nanmean(self.call_seconds)
 
     def summary(self) -> tuple[dict[str, float], dict[str, list]]:
         """(metrics, samples): scalar metrics and rounded RPE samples [[t m, r deg], ...]."""
@@ -104,12 +111,15 @@ def make_env(cell: Cell, render_mode: str | None = None):
 
 def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 on_step: StepCallback | None = None,
-                render_mode: str | None = None) -> tuple[dict[str, float], dict[str, list]]:
+                render_mode: str | None = None,
+                on_scorer: Callable[[EpisodeScorer], None] | None = None,
+                ) -> tuple[dict[str, float], dict[str, list]]:
     """Run ``cell`` and return (metrics, samples) as in :meth:`EpisodeScorer.summary`.
 
     ``policy_factory`` builds one policy per agent (default: the cell's policy spec);
     ``on_step(step, env, actions, infos)`` is called after every env step (step from 1),
-    e.g. to print per-step metrics or ``env.render()`` a frame.
+    e.g. to print per-step metrics or ``env.render()`` a frame; ``on_scorer(scorer)``
+    receives the episode's :class:`EpisodeScorer` (its wall times stay out of the metrics).
     """
     factory = policy_factory or parse_policy_spec(cell.policy).build
     env = make_env(cell, render_mode)
@@ -117,13 +127,17 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
         observations, infos = env.reset(seed=cell.seed)
         policies = {agent: factory() for agent in env.agents}
         scorer = EpisodeScorer()
+        if on_scorer is not None:
+            on_scorer(scorer)
         step = 0
         while env.agents and step < cell.steps:
             actions = {}
             for agent in env.agents:
                 policy = policies[agent]
                 previous = getattr(policy, "last_result", None)
+                start = time.perf_counter()
                 action = np.asarray(policy(observations[agent], infos[agent]))
+                scorer.call_seconds.append(time.perf_counter() - start)
                 result = getattr(policy, "last_result", None)
                 scorer.add_decision(observations[agent], infos[agent], action,
                                     None if result is previous else result)  # never a stale one
@@ -145,8 +159,10 @@ def run_cell(cell: Cell) -> dict[str, Any]:
     Module-level and argument-only so process pools and Ray can ship it.
     """
     start = time.perf_counter()
+    scorers: list[EpisodeScorer] = []
     try:
-        metrics, samples = run_episode(cell)
+        metrics, samples = run_episode(cell, on_scorer=scorers.append)
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the sweep goes on
         return error_record(cell, exc, time.perf_counter() - start)
-    return ok_record(cell, metrics, samples, time.perf_counter() - start)
+    return ok_record(cell, metrics, samples, time.perf_counter() - start,
+                     scorers[0].time_per_call_ms())

@@ -8,6 +8,8 @@ import numpy as np
 
 from roco_env.metrics import success_rate
 
+SUCCESS_THRESHOLDS = (1, 2, 3)  # Success@lambda m lambda deg
+
 
 def _finite(values: Sequence[float]) -> np.ndarray:
     arr = np.asarray(values, dtype=float).reshape(-1)
@@ -37,7 +39,7 @@ def _percentiles(samples: np.ndarray, suffix: str) -> dict[str, float]:
 
 
 def pose_error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
-    """RPE median/p95 and Success@1m1deg / @2m2deg before and after correction.
+    """RPE median/p95 and Success@1m1deg / @2m2deg / @3m3deg before and after correction.
 
     ``before``/``after``: (P, 2) finite rows [translation m, rotation deg]. Keys:
     ``rpe_t_median`` (m), ``rpe_r_p95`` (deg), ``success1``, ... and the same with
@@ -45,7 +47,7 @@ def pose_error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float
     """
     out = _percentiles(np.asarray(before, dtype=float).reshape(-1, 2), "_before")
     out.update(_percentiles(np.asarray(after, dtype=float).reshape(-1, 2), ""))
-    for lam in (1, 2):
+    for lam in SUCCESS_THRESHOLDS:
         out[f"success{lam}_before"] = success_rate(np.reshape(before, (-1, 2)), lam)
         out[f"success{lam}"] = success_rate(np.reshape(after, (-1, 2)), lam)
     return out

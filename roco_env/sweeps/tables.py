@@ -63,18 +63,22 @@ def ap_by_density(rows: Sequence[SummaryRow], key: str) -> str:
 
 POSE_HEADER = ("Policy", "Noise", "RPE t med / p95 (m)", "RPE r med / p95 (deg)",
                "before: t med / p95 (m)", "before: r med / p95 (deg)", "Success@1m1deg (%)",
-               "Success@2m2deg (%)", "Match P (%)", "Match R (%)", "Corrected (%)")
+               "Success@2m2deg (%)", "Success@3m3deg (%)", "Match P (%)", "Match R (%)",
+               "Corrected (%)", "Time per call (ms)")
 
 
 def pose_table(rows: Sequence[SummaryRow]) -> str:
-    """RPE (pooled median / 95th percentile) and success, matching, correction share."""
+    """RPE (pooled median / 95th percentile) and success, matching, correction share and
+    the mean time of one policy call."""
     body = []
     for row in sorted(rows, key=lambda r: r.noise):  # stable: policies keep their order
         pair = [f"{_cell(row, a, 1.0, 3)} / {_cell(row, b, 1.0, 3)}" for a, b in (
             ("rpe_t_median", "rpe_t_p95"), ("rpe_r_median", "rpe_r_p95"),
             ("rpe_t_median_before", "rpe_t_p95_before"),
             ("rpe_r_median_before", "rpe_r_p95_before"))]
-        shares = [_cell(row, k) for k in ("success1", "success2", "match_precision",
-                                          "match_recall", "correction_share")]
-        body.append([row.policy, noise_label(row.noise), *pair, *shares])
+        shares = [_cell(row, k) for k in ("success1", "success2", "success3",
+                                          "match_precision", "match_recall",
+                                          "correction_share")]
+        body.append([row.policy, noise_label(row.noise), *pair, *shares,
+                     _cell(row, "time_per_call_ms", 1.0, 2)])
     return markdown_table(POSE_HEADER, body)

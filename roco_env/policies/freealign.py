@@ -1,0 +1,184 @@
+"""FreeAlign (Lei et al., ICRA 2024, arXiv 2405.02965), re-implemented without its GNN.
+
+FreeAlign registers two agents by finding the largest common subgraph of their
+*salient-object graphs*: one node per detected box, fully connected, each edge
+carrying the distance between the two box centres (the relative distance matrix
+R[p, q] of the paper; distances are invariant to the unknown relative pose).
+
+1. **Node similarity.** The paper learns node embeddings from the distance matrix
+   with an edge-feature graph attention network (EdgeGAT) trained on the dataset. We
+   have no trained network here and use the features it is derived from: each node's
+   distances to its ``descriptor_neighbors`` nearest nodes, sorted; nodes i (ego) and
+   k (collaborator) are similar by how many of these distances find a partner,
+   sim(i, k) = sum_a [min_b |d_i^a - d_k^b| <= ``edge_tolerance``].
+   The name ``freealign`` in this package means this distance-matrix variant.
+2. **Mass-based multi-anchor subgraph search (MASS).** The ``anchors`` most similar
+   node pairs each seed a common subgraph; the seed grows greedily by node pairs
+   (m, n) in order of edge agreement with the current subgraph, a pair being added
+   only when its distances to *every* node already in the subgraph agree within
+   ``edge_tolerance`` m (every accepted node is an anchor for the next ones) and,
+   with ``edge_yaw_tolerance_deg`` set, its heading relative to the seed agrees
+   within that many degrees modulo pi (an extra edge feature the boxes carry;
+   None = distances only, as the paper's graph). The subgraph with the largest mass
+   (node count) wins; the others, ordered by mass, are alternatives. Growth stops at
+   ``max_subgraph`` nodes (our choice, for speed: 16 consistent nodes already pin the
+   pose for the refinement, which re-associates every box, and a wrong anchor rarely
+   gathers that many; None grows each subgraph to the end, as the paper).
+3. **Robust transform.** The SVD (Kabsch) fit on the common subgraph's centres gives
+   the relative pose; the shared refinement (re-association + SVD, robust least
+   squares) and do-no-harm rule of :mod:`roco_env.policies.prior_free` follow.
+   A distance-preserving match can be a mirror image; the proper-rotation fit of a
+   mirrored subgraph explains few boxes and loses the consensus.
+
+FreeAlign also estimates the time offset between agents; the env delivers messages
+of the same step, so only the spatial part is implemented.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.distance import cdist
+
+from roco_env.policies.prior_free import (
+    PriorFreeParams,
+    PriorFreePolicy,
+    aligner,
+    axial_difference,
+    distinct_top,
+    fit_se2,
+)
+
+__all__ = ["FreeAlignParams", "FreeAlignPolicy", "freealign_align", "common_subgraph"]
+
+
+@dataclass(frozen=True)
+class FreeAlignParams(PriorFreeParams):
+    """FreeAlign parameters on top of :class:`PriorFreeParams` (module docstring):
+    descriptor_neighbors, edge_tolerance (m), anchors, edge_yaw_tolerance_deg (None =
+    distances only), min_subgraph (nodes a subgraph needs to become a candidate),
+    max_subgraph (growth stops there; None = grow to the full common subgraph)."""
+
+    descriptor_neighbors: int = 6
+    edge_tolerance: float = 0.8
+    anchors: int = 4
+    edge_yaw_tolerance_deg: float | None = 15.0
+    min_subgraph: int = 3
+    max_subgraph: int | None = 16
+
+    def __post_init__(self) -> None:
+        PriorFreeParams.__post_init__(self)
+        for name in ("descriptor_neighbors", "anchors"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
+        if self.max_subgraph is not None and not int(self.max_subgraph) >= self.min_subgraph:
+            raise ValueError(
+                f"max_subgraph must be None or >= min_subgraph; got {self.max_subgraph}")
+        if int(self.min_subgraph) < 2:
+            raise ValueError(f"min_subgraph must be >= 2 (an SE(2) fit); got {self.min_subgraph}")
+        if not (np.isfinite(self.edge_tolerance) and self.edge_tolerance > 0):
+            raise ValueError(f"edge_tolerance must be finite and > 0 m; got {self.edge_tolerance}")
+        if self.edge_yaw_tolerance_deg is not None and not 0 < self.edge_yaw_tolerance_deg < 90:
+            raise ValueError(
+                f"edge_yaw_tolerance_deg must be None or in (0, 90); "
+                f"got {self.edge_yaw_tolerance_deg}"
+            )
+
+
+def _descriptors(distances: np.ndarray, count: int) -> np.ndarray:
+    """Each node's ``count`` smallest distances to other nodes, sorted (K, n), padded
+    with NaN (which never matches) where a graph has fewer nodes."""
+    k = distances.shape[0]
+    n = min(count, k - 1)
+    out = np.full((k, count), np.nan)
+    if n > 0:
+        masked = distances + np.diag(np.full(k, np.inf))
+        out[:, :n] = np.sort(np.partition(masked, n - 1, axis=1)[:, :n], axis=1)
+    return out
+
+
+def _node_similarity(ego_d: np.ndarray, own_d: np.ndarray, tol: float) -> np.ndarray:
+    """sim (M, K): how many of node i's descriptor distances find a distance of node k
+    within ``tol`` m (padding never matches)."""
+    a, b = ego_d.astype(np.float32), own_d.astype(np.float32)
+    diff = np.abs(a[:, None, :, None] - b[None, :, None, :])
+    return (diff <= tol).any(axis=3).sum(axis=2).astype(float)
+
+
+def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
+                    tol: float, yaw_ok: np.ndarray | None = None,
+                    max_nodes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Grow the common subgraph of two distance matrices (M, M), (K, K) from ``seed``.
+
+    yaw_ok (M, K) bool, optional: node pairs whose headings relative to the seed agree;
+    max_nodes: stop growing at this many nodes (None = until no pair agrees).
+    Returns the matched (ego nodes, own nodes), seed first.
+    """
+    i, k = seed
+    error = np.abs(ego_d[i][:, None] - own_d[k][None, :])
+    ok = error <= tol
+    ok[i, :] = False
+    ok[:, k] = False
+    if yaw_ok is not None:
+        ok &= yaw_ok
+    rows, cols = np.nonzero(ok)
+    order = np.argsort(error[rows, cols], kind="stable")
+    rows, cols = rows[order], cols[order]
+    # Candidates stay alive while they agree with every accepted node and use neither of
+    # its boxes; each acceptance updates all of them at once.
+    alive = np.ones(rows.size, dtype=bool)
+    nodes_e, nodes_o = [i], [k]
+    while max_nodes is None or len(nodes_e) < max_nodes:
+        live = np.flatnonzero(alive)
+        if live.size == 0:
+            break
+        r, c = int(rows[live[0]]), int(cols[live[0]])
+        nodes_e.append(r)
+        nodes_o.append(c)
+        alive[live] = (np.abs(ego_d[rows[live], r] - own_d[cols[live], c]) <= tol) & (
+            rows[live] != r) & (cols[live] != c)
+    return np.array(nodes_e), np.array(nodes_o)
+
+
+def freealign_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
+                         p: FreeAlignParams) -> np.ndarray:
+    """Candidate T_{j->i} (H, 3), largest common subgraph first, from (M, 7), (K, 7) boxes."""
+    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
+    ego_d, own_d = cdist(ego[:, :2], ego[:, :2]), cdist(own[:, :2], own[:, :2])
+    sim = _node_similarity(_descriptors(ego_d, p.descriptor_neighbors),
+                           _descriptors(own_d, p.descriptor_neighbors), p.edge_tolerance)
+    count = min(int(p.anchors), sim.size)
+    seeds = np.argsort(-sim, axis=None, kind="stable")[:count]
+    found: list[tuple[int, np.ndarray]] = []
+    for seed in seeds:
+        i, k = np.unravel_index(seed, sim.shape)
+        yaw_ok = None
+        if p.edge_yaw_tolerance_deg is not None:
+            # Headings relative to the seed's are pose invariant (modulo pi).
+            yaw_ok = axial_difference((ego[:, 2] - ego[i, 2])[:, None],
+                                      (own[:, 2] - own[k, 2])[None, :]) <= np.deg2rad(
+                p.edge_yaw_tolerance_deg)
+        nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)), p.edge_tolerance,
+                                           yaw_ok, p.max_subgraph)
+        if nodes_e.size >= p.min_subgraph:
+            found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
+    if not found:
+        return np.zeros((0, 3))
+    mass = np.array([m for m, _ in found], dtype=float)
+    poses = np.array([pose for _, pose in found])
+    top = distinct_top(poses, mass, p.max_candidates, p)
+    return poses[top]
+
+
+freealign_align = aligner(freealign_candidates, FreeAlignParams, "freealign",
+                          "Correct the collaborators' relative poses with FreeAlign "
+                          "(distance-matrix node features instead of the learned GNN).")
+
+
+class FreeAlignPolicy(PriorFreePolicy):
+    """FreeAlign as an env policy: ``FreeAlignPolicy(**params)(obs) -> action (N, 3)``."""
+
+    ALIGN = staticmethod(freealign_align)
+    PARAMS = FreeAlignParams
+    METHOD = "freealign"

@@ -1,0 +1,407 @@
+"""What the prior-free aligners (RANSAC, V2I-Calib, FreeAlign) share.
+
+Each prior-free method proposes *candidate* relative poses T_{j->i} from the boxes
+alone (no use of the reported pose); this module turns candidates into a decision,
+the same way for every method so that they differ only in how they search:
+
+1. **refinement** (:func:`refine_pose`): associate the collaborator's boxes with the
+   ego's under the candidate (one-to-one nearest centres within ``refine_gate`` m,
+   headings compared modulo pi because detectors flip headings), re-fit the pose to
+   the associated centres in closed form (weighted Kabsch/Umeyama in SE(2), i.e. the
+   SVD of the 2x2 cross-covariance), repeat ``refine_iterations`` times; the chosen
+   candidate gets a final robust least-squares solve on the box poses (the pose
+   graph's single-vertex Levenberg-Marquardt with the box-uncertainty information and
+   the robust kernel, :func:`roco_env.policies.posegraph.optimize_pose`);
+2. **consensus** (:func:`consensus`, :func:`support`): the one-to-one inliers under a
+   pose, a box pair being an inlier when its centres are within ``inlier_distance`` m
+   and its headings within ``inlier_yaw_deg`` degrees (modulo pi), and their soft
+   support sum exp(-d^2 / (2 ``support_sigma``^2)) (d the centre distance): a pose that
+   lays boxes exactly on each other outscores one that explains as many loosely (a
+   lane of cars slid by one car);
+3. the candidate with the highest support is the estimate;
+4. **do-no-harm** (``do_no_harm=True``, the default; False applies the estimate
+   whenever one exists, to measure the raw method): the reported pose is kept when
+   (a) the estimate has fewer than ``min_inliers`` inliers; (b) the estimate lies
+   within ``distinct_distance`` m and ``distinct_yaw_deg`` deg of the reported pose:
+   the boxes do not say the prior is off (the estimate's own error, a few
+   centimetres from box noise, would otherwise replace an exact prior); or (c)
+   another *distinct* pose explains nearly as many boxes: a refined candidate or the
+   refined reported pose itself that differs from the estimate by more than
+   ``distinct_distance`` m or ``distinct_yaw_deg`` deg and has at least
+   ``ambiguity_ratio`` times its support. (c) is the ratio test of feature matching
+   applied to whole poses: in a periodic layout (a parking row) several shifts explain
+   the boxes equally well and the evidence cannot pick one; and when the reported
+   pose is distinct from the estimate yet explains the boxes as well, nothing says
+   the prior is wrong.
+
+Frames: the ego's reported frame (ego = identity); collaborator boxes in their own
+frame; metres and radians. Agent index convention: 0 = ego, j + 1 = collaborator j.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from roco_env.geometry import wrap_angle
+from roco_env.policies.adapter import ArrayAlignmentPolicy
+from roco_env.policies.base import AlignmentResult
+from roco_env.policies.landmarks import (
+    AlignmentInputs,
+    UncertaintyParams,
+    params_from_kwargs,
+    prepare_inputs,
+)
+from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
+
+__all__ = [
+    "CandidateSearch",
+    "PriorFreeParams",
+    "PriorFreePolicy",
+    "aligner",
+    "axial_difference",
+    "consensus",
+    "content_seed",
+    "distinct_top",
+    "fit_se2",
+    "poses_distinct",
+    "prior_free_align",
+    "refine_pose",
+    "support",
+]
+
+# A candidate search maps (ego boxes (M, 7), collaborator boxes (K, 7) in its own frame,
+# params) to candidate T_{j->i} (H, 3), best first by the method's own ranking.
+CandidateSearch = Callable[[np.ndarray, np.ndarray, "PriorFreeParams"], np.ndarray]
+
+_EMPTY = np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class PriorFreeParams(UncertaintyParams):
+    """Parameters every prior-free method shares (units m, deg unless noted).
+
+    do_no_harm: keep the reported pose when the evidence is weak (module docstring);
+    False applies the method's estimate whenever it has one.
+    min_inliers: inliers the estimate needs under do-no-harm.
+    inlier_distance / inlier_yaw_deg: consensus gate per box pair.
+    refine_gate: association gate (m) of the refinement rounds; refine_iterations:
+    association + Kabsch rounds per candidate.
+    max_candidates: candidates (best first) that are refined and compared.
+    distinct_distance, distinct_yaw_deg: poses closer than both are the same hypothesis
+    (rules (b) and (c) of do-no-harm, and the candidates' non-maximum suppression).
+    support_sigma (m): scale of the soft support that ranks candidates and rule (c).
+    ambiguity_ratio: rule (c).
+    robust_kernel / kernel_delta: of the final least-squares solve (as roco's).
+    max_solver_iterations: Levenberg-Marquardt cap of that solve.
+    """
+
+    do_no_harm: bool = True
+    min_inliers: int = 3
+    inlier_distance: float = 1.5
+    inlier_yaw_deg: float = 10.0
+    refine_gate: float = 3.0
+    refine_iterations: int = 3
+    max_candidates: int = 3
+    support_sigma: float = 0.3
+    ambiguity_ratio: float = 0.8
+    distinct_distance: float = 0.5
+    distinct_yaw_deg: float = 1.0
+    robust_kernel: str | None = "cauchy"
+    kernel_delta: float = float(np.sqrt(7.815))
+    max_solver_iterations: int = 100
+
+    def __post_init__(self) -> None:
+        UncertaintyParams.__post_init__(self)
+        positive = ("inlier_distance", "inlier_yaw_deg", "refine_gate", "distinct_distance",
+                    "distinct_yaw_deg", "kernel_delta")
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        for name in ("min_inliers", "max_candidates", "max_solver_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
+        if int(self.refine_iterations) < 0:
+            raise ValueError(f"refine_iterations must be >= 0; got {self.refine_iterations}")
+        if not 0 < self.ambiguity_ratio <= 1:
+            raise ValueError(f"ambiguity_ratio must be in (0, 1]; got {self.ambiguity_ratio}")
+        if self.robust_kernel is not None and self.robust_kernel not in ROBUST_KERNELS:
+            raise ValueError(
+                f"robust_kernel must be None or one of {ROBUST_KERNELS}; got {self.robust_kernel!r}"
+            )
+
+
+def axial_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| for headings known up to pi (detectors flip them), in [0, pi/2] rad."""
+    d = np.mod(np.asarray(a) - np.asarray(b), np.pi)
+    return np.minimum(d, np.pi - d)
+
+
+def content_seed(*arrays: np.ndarray) -> int:
+    """A seed computed from the arrays' bytes: the same inputs always draw the same
+    samples, so a method that samples stays a deterministic function of its input."""
+    crc = 0
+    for arr in arrays:
+        crc = zlib.crc32(np.ascontiguousarray(arr, dtype=np.float64).tobytes(), crc)
+    return crc
+
+
+def fit_se2(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares SE(2) pose T (3,) with dst ~= T * src for points (P, 2), P >= 2.
+
+    Closed form: the rotation maximises trace(R^T C) for the weighted cross-covariance
+    C of the centred points (SVD of C with the reflection excluded; in 2-D this is
+    atan2 of C's antisymmetric and symmetric parts), then t = mean_dst - R mean_src.
+    """
+    w = np.ones(src.shape[0]) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    s, d = src - mu_s, dst - mu_d
+    sxx, syy = w @ (s[:, 0] * d[:, 0]), w @ (s[:, 1] * d[:, 1])
+    sxy, syx = w @ (s[:, 0] * d[:, 1]), w @ (s[:, 1] * d[:, 0])
+    theta = np.arctan2(sxy - syx, sxx + syy)
+    c, sn = np.cos(theta), np.sin(theta)
+    t = mu_d - np.array([c * mu_s[0] - sn * mu_s[1], sn * mu_s[0] + c * mu_s[1]])
+    return np.array([t[0], t[1], theta])
+
+
+def _associate(
+    pose: np.ndarray, ego: np.ndarray, own: np.ndarray, gate: float, yaw_gate: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One-to-one association of own boxes (mapped by ``pose``) to ego boxes: pairs
+    within ``gate`` m (and ``yaw_gate`` rad modulo pi when given); where several boxes
+    compete for one, the minimum total centre distance (Hungarian) decides.
+    Returns (ego index, own index, distance)."""
+    if ego.shape[0] == 0 or own.shape[0] == 0:
+        return _EMPTY, _EMPTY, np.zeros(0)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    x = pose[0] + c * own[:, 0] - s * own[:, 1]
+    y = pose[1] + s * own[:, 0] + c * own[:, 1]
+    dx = ego[:, None, 0] - x[None, :]
+    dy = ego[:, None, 1] - y[None, :]
+    dist2 = dx * dx + dy * dy
+    ok = dist2 <= gate * gate
+    rows, cols = np.nonzero(ok)
+    if yaw_gate is not None and rows.size:
+        good = axial_difference(ego[rows, 2], own[cols, 2] + pose[2]) <= yaw_gate
+        ok[rows[~good], cols[~good]] = False
+        rows, cols = rows[good], cols[good]
+    if rows.size == 0:
+        return _EMPTY, _EMPTY, np.zeros(0)
+    # rows come sorted from np.nonzero: distinct iff no two neighbours are equal.
+    if np.all(rows[1:] != rows[:-1]) and np.bincount(cols).max() == 1:
+        return rows, cols, np.sqrt(dist2[rows, cols])
+    r, c = linear_sum_assignment(np.where(ok, np.sqrt(dist2), 1e6))
+    keep = ok[r, c]
+    return r[keep], c[keep], np.sqrt(dist2[r[keep], c[keep]])
+
+
+def consensus(
+    pose: np.ndarray, ego: np.ndarray, own: np.ndarray, p: PriorFreeParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one inlier pairs (ego index, own index) under ``pose`` (module docstring)."""
+    e, o, _ = _associate(pose, ego, own, p.inlier_distance, np.deg2rad(p.inlier_yaw_deg))
+    return e, o
+
+
+def support(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
+            p: PriorFreeParams) -> tuple[int, float]:
+    """(inlier count, soft support sum_inliers exp(-d^2 / (2 support_sigma^2))) of
+    ``pose``, d the inlier's centre distance (m)."""
+    _, _, dist = _associate(pose, ego, own, p.inlier_distance, np.deg2rad(p.inlier_yaw_deg))
+    return dist.size, float(np.exp(-0.5 * (dist / p.support_sigma) ** 2).sum())
+
+
+def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
+                p: PriorFreeParams) -> np.ndarray:
+    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit."""
+    pose = np.asarray(pose, dtype=float).copy()
+    for _ in range(int(p.refine_iterations)):
+        e, o, _ = _associate(pose, ego, own, p.refine_gate, np.deg2rad(p.inlier_yaw_deg))
+        if e.size < 2:
+            break
+        new = fit_se2(own[o, :2], ego[e, :2])
+        if np.abs(new - pose).max() <= 1e-6:
+            break
+        pose = new
+    return pose
+
+
+def distinct_top(poses: np.ndarray, scores: np.ndarray, count: int,
+                 p: PriorFreeParams) -> np.ndarray:
+    """Indices of up to ``count`` highest-scoring poses (H, 3), each distinct
+    (:func:`poses_distinct`) from every better one kept (non-maximum suppression)."""
+    kept: list[int] = []
+    alive = np.ones(poses.shape[0], dtype=bool)
+    order = np.argsort(-scores, kind="stable")
+    while len(kept) < count and alive.any():
+        h = int(order[alive[order]][0])
+        kept.append(h)
+        alive &= poses_distinct(poses, poses[h], p)
+    return np.array(kept, dtype=np.int64)
+
+
+def poses_distinct(a: np.ndarray, b: np.ndarray, p: PriorFreeParams) -> np.ndarray:
+    """Whether poses a (..., 3) and b (..., 3) are distinct hypotheses: farther apart
+    than ``distinct_distance`` m or ``distinct_yaw_deg`` deg."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return (np.hypot(a[..., 0] - b[..., 0], a[..., 1] - b[..., 1]) > p.distinct_distance) | (
+        np.abs(wrap_angle(a[..., 2] - b[..., 2])) > np.deg2rad(p.distinct_yaw_deg))
+
+
+@dataclass
+class _SlotOutcome:
+    pose: np.ndarray
+    applied: bool
+    pairs: tuple[np.ndarray, np.ndarray]
+    candidates: int = 0
+    solver: int = 0
+    reason: str = ""
+
+
+def _final_solve(pose: np.ndarray, ego: np.ndarray, own: np.ndarray, info: np.ndarray,
+                 p: PriorFreeParams) -> tuple[np.ndarray, int]:
+    """Robust least squares of the pose on its inlier box poses (headings of flipped
+    boxes turned by pi so the yaw residual measures the real misfit)."""
+    e, o = consensus(pose, ego, own, p)
+    if e.size < 2:
+        return pose, 0
+    measured = own[o].copy()
+    flip = np.abs(wrap_angle(ego[e, 2] - measured[:, 2] - pose[2])) > np.pi / 2
+    measured[flip, 2] = wrap_angle(measured[flip, 2] + np.pi)
+    fit = optimize_pose(pose, ego[e], measured, info[o], kernel=p.robust_kernel,
+                        kernel_delta=p.kernel_delta, max_iterations=p.max_solver_iterations)
+    return fit.pose, fit.iterations
+
+
+def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
+                reported: np.ndarray, search: CandidateSearch,
+                p: PriorFreeParams) -> _SlotOutcome:
+    keep = _SlotOutcome(reported, False, (_EMPTY, _EMPTY))
+    if min(ego_boxes.shape[0], own_boxes.shape[0]) < 2:
+        count = min(ego_boxes.shape[0], own_boxes.shape[0])
+        keep.reason = f"{count} boxes: an SE(2) pose needs >= 2"
+        return keep
+    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
+    candidates = np.asarray(search(ego_boxes, own_boxes, p), dtype=float).reshape(-1, 3)
+    candidates = candidates[: p.max_candidates]
+    keep.candidates = candidates.shape[0]
+    if candidates.shape[0] == 0:
+        keep.reason = "no pose hypothesis"
+        return keep
+    refined = np.array([refine_pose(c, ego, own, p) for c in candidates])
+    supports = [support(r, ego, own, p) for r in refined]
+    best = int(np.argmax([score for _, score in supports]))
+    estimate, (n_best, s_best) = refined[best], supports[best]
+    if p.do_no_harm:
+        if n_best < p.min_inliers:
+            keep.reason = f"{n_best} inliers < min_inliers={p.min_inliers}"
+            return keep
+        if not poses_distinct(estimate, reported, p):
+            keep.reason = ("estimate within distinct_distance / distinct_yaw_deg of the "
+                           "reported pose: no evidence that the prior is off")
+            return keep
+        prior = refine_pose(reported, ego, own, p)
+        rivals = [*zip(refined, supports, strict=True), (prior, support(prior, ego, own, p))]
+        for rival, (_, score) in rivals:
+            if poses_distinct(rival, estimate, p) and score >= p.ambiguity_ratio * s_best:
+                keep.reason = (f"ambiguous: a distinct pose has support {score:.2f} of the "
+                               f"estimate's {s_best:.2f} (ambiguity_ratio={p.ambiguity_ratio})")
+                return keep
+    elif n_best < 2:
+        keep.reason = f"{n_best} inliers: an SE(2) pose needs >= 2"
+        return keep
+    pose, solver = _final_solve(estimate, ego, own, info, p)
+    return _SlotOutcome(pose, True, consensus(pose, ego, own, p), keep.candidates, solver)
+
+
+def prior_free_align(
+    ego_boxes: np.ndarray,
+    ego_unc: np.ndarray,
+    collab_boxes: Sequence[np.ndarray],
+    collab_unc: Sequence[np.ndarray],
+    reported: np.ndarray,
+    search: CandidateSearch,
+    params_cls: type,
+    params: dict,
+    method: str,
+) -> AlignmentResult:
+    """Align every collaborator to the ego with the candidate ``search`` of a method.
+
+    Same array call as :func:`roco_env.policies.roco.roco_align` (boxes (K, 7) and
+    uncertainties (K, 3) per agent in its own frame, reported (N, 3) T_{j->i}); params:
+    fields of ``params_cls`` (a :class:`PriorFreeParams`). ``matched_pairs`` lists the
+    inlier (ego box, collaborator box) pairs of the applied estimates; ``landmarks`` the
+    matched ego boxes' poses; ``outer_iterations`` the refined candidates;
+    ``solver_iterations`` the Levenberg-Marquardt iterations.
+    """
+    p = params_from_kwargs(params_cls, params, method)
+    inputs: AlignmentInputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc,
+                                             reported, p)
+    n = inputs.n_collaborators
+    corrected = inputs.reported.copy()
+    applied = np.zeros(n, dtype=bool)
+    pairs, reasons = [], []
+    outer = solver = 0
+    boxes = [np.asarray(b, dtype=float).reshape(-1, 7) for b in [ego_boxes, *collab_boxes]]
+    ego = inputs.poses[0]
+    for j in range(n):
+        out = _align_slot(boxes[0], boxes[j + 1], inputs.information[j + 1],
+                          inputs.reported[j], search, p)
+        outer, solver = outer + out.candidates, solver + out.solver
+        if out.reason:
+            reasons.append(f"slot {j}: {out.reason}")
+        if not out.applied:
+            continue
+        corrected[j], applied[j] = out.pose, True
+        e, o = out.pairs
+        pairs.append(np.stack([np.full(e.size, -1), e, np.full(e.size, j), o], axis=1))
+    matched = np.concatenate(pairs).astype(np.int64) if pairs else np.zeros((0, 4), np.int64)
+    return AlignmentResult(
+        corrected=corrected,
+        applied=applied,
+        matched_pairs=matched,
+        landmarks=ego[np.unique(matched[:, 1])],
+        outer_iterations=outer,
+        solver_iterations=solver,
+        reason="; ".join(reasons),
+    )
+
+
+def aligner(search: CandidateSearch, params_cls: type, method: str,
+            summary: str) -> Callable[..., AlignmentResult]:
+    """The array aligner ``align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
+    **params) -> AlignmentResult`` of a prior-free method (its candidate ``search`` and
+    parameter class); ``summary`` opens its docstring."""
+
+    def align(ego_boxes: np.ndarray, ego_unc: np.ndarray, collab_boxes: Sequence[np.ndarray],
+              collab_unc: Sequence[np.ndarray], reported: np.ndarray,
+              **params) -> AlignmentResult:
+        return prior_free_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported,
+                                search, params_cls, params, method)
+
+    align.__name__ = align.__qualname__ = f"{method}_align"
+    align.__doc__ = (
+        f"{summary}\n\nSame array call as :func:`roco_env.policies.roco.roco_align`; params: "
+        f"fields of :class:`{params_cls.__name__}`. The reported poses are used only by "
+        "the do-no-harm rule."
+    )
+    return align
+
+
+class PriorFreePolicy(ArrayAlignmentPolicy):
+    """Env policy of a prior-free aligner: ``Policy(**params)(obs, info=None) -> action
+    (N, 3)``. Subclasses set ``ALIGN`` (a staticmethod), ``PARAMS`` and ``METHOD``."""
+
+    ALIGN: Callable[..., AlignmentResult]
+    PARAMS: type = PriorFreeParams
+    METHOD: str = ""
+
+    def __init__(self, **params) -> None:
+        super().__init__(type(self).ALIGN, params_from_kwargs(self.PARAMS, params, self.METHOD),
+                         params)

@@ -1,0 +1,177 @@
+"""Box-correspondence RANSAC: the plain geometric floor of the prior-free aligners.
+
+Minimal sample = two box correspondences (i <-> k, j <-> l), ego boxes i, j and
+collaborator boxes k, l. The two centre pairs fix an SE(2) hypothesis
+
+    theta = atan2(e_j - e_i) - atan2(c_l - c_k),   t = (e_i + e_j)/2 - R(theta) (c_k + c_l)/2
+
+(e ego centres, c collaborator centres in its own frame). Instead of drawing
+correspondences blindly, samples are restricted to pairs of box pairs that agree on
+the SE(2)-invariants of a box pair (the hypotheses a blind draw would reject anyway):
+
+* the centre distance: | |e_j - e_i| - |c_l - c_k| | <= ``pair_tolerance`` m, with
+  pair lengths in [``min_pair_distance``, ``max_pair_distance``] m (short pairs give
+  ill-conditioned rotations);
+* with ``use_yaw_invariants``: the relative heading of the two boxes and the bearing
+  of the segment in the first box's frame agree within ``yaw_tolerance_deg`` (both
+  modulo pi: detectors flip headings).
+
+Pairs are formed between each box and its ``pair_neighbors`` nearest boxes (None:
+all pairs): neighbours are the boxes both agents most likely see together, and the
+restriction keeps the search linear in the box count. Every ordered ego pair is
+tried against every unordered collaborator pair. When more
+than ``max_hypotheses`` consistent samples exist, ``max_hypotheses`` of them are drawn
+without replacement with a generator seeded from the boxes' bytes
+(:func:`roco_env.policies.prior_free.content_seed`): the same observation always gives
+the same answer. Each hypothesis is scored by its inlier count (collaborator boxes
+whose mapped centre has an ego box within ``inlier_distance`` m with heading within
+``inlier_yaw_deg``, not one-to-one: the usual RANSAC score), counted on at most
+``score_boxes`` collaborator boxes spread over its list (None = all; the ranking only
+has to find the right basin, the refinement recounts on every box); the best distinct
+hypotheses (non-maximum suppression, ``distinct_distance`` / ``distinct_yaw_deg``) go
+to the shared refinement (re-association + SVD fit, robust least squares) and
+do-no-harm rule of :mod:`roco_env.policies.prior_free`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from roco_env.policies.prior_free import (
+    PriorFreeParams,
+    PriorFreePolicy,
+    aligner,
+    axial_difference,
+    content_seed,
+    distinct_top,
+)
+
+__all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_candidates"]
+
+
+@dataclass(frozen=True)
+class RansacParams(PriorFreeParams):
+    """RANSAC parameters (m, deg) on top of :class:`PriorFreeParams`: pair_tolerance,
+    min_pair_distance, max_pair_distance, use_yaw_invariants, yaw_tolerance_deg,
+    max_hypotheses, pair_neighbors, score_boxes (module docstring)."""
+
+    pair_tolerance: float = 0.6
+    min_pair_distance: float = 4.0
+    max_pair_distance: float = 80.0
+    use_yaw_invariants: bool = True
+    yaw_tolerance_deg: float = 10.0
+    max_hypotheses: int = 200
+    pair_neighbors: int | None = 8
+    score_boxes: int | None = 24
+
+    def __post_init__(self) -> None:
+        PriorFreeParams.__post_init__(self)
+        for name in ("pair_tolerance", "min_pair_distance", "yaw_tolerance_deg"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        if not self.max_pair_distance > self.min_pair_distance:
+            raise ValueError(
+                f"max_pair_distance must be > min_pair_distance; got {self.max_pair_distance}"
+            )
+        if self.pair_neighbors is not None and int(self.pair_neighbors) < 1:
+            raise ValueError(f"pair_neighbors must be None or >= 1; got {self.pair_neighbors}")
+        if self.score_boxes is not None and int(self.score_boxes) < 2:
+            raise ValueError(f"score_boxes must be None or >= 2; got {self.score_boxes}")
+        if int(self.max_hypotheses) < 1:
+            raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
+
+
+def _pairs(poses: np.ndarray, ordered: bool, p: RansacParams) -> tuple:
+    """Box pairs (first, second) with their length, relative heading and bearing: each
+    box with its ``pair_neighbors`` nearest boxes (None: all pairs), both orders when
+    ``ordered``, else each unordered pair once."""
+    k = poses.shape[0]
+    if p.pair_neighbors is None or p.pair_neighbors >= k - 1:
+        a, b = np.triu_indices(k, 1)
+    else:
+        _, near = cKDTree(poses[:, :2]).query(poses[:, :2], k=int(p.pair_neighbors) + 1)
+        first = np.repeat(np.arange(k), int(p.pair_neighbors))
+        second = near[:, 1:].ravel()
+        code = np.unique(np.minimum(first, second) * k + np.maximum(first, second))
+        a, b = code // k, code % k
+    if ordered:
+        a, b = np.concatenate([a, b]), np.concatenate([b, a])
+    d = poses[b, :2] - poses[a, :2]
+    length = np.hypot(d[:, 0], d[:, 1])
+    keep = (length >= p.min_pair_distance) & (length <= p.max_pair_distance)
+    a, b, d, length = a[keep], b[keep], d[keep], length[keep]
+    angle = np.arctan2(d[:, 1], d[:, 0])
+    return a, b, length, poses[b, 2] - poses[a, 2], angle - poses[a, 2], angle
+
+
+def ransac_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
+                      p: RansacParams) -> np.ndarray:
+    """Candidate T_{j->i} (H, 3), best first, from ego (M, 7) and own (K, 7) boxes."""
+    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
+    ea, eb, elen, erel, ebear, eang = _pairs(ego, True, p)
+    ca, cb, clen, crel, cbear, cang = _pairs(own, False, p)
+    if elen.size == 0 or clen.size == 0:
+        return np.zeros((0, 3))
+    order = np.argsort(elen)
+    lo = np.searchsorted(elen[order], clen - p.pair_tolerance, "left")
+    hi = np.searchsorted(elen[order], clen + p.pair_tolerance, "right")
+    counts = hi - lo
+    own_idx = np.repeat(np.arange(clen.size), counts)
+    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    ego_idx = order[np.arange(own_idx.size) + starts]
+    if p.use_yaw_invariants:
+        tol = np.deg2rad(p.yaw_tolerance_deg)
+        ok = (axial_difference(erel[ego_idx], crel[own_idx]) <= tol) & (
+            axial_difference(ebear[ego_idx], cbear[own_idx]) <= tol)
+        ego_idx, own_idx = ego_idx[ok], own_idx[ok]
+    if ego_idx.size == 0:
+        return np.zeros((0, 3))
+    if ego_idx.size > p.max_hypotheses:
+        rng = np.random.default_rng(content_seed(ego, own))
+        pick = np.sort(rng.choice(ego_idx.size, size=int(p.max_hypotheses), replace=False))
+        ego_idx, own_idx = ego_idx[pick], own_idx[pick]
+    theta = eang[ego_idx] - cang[own_idx]
+    c, s = np.cos(theta), np.sin(theta)
+    e_mid = (ego[ea[ego_idx], :2] + ego[eb[ego_idx], :2]) / 2.0
+    c_mid = (own[ca[own_idx], :2] + own[cb[own_idx], :2]) / 2.0
+    tx = e_mid[:, 0] - (c * c_mid[:, 0] - s * c_mid[:, 1])
+    ty = e_mid[:, 1] - (s * c_mid[:, 0] + c * c_mid[:, 1])
+    poses = np.column_stack([tx, ty, theta])
+    scored = own
+    if p.score_boxes is not None and own.shape[0] > p.score_boxes:
+        scored = own[np.linspace(0, own.shape[0] - 1, int(p.score_boxes)).astype(int)]
+    scores = _inlier_counts(poses, ego, scored, p)
+    top = distinct_top(poses, scores.astype(float), p.max_candidates, p)
+    return poses[top]
+
+
+def _inlier_counts(poses: np.ndarray, ego: np.ndarray, own: np.ndarray,
+                   p: RansacParams) -> np.ndarray:
+    """Inliers (H,) per hypothesis: own boxes with an ego box within the gates."""
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    x = poses[:, 0:1] + c * own[None, :, 0] - s * own[None, :, 1]
+    y = poses[:, 1:2] + s * own[None, :, 0] + c * own[None, :, 1]
+    dist, nearest = cKDTree(ego[:, :2]).query(
+        np.column_stack([x.ravel(), y.ravel()]), distance_upper_bound=p.inlier_distance)
+    found = np.isfinite(dist)
+    yaw = (poses[:, 2:3] + own[None, :, 2]).ravel()
+    ok = found.copy()
+    ok[found] = axial_difference(ego[nearest[found], 2], yaw[found]) <= np.deg2rad(
+        p.inlier_yaw_deg)
+    return ok.reshape(poses.shape[0], own.shape[0]).sum(axis=1)
+
+
+ransac_align = aligner(ransac_candidates, RansacParams, "ransac",
+                       "Correct the collaborators' relative poses by box-correspondence RANSAC.")
+
+
+class RansacPolicy(PriorFreePolicy):
+    """RANSAC as an env policy: ``RansacPolicy(**params)(obs, info=None) -> action (N, 3)``."""
+
+    ALIGN = staticmethod(ransac_align)
+    PARAMS = RansacParams
+    METHOD = "ransac"
