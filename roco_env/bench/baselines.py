@@ -29,11 +29,12 @@ PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
-# The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams), doubled.
-DETECTOR_NOISE_X2 = {"detector.params.sigma_xy": 0.12, "detector.params.sigma_xy_per_m": 0.004,
-                     "detector.params.sigma_xy_occlusion": 0.5, "detector.params.sigma_yaw": 0.04,
-                     "detector.params.sigma_yaw_per_m": 0.0008,
-                     "detector.params.sigma_yaw_occlusion": 0.2}
+# The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
+# clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
+DETECTOR_NOISE_X15 = {"detector.params.sigma_xy": 0.09, "detector.params.sigma_xy_per_m": 0.003,
+                      "detector.params.sigma_xy_occlusion": 0.375,
+                      "detector.params.sigma_yaw": 0.03, "detector.params.sigma_yaw_per_m": 0.0006,
+                      "detector.params.sigma_yaw_occlusion": 0.15}
 
 
 @dataclass(frozen=True)
@@ -103,9 +104,9 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("late_knob_nms", "Knob: late-fusion NMS at BEV IoU 0.3 instead of 0.15",
                ("dair_like",), (0.0, 0.4, 0.8), BUILTIN[:3],
                overrides={**PROTOCOL, "fusion.nms_iou": 0.3}),
-    Experiment("late_knob_detector", "Knob: twice the detector's localisation noise",
+    Experiment("late_knob_detector", "Knob: 1.5 x the detector's localisation noise",
                ("dair_like",), (0.0, 0.4, 0.8), BUILTIN[:3],
-               overrides={**PROTOCOL, **DETECTOR_NOISE_X2}),
+               overrides={**PROTOCOL, **DETECTOR_NOISE_X15}),
 )
 
 
