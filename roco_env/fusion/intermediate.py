@@ -48,9 +48,16 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
     if not rows:
         return own
     warped = warp_bev(features[rows], np.concatenate(poses), grid)
-    per_ego = torch.split(warped, [len(c) for c in collaborators])
-    return torch.stack([torch.maximum(mine, theirs.amax(dim=0)) if theirs.shape[0] else mine
-                        for mine, theirs in zip(own, per_ego, strict=True)])
+    counts = [len(c) for c in collaborators]
+    most = max(counts)
+    if min(counts) < most:
+        # Egos with fewer collaborators get all-zero maps in the spare slots: the maps
+        # are non-negative, so zeros leave the maximum unchanged.
+        slots = [e * most + k for e, n in enumerate(counts) for k in range(n)]
+        padded = warped.new_zeros((len(egos) * most, *warped.shape[1:]))
+        padded[slots] = warped
+        warped = padded
+    return torch.maximum(own, warped.unflatten(0, (len(egos), most)).amax(dim=1))
 
 
 def fuse_features(ego_features: torch.Tensor, collab_features: Sequence[torch.Tensor],
