@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import roco_env
-from roco_env.fusion.intermediate import fuse_maps
+from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
 from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
@@ -247,7 +247,6 @@ def test_every_policy_runs_with_the_learned_detector(policy, fusion):
 
 
 def test_fusion_canvas_covers_the_evaluation_range_in_whole_cells():
-    from roco_env.fusion.intermediate import fusion_canvas
 
     canvas, pads = fusion_canvas(FGRID, (-140.8, 140.8), (-40.0, 40.0))
     assert pads == (44, 44, 0, 0) and (canvas.H, canvas.W) == (FGRID.H, FGRID.W + 88)
@@ -267,3 +266,18 @@ def test_fuse_maps_is_each_egos_maximum_over_its_own_and_warped_maps():
         for j, pose in zip(c, p, strict=True):
             expected = torch.maximum(expected, warp_bev(features[j], pose, grid))
         torch.testing.assert_close(fused[e], expected)
+
+
+def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
+    grid = BevGrid((-8.0, 8.0), (-4.0, 4.0), 1.0)
+    canvas, pads = fusion_canvas(grid, (-12.0, 10.0), (-6.0, 4.0))
+    features = torch.rand(3, 2, grid.H, grid.W, generator=torch.Generator().manual_seed(1))
+    collaborators = [[1, 2], [0]]
+    poses = [np.array([[3.0, -1.0, 0.4], [-2.5, 0.5, -1.2]]), np.array([[1.5, 2.0, 2.8]])]
+    direct = fuse_maps(features, [0, 1], collaborators, poses, grid, canvas)
+    padded = fuse_maps(torch.nn.functional.pad(features, pads), [0, 1], collaborators, poses,
+                       canvas)
+    torch.testing.assert_close(direct, padded, rtol=1e-5, atol=1e-5)
+    shifted = BevGrid((-12.5, 9.5), (-6.0, 4.0), 1.0)
+    with pytest.raises(ValueError, match="must contain the feature grid"):
+        fuse_maps(features, [0], [[1]], [poses[1]], grid, shifted)

@@ -28,13 +28,18 @@ __all__ = ["fuse_features", "fuse_maps", "fusion_canvas", "intermediate_fusion"]
 
 
 def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
-              poses: Sequence[np.ndarray], grid: BevGrid) -> torch.Tensor:
-    """Max-fused maps (E, C, h, w), all egos in one warp.
+              poses: Sequence[np.ndarray], grid: BevGrid, canvas: BevGrid | None = None
+              ) -> torch.Tensor:
+    """Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp.
 
     features (N, C, h, w) on ``grid``, one per agent; egos: rows of the egos;
     collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
-    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with.
+    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas:
+    a grid of ``grid``'s cells containing it (:func:`fusion_canvas`): the egos' own maps
+    are zero-padded onto it, the collaborators' maps warped straight onto it.
     """
+    canvas = canvas or grid
+    pads = _placement(grid, canvas)
     if not (len(egos) == len(collaborators) == len(poses)):
         raise ValueError(f"egos, collaborators and poses must have one entry per ego; got "
                          f"{len(egos)}, {len(collaborators)} and {len(poses)}")
@@ -43,11 +48,11 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
         if p.shape[0] != len(c):
             raise ValueError(f"poses[{e}] must hold one pose per collaborator map; got "
                              f"{p.shape[0]} poses for {len(c)} maps")
-    own = features[list(egos)]
+    own = F.pad(features[list(egos)], pads)
     rows = [j for c in collaborators for j in c]
     if not rows:
         return own
-    warped = warp_bev(features[rows], np.concatenate(poses), grid)
+    warped = warp_bev(features[rows], np.concatenate(poses), grid, canvas)
     counts = [len(c) for c in collaborators]
     most = max(counts)
     if min(counts) < most:
@@ -91,6 +96,20 @@ def fusion_canvas(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[flo
     return canvas, pads
 
 
+def _placement(grid: BevGrid, canvas: BevGrid) -> tuple[int, int, int, int]:
+    """Whole cells (left, right, bottom, top) that ``canvas`` adds around ``grid``;
+    ValueError unless the canvas contains the grid on the same cells."""
+    res = grid.resolution
+    edges = ((grid.x_range[0] - canvas.x_range[0]), (canvas.x_range[1] - grid.x_range[1]),
+             (grid.y_range[0] - canvas.y_range[0]), (canvas.y_range[1] - grid.y_range[1]))
+    pads = tuple(round(e / res) for e in edges)
+    if canvas.resolution != res or min(pads) < 0 or any(
+            abs(e - p * res) > 1e-6 for e, p in zip(edges, pads, strict=True)):
+        raise ValueError(f"fusion canvas {canvas} must contain the feature grid {grid} on its "
+                         "cells (same cell size, whole-cell margins)")
+    return pads  # type: ignore[return-value]
+
+
 def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
                         egos: Sequence[int], collaborators: Sequence[Sequence[int]],
                         poses: Sequence[np.ndarray], x_range: Sequence[float],
@@ -105,9 +124,8 @@ def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
     is decoded too (the heads are convolutional). Every box's source is the ego
     (:data:`EGO_SOURCE`): it comes from the ego's fused map.
     """
-    canvas, (left, right, bottom, top) = fusion_canvas(detector.feature_grid, x_range, y_range)
-    padded = F.pad(features, (left, right, bottom, top))
-    fused = fuse_maps(padded, egos, collaborators, poses, canvas)
+    canvas, _ = fusion_canvas(detector.feature_grid, x_range, y_range)
+    fused = fuse_maps(features, egos, collaborators, poses, detector.feature_grid, canvas)
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]
