@@ -247,7 +247,6 @@ def test_every_policy_runs_with_the_learned_detector(policy, fusion):
 
 
 def test_fusion_canvas_covers_the_evaluation_range_in_whole_cells():
-
     canvas, pads = fusion_canvas(FGRID, (-140.8, 140.8), (-40.0, 40.0))
     assert pads == (44, 44, 0, 0) and (canvas.H, canvas.W) == (FGRID.H, FGRID.W + 88)
     canvas, pads = fusion_canvas(FGRID, (-10.0, 100.0), (-41.0, 20.0))

@@ -31,7 +31,7 @@ from roco_env.sensing.lidar import (
     LIDAR_CHANNELS,
     ScanNoise,
     ground_references,
-    lidar_raster,
+    lidar_rasters,
     sample_scans,
 )
 from roco_env.sensing.visibility import Visibility
@@ -173,9 +173,7 @@ class LearnedDetector:
                 rng: np.random.Generator) -> torch.Tensor:
         """Every agent's LiDAR raster (A, C, H, W), scans drawn from ``rng``."""
         scans = sample_scans(state, visibility, self.noise, rng)
-        return torch.from_numpy(np.stack(
-            [lidar_raster(s, visibility.ray_ranges[a], self.grid) for a, s in enumerate(scans)]
-        ).reshape(len(scans), len(LIDAR_CHANNELS), self.grid.H, self.grid.W))
+        return torch.from_numpy(lidar_rasters(scans, visibility.ray_ranges, self.grid))
 
     @torch.inference_mode()
     def encode(self, rasters: torch.Tensor) -> torch.Tensor:
