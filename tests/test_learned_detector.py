@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import roco_env
-from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
+from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
 from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
@@ -259,12 +259,13 @@ def test_fuse_maps_is_each_egos_maximum_over_its_own_and_warped_maps():
     collaborators = [[1, 2, 3], [], [0], [0, 1]]  # unequal counts, one ego alone
     rng = np.random.default_rng(0)
     poses = [rng.normal(size=(len(c), 3)) * [2.0, 1.0, 0.3] for c in collaborators]
-    fused = fuse_maps(features, [0, 1, 2, 3], collaborators, poses, grid)
-    for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
-        expected = features[e]
-        for j, pose in zip(c, p, strict=True):
-            expected = torch.maximum(expected, warp_bev(features[j], pose, grid))
-        torch.testing.assert_close(fused[e], expected)
+    for fuse in (fuse_maps, fuse_on_canvas):
+        fused = fuse(features, [0, 1, 2, 3], collaborators, poses, grid)
+        for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
+            expected = features[e]
+            for j, pose in zip(c, p, strict=True):
+                expected = torch.maximum(expected, warp_bev(features[j], pose, grid))
+            torch.testing.assert_close(fused[e], expected, rtol=1e-5, atol=1e-5)
 
 
 def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
@@ -273,10 +274,10 @@ def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
     features = torch.rand(3, 2, grid.H, grid.W, generator=torch.Generator().manual_seed(1))
     collaborators = [[1, 2], [0]]
     poses = [np.array([[3.0, -1.0, 0.4], [-2.5, 0.5, -1.2]]), np.array([[1.5, 2.0, 2.8]])]
-    direct = fuse_maps(features, [0, 1], collaborators, poses, grid, canvas)
+    direct = fuse_on_canvas(features, [0, 1], collaborators, poses, grid, canvas)
     padded = fuse_maps(torch.nn.functional.pad(features, pads), [0, 1], collaborators, poses,
                        canvas)
     torch.testing.assert_close(direct, padded, rtol=1e-5, atol=1e-5)
     shifted = BevGrid((-12.5, 9.5), (-6.0, 4.0), 1.0)
     with pytest.raises(ValueError, match="must contain the feature grid"):
-        fuse_maps(features, [0], [[1]], [poses[1]], grid, shifted)
+        fuse_on_canvas(features, [0], [[1]], [poses[1]], grid, shifted)
