@@ -173,8 +173,10 @@ class LearnedDetectorParams:
 
     weights: str | None = _spec(None, doc="weights file; None = the shipped weights")
     device: str = _spec("cpu", doc="torch device, e.g. 'cpu' or 'cuda'")
-    score_threshold: float = _spec(0.05, low=0.0, high=1.0, low_open=True, high_open=True,
+    score_threshold: float = _spec(0.2, low=0.0, high=1.0, low_open=True, high_open=True,
                                    doc="decoded boxes below this score are dropped")
+    threads: int = _spec(1, low=1, high=256,
+                         doc="torch CPU threads, set process-wide when the detector is built")
 
 
 # detector.preset -> the dataclass declaring its detector.params.

@@ -7,17 +7,18 @@ import pytest
 import torch
 
 import roco_env
-from roco_env.fusion.intermediate import fuse_maps
+from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
 from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
 from roco_env.scenario import ScenarioError
-from roco_env.sensing import BevGrid
+from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.learned import (
     BevDetectorNet,
     LearnedDetector,
     NetConfig,
     load_checkpoint,
+    make_learned_detector,
     save_checkpoint,
     sha256_of,
     shipped_weights_path,
@@ -55,6 +56,21 @@ def test_forward_shapes():
     assert all(v.shape[-2:] == (FGRID.H, FGRID.W) for v in maps.values())
     with pytest.raises(ValueError, match="raster must have shape"):
         net.encode(torch.rand(1, 3, GRID.H, GRID.W))
+
+
+def test_inference_network_folds_batch_norm_without_changing_outputs(detector):
+    net = load_checkpoint(shipped_weights_path())
+    trained = BevDetectorNet(net.net)
+    trained.load_state_dict(net.state_dict)
+    trained.eval()
+    raster = torch.rand(2, len(LIDAR_CHANNELS), GRID.H, GRID.W)
+    with torch.no_grad():
+        expected = trained(raster)
+        got = detector.net(raster.to(memory_format=torch.channels_last))
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in detector.net.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in trained.modules())
+    for name, value in expected.items():
+        torch.testing.assert_close(got[name], value, rtol=1e-4, atol=1e-4)
 
 
 def test_parameter_budget(detector):
@@ -226,9 +242,45 @@ def test_every_policy_runs_with_the_learned_detector(policy, fusion):
 
 
 def test_fusion_canvas_covers_the_evaluation_range_in_whole_cells():
-    from roco_env.fusion.intermediate import fusion_canvas
-
     canvas, pads = fusion_canvas(FGRID, (-140.8, 140.8), (-40.0, 40.0))
     assert pads == (44, 44, 0, 0) and (canvas.H, canvas.W) == (FGRID.H, FGRID.W + 88)
     canvas, pads = fusion_canvas(FGRID, (-10.0, 100.0), (-41.0, 20.0))
     assert pads == (0, 19, 1, 0) and canvas.x_range[1] >= 100.0 and canvas.y_range[0] <= -41.0
+
+
+def test_fuse_maps_is_each_egos_maximum_over_its_own_and_warped_maps():
+    grid = BevGrid((-8.0, 8.0), (-4.0, 4.0), 1.0)
+    features = torch.rand(4, 3, grid.H, grid.W, generator=torch.Generator().manual_seed(0))
+    collaborators = [[1, 2, 3], [], [0], [0, 1]]  # unequal counts, one ego alone
+    rng = np.random.default_rng(0)
+    poses = [rng.normal(size=(len(c), 3)) * [2.0, 1.0, 0.3] for c in collaborators]
+    for fuse in (fuse_maps, fuse_on_canvas):
+        fused = fuse(features, [0, 1, 2, 3], collaborators, poses, grid)
+        for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
+            expected = features[e]
+            for j, pose in zip(c, p, strict=True):
+                expected = torch.maximum(expected, warp_bev(features[j], pose, grid))
+            torch.testing.assert_close(fused[e], expected, rtol=1e-5, atol=1e-5)
+
+
+def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
+    grid = BevGrid((-8.0, 8.0), (-4.0, 4.0), 1.0)
+    canvas, pads = fusion_canvas(grid, (-12.0, 10.0), (-6.0, 4.0))
+    features = torch.rand(3, 2, grid.H, grid.W, generator=torch.Generator().manual_seed(1))
+    collaborators = [[1, 2], [0]]
+    poses = [np.array([[3.0, -1.0, 0.4], [-2.5, 0.5, -1.2]]), np.array([[1.5, 2.0, 2.8]])]
+    direct = fuse_on_canvas(features, [0, 1], collaborators, poses, grid, canvas)
+    padded = fuse_maps(torch.nn.functional.pad(features, pads), [0, 1], collaborators, poses,
+                       canvas)
+    torch.testing.assert_close(direct, padded, rtol=1e-5, atol=1e-5)
+    shifted = BevGrid((-12.5, 9.5), (-6.0, 4.0), 1.0)
+    with pytest.raises(ValueError, match="must contain the feature grid"):
+        fuse_on_canvas(features, [0], [[1]], [poses[1]], grid, shifted)
+
+
+def test_make_learned_detector_checks_its_parameters():
+    with pytest.raises(ValueError, match="unknown parameter 'sigma_xy' for detector 'learned'"):
+        make_learned_detector({"sigma_xy": 0.1})
+    for threads in (0, 1.5, True):
+        with pytest.raises(ValueError, match="threads must be an int >= 1 or None"):
+            make_learned_detector({"threads": threads})

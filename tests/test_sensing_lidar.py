@@ -15,6 +15,7 @@ from roco_env.sensing.lidar import (
     ScanNoise,
     ground_references,
     lidar_raster,
+    lidar_rasters,
     sample_scans,
 )
 from roco_env.traffic import make_traffic_source
@@ -99,3 +100,14 @@ def test_heights_are_relative_to_the_agents_ground(scene):
 def test_scan_noise_rejects_bad_values(field, value):
     with pytest.raises(ValueError, match=f"ScanNoise.{field}"):
         ScanNoise(**{field: value})
+
+
+def test_batched_rasters_equal_each_scan_rastered_alone(scene):
+    state, vis = scene
+    scans = sample_scans(state, vis, ScanNoise(), np.random.default_rng(1))
+    batch = lidar_rasters(scans, vis.ray_ranges, GRID)
+    assert batch.shape == (len(scans), len(LIDAR_CHANNELS), GRID.H, GRID.W)
+    for a, scan in enumerate(scans):
+        np.testing.assert_array_equal(batch[a], lidar_raster(scan, vis.ray_ranges[a], GRID))
+        np.testing.assert_array_equal(batch[a], lidar_rasters([scan], vis.ray_ranges[a:a + 1],
+                                                              GRID)[0])

@@ -34,12 +34,9 @@ def _steps_per_second(steps: int, repeats: int, **overrides) -> float:
 
 
 def run(quick: bool) -> list[str]:
-    import torch
-
     from roco_env.sensing import compute_visibility
     from roco_env.sensing.learned import LearnedDetector
 
-    torch.set_num_threads(2)
     repeats = 3 if quick else 7
     env = CollabPerceptionEnv(**SETTING, max_cycles=10**9, detector="learned")
     env.reset(seed=0)

@@ -24,7 +24,8 @@ from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState
 
-__all__ = ["fuse_features", "fuse_maps", "fusion_canvas", "intermediate_fusion"]
+__all__ = ["fuse_features", "fuse_maps", "fuse_on_canvas", "fusion_canvas",
+           "intermediate_fusion"]
 
 
 def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
@@ -35,14 +36,7 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
     collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
     T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with.
     """
-    if not (len(egos) == len(collaborators) == len(poses)):
-        raise ValueError(f"egos, collaborators and poses must have one entry per ego; got "
-                         f"{len(egos)}, {len(collaborators)} and {len(poses)}")
-    poses = [np.asarray(p, dtype=float).reshape(-1, 3) for p in poses]
-    for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
-        if p.shape[0] != len(c):
-            raise ValueError(f"poses[{e}] must hold one pose per collaborator map; got "
-                             f"{p.shape[0]} poses for {len(c)} maps")
+    poses = _checked_poses(egos, collaborators, poses)
     own = features[list(egos)]
     rows = [j for c in collaborators for j in c]
     if not rows:
@@ -51,6 +45,75 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
     per_ego = torch.split(warped, [len(c) for c in collaborators])
     return torch.stack([torch.maximum(mine, theirs.amax(dim=0)) if theirs.shape[0] else mine
                         for mine, theirs in zip(own, per_ego, strict=True)])
+
+
+def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
+                   collaborators: Sequence[Sequence[int]], poses: Sequence[np.ndarray],
+                   grid: BevGrid, canvas: BevGrid | None = None) -> torch.Tensor:
+    """:func:`fuse_maps` at run time (no autograd: writes in place), on ``canvas``.
+
+    Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp.
+
+    features (N, C, h, w) on ``grid``, one per agent; egos: rows of the egos;
+    collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
+    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas:
+    a grid of ``grid``'s cells containing it (:func:`fusion_canvas`): the egos' own maps
+    are zero-padded onto it, the collaborators' maps warped straight onto it.
+    """
+    canvas = canvas or grid
+    pads = _placement(grid, canvas)
+    poses = _checked_poses(egos, collaborators, poses)
+    own = F.pad(features[list(egos)], pads)
+    rows = [j for c in collaborators for j in c]
+    if not rows:
+        return own
+    # Each map is warped onto a window of canvas columns covering its footprint (at most
+    # 161 of the 281.6 m of the default canvas): one grid_sample of all maps on a window of
+    # the same width, each shifted to its own first column, then max-ed into its ego's map.
+    all_poses = np.concatenate(poses)
+    first, window = _footprint_columns(all_poses, grid, canvas)
+    shifted = all_poses.copy()
+    shifted[:, 0] -= first * canvas.resolution
+    warped = warp_bev(features[rows], shifted, grid, window)
+    owner = [e for e, c in enumerate(collaborators) for _ in c]
+    for k, (e, start) in enumerate(zip(owner, first.tolist(), strict=True)):
+        cols = slice(start, start + window.W)
+        own[e, :, :, cols] = torch.maximum(own[e, :, :, cols], warped[k])
+    return own
+
+
+def _footprint_columns(poses: np.ndarray, grid: BevGrid, canvas: BevGrid
+                       ) -> tuple[np.ndarray, BevGrid]:
+    """First canvas column of each warped map's window (N,) and the window grid (the
+    canvas's first columns, as wide as the widest footprint): a map on ``grid`` moved by
+    pose (x, y, yaw) is non-zero only inside its rectangle grown by one cell (bilinear)."""
+    res = canvas.resolution
+    xs = np.array([grid.x_range[0] - res, grid.x_range[1] + res])
+    ys = np.array([grid.y_range[0] - res, grid.y_range[1] + res])
+    cx, cy = (a.ravel() for a in np.meshgrid(xs, ys))
+    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    x_dst = c * cx - s * cy + poses[:, 0:1]  # (N, 4) corners in the destination frame
+    low = np.floor((x_dst.min(axis=1) - canvas.x_range[0]) / res).astype(np.int64)
+    high = np.ceil((x_dst.max(axis=1) - canvas.x_range[0]) / res).astype(np.int64)
+    low, high = np.clip(low, 0, canvas.W), np.clip(high, 0, canvas.W)
+    width = int(np.clip((high - low).max(), 1, canvas.W))
+    first = np.minimum(low, canvas.W - width)
+    window = BevGrid((canvas.x_range[0], canvas.x_range[0] + width * res), canvas.y_range, res)
+    return first, window
+
+
+def _checked_poses(egos: Sequence[int], collaborators: Sequence[Sequence[int]],
+                   poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """poses as (n_e, 3) float arrays; ValueError when the three lists do not match."""
+    if not (len(egos) == len(collaborators) == len(poses)):
+        raise ValueError(f"egos, collaborators and poses must have one entry per ego; got "
+                         f"{len(egos)}, {len(collaborators)} and {len(poses)}")
+    poses = [np.asarray(p, dtype=float).reshape(-1, 3) for p in poses]
+    for e, (c, p) in enumerate(zip(collaborators, poses, strict=True)):
+        if p.shape[0] != len(c):
+            raise ValueError(f"poses[{e}] must hold one pose per collaborator map; got "
+                             f"{p.shape[0]} poses for {len(c)} maps")
+    return poses
 
 
 def fuse_features(ego_features: torch.Tensor, collab_features: Sequence[torch.Tensor],
@@ -84,6 +147,20 @@ def fusion_canvas(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[flo
     return canvas, pads
 
 
+def _placement(grid: BevGrid, canvas: BevGrid) -> tuple[int, int, int, int]:
+    """Whole cells (left, right, bottom, top) that ``canvas`` adds around ``grid``;
+    ValueError unless the canvas contains the grid on the same cells."""
+    res = grid.resolution
+    edges = ((grid.x_range[0] - canvas.x_range[0]), (canvas.x_range[1] - grid.x_range[1]),
+             (grid.y_range[0] - canvas.y_range[0]), (canvas.y_range[1] - grid.y_range[1]))
+    pads = tuple(round(e / res) for e in edges)
+    if canvas.resolution != res or min(pads) < 0 or any(
+            abs(e - p * res) > 1e-6 for e, p in zip(edges, pads, strict=True)):
+        raise ValueError(f"fusion canvas {canvas} must contain the feature grid {grid} on its "
+                         "cells (same cell size, whole-cell margins)")
+    return pads  # type: ignore[return-value]
+
+
 def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
                         egos: Sequence[int], collaborators: Sequence[Sequence[int]],
                         poses: Sequence[np.ndarray], x_range: Sequence[float],
@@ -98,9 +175,10 @@ def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
     is decoded too (the heads are convolutional). Every box's source is the ego
     (:data:`EGO_SOURCE`): it comes from the ego's fused map.
     """
-    canvas, (left, right, bottom, top) = fusion_canvas(detector.feature_grid, x_range, y_range)
-    padded = F.pad(features, (left, right, bottom, top))
-    fused = fuse_maps(padded, egos, collaborators, poses, canvas)
+    canvas, _ = fusion_canvas(detector.feature_grid, x_range, y_range)
+    with torch.inference_mode():
+        fused = fuse_on_canvas(features, egos, collaborators, poses, detector.feature_grid,
+                               canvas)
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]

@@ -185,7 +185,7 @@ def make_detector(config: DetectorConfig) -> Detector:
     """Build the detector of ``config.preset`` with ``config.params`` overriding it.
 
     ``learned`` builds :class:`roco_env.sensing.learned.LearnedDetector` (loads torch
-    and the weights; params: weights, device, score_threshold).
+    and the weights; params: weights, device, score_threshold, threads).
     Raises ValueError naming the preset or parameter and the allowed values.
     """
     if config.preset == "learned":

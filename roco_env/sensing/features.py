@@ -125,29 +125,35 @@ def bev_features(visibility: Visibility, agent_index: int, grid: BevGrid) -> tor
     return torch.from_numpy(out.reshape(len(CHANNELS), grid.H, grid.W))
 
 
-def _affine_theta(poses: np.ndarray, grid: BevGrid) -> torch.Tensor:
-    """affine_grid matrices (N, 2, 3) sampling the source map at T^-1 * (dst cell centre)."""
-    half = np.array([grid.W * grid.resolution, grid.H * grid.resolution]) / 2.0
-    centre = np.array([grid.x_range[0], grid.y_range[0]]) + half
+def _affine_theta(poses: np.ndarray, grid: BevGrid, out_grid: BevGrid) -> torch.Tensor:
+    """affine_grid matrices (N, 2, 3) sampling the source map (on ``grid``) at
+    T^-1 * (cell centre of ``out_grid``)."""
+    def half_and_centre(g: BevGrid) -> tuple[np.ndarray, np.ndarray]:
+        half = np.array([g.W * g.resolution, g.H * g.resolution]) / 2.0
+        return half, np.array([g.x_range[0], g.y_range[0]]) + half
+
+    half, centre = half_and_centre(grid)
+    out_half, out_centre = half_and_centre(out_grid)
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     # Inverse pose dst -> src: p_src = A p_dst + b with A = R^T, b = -R^T t.
     a = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], axis=1)  # (N, 2, 2)
     b = -np.einsum("nij,nj->ni", a, poses[:, :2])
-    # Normalised coordinates: p = half * n + centre.
-    lin = a * half[None, None, :] / half[None, :, None]
-    shift = (np.einsum("nij,j->ni", a, centre) + b - centre) / half
+    # Normalised coordinates: p = half * n + centre on each grid.
+    lin = a * out_half[None, None, :] / half[None, :, None]
+    shift = (np.einsum("nij,j->ni", a, out_centre) + b - centre) / half
     return torch.from_numpy(np.concatenate([lin, shift[:, :, None]], axis=2))
 
 
 def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  # noqa: N803
-             grid: BevGrid) -> torch.Tensor:
+             grid: BevGrid, out_grid: BevGrid | None = None) -> torch.Tensor:
     """Resample BEV maps from a source agent frame into a destination frame.
 
     features: (C, H, W) or (N, C, H, W) on ``grid`` in the source frame;
     T_src_to_dst: pose (3,) or (N, 3) (x m, y m, yaw rad) mapping source-frame
-    points into the destination frame (e.g. a corrected T_{j->i}). Output has
-    the input's shape, on the same grid in the destination frame: bilinear
-    ``grid_sample``, zero padding outside the source map, ``align_corners=False``.
+    points into the destination frame (e.g. a corrected T_{j->i}). Output: the
+    same maps on ``out_grid`` (default ``grid``; any extent and cell size) in the
+    destination frame: bilinear ``grid_sample``, zero padding outside the source
+    map, ``align_corners=False``.
     """
     single = features.dim() == 3
     batch = features.unsqueeze(0) if single else features
@@ -163,8 +169,11 @@ def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  #
             f"T_src_to_dst must be {batch.shape[0]} finite pose(s) (x, y, yaw); "
             f"got shape {tuple(np.shape(T_src_to_dst))}"
         )
-    theta = _affine_theta(poses.reshape(-1, 3), grid).to(dtype=batch.dtype, device=batch.device)
-    sample_at = F.affine_grid(theta, list(batch.shape), align_corners=False)
+    out_grid = out_grid or grid
+    theta = _affine_theta(poses.reshape(-1, 3), grid, out_grid).to(dtype=batch.dtype,
+                                                                   device=batch.device)
+    sample_at = F.affine_grid(theta, [*batch.shape[:2], out_grid.H, out_grid.W],
+                              align_corners=False)
     warped = F.grid_sample(batch, sample_at, mode="bilinear", padding_mode="zeros",
                            align_corners=False)
     return warped[0] if single else warped

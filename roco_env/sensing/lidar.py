@@ -33,6 +33,7 @@ Draws come from the generator given, in a fixed order, so a seed fixes the scan.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +43,7 @@ from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
 __all__ = ["LIDAR_CHANNELS", "LidarScan", "ScanNoise", "ground_references", "lidar_raster",
-           "sample_scans"]
+           "lidar_rasters", "sample_scans"]
 
 LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "observed")
 
@@ -142,16 +143,38 @@ def lidar_raster(scan: LidarScan, ray_ranges: np.ndarray, grid: BevGrid) -> np.n
     ray_ranges (n_rays,): the agent's first-hit distance per ray (m), i.e. a row
     of :attr:`Visibility.ray_ranges`.
     """
-    row, col = grid.cell_index(scan.x, scan.y)
-    inside = row >= 0
-    cell = row[inside] * grid.W + col[inside]
-    z = scan.z[inside]
+    return lidar_rasters([scan], np.asarray(ray_ranges)[None], grid)[0]
+
+
+def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
+                  grid: BevGrid) -> np.ndarray:
+    """BEV rasters (len(scans), len(LIDAR_CHANNELS), H, W) float32 of several scans at once
+    (one binning pass over all points; each equals :func:`lidar_raster` of its scan).
+
+    ray_ranges (len(scans), n_rays): each scan's agent's first-hit distance per ray (m).
+    """
     n_cells = grid.H * grid.W
-    out = np.zeros((len(LIDAR_CHANNELS), n_cells), dtype=np.float32)
-    count = np.bincount(cell, minlength=n_cells)
+    n = len(scans)
+    ray_ranges = np.asarray(ray_ranges, dtype=float).reshape(n, -1)
+    cells, heights = [], []
+    for k, scan in enumerate(scans):
+        row, col = grid.cell_index(scan.x, scan.y)
+        inside = row >= 0
+        cells.append(k * n_cells + row[inside] * grid.W + col[inside])
+        heights.append(scan.z[inside])
+    cell = np.concatenate(cells) if cells else np.zeros(0, dtype=np.int64)
+    z = np.concatenate(heights) if heights else np.zeros(0)
+    out = np.zeros((len(LIDAR_CHANNELS), n * n_cells), dtype=np.float32)
+    count = np.bincount(cell, minlength=n * n_cells)
     out[0] = np.log1p(count)
-    np.maximum.at(out[1], cell, np.maximum(z, 0.0))
-    out[2] = np.bincount(cell, weights=z, minlength=n_cells) / np.maximum(count, 1)
-    radius, ray = _cell_polar(grid, ray_ranges.shape[0])
-    out[3] = radius <= ray_ranges[ray]
-    return out.reshape(len(LIDAR_CHANNELS), grid.H, grid.W)
+    # Highest point per cell: sort by cell, one maximum per run of equal cells
+    # (np.maximum.reduceat; several times faster than np.maximum.at on 10^5 points).
+    if cell.size:
+        order = np.argsort(cell, kind="stable")
+        sorted_cell = cell[order]
+        starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
+        out[1, sorted_cell[starts]] = np.maximum.reduceat(np.maximum(z[order], 0.0), starts)
+    out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / np.maximum(count, 1)
+    radius, ray = _cell_polar(grid, ray_ranges.shape[1])
+    out[3] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
+    return out.reshape(len(LIDAR_CHANNELS), n, grid.H, grid.W).transpose(1, 0, 2, 3).copy()

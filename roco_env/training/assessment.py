@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from roco_env.env import CollabPerceptionEnv
+from roco_env.evaluation import info_frame_stats
 from roco_env.geometry import se2_inverse, transform_boxes
-from roco_env.metrics import APAccumulator, FrameStats
+from roco_env.metrics import APAccumulator
 
 SCENARIO = "urban_intersection"
 
@@ -48,8 +49,7 @@ def _episode_ap(seeds: int, steps: int, calibration: list | None = None,
                 calibration.append(_normalised_errors(env))
             _, _, _, _, infos = env.step(zeros)
             for agent, info in infos.items():
-                stats = FrameStats(info["frame_scores"], info["frame_tp"], info["frame_fp"],
-                                   info["frame_n_gt"])
+                stats = info_frame_stats(info)
                 acc.add_stats(stats)
                 if agent.startswith("cav"):
                     cav_acc.add_stats(stats)

@@ -26,7 +26,7 @@ from roco_env.evaluation import ground_truths
 from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
 from roco_env.scenario import ScenarioConfig, load_scenario
 from roco_env.sensing.features import BevGrid
-from roco_env.sensing.lidar import ScanNoise, ground_references, lidar_raster, sample_scans
+from roco_env.sensing.lidar import ScanNoise, ground_references, lidar_rasters, sample_scans
 from roco_env.sensing.messages import select_collaborators
 from roco_env.sensing.visibility import compute_visibility
 from roco_env.traffic import make_traffic_source
@@ -73,8 +73,8 @@ def _scene(config: ScenarioConfig, grid: BevGrid, noise: ScanNoise,
     visibility = compute_visibility(state)
     scans = sample_scans(state, visibility, noise, rng)
     n = state.num_agents
-    rasters = np.stack([lidar_raster(s, visibility.ray_ranges[a], grid)
-                        for a, s in enumerate(scans)]) if n else np.zeros((0, 4, grid.H, grid.W))
+    rasters = lidar_rasters(scans, visibility.ray_ranges, grid) if n else np.zeros(
+        (0, 4, grid.H, grid.W))
     seen = np.zeros((n, state.num_objects), dtype=bool)
     for a, scan in enumerate(scans):
         seen[a, scan.obj[scan.obj >= 0]] = True

@@ -31,7 +31,7 @@ from roco_env.sensing.lidar import (
     LIDAR_CHANNELS,
     ScanNoise,
     ground_references,
-    lidar_raster,
+    lidar_rasters,
     sample_scans,
 )
 from roco_env.sensing.visibility import Visibility
@@ -44,7 +44,7 @@ SHIPPED_WEIGHTS = "bev_detector.pt"
 # A decoded box is labelled with the true object whose centre is nearest, within this
 # distance (m): ground truth for the privileged info only, never used by the model.
 _LABEL_GATE = 2.0
-_PARAMS = ("weights", "device", "score_threshold")
+_PARAMS = ("weights", "device", "score_threshold", "threads")
 
 
 def shipped_weights_path() -> Path:
@@ -136,11 +136,16 @@ class LearnedDetector:
     """Boxes, scores and uncertainties of every agent from the network, one batch per step.
 
     weights: a weights file (default: the shipped one); device: ``"cpu"`` or
-    ``"cuda"``; score_threshold: minimum heatmap score of a decoded box.
+    ``"cuda"``; score_threshold: minimum heatmap score of a decoded box; threads:
+    torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
+    when the detector is built, None to leave it. The default 1 is the fastest for this
+    small network on a batch of a few agents: more threads gain little on an idle CPU
+    and lose several times over on a busy one (measured in ``docs/perception.md``).
+    The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
-                 score_threshold: float = SCORE_THRESHOLD) -> None:
+                 score_threshold: float = SCORE_THRESHOLD, threads: int | None = 1) -> None:
         if device not in ("cpu", "cuda"):
             raise ValueError(f"learned detector device must be 'cpu' or 'cuda'; got {device!r}")
         if device == "cuda" and not torch.cuda.is_available():
@@ -148,9 +153,16 @@ class LearnedDetector:
         if not (isinstance(score_threshold, (int, float)) and 0.0 < score_threshold < 1.0):
             raise ValueError(f"learned detector score_threshold must be in (0, 1); "
                              f"got {score_threshold!r}")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                    or threads < 1):
+            raise ValueError(f"learned detector threads must be an int >= 1 or None; "
+                             f"got {threads!r}")
+        if threads is not None:
+            torch.set_num_threads(threads)
         path = Path(weights) if weights is not None else shipped_weights_path()
         self.checkpoint = load_checkpoint(path)
-        self.net = build_network(self.checkpoint, path).to(device)
+        self.net = build_network(self.checkpoint, path).for_inference().to(
+            device, memory_format=torch.channels_last)
         self.device = torch.device(device)
         self.grid = self.checkpoint.grid
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
@@ -161,16 +173,14 @@ class LearnedDetector:
                 rng: np.random.Generator) -> torch.Tensor:
         """Every agent's LiDAR raster (A, C, H, W), scans drawn from ``rng``."""
         scans = sample_scans(state, visibility, self.noise, rng)
-        return torch.from_numpy(np.stack(
-            [lidar_raster(s, visibility.ray_ranges[a], self.grid) for a, s in enumerate(scans)]
-        ).reshape(len(scans), len(LIDAR_CHANNELS), self.grid.H, self.grid.W))
+        return torch.from_numpy(lidar_rasters(scans, visibility.ray_ranges, self.grid))
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def encode(self, rasters: torch.Tensor) -> torch.Tensor:
         """Encoder maps (A, C, h, w) on :attr:`feature_grid`, on the detector's device."""
-        return self.net.encode(rasters.to(self.device))
+        return self.net.encode(rasters.to(self.device, memory_format=torch.channels_last))
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def decode(self, features: torch.Tensor, grounds: np.ndarray,
                grid: BevGrid | None = None) -> list[Decoded]:
         """Boxes of each feature map (own or fused) in its agent's frame.
@@ -183,7 +193,8 @@ class LearnedDetector:
                 grid.H, grid.W):
             raise ValueError(f"features of shape {tuple(features.shape)} do not lie on a grid "
                              f"of {grid.H} x {grid.W} cells of {self.feature_grid.resolution} m")
-        return decode(self.net.decode(features.to(self.device)), grid,
+        return decode(self.net.decode(features.to(self.device,
+                                                  memory_format=torch.channels_last)), grid,
                       np.asarray(grounds, dtype=float), self.score_threshold)
 
     def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
@@ -228,7 +239,7 @@ def label_boxes(state: WorldState, agent: int, boxes: np.ndarray) -> np.ndarray:
 
 def make_learned_detector(params: dict[str, Any] | None) -> LearnedDetector:
     """The learned detector from scenario ``detector.params`` (keys: weights, device,
-    score_threshold); ValueError naming an unknown key."""
+    score_threshold, threads); ValueError naming an unknown key."""
     params = dict(params or {})
     unknown = sorted(set(params) - set(_PARAMS))
     if unknown:
@@ -239,4 +250,5 @@ def make_learned_detector(params: dict[str, Any] | None) -> LearnedDetector:
             or not math.isfinite(threshold):
         raise ValueError(f"detector parameter score_threshold must be a number in (0, 1); "
                          f"got {threshold!r}")
-    return LearnedDetector(params.get("weights"), params.get("device", "cpu"), float(threshold))
+    return LearnedDetector(params.get("weights"), params.get("device", "cpu"), float(threshold),
+                           params.get("threads", 1))

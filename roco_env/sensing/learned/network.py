@@ -19,10 +19,12 @@ the agent's own or a fused one, and return per feature cell:
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 __all__ = ["HEAD_CHANNELS", "NetConfig", "BevDetectorNet"]
 
@@ -115,3 +117,17 @@ class BevDetectorNet(nn.Module):
 
     def forward(self, raster: torch.Tensor) -> dict[str, torch.Tensor]:
         return self.decode(self.encode(raster))
+
+    def for_inference(self) -> BevDetectorNet:
+        """This network in eval mode with every batch norm folded into the convolution before
+        it (same outputs up to float rounding, a third less work per call); the original
+        is left untouched, so it can still be trained or saved."""
+        folded = copy.deepcopy(self).eval()
+        for block in folded.modules():
+            if (isinstance(block, nn.Sequential) and len(block) >= 2
+                    and isinstance(block[0], nn.Conv2d | nn.ConvTranspose2d)
+                    and isinstance(block[1], nn.BatchNorm2d)):
+                block[0] = fuse_conv_bn_eval(block[0], block[1],
+                                             transpose=isinstance(block[0], nn.ConvTranspose2d))
+                block[1] = nn.Identity()
+        return folded
