@@ -219,3 +219,22 @@ def test_common_subgraph_finds_the_shared_nodes_and_rejects_the_rest():
     nodes_e, nodes_o = common_subgraph(distance(ego), distance(own), (0, 7), 0.1)
     assert set(zip(nodes_e.tolist(), nodes_o.tolist(), strict=True)) == {
         (i, 7 - i) for i in range(8)}
+
+
+
+def test_fallback_leaves_priors_roco_checked_and_reads_structured_reasons(monkeypatch):
+    """Clean poses: RoCo keeps every prior by its significance test (slot_reasons say so),
+    so the fallback never runs its prior-free aligner and returns RoCo's answer."""
+    from roco_env.policies import fallback
+    from roco_env.policies.roco import NOT_SIGNIFICANT
+
+    scene = sparse_scene(0, translation=0.0, rotation_deg=0.0)
+    first = roco_align(*scene.args())
+    assert len(first.slot_reasons) == 2
+    assert all(r.startswith(NOT_SIGNIFICANT) for r in first.slot_reasons)
+    called = []
+    monkeypatch.setitem(fallback.FALLBACKS, "ransac",
+                        (lambda *a, **k: called.append(1), fallback.FALLBACKS["ransac"][1]))
+    result = roco_fallback_align(*scene.args())
+    assert not called
+    assert result.slot_reasons == first.slot_reasons

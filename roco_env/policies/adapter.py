@@ -69,7 +69,11 @@ class ObservationView:
                 index = self.ego_index if compact < 0 else self.collab_index[compact]
                 pairs[sel, col + 1] = index[box[sel]]
                 pairs[sel, col] = -1 if compact < 0 else self.slots[compact]
-        return replace(result, corrected=corrected, applied=applied, matched_pairs=pairs)
+        reasons = [""] * n
+        for compact, text in enumerate(result.slot_reasons):
+            reasons[self.slots[compact]] = text
+        return replace(result, corrected=corrected, applied=applied, matched_pairs=pairs,
+                       slot_reasons=tuple(reasons))
 
 
 def _field(observation: dict, key: str) -> np.ndarray:

@@ -31,6 +31,8 @@ class AlignmentResult:
     landmarks: (L, 3) landmark poses in the ego frame after optimisation.
     outer_iterations: matching/optimisation rounds; solver_iterations: LM iterations.
     reason: short text on why a prior was kept (empty when applied).
+    slot_reasons: per collaborator slot, why its prior was kept ("" where applied or
+        where the aligner does not say); ``reason`` is their readable summary.
     """
 
     corrected: np.ndarray
@@ -40,6 +42,7 @@ class AlignmentResult:
     outer_iterations: int = 0
     solver_iterations: int = 0
     reason: str = ""
+    slot_reasons: tuple[str, ...] = ()
 
 
 def reported_relative_poses(observation: dict) -> np.ndarray:

@@ -51,7 +51,7 @@ from roco_env.policies.freealign import FreeAlignParams, freealign_align
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.policies.prior_free import consensus, poses_distinct
 from roco_env.policies.ransac import RansacParams, ransac_align
-from roco_env.policies.roco import RoCoParams, roco_align
+from roco_env.policies.roco import NOT_SIGNIFICANT, RoCoParams, roco_align
 from roco_env.policies.v2i_calib import V2ICalibParams, v2i_calib_align
 
 __all__ = ["FALLBACKS", "roco_fallback_align", "RoCoFallbackPolicy"]
@@ -62,8 +62,6 @@ FALLBACKS = {
     "freealign": (freealign_align, FreeAlignParams),
 }
 _PREFIX = "fallback_"
-# Prefix of RoCo's reason for a prior it kept because the evidence did not show it wrong.
-_CHECKED_PRIOR = "correction not significant"
 _OWN_DEFAULTS = {"verify_beyond_m": 0.0, "verify_beyond_deg": 0.0}
 
 
@@ -85,16 +83,6 @@ def _split(params: dict) -> tuple[str, dict, dict, dict]:
     return name, own, inner, roco
 
 
-def _slot_reasons(result: AlignmentResult) -> dict[int, str]:
-    """RoCo's per-slot reasons ("slot j: why; slot k: why")."""
-    reasons = {}
-    for part in result.reason.split("; "):
-        head, _, text = part.partition(": ")
-        if head.startswith("slot ") and head[5:].isdigit():
-            reasons[int(head[5:])] = text
-    return reasons
-
-
 def roco_fallback_align(
     ego_boxes: np.ndarray,
     ego_unc: np.ndarray,
@@ -110,10 +98,9 @@ def roco_fallback_align(
     name, own, inner, roco_params = _split(params)
     reported = np.asarray(reported, dtype=float)
     first = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
-    reasons = _slot_reasons(first)
     stuck = [j for j in range(first.applied.size)
              if not first.applied[j] and len(collab_boxes[j])
-             and not reasons.get(j, "").startswith(_CHECKED_PRIOR)]
+             and not first.slot_reasons[j].startswith(NOT_SIGNIFICANT)]
     moved = _large_corrections(first, reported, own)
     slots = sorted(stuck + moved)
     if not slots:
@@ -157,7 +144,7 @@ def roco_fallback_align(
     extra = sub[np.isin(sub_slots, use) & ~second.applied[sub_slots]].copy()
     extra[:, 2] = np.array(slots)[extra[:, 2]]
     note = f"slots {use.tolist()}: re-localised by {name}, then refined by roco"
-    reasons = [f"slot {j}: {r}" for j, r in sorted(reasons.items()) if j not in use]
+    reasons = [f"slot {j}: {r}" for j, r in enumerate(first.slot_reasons) if r and j not in use]
     return AlignmentResult(
         corrected=corrected,
         applied=applied,
@@ -167,6 +154,7 @@ def roco_fallback_align(
         outer_iterations=first.outer_iterations + second.outer_iterations,
         solver_iterations=first.solver_iterations + second.solver_iterations,
         reason="; ".join([*reasons, note]),
+        slot_reasons=tuple("" if j in use else r for j, r in enumerate(first.slot_reasons)),
     )
 
 

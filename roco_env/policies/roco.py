@@ -85,7 +85,11 @@ from roco_env.policies.posegraph import (
     robust_kernel,
 )
 
-__all__ = ["RoCoParams", "RoCoPolicy", "roco_align"]
+__all__ = ["NOT_SIGNIFICANT", "RoCoParams", "RoCoPolicy", "roco_align"]
+
+# Start of the reason for a prior kept by the significance test: the matched evidence is
+# consistent with the reported pose (a checked prior, unlike "no boxes" or too few matches).
+NOT_SIGNIFICANT = "correction not significant"
 
 # Relative cost decrease that ends a per-round single-vertex solve: those solves only
 # steer the matching (the final joint solve uses the solver's default, 1e-6).
@@ -359,7 +363,7 @@ def _rejection(
         threshold = _significance_threshold(p.significance)
         if not statistic > threshold:
             return (
-                f"correction not significant: Wald {statistic:.2f} <= {threshold:.2f} "
+                f"{NOT_SIGNIFICANT}: Wald {statistic:.2f} <= {threshold:.2f} "
                 f"(chi2 3 dof, significance={p.significance})"
             )
         return ""
@@ -475,6 +479,7 @@ def roco_align(
         outer_iterations=outer,
         solver_iterations=solver,
         reason="; ".join(f"slot {j}: {r}" for j, r in reasons.items() if r),
+        slot_reasons=tuple(reasons[j] for j in range(n)),
     )
 
 
