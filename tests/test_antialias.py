@@ -100,33 +100,27 @@ def test_ambiguous_lot_keeps_the_reported_pose(seed):
     np.testing.assert_allclose(result.corrected, scene.reported)
 
 
-def test_size_switch_resolves_a_lot_of_varied_cars():
-    scene = lot(1, size_jitter=0.06)
+# Each cue decides a scene built without the others: a lot whose one-stall shifts only
+# that cue tells apart. With the cue on, the shift is resolved; with it off, no hypothesis
+# wins the margin and RoCo alone lands one stall (1.4 m) off.
+#  - size: cars of varied sizes;
+#  - mutual detection: identical cars, the ego and the collaborator are cars in the aisle,
+#    each seen only by the other;
+#  - free space: identical cars, the collaborator near the end of the rows reported towards
+#    their interior; only free space notices the ego's end-of-row cars it should see.
+CUE_SCENES = {
+    "use_size": {"size_jitter": 0.06},
+    "use_mutual_detection": {"cars_at_agents": True},
+    "use_free_space": {"rows": 4, "per_row": 20, "origin": 0.0, "ego_x": 25.0,
+                       "collab_x": 40.0},
+}
+
+
+@pytest.mark.parametrize("switch", list(CUE_SCENES))
+def test_each_cue_switch_decides_the_scene_built_to_need_it(switch):
+    scene = lot(1, **CUE_SCENES[switch])
     on, _ = antialias_align(*scene.args())
-    off, decisions = antialias_align(*scene.args(), use_size=False)
-    assert error_m(on.corrected, scene) < 0.1
-    assert decisions[0].pose is None
-    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
-
-
-def test_mutual_detection_switch_uses_the_agents_own_cars():
-    """Identical cars; the ego and the collaborator are cars in the aisle, each seen only by
-    the other: only the mutual detections tell the stall shifts apart."""
-    scene = lot(1, cars_at_agents=True)
-    on, _ = antialias_align(*scene.args())
-    off, decisions = antialias_align(*scene.args(), use_mutual_detection=False)
-    assert error_m(on.corrected, scene) < 0.1
-    assert decisions[0].pose is None
-    assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
-
-
-def test_free_space_switch_sees_the_end_of_the_rows():
-    """Identical cars; the collaborator sits near the end of the rows and is reported towards
-    their interior: the inward shift explains all its boxes, only free space notices the
-    ego's end-of-row cars it should see but does not."""
-    scene = lot(1, rows=4, per_row=20, origin=0.0, ego_x=25.0, collab_x=40.0)
-    on, _ = antialias_align(*scene.args())
-    off, decisions = antialias_align(*scene.args(), use_free_space=False)
+    off, decisions = antialias_align(*scene.args(), **{switch: False})
     assert error_m(on.corrected, scene) < 0.1
     assert decisions[0].pose is None
     assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
