@@ -118,7 +118,10 @@ def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
     along = 1.0 + noise.range_noise * rng.standard_normal(pick.size) / np.maximum(
         distance[pick], 1e-6)
     bottom = boxes[hits.obj[pick], 2] - 0.5 * boxes[hits.obj[pick], 5]
-    top = hits.top[pick]
+    # Visibility measures surface heights from the ground under the seeing agent; back to
+    # world heights, like the box bottoms (and the references subtracted below).
+    ground = np.asarray(state.ground_heights, dtype=float)
+    top = hits.top[pick] + ground[hits.agent[pick]]
     height = bottom + rng.random(pick.size) * np.maximum(top - bottom, 0.0)
     refs = ground_references(state)
     scans = []
