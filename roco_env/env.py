@@ -199,6 +199,7 @@ class CollabPerceptionEnv(ParallelEnv):
         self._action_spaces = {
             a: action_space(n, 2.0 * config.agents.comm_range) for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
+        self._info_capacity = info_capacity(config.max_boxes, config.max_collaborators)
         self.render_ego = render_ego
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
@@ -361,7 +362,7 @@ class CollabPerceptionEnv(ParallelEnv):
                 [views[a] for a in fused], list(fused.values()), [corrected[a] for a in fused],
                 frame.state, frame.visibility.visible, cfg.evaluation.x_range,
                 cfg.evaluation.y_range, cfg.max_collaborators)
-            capacity = info_capacity(cfg.max_boxes, cfg.max_collaborators)
+            capacity = self._info_capacity
             for agent, evaluation in zip(fused, evaluations, strict=True):
                 infos[agent] = metric_info(evaluation, capacity)
                 rewards[agent] = reward(evaluation, cfg.evaluation.reward)

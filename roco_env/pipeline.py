@@ -150,10 +150,7 @@ class Pipeline:
         with self.clock.measure("visibility"):
             visibility = compute_visibility(state)
         with self.clock.measure("detection"):
-            if self.config.detector.preset == "learned":
-                raw, encoder_maps = self.detector.perceive(state, visibility, sensing_rng)
-            else:
-                raw, encoder_maps = self.detector.detect(state, visibility, sensing_rng), None
+            raw, encoder_maps = self.detector.perceive(state, visibility, sensing_rng)
             detections = tuple(_top_k_detections(d, self.config.max_boxes) for d in raw)
         features = None
         if self.grid is not None:

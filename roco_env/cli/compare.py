@@ -20,6 +20,7 @@ from pathlib import Path
 from roco_env.sweeps.backends import BACKENDS, check_backend
 from roco_env.sweeps.grid import Cell, build_grid, validate_grid
 from roco_env.sweeps.options import DEFAULT_SCENARIO
+from roco_env.sweeps.provenance import Provenance
 from roco_env.sweeps.report import write_report
 from roco_env.sweeps.spec import parse_overrides
 from roco_env.sweeps.sweep import SweepStopped, run_sweep, stored_results
@@ -56,14 +57,16 @@ def run(args: argparse.Namespace) -> int:
     validate_grid(cells)
     check_backend(args.backend, args.workers, args.address)
     out = Path(_setting(args, "out"))
+    provenance = Provenance()
     try:
         outcome = run_sweep(cells, out / "results.jsonl", backend=args.backend,
-                            workers=args.workers, address=args.address, progress=not args.quiet)
+                            workers=args.workers, address=args.address, progress=not args.quiet,
+                            provenance=provenance)
     except SweepStopped as stop:
         print(f"roco-env compare: stopped by {stop.signal_name}; finished cells are saved in "
               f"{stop.results_path}, run the same command again to resume", file=sys.stderr)
         return 128 + int(getattr(signal, stop.signal_name))
-    stored = stored_results(out / "results.jsonl")
+    stored = stored_results(out / "results.jsonl", provenance)
     report = write_report(stored.records, out, title=args.title, with_plots=not args.no_plots)
     print(report.markdown)
     print(f"cells: {len(outcome.records)} ({outcome.ran} run, {outcome.skipped} resumed, "

@@ -114,6 +114,12 @@ class Detector:
                           where=returns > 0.0)
         return p["p_max"] / (1.0 + ratio ** p["returns_slope"])
 
+    def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
+                 ) -> tuple[list[AgentDetections], None]:
+        """The detections of :meth:`detect` and no encoder maps (the learned detector's
+        interface: only it has feature maps for intermediate fusion)."""
+        return self.detect(state, visibility, rng), None
+
     def detect(self, state: WorldState, visibility: Visibility,
                rng: np.random.Generator) -> list[AgentDetections]:
         """One :class:`AgentDetections` per agent, in ``state.agent_ids`` order."""

@@ -105,10 +105,14 @@ def run_sweep(
     address: str | None = None,
     cell_fn: CellFn = run_cell,
     progress: bool = True,
+    provenance: Provenance | None = None,
 ) -> SweepOutcome:
-    """Run the cells not yet (currently) finished in ``results_path``; every cell's record."""
+    """Run the cells not yet (currently) finished in ``results_path``; every cell's record.
+
+    ``provenance``: pass the one the caller also reports with (hashing the package once).
+    """
     store = ResultStore(results_path)
-    provenance = Provenance()
+    provenance = provenance or Provenance()
     unique = list({cell.key: cell for cell in cells}.values())
     fingerprints = {cell.key: provenance.of(cell) for cell in unique}
     latest = store.latest()
