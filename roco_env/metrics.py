@@ -513,7 +513,7 @@ def success_rate(errors: np.ndarray, lam: float) -> float:
 
 def _id_table(ego_ids: np.ndarray, collab_ids: np.ndarray) -> np.ndarray:
     """ids (N + 1, K): row 0 the ego, row j + 1 collaborator slot j."""
-    k = max(ego_ids.size, collab_ids.shape[1] if collab_ids.ndim == 2 else 0)
+    k = max(ego_ids.size, collab_ids.shape[1])
     table = np.full((collab_ids.shape[0] + 1, k), -1, dtype=np.int64)
     table[0, : ego_ids.size] = ego_ids
     table[1:, : collab_ids.shape[1]] = collab_ids

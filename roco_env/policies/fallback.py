@@ -106,7 +106,6 @@ def roco_fallback_align(
     if not slots:
         return first
     align, params_cls = FALLBACKS[name]
-    inner.setdefault("do_no_harm", True)
     fallback_params = params_from_kwargs(params_cls, inner, name)
     estimate = align(ego_boxes, ego_unc, [collab_boxes[j] for j in slots],
                      [collab_unc[j] for j in slots], reported[slots], **inner)

@@ -55,6 +55,7 @@ from roco_env.policies.landmarks import (
     UncertaintyParams,
     params_from_kwargs,
     prepare_inputs,
+    require_positive,
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
 
@@ -117,12 +118,8 @@ class PriorFreeParams(UncertaintyParams):
 
     def __post_init__(self) -> None:
         UncertaintyParams.__post_init__(self)
-        positive = ("inlier_distance", "inlier_yaw_deg", "refine_gate", "distinct_distance",
-                    "distinct_yaw_deg", "kernel_delta")
-        for name in positive:
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        require_positive(self, ("inlier_distance", "inlier_yaw_deg", "refine_gate",
+                                "distinct_distance", "distinct_yaw_deg", "kernel_delta"))
         for name in ("min_inliers", "max_candidates", "max_solver_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
@@ -69,10 +70,7 @@ class RansacParams(PriorFreeParams):
 
     def __post_init__(self) -> None:
         PriorFreeParams.__post_init__(self)
-        for name in ("pair_tolerance", "min_pair_distance", "yaw_tolerance_deg"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        require_positive(self, ("pair_tolerance", "min_pair_distance", "yaw_tolerance_deg"))
         if not self.max_pair_distance > self.min_pair_distance:
             raise ValueError(
                 f"max_pair_distance must be > min_pair_distance; got {self.max_pair_distance}"

@@ -48,6 +48,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
+from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
@@ -85,10 +86,7 @@ class V2ICalibParams(PriorFreeParams):
             raise ValueError(f"association must be one of {ASSOCIATIONS}; got {self.association!r}")
         if self.neighbors is not None and int(self.neighbors) < 1:
             raise ValueError(f"neighbors must be None or >= 1; got {self.neighbors}")
-        for name in ("odist_threshold", "min_affinity", "sinkhorn_epsilon"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
+        require_positive(self, ("odist_threshold", "min_affinity", "sinkhorn_epsilon"))
         if int(self.sinkhorn_iterations) < 1:
             raise ValueError(f"sinkhorn_iterations must be >= 1; got {self.sinkhorn_iterations}")
 

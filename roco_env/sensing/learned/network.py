@@ -20,7 +20,7 @@ the agent's own or a fused one, and return per feature cell:
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -62,9 +62,6 @@ class NetConfig:
     def stride(self) -> int:
         """Feature map cells per raster cell along each axis (fixed by the architecture)."""
         return 2
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
