@@ -14,6 +14,8 @@ import numpy as np
 
 __all__ = [
     "wrap_angle",
+    "AXIAL_HEADING_LOW",
+    "canonical_axial_yaw",
     "se2_to_matrix",
     "matrix_to_se2",
     "se2_compose",
@@ -35,6 +37,24 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     """Wrap angles (radians) to the half-open interval (-pi, pi]."""
     wrapped = np.mod(np.asarray(angle, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
     return np.where(wrapped <= -np.pi, wrapped + 2.0 * np.pi, wrapped)
+
+
+# Axial headings (known up to pi) are reported in this half-turn [lo, lo + pi) of the
+# receiving frame: its edges lie on the diagonals, away from the 0 and +-pi/2 headings
+# of traffic on axis-aligned roads, so pose noise of a few degrees rarely moves a
+# heading across an edge.
+AXIAL_HEADING_LOW = -np.pi / 4
+
+
+def canonical_axial_yaw(yaw: np.ndarray, frame_yaw: np.ndarray | float = 0.0) -> np.ndarray:
+    """Axial headings (rad, known up to pi) moved by a multiple of pi so that, seen from a
+    frame rotated by ``frame_yaw`` relative to theirs (heading + frame_yaw), they lie in
+    [AXIAL_HEADING_LOW, AXIAL_HEADING_LOW + pi); returned in their own frame, wrapped
+    to (-pi, pi]. Two agents that report the same object this way agree on its heading
+    whenever their frames are known to within the distance to the half-turn's edges."""
+    seen = np.asarray(yaw, dtype=float) + frame_yaw
+    shifted = AXIAL_HEADING_LOW + np.mod(seen - AXIAL_HEADING_LOW, np.pi)
+    return wrap_angle(np.asarray(yaw, dtype=float) + (shifted - seen))
 
 
 def _as_poses(poses: np.ndarray, name: str) -> np.ndarray:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from roco_env import sensing
-from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
+from roco_env.geometry import canonical_axial_yaw, se2_inverse, se2_relative, transform_boxes
 from roco_env.noise import make_pose_noise
 from roco_env.observation import EgoView, top_k
 from roco_env.scenario import ScenarioConfig
@@ -180,13 +180,19 @@ class Pipeline:
                                          np.concatenate([np.zeros((0, 3)), *collab_poses]))
         true_relative = se2_relative(true[egos], true[np.array(sum(slots, ()), dtype=np.int64)])
         start = np.concatenate([[0], np.cumsum(counts)]).tolist()
+        axial = self.detector.axial_headings
         views = []
         for ego, (sent, slot) in enumerate(zip(messages, slots, strict=True)):
             mine, rows = detections[ego], slice(start[ego], start[ego + 1])
+            own_boxes, collab_boxes = mine.boxes, tuple(m.boxes for m in sent)
+            if axial:  # one heading convention for the ego and what it receives
+                own_boxes = _with_axial_yaw(own_boxes, 0.0)
+                collab_boxes = tuple(_with_axial_yaw(b, rel[2]) for b, rel in
+                                     zip(collab_boxes, reported_relative[rows], strict=True))
             views.append(EgoView(
                 agent=ego,
                 pose=np.array(own[ego], dtype=float),
-                boxes=mine.boxes,
+                boxes=own_boxes,
                 uncertainty=mine.uncertainty,
                 scores=mine.scores,
                 object_ids=mine.object_ids,
@@ -194,7 +200,7 @@ class Pipeline:
                 collab_poses=collab_poses[ego],
                 reported_relative=reported_relative[rows],
                 true_relative=true_relative[rows],
-                collab_boxes=tuple(m.boxes for m in sent),
+                collab_boxes=collab_boxes,
                 collab_uncertainty=tuple(m.uncertainty for m in sent),
                 collab_scores=tuple(m.scores for m in sent),
                 collab_object_ids=tuple(detections[j].object_ids for j in slot),
@@ -202,6 +208,14 @@ class Pipeline:
                 collab_features=None if features is None else tuple(m.features for m in sent),
             ))
         return tuple(views)
+
+
+def _with_axial_yaw(boxes: np.ndarray, frame_yaw: float) -> np.ndarray:
+    """A copy of boxes (K, 7) whose axial headings are put in the half-turn convention of
+    :func:`roco_env.geometry.canonical_axial_yaw`, seen from a frame rotated by frame_yaw."""
+    out = boxes.copy()
+    out[:, 6] = canonical_axial_yaw(boxes[:, 6], frame_yaw)
+    return out
 
 
 def own_footprints(state: WorldState) -> tuple[np.ndarray | None, ...]:

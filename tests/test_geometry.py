@@ -9,10 +9,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from roco_env.geometry import (
+    AXIAL_HEADING_LOW,
     bev_candidate_pairs,
     bev_iou,
     bev_iou_pairs,
     box_corners_bev,
+    canonical_axial_yaw,
     matrix_to_se2,
     nms_bev,
     se2_apply,
@@ -274,3 +276,34 @@ def test_nms_matches_reference_loop(seed):
 def test_bad_input_raises_value_error(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+angles = st.floats(-10.0, 10.0, allow_nan=False)
+
+
+@given(yaw=angles, frame_yaw=angles)
+def test_canonical_axial_yaw_moves_a_heading_by_whole_half_turns_into_the_convention(
+        yaw, frame_yaw):
+    out = float(canonical_axial_yaw(np.array([yaw]), frame_yaw)[0])
+    half_turns = (out - yaw) / np.pi
+    assert abs(half_turns - round(half_turns)) < 1e-9
+    seen = np.mod(out + frame_yaw - AXIAL_HEADING_LOW, 2.0 * np.pi)
+    assert seen < np.pi + 1e-9 or seen > 2.0 * np.pi - 1e-9
+    assert -np.pi < out <= np.pi
+
+
+@given(heading=angles, frame_a=angles, frame_b=angles, flip_a=st.booleans(),
+       flip_b=st.booleans())
+def test_two_frames_that_know_their_relative_yaw_agree_on_an_axial_heading(
+        heading, frame_a, frame_b, flip_a, flip_b):
+    """An object's heading seen by agent a (frame yaw frame_a) and by agent b, each
+    possibly flipped by pi, lands on the same world heading once canonicalised
+    in a's frame (b's boxes via the relative yaw b -> a)."""
+    in_a = heading - frame_a + (np.pi if flip_a else 0.0)
+    in_b = heading - frame_b + (np.pi if flip_b else 0.0)
+    mine = canonical_axial_yaw(np.array([in_a]), 0.0)[0]
+    theirs = canonical_axial_yaw(np.array([in_b]), frame_b - frame_a)[0] + frame_b - frame_a
+    gap = np.mod(mine - theirs + np.pi, 2.0 * np.pi) - np.pi
+    # Equal, unless the heading sits on the edge of the half-turn (then pi apart).
+    edge = np.mod(mine - AXIAL_HEADING_LOW + 1e-7, np.pi) < 2e-7
+    assert abs(gap) < 1e-7 or (edge and abs(abs(gap) - np.pi) < 1e-7)

@@ -11,6 +11,7 @@ from roco_env.scenario import load_scenario
 from roco_env.sensing import BevGrid, compute_visibility
 from roco_env.sensing.lidar import (
     LIDAR_CHANNELS,
+    LidarScan,
     ScanNoise,
     ground_references,
     lidar_raster,
@@ -48,7 +49,24 @@ def test_raster_shape_and_channels(scene):
     occupied = raster[0] > 0
     assert occupied.any() and np.all(raster[1][~occupied] == 0.0)
     assert np.all(raster[1] >= raster[2] - 1e-6)  # max height >= mean height
-    assert set(np.unique(raster[3])) <= {0.0, 1.0}
+    offsets = raster[[LIDAR_CHANNELS.index("mean_dx"), LIDAR_CHANNELS.index("mean_dy")]]
+    assert np.all(np.abs(offsets) <= 0.5 + 1e-6) and np.all(offsets[:, ~occupied] == 0.0)
+    assert np.abs(offsets[:, occupied]).mean() > 0.05  # points are spread inside their cells
+    assert set(np.unique(raster[LIDAR_CHANNELS.index("observed")])) <= {0.0, 1.0}
+
+
+def test_point_offsets_locate_points_inside_their_cell():
+    """mean_dx / mean_dy: the mean position of a cell's points relative to its centre, in cells."""
+    res = GRID.resolution
+    x0, y0 = GRID.x_range[0] + 10 * res, GRID.y_range[0] + 20 * res  # corner of cell (20, 10)
+    scan = LidarScan(x=np.array([x0 + 0.1 * res, x0 + 0.3 * res, x0 + 1.25 * res]),
+                     y=np.array([y0 + 0.9 * res, y0 + 0.7 * res, y0 + 0.5 * res]),
+                     z=np.ones(3), obj=np.zeros(3, dtype=np.int64))
+    raster = lidar_raster(scan, np.zeros(720), GRID)
+    dx, dy = raster[LIDAR_CHANNELS.index("mean_dx")], raster[LIDAR_CHANNELS.index("mean_dy")]
+    assert (dx[20, 10], dy[20, 10]) == pytest.approx((0.2 - 0.5, 0.8 - 0.5), abs=1e-5)
+    assert (dx[20, 11], dy[20, 11]) == pytest.approx((0.25 - 0.5, 0.0), abs=1e-5)
+    assert np.count_nonzero(raster[0]) == 2
 
 
 def test_points_thin_out_with_range(scene):

@@ -35,12 +35,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="network widths (default %(default)s)")
     p.add_argument("--scenarios", nargs="+", default=list(d.scenarios),
                    help="training scenarios (default: the synthetic library)")
-    p.add_argument("--pose-sigma-t", type=float, default=0.0,
-                   help="pose noise of the fused loss, translation std in m (default 0)")
-    p.add_argument("--pose-sigma-r", type=float, default=0.0,
-                   help="pose noise of the fused loss, rotation std in degrees (default 0)")
+    p.add_argument("--pose-sigma-t", type=float, default=d.pose_sigma_t,
+                   help="pose noise of the fused loss, translation std in m (default "
+                   "%(default)s, the RoCo paper's training protocol)")
+    p.add_argument("--pose-sigma-r", type=float, default=d.pose_sigma_r,
+                   help="pose noise of the fused loss, rotation std in degrees (default "
+                   "%(default)s)")
     p.add_argument("--threads", type=int, default=d.threads,
                    help="torch CPU threads (default %(default)s)")
+    p.add_argument("--workers", type=int, default=d.workers,
+                   help="processes generating scenes and batches (default %(default)s: none; "
+                   "the weights do not depend on it)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
@@ -55,9 +60,8 @@ def _run(args: argparse.Namespace) -> int:
         widths=tuple(args.widths), train_scenes=args.train_scenes, val_scenes=args.val_scenes,
         scenarios=tuple(args.scenarios), steps=args.steps, scenes_per_step=args.scenes_per_step,
         lr=args.lr, pose_sigma_t=args.pose_sigma_t, pose_sigma_r=args.pose_sigma_r,
-        seed=args.seed, threads=args.threads, device=args.device)
-    command = "roco-env " + shlex.join(sys.argv[1:]) if sys.argv[0].endswith("roco-env") \
-        else "roco-env train-detector " + shlex.join(_argv_of(args))
+        seed=args.seed, threads=args.threads, workers=args.workers, device=args.device)
+    command = "roco-env train-detector " + shlex.join(_argv_of(args))
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(config, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr))
     weights = args.out / SHIPPED_WEIGHTS
@@ -73,6 +77,10 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _argv_of(args: argparse.Namespace) -> list[str]:
-    """The options of a call made without the console script (e.g. from tests)."""
+    """Every option of this run, spelled out: the command that reproduces it."""
     return [f"--out={args.out}", f"--seed={args.seed}", f"--steps={args.steps}",
-            f"--train-scenes={args.train_scenes}", f"--val-scenes={args.val_scenes}"]
+            f"--train-scenes={args.train_scenes}", f"--val-scenes={args.val_scenes}",
+            f"--scenes-per-step={args.scenes_per_step}", f"--lr={args.lr}",
+            "--widths", *map(str, args.widths), "--scenarios", *args.scenarios,
+            f"--pose-sigma-t={args.pose_sigma_t}", f"--pose-sigma-r={args.pose_sigma_r}",
+            f"--threads={args.threads}", f"--workers={args.workers}", f"--device={args.device}"]

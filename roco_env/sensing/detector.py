@@ -90,6 +90,10 @@ class AgentDetections:
 class Detector:
     """The detector model of the module docstring with fixed, validated parameters."""
 
+    #: Headings are the objects' true headings plus noise, front and back told apart
+    #: (a learned detector that only knows them up to pi sets this True).
+    axial_headings = False
+
     def __init__(self, params: dict[str, Any]) -> None:
         """params: any subset of the parameter names; the rest take `realistic` defaults."""
         self.params: dict[str, Any] = dataclasses.asdict(

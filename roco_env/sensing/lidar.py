@@ -25,7 +25,10 @@ the axis convention of :mod:`roco_env.sensing.features`):
   0 ``log_points``: log(1 + sampled points in the cell);
   1 ``max_height``: highest point in the cell (m above the reference, 0 if none);
   2 ``mean_height``: mean point height in the cell (m, 0 if none);
-  3 ``observed``: 1 where the cell centre lies before the first surface hit on
+  3 ``mean_dx``, 4 ``mean_dy``: mean offset of the cell's points from the cell centre along
+    x and y, in cells (in [-0.5, 0.5], 0 if none): where in the cell the surface lies,
+    which the cell grid alone would quantise away (the point decoration of PointPillars);
+  5 ``observed``: 1 where the cell centre lies before the first surface hit on
     its ray and within sensor range (free space the sensor saw), else 0.
 Draws come from the generator given, in a fixed order, so a seed fixes the scan.
 """
@@ -45,7 +48,7 @@ from roco_env.traffic.state import WorldState
 __all__ = ["LIDAR_CHANNELS", "LidarScan", "ScanNoise", "ground_references", "lidar_raster",
            "lidar_rasters", "sample_scans"]
 
-LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "observed")
+LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "mean_dx", "mean_dy", "observed")
 
 # RSU ground reference: vehicles within this distance (m) of the mast.
 _RSU_GROUND_RADIUS = 30.0
@@ -159,12 +162,16 @@ def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
     n_cells = grid.H * grid.W
     n = len(scans)
     ray_ranges = np.asarray(ray_ranges, dtype=float).reshape(n, -1)
-    cells, heights = [], []
+    cells, heights, dx, dy = [], [], [], []
+    res = grid.resolution
     for k, scan in enumerate(scans):
         row, col = grid.cell_index(scan.x, scan.y)
         inside = row >= 0
-        cells.append(k * n_cells + row[inside] * grid.W + col[inside])
+        row, col = row[inside], col[inside]
+        cells.append(k * n_cells + row * grid.W + col)
         heights.append(scan.z[inside])
+        dx.append((scan.x[inside] - grid.x_range[0]) / res - col - 0.5)
+        dy.append((scan.y[inside] - grid.y_range[0]) / res - row - 0.5)
     cell = np.concatenate(cells) if cells else np.zeros(0, dtype=np.int64)
     z = np.concatenate(heights) if heights else np.zeros(0)
     out = np.zeros((len(LIDAR_CHANNELS), n * n_cells), dtype=np.float32)
@@ -177,7 +184,11 @@ def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
         sorted_cell = cell[order]
         starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
         out[1, sorted_cell[starts]] = np.maximum.reduceat(np.maximum(z[order], 0.0), starts)
-    out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / np.maximum(count, 1)
+    per_cell = np.maximum(count, 1)
+    out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / per_cell
+    for channel, offsets in ((3, dx), (4, dy)):
+        weights = np.concatenate(offsets) if offsets else np.zeros(0)
+        out[channel] = np.bincount(cell, weights=weights, minlength=n * n_cells) / per_cell
     radius, ray = _cell_polar(grid, ray_ranges.shape[1])
-    out[3] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
+    out[5] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
     return out.reshape(len(LIDAR_CHANNELS), n, grid.H, grid.W).transpose(1, 0, 2, 3).copy()

@@ -35,6 +35,8 @@ LARGE_NOISE = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
 ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback",
           "oracle")
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
+LEARNED_INTERMEDIATE = {"detector": "learned", "fusion": "intermediate"}
+PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_fallback", "oracle")
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 # The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
@@ -122,12 +124,20 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("paper_protocol_intermediate",
                "Table 1 with intermediate fusion of the learned detector (noise 0-0.8)",
                ("crowded_intersection", "highway_dense"), PAPER_NOISE, BUILTIN, seeds=1, steps=10,
-               overrides={**PROTOCOL, "detector": "learned", "fusion": "intermediate"}),
+               overrides={**PROTOCOL, **LEARNED_INTERMEDIATE}),
     Experiment("large_noise", "Large noise 1-10 m/deg: prior-free aligners and roco_fallback",
                ("urban_intersection", "highway_dense", "v2x_crossroad"), LARGE_NOISE, ROSTER,
                seeds=2, steps=20),
     Experiment("paper_table1_late", "Table 1 in shape, late fusion: the dataset-shaped scenes",
                ("v2xset_like", "dair_like"), PAPER_NOISE, BUILTIN),
+    Experiment("paper_table1_intermediate",
+               "Table 1 in shape and magnitude: learned intermediate fusion, dataset-shaped scenes",
+               ("v2xset_like", "dair_like"), PAPER_NOISE, PAPER_TABLE1_POLICIES, seeds=2, steps=20,
+               overrides={**PROTOCOL, **LEARNED_INTERMEDIATE}),
+    Experiment("paper_table1_learned_late",
+               "The same with late fusion of the same learned detector",
+               ("v2xset_like", "dair_like"), PAPER_NOISE, BUILTIN, seeds=2, steps=20,
+               overrides={**PROTOCOL, "detector": "learned"}),
     Experiment("late_knob_nms", "Knob: late-fusion NMS at BEV IoU 0.3 instead of 0.15",
                ("dair_like",), (0.0, 0.4, 0.8), BUILTIN[:3],
                overrides={**PROTOCOL, "fusion.nms_iou": 0.3}),

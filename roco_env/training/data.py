@@ -18,7 +18,9 @@ evaluate the environment, whose generators are also built differently.
 
 from __future__ import annotations
 
+import multiprocessing
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -26,7 +28,13 @@ from roco_env.evaluation import ground_truths
 from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
 from roco_env.scenario import ScenarioConfig, load_scenario
 from roco_env.sensing.features import BevGrid
-from roco_env.sensing.lidar import ScanNoise, ground_references, lidar_rasters, sample_scans
+from roco_env.sensing.lidar import (
+    LIDAR_CHANNELS,
+    ScanNoise,
+    ground_references,
+    lidar_rasters,
+    sample_scans,
+)
 from roco_env.sensing.messages import select_collaborators
 from roco_env.sensing.visibility import compute_visibility
 from roco_env.traffic import make_traffic_source
@@ -74,7 +82,7 @@ def _scene(config: ScenarioConfig, grid: BevGrid, noise: ScanNoise,
     scans = sample_scans(state, visibility, noise, rng)
     n = state.num_agents
     rasters = lidar_rasters(scans, visibility.ray_ranges, grid) if n else np.zeros(
-        (0, 4, grid.H, grid.W))
+        (0, len(LIDAR_CHANNELS), grid.H, grid.W))
     seen = np.zeros((n, state.num_objects), dtype=bool)
     for a, scan in enumerate(scans):
         seen[a, scan.obj[scan.obj >= 0]] = True
@@ -107,14 +115,23 @@ def _scene(config: ScenarioConfig, grid: BevGrid, noise: ScanNoise,
     )
 
 
+def _scene_at(job: tuple[ScenarioConfig, int, int, BevGrid, ScanNoise]) -> Scene:
+    config, seed_base, k, grid, noise = job
+    return _scene(config, grid, noise, np.random.default_rng((seed_base, k)))
+
+
 def make_scenes(scenarios: tuple[str, ...], count: int, seed_base: int, grid: BevGrid,
-                noise: ScanNoise, progress: bool = False) -> list[Scene]:
-    """``count`` scenes cycling through ``scenarios``; scene k from rng((seed_base, k))."""
+                noise: ScanNoise, progress: bool = False, workers: int = 0) -> list[Scene]:
+    """``count`` scenes cycling through ``scenarios``; scene k from rng((seed_base, k)).
+
+    workers: processes generating them (0: this one); the scenes do not depend on it.
+    """
     from tqdm import tqdm
 
     configs = [load_scenario(name) for name in scenarios]
-    scenes = []
-    for k in tqdm(range(count), desc="scenes", disable=not progress, leave=False):
-        rng = np.random.default_rng((seed_base, k))
-        scenes.append(_scene(configs[k % len(configs)], grid, noise, rng))
-    return scenes
+    jobs = [(configs[k % len(configs)], seed_base, k, grid, noise) for k in range(count)]
+    bar = partial(tqdm, total=count, desc="scenes", disable=not progress, leave=False)
+    if workers <= 0:
+        return list(bar(map(_scene_at, jobs)))
+    with multiprocessing.get_context("fork").Pool(workers) as pool:
+        return list(bar(pool.imap(_scene_at, jobs, chunksize=8)))

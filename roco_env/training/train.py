@@ -23,6 +23,7 @@ learning-rate schedule. Deterministic: numpy and torch seeded from ``seed``,
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -37,7 +38,7 @@ from roco_env.metrics import APAccumulator
 from roco_env.sensing.features import BevGrid
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import Targets, build_targets, decode, feature_grid
-from roco_env.sensing.lidar import ScanNoise
+from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
 from roco_env.training.data import (
     TRAIN_SCENARIOS,
     TRAIN_SEED_BASE,
@@ -59,13 +60,15 @@ class TrainConfig:
     grid: detector raster extent and cell (m); net: widths; train_scenes /
     val_scenes: scene counts; steps: optimiser steps; scenes_per_step: scenes per
     batch; lr: peak learning rate; pose_sigma_t (m) / pose_sigma_r (deg): pose
-    noise of the fused loss; seed; threads: torch CPU threads; device.
+    noise of the fused loss; seed; threads: torch CPU threads; workers: processes that
+    generate the scenes and prepare the batches (0: the training process; the run does
+    not depend on it); device.
     """
 
     x_range: tuple[float, float] = (-70.4, 70.4)
     y_range: tuple[float, float] = (-40.0, 40.0)
     resolution: float = 0.8
-    widths: tuple[int, int, int] = (24, 48, 32)
+    widths: tuple[int, int, int] = (32, 64, 48)
     train_scenes: int = 240
     val_scenes: int = 20
     scenarios: tuple[str, ...] = TRAIN_SCENARIOS
@@ -73,18 +76,21 @@ class TrainConfig:
     steps: int = 300
     scenes_per_step: int = 2
     lr: float = 3e-3
-    pose_sigma_t: float = 0.0
-    pose_sigma_r: float = 0.0
+    pose_sigma_t: float = 0.2
+    pose_sigma_r: float = 0.2
     seed: int = 0
     threads: int = 2
+    workers: int = 0
     device: str = "cpu"
     noise: ScanNoise = field(default_factory=ScanNoise)
 
     def __post_init__(self) -> None:
-        for name in ("train_scenes", "val_scenes", "steps", "scenes_per_step", "threads"):
+        for name in ("train_scenes", "val_scenes", "steps", "scenes_per_step", "threads",
+                     "workers"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < (0 if name == "val_scenes" else 1):
-                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+            low = 0 if name in ("val_scenes", "workers") else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
         for name in ("lr", "pose_sigma_t", "pose_sigma_r"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0) or (name == "lr" and value == 0.0):
@@ -122,10 +128,18 @@ def _jsonable(value):
     return value
 
 
-def set_determinism(seed: int, threads: int) -> None:
-    """Seed torch, force deterministic kernels and fix the CPU thread count."""
+def set_determinism(seed: int, threads: int, device: str = "cpu") -> None:
+    """Seed torch, force deterministic kernels and fix the CPU thread count.
+
+    On CUDA every kernel is deterministic but the backward of ``grid_sample`` (the
+    warp of the fused loss), which accumulates with atomic adds: a CUDA run is
+    reproducible up to that rounding order, so torch is told to warn, not fail.
+    """
     torch.manual_seed(seed)
-    torch.use_deterministic_algorithms(True)
+    if device == "cuda":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.backends.cudnn.benchmark = False
+    torch.use_deterministic_algorithms(True, warn_only=device == "cuda")
     torch.set_num_threads(threads)
 
 
@@ -191,24 +205,55 @@ def _mirror(scene: Scene, flip_x: bool, flip_y: bool):
             [pose(p) for p in scene.relative])
 
 
-def _batch(scenes: list[Scene], config: TrainConfig, rng: np.random.Generator):
-    rasters, singles, groups, egos, collabs, poses = [], [], [], [], [], []
-    offset = 0
-    for scene in scenes:
-        r, single, group, rel = _mirror(scene, bool(rng.random() < 0.5), bool(rng.random() < 0.5))
-        rasters.append(r)
-        singles += single
-        for a, c in enumerate(scene.collaborators):
-            if not c:
-                continue
-            egos.append(offset + a)
-            collabs.append([offset + j for j in c])
-            noise = np.column_stack([rng.normal(0.0, config.pose_sigma_t, (len(c), 2)),
-                                     rng.normal(0.0, np.deg2rad(config.pose_sigma_r), len(c))])
-            poses.append(se2_compose(noise, rel[a]).reshape(-1, 3))
-            groups.append(group[a])
-        offset += r.shape[0]
-    return torch.cat(rasters), singles, groups, egos, collabs, poses
+@dataclass(frozen=True)
+class _Batch:
+    """One training step's inputs: rasters (N, C, H, W), single-agent targets, and for the
+    fused loss the ego rows, their collaborators' rows, the (noisy) poses and the targets."""
+
+    rasters: torch.Tensor
+    single: Targets
+    egos: list[int]
+    collaborators: list[list[int]]
+    poses: list[np.ndarray]
+    fused: Targets | None
+
+
+class _Batches(torch.utils.data.Dataset):
+    """Step s's batch, a pure function of (scenes, config, s): its scene picks, mirrors and
+    pose noise come from rng((seed, s)), so any number of loader workers gives the same run."""
+
+    def __init__(self, scenes: list[Scene], config: TrainConfig) -> None:
+        self.scenes, self.config = scenes, config
+        self.fgrid = feature_grid(config.grid, 2)
+
+    def __len__(self) -> int:
+        return self.config.steps
+
+    def __getitem__(self, step: int) -> _Batch:
+        config = self.config
+        rng = np.random.default_rng((config.seed, step))
+        picks = rng.choice(len(self.scenes), size=min(config.scenes_per_step, len(self.scenes)),
+                           replace=False)
+        rasters, singles, groups, egos, collabs, poses = [], [], [], [], [], []
+        offset = 0
+        for scene in (self.scenes[i] for i in picks):
+            r, single, group, rel = _mirror(scene, bool(rng.random() < 0.5),
+                                            bool(rng.random() < 0.5))
+            rasters.append(r)
+            singles += single
+            for a, c in enumerate(scene.collaborators):
+                if not c:
+                    continue
+                egos.append(offset + a)
+                collabs.append([offset + j for j in c])
+                noise = np.column_stack([
+                    rng.normal(0.0, config.pose_sigma_t, (len(c), 2)),
+                    rng.normal(0.0, np.deg2rad(config.pose_sigma_r), len(c))])
+                poses.append(se2_compose(noise, rel[a]).reshape(-1, 3))
+                groups.append(group[a])
+            offset += r.shape[0]
+        return _Batch(torch.cat(rasters), build_targets(singles, self.fgrid), egos, collabs,
+                      poses, build_targets(groups, self.fgrid) if egos else None)
 
 
 def train(config: TrainConfig, progress: bool = True,
@@ -227,35 +272,32 @@ def _train(config: TrainConfig, progress: bool,
     from tqdm import tqdm
 
     start = time.perf_counter()
-    set_determinism(config.seed, config.threads)
+    set_determinism(config.seed, config.threads, config.device)
     device = torch.device(config.device)
     grid = config.grid
     fgrid = feature_grid(grid, 2)
     log = log or (lambda _msg: None)
     log(f"generating {config.train_scenes} training scenes")
     scenes = make_scenes(config.scenarios, config.train_scenes, TRAIN_SEED_BASE + config.seed,
-                         grid, config.noise, progress)
-    net = BevDetectorNet(NetConfig(4, tuple(config.widths))).to(device)
+                         grid, config.noise, progress, config.workers)
+    net = BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths))).to(device)
     optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, config.lr, total_steps=config.steps,
                                                    pct_start=0.15)
-    rng = np.random.default_rng(config.seed)
     history: dict[str, list[float]] = {k: [] for k in ("total", "single", "fused", *_WEIGHTS)}
     net.train()
-    bar = tqdm(range(config.steps), desc="train-detector", disable=not progress, mininterval=5.0)
-    for step in bar:
-        picks = rng.choice(len(scenes), size=min(config.scenes_per_step, len(scenes)),
-                           replace=False)
-        rasters, singles, groups, egos, collabs, poses = _batch([scenes[i] for i in picks],
-                                                                config, rng)
-        features = net.encode(rasters.to(device))
-        single = detection_loss(net.decode(features), build_targets(singles, fgrid),
-                                fgrid.resolution)
+    loader = torch.utils.data.DataLoader(
+        _Batches(scenes, config), batch_size=None, shuffle=False, num_workers=config.workers,
+        collate_fn=lambda batch: batch, multiprocessing_context="fork" if config.workers else None,
+        prefetch_factor=4 if config.workers else None)
+    bar = tqdm(loader, desc="train-detector", disable=not progress, mininterval=5.0)
+    for step, batch in enumerate(bar):
+        features = net.encode(batch.rasters.to(device))
+        single = detection_loss(net.decode(features), batch.single, fgrid.resolution)
         loss_single = sum(_WEIGHTS[k] * v for k, v in single.items())
-        if egos:
-            fused_maps = fuse_maps(features, egos, collabs, poses, fgrid)
-            fused = detection_loss(net.decode(fused_maps), build_targets(groups, fgrid),
-                                   fgrid.resolution)
+        if batch.fused is not None:
+            fused_maps = fuse_maps(features, batch.egos, batch.collaborators, batch.poses, fgrid)
+            fused = detection_loss(net.decode(fused_maps), batch.fused, fgrid.resolution)
             loss_fused = sum(_WEIGHTS[k] * v for k, v in fused.items())
         else:
             loss_fused = loss_single * 0.0
@@ -277,8 +319,13 @@ def _train(config: TrainConfig, progress: bool,
     if config.val_scenes:
         log(f"validating on {config.val_scenes} scenes")
         val = make_scenes(config.val_scenarios, config.val_scenes,
-                          VALIDATION_SEED_BASE + config.seed, grid, config.noise, progress)
-        validation = evaluate(net, val, fgrid)
+                          VALIDATION_SEED_BASE + config.seed, grid, config.noise, progress,
+                          config.workers)
+        net_cpu = net.cpu()
+        validation = evaluate(net_cpu, val, fgrid)
+        if config.pose_sigma_t or config.pose_sigma_r:
+            noisy = evaluate(net_cpu, val, fgrid, (config.pose_sigma_t, config.pose_sigma_r))
+            validation.update({f"noisy_{k}": v for k, v in noisy.items() if k.startswith("fused")})
     return TrainResult(net, history, validation, time.perf_counter() - start, config)
 
 

@@ -144,6 +144,11 @@ class LearnedDetector:
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
+    #: The yaw is learned up to the front/back symmetry of a box (a LiDAR raster of a
+    #: box shows none), so the env exchanges these headings in one half-turn convention
+    #: (:func:`roco_env.geometry.canonical_axial_yaw`).
+    axial_headings = True
+
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
                  score_threshold: float = SCORE_THRESHOLD, threads: int | None = 1) -> None:
         if device not in ("cpu", "cuda"):

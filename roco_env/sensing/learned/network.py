@@ -26,6 +26,8 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from roco_env.sensing.lidar import LIDAR_CHANNELS
+
 __all__ = ["HEAD_CHANNELS", "NetConfig", "BevDetectorNet"]
 
 HEAD_CHANNELS = {"heatmap": 1, "offset": 2, "size": 3, "yaw": 2, "log_sigma": 3}
@@ -42,7 +44,7 @@ class NetConfig:
     width at stride 4, feature width C of the output map at stride 2).
     """
 
-    in_channels: int = 4
+    in_channels: int = len(LIDAR_CHANNELS)
     widths: tuple[int, int, int] = (24, 48, 32)
 
     def to_dict(self) -> dict:
