@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import run_python
 
 from roco_env.scenario import load_scenario
 from roco_env.sensing import BevGrid, compute_visibility
@@ -110,3 +111,9 @@ def test_batched_rasters_equal_each_scan_rastered_alone(scene):
     assert batch.shape == (len(scans), len(LIDAR_CHANNELS), GRID.H, GRID.W)
     for a, scan in enumerate(scans):
         np.testing.assert_array_equal(batch[a], lidar_raster(scan, vis.ray_ranges[a], GRID))
+
+
+def test_the_lidar_module_does_not_import_torch():
+    """Scans and rasters are the numpy core path: the learned detector alone needs torch."""
+    probe = "import sys, roco_env.sensing.lidar; print('torch' in sys.modules)"
+    assert run_python(probe) == "False"

@@ -21,7 +21,7 @@ within 30 m of it (0, the world datum, when there are none). So a detector sees
 the same heights for a car next to it on a hill as on flat ground.
 
 The raster (:data:`LIDAR_CHANNELS`, (C, H, W) float32 on a :class:`BevGrid`,
-the axis convention of :mod:`roco_env.sensing.features`):
+the axis convention of :mod:`roco_env.sensing.grid`):
   0 ``log_points``: log(1 + sampled points in the cell);
   1 ``max_height``: highest point in the cell (m above the reference, 0 if none);
   2 ``mean_height``: mean point height in the cell (m, 0 if none);
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.sensing.features import BevGrid, _cell_polar
+from roco_env.sensing.grid import BevGrid, cell_polar
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
@@ -178,6 +178,6 @@ def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
         starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
         out[1, sorted_cell[starts]] = np.maximum.reduceat(np.maximum(z[order], 0.0), starts)
     out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / np.maximum(count, 1)
-    radius, ray = _cell_polar(grid, ray_ranges.shape[1])
+    radius, ray = cell_polar(grid, ray_ranges.shape[1])
     out[3] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
     return out.reshape(len(LIDAR_CHANNELS), n, grid.H, grid.W).transpose(1, 0, 2, 3).copy()
