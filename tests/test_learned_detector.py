@@ -220,7 +220,7 @@ def test_bad_weights_files_raise_clear_errors(tmp_path):
 def test_learned_detector_options_are_checked():
     with pytest.raises(ValueError, match="unknown key 'detector.params.sigma_xy'; allowed: detector.params.weights"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"sigma_xy": 0.1}})
-    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda'"):
+    with pytest.raises(ValueError, match=r"device='tpu' is not allowed; choose one of \['cpu', 'cuda'\]"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"device": "tpu"}})
     with pytest.raises(ScenarioError, match="needs detector.preset='learned'"):
         roco_env.parallel_env(fusion="intermediate")
@@ -278,9 +278,17 @@ def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
         fuse_on_canvas(features, [0], [[1]], [poses[1]], grid, shifted)
 
 
-def test_make_learned_detector_checks_its_parameters():
-    with pytest.raises(ValueError, match="unknown parameter 'sigma_xy' for detector 'learned'"):
+def test_learned_detector_parameters_are_checked_by_the_scenario_schema():
+    """make_learned_detector and the constructor check against LearnedDetectorParams."""
+    with pytest.raises(ValueError, match="unknown key 'detector.params.sigma_xy'"):
         make_learned_detector({"sigma_xy": 0.1})
     for threads in (0, 1.5, True):
-        with pytest.raises(ValueError, match="threads must be an int >= 1 or None"):
+        with pytest.raises(ValueError, match="detector.params.threads"):
             make_learned_detector({"threads": threads})
+    for threshold in (0.0, 1.0, float("nan"), "high"):
+        with pytest.raises(ValueError, match="detector.params.score_threshold"):
+            make_learned_detector({"score_threshold": threshold})
+    with pytest.raises(ValueError, match=r"detector.params.device='tpu' is not allowed"):
+        LearnedDetector(device="tpu")
+    with pytest.raises(ValueError, match="detector.params.threads=0 is out of range"):
+        LearnedDetector(threads=0)
