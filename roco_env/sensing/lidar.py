@@ -15,10 +15,10 @@ says is seen, with ``lambda`` expected points (vertical beams on that azimuth):
   uniform over the sensor disk, heights uniform in [0, 2.5] m (dust, rain,
   reflections).
 
-Heights are relative to the ground under the agent: a CAV's reference is the
-bottom of its own vehicle box; an RSU's is the median bottom of the vehicles
-within 30 m of it (0, the world datum, when there are none). So a detector sees
-the same heights for a car next to it on a hill as on flat ground.
+Heights are relative to the ground under the agent (``state.ground_heights``, the
+datum of :mod:`roco_env.sensing.visibility` too: 0 in simulated scenes, LiDAR height
+minus mast height in replays). So a detector sees the same heights for a car next to
+it on a hill as on flat ground.
 
 The raster (:data:`LIDAR_CHANNELS`, (C, H, W) float32 on a :class:`BevGrid`,
 the axis convention of :mod:`roco_env.sensing.grid`):
@@ -47,8 +47,6 @@ __all__ = ["LIDAR_CHANNELS", "LidarScan", "ScanNoise", "ground_references", "lid
 
 LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "observed")
 
-# RSU ground reference: vehicles within this distance (m) of the mast.
-_RSU_GROUND_RADIUS = 30.0
 # Height span (m) of spurious returns.
 _SPURIOUS_TOP = 2.5
 
@@ -91,19 +89,9 @@ class LidarScan:
 
 
 def ground_references(state: WorldState) -> np.ndarray:
-    """(A,) world height (m) of the ground under each agent (see the module docstring)."""
-    boxes = np.asarray(state.object_boxes, dtype=float).reshape(-1, 7)
-    bottoms = boxes[:, 2] - 0.5 * boxes[:, 5]
-    refs = np.zeros(state.num_agents)
-    for a in range(state.num_agents):
-        own = np.flatnonzero(state.object_ids == state.agent_object_ids[a])
-        if own.size:
-            refs[a] = bottoms[own[0]]
-            continue
-        near = np.hypot(*(boxes[:, :2] - state.agent_poses[a, :2]).T) <= _RSU_GROUND_RADIUS
-        if near.any():
-            refs[a] = float(np.median(bottoms[near]))
-    return refs
+    """(A,) world height (m) of the ground under each agent: ``state.ground_heights``, the
+    datum visibility measures its heights from, so scans, rasters and decoded boxes share it."""
+    return np.asarray(state.ground_heights, dtype=float).reshape(state.num_agents)
 
 
 def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
@@ -117,25 +105,27 @@ def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
     pick = np.repeat(np.arange(counts.size), counts)
     along = 1.0 + noise.range_noise * rng.standard_normal(pick.size) / np.maximum(
         distance[pick], 1e-6)
-    bottom = boxes[hits.obj[pick], 2] - 0.5 * boxes[hits.obj[pick], 5]
+    obj, agent = hits.obj[pick], hits.agent[pick]
+    bottom = boxes[obj, 2] - 0.5 * boxes[obj, 5]
     # Visibility measures surface heights from the ground under the seeing agent; back to
-    # world heights, like the box bottoms (and the references subtracted below).
-    ground = np.asarray(state.ground_heights, dtype=float)
-    top = hits.top[pick] + ground[hits.agent[pick]]
+    # world heights, like the box bottoms (the ground is subtracted again below).
+    ground = ground_references(state)
+    top = hits.top[pick] + ground[agent]
     height = bottom + rng.random(pick.size) * np.maximum(top - bottom, 0.0)
-    refs = ground_references(state)
+    x, y = hits.x[pick] * along, hits.y[pick] * along
+    # Hits are sorted by agent (RayHits), so each agent's returns are one slice.
+    bounds = np.searchsorted(agent, np.arange(state.num_agents + 1)).tolist()
     scans = []
     for a in range(state.num_agents):
-        mine = hits.agent[pick] == a
-        rows = pick[mine]
+        mine = slice(bounds[a], bounds[a + 1])
         n_fake = int(rng.poisson(noise.spurious_rate))
         radius = float(state.sensor_ranges[a]) * np.sqrt(rng.random(n_fake))
         bearing = rng.uniform(-np.pi, np.pi, n_fake)
         scans.append(LidarScan(
-            x=np.concatenate([hits.x[rows] * along[mine], radius * np.cos(bearing)]),
-            y=np.concatenate([hits.y[rows] * along[mine], radius * np.sin(bearing)]),
-            z=np.concatenate([height[mine] - refs[a], rng.uniform(0.0, _SPURIOUS_TOP, n_fake)]),
-            obj=np.concatenate([hits.obj[rows], np.full(n_fake, -1, dtype=np.int64)]),
+            x=np.concatenate([x[mine], radius * np.cos(bearing)]),
+            y=np.concatenate([y[mine], radius * np.sin(bearing)]),
+            z=np.concatenate([height[mine] - ground[a], rng.uniform(0.0, _SPURIOUS_TOP, n_fake)]),
+            obj=np.concatenate([obj[mine], np.full(n_fake, -1, dtype=np.int64)]),
         ))
     return scans
 
