@@ -263,6 +263,23 @@ def test_fuse_maps_is_each_egos_maximum_over_its_own_and_warped_maps():
             torch.testing.assert_close(fused[e], expected, rtol=1e-5, atol=1e-5)
 
 
+def test_compiled_fusion_agrees_with_the_torch_path():
+    """fuse_on_canvas on float32 CPU maps (the compiled warp-and-max loop) against its torch
+    path (grid_sample, taken for float64 maps): detector-sized maps, far rotated poses."""
+    grid = BevGrid((-70.4, 70.4), (-40.0, 40.0), 1.6)
+    canvas, _ = fusion_canvas(grid, (-140.8, 140.8), (-40.0, 40.0))
+    features = torch.rand(5, 8, grid.H, grid.W, generator=torch.Generator().manual_seed(3))
+    features = features.contiguous(memory_format=torch.channels_last)
+    collaborators = [[1, 2, 3, 4], [0, 2], [], [4], [3, 0, 1]]
+    rng = np.random.default_rng(5)
+    poses = [rng.normal(size=(len(c), 3)) * [40.0, 15.0, 1.5] for c in collaborators]
+    fast = fuse_on_canvas(features, range(5), collaborators, poses, grid, canvas)
+    reference = fuse_on_canvas(features.double(), range(5), collaborators, poses, grid, canvas)
+    assert fast.dtype == torch.float32 and fast.is_contiguous(memory_format=torch.channels_last)
+    assert not torch.equal(fast[0], torch.nn.functional.pad(features[0], (44, 44)))  # warped in
+    torch.testing.assert_close(fast.double(), reference, rtol=1e-5, atol=1e-5)
+
+
 def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
     grid = BevGrid((-8.0, 8.0), (-4.0, 4.0), 1.0)
     canvas, pads = fusion_canvas(grid, (-12.0, 10.0), (-6.0, 4.0))

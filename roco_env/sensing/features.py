@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from roco_env.sensing.grid import BevGrid, cell_polar
+from roco_env.sensing.grid import BevGrid, affine_theta, cell_polar
 from roco_env.sensing.visibility import Visibility
 
 __all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev"]
@@ -51,25 +51,6 @@ def bev_features(visibility: Visibility, agent_index: int, grid: BevGrid) -> tor
     return torch.from_numpy(out.reshape(len(CHANNELS), grid.H, grid.W))
 
 
-def _affine_theta(poses: np.ndarray, grid: BevGrid, out_grid: BevGrid) -> torch.Tensor:
-    """affine_grid matrices (N, 2, 3) sampling the source map (on ``grid``) at
-    T^-1 * (cell centre of ``out_grid``)."""
-    def half_and_centre(g: BevGrid) -> tuple[np.ndarray, np.ndarray]:
-        half = np.array([g.W * g.resolution, g.H * g.resolution]) / 2.0
-        return half, np.array([g.x_range[0], g.y_range[0]]) + half
-
-    half, centre = half_and_centre(grid)
-    out_half, out_centre = half_and_centre(out_grid)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    # Inverse pose dst -> src: p_src = A p_dst + b with A = R^T, b = -R^T t.
-    a = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], axis=1)  # (N, 2, 2)
-    b = -np.einsum("nij,nj->ni", a, poses[:, :2])
-    # Normalised coordinates: p = half * n + centre on each grid.
-    lin = a * out_half[None, None, :] / half[None, :, None]
-    shift = (np.einsum("nij,j->ni", a, out_centre) + b - centre) / half
-    return torch.from_numpy(np.concatenate([lin, shift[:, :, None]], axis=2))
-
-
 def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  # noqa: N803
              grid: BevGrid, out_grid: BevGrid | None = None) -> torch.Tensor:
     """Resample BEV maps from a source agent frame into a destination frame.
@@ -96,8 +77,8 @@ def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  #
             f"got shape {tuple(np.shape(T_src_to_dst))}"
         )
     out_grid = out_grid or grid
-    theta = _affine_theta(poses.reshape(-1, 3), grid, out_grid).to(dtype=batch.dtype,
-                                                                   device=batch.device)
+    theta = torch.from_numpy(affine_theta(poses.reshape(-1, 3), grid, out_grid)).to(
+        dtype=batch.dtype, device=batch.device)
     sample_at = F.affine_grid(theta, [*batch.shape[:2], out_grid.H, out_grid.W],
                               align_corners=False)
     warped = F.grid_sample(batch, sample_at, mode="bilinear", padding_mode="zeros",

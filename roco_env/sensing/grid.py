@@ -15,7 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["BevGrid", "cell_polar"]
+__all__ = ["BevGrid", "affine_theta", "cell_polar"]
 
 
 def _as_float(value: object) -> float:
@@ -85,3 +85,24 @@ def cell_polar(grid: BevGrid, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
     step = 2.0 * np.pi / n_rays
     ray = np.mod(np.rint(np.arctan2(y, x) / step).astype(np.int64), n_rays)
     return np.hypot(x, y).ravel(), ray.ravel()
+
+
+def affine_theta(poses: np.ndarray, grid: BevGrid, out_grid: BevGrid) -> np.ndarray:
+    """Matrices (N, 2, 3) of torch's ``affine_grid`` (``align_corners=False``) that sample a
+    source map on ``grid`` at T^-1 * (cell centre of ``out_grid``): normalised output
+    coordinates to normalised source coordinates. poses (N, 3): T (x m, y m, yaw rad)
+    mapping source-frame points into the output frame."""
+    def half_and_centre(g: BevGrid) -> tuple[np.ndarray, np.ndarray]:
+        half = np.array([g.W * g.resolution, g.H * g.resolution]) / 2.0
+        return half, np.array([g.x_range[0], g.y_range[0]]) + half
+
+    half, centre = half_and_centre(grid)
+    out_half, out_centre = half_and_centre(out_grid)
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    # Inverse pose dst -> src: p_src = A p_dst + b with A = R^T, b = -R^T t.
+    a = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], axis=1)  # (N, 2, 2)
+    b = -np.einsum("nij,nj->ni", a, poses[:, :2])
+    # Normalised coordinates: p = half * n + centre on each grid.
+    lin = a * out_half[None, None, :] / half[None, :, None]
+    shift = (np.einsum("nij,j->ni", a, out_centre) + b - centre) / half
+    return np.concatenate([lin, shift[:, :, None]], axis=2)
