@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roco_env.sensing.grid import BevGrid, cell_polar
+from roco_env.sensing.lidar_kernels import bin_points
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
@@ -142,32 +143,24 @@ def lidar_raster(scan: LidarScan, ray_ranges: np.ndarray, grid: BevGrid) -> np.n
 def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
                   grid: BevGrid) -> np.ndarray:
     """BEV rasters (len(scans), len(LIDAR_CHANNELS), H, W) float32 of several scans at once
-    (one binning pass over all points; each equals :func:`lidar_raster` of its scan).
+    (each equals :func:`lidar_raster` of its scan; points binned by a compiled loop,
+    :mod:`roco_env.sensing.lidar_kernels`).
 
     ray_ranges (len(scans), n_rays): each scan's agent's first-hit distance per ray (m).
     """
-    n_cells = grid.H * grid.W
     n = len(scans)
     ray_ranges = np.asarray(ray_ranges, dtype=float).reshape(n, -1)
-    cells, heights = [], []
+    count = np.zeros((n, grid.H * grid.W), dtype=np.int64)
+    total = np.zeros((n, grid.H * grid.W))
+    top = np.zeros((n, grid.H * grid.W))  # highest point per cell, 0 when none is above 0
     for k, scan in enumerate(scans):
-        row, col = grid.cell_index(scan.x, scan.y)
-        inside = row >= 0
-        cells.append(k * n_cells + row[inside] * grid.W + col[inside])
-        heights.append(scan.z[inside])
-    cell = np.concatenate(cells) if cells else np.zeros(0, dtype=np.int64)
-    z = np.concatenate(heights) if heights else np.zeros(0)
-    out = np.zeros((len(LIDAR_CHANNELS), n * n_cells), dtype=np.float32)
-    count = np.bincount(cell, minlength=n * n_cells)
-    out[0] = np.log1p(count)
-    # Highest point per cell: sort by cell, one maximum per run of equal cells
-    # (np.maximum.reduceat; several times faster than np.maximum.at on 10^5 points).
-    if cell.size:
-        order = np.argsort(cell, kind="stable")
-        sorted_cell = cell[order]
-        starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
-        out[1, sorted_cell[starts]] = np.maximum.reduceat(np.maximum(z[order], 0.0), starts)
-    out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / np.maximum(count, 1)
+        bin_points(np.asarray(scan.x, dtype=float), np.asarray(scan.y, dtype=float),
+                   np.asarray(scan.z, dtype=float), grid.x_range[0], grid.y_range[0],
+                   grid.resolution, grid.H, grid.W, count[k], total[k], top[k])
+    out = np.empty((n, len(LIDAR_CHANNELS), grid.H, grid.W), dtype=np.float32)
+    out[:, 0] = np.log1p(count).reshape(n, grid.H, grid.W)
+    out[:, 1] = top.reshape(n, grid.H, grid.W)
+    out[:, 2] = (total / np.maximum(count, 1)).reshape(n, grid.H, grid.W)
     radius, ray = cell_polar(grid, ray_ranges.shape[1])
-    out[3] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
-    return out.reshape(len(LIDAR_CHANNELS), n, grid.H, grid.W).transpose(1, 0, 2, 3).copy()
+    out[:, 3] = (radius[None, :] <= ray_ranges[:, ray]).reshape(n, grid.H, grid.W)
+    return out
