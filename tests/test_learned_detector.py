@@ -24,7 +24,7 @@ from roco_env.sensing.learned import (
     shipped_weights_path,
 )
 from roco_env.sensing.learned.network import HEAD_CHANNELS
-from roco_env.sensing.learned.targets import build_targets, decode, feature_grid
+from roco_env.sensing.learned.targets import _max_3x3, build_targets, decode, feature_grid
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
 from roco_env.training.data import VALIDATION_SEED_BASE, make_scenes
 
@@ -309,3 +309,10 @@ def test_learned_detector_parameters_are_checked_by_the_scenario_schema():
         LearnedDetector(device="tpu")
     with pytest.raises(ValueError, match="detector.params.threads=0 is out of range"):
         LearnedDetector(threads=0)
+
+
+def test_decoding_peaks_use_the_3x3_maximum_of_max_pool():
+    maps = torch.rand(3, 7, 11, generator=torch.Generator().manual_seed(2))
+    maps[0, 2:5, 3:6] = 0.5  # a plateau: ties everywhere
+    expected = torch.nn.functional.max_pool2d(maps[:, None], 3, 1, 1)[:, 0]
+    assert torch.equal(_max_3x3(maps), expected)

@@ -98,6 +98,15 @@ class Decoded:
     uncertainty: np.ndarray
 
 
+def _max_3x3(maps: torch.Tensor) -> torch.Tensor:
+    """Maximum over each cell's 3 x 3 neighbourhood of maps (N, h, w), what
+    ``max_pool2d(kernel 3, stride 1, padding 1)`` gives, as two separable passes of
+    element-wise maxima (an order of magnitude faster on one-channel maps on the CPU)."""
+    p = F.pad(maps, (1, 1, 1, 1), value=-float("inf"))
+    rows = torch.maximum(torch.maximum(p[:, :, :-2], p[:, :, 1:-1]), p[:, :, 2:])
+    return torch.maximum(torch.maximum(rows[:, :-2], rows[:, 1:-1]), rows[:, 2:])
+
+
 def decode(maps: dict[str, torch.Tensor], fgrid: BevGrid, grounds: np.ndarray,
            score_threshold: float = SCORE_THRESHOLD) -> list[Decoded]:
     """Boxes of every map of a batch of head outputs (see the module docstring).
@@ -106,7 +115,7 @@ def decode(maps: dict[str, torch.Tensor], fgrid: BevGrid, grounds: np.ndarray,
     is its centre height above it (boxes sit on the agent's ground plane).
     """
     heat = torch.sigmoid(maps["heatmap"][:, 0])
-    peaks = heat * (heat == F.max_pool2d(heat[:, None], 3, 1, 1)[:, 0])
+    peaks = heat * (heat == _max_3x3(heat))
     n, h, w = peaks.shape
     k = min(MAX_PEAKS, h * w)
     scores, flat = torch.topk(peaks.reshape(n, -1), k, dim=1)
