@@ -140,10 +140,10 @@ class LearnedDetector:
     ``"cuda"``; score_threshold: minimum heatmap score of a decoded box; threads:
     torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
     when the detector is built. The values are checked against
-    :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the
-    parameter). The default 1 is the fastest for this
-    small network on a batch of a few agents: more threads gain little on an idle CPU
-    and lose several times over on a busy one (measured in ``docs/perception.md``).
+    :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
+    The default 1 thread is the fastest for this small network on a batch of a few
+    agents: more threads gain little on an idle CPU and lose several times over on a
+    busy one (measured in ``docs/perception.md``).
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
