@@ -135,3 +135,9 @@ def test_raster_equals_a_direct_numpy_binning(scene):
     np.testing.assert_array_equal(raster[0], np.log1p(count).astype(np.float32))
     np.testing.assert_array_equal(raster[1], top.astype(np.float32))
     np.testing.assert_array_equal(raster[2], (total / np.maximum(count, 1)).astype(np.float32))
+
+
+def test_ray_hits_come_sorted_by_agent(scene):
+    """sample_scans takes each agent's returns as one slice of the hits."""
+    _, vis = scene
+    assert np.unique(vis.hits.agent).size > 1 and np.all(np.diff(vis.hits.agent) >= 0)
