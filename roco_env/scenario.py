@@ -172,7 +172,7 @@ class LearnedDetectorParams:
     """The learned detector's parameters (roco_env.sensing.learned)."""
 
     weights: str | None = _spec(None, doc="weights file; None = the shipped weights")
-    device: str = _spec("cpu", doc="torch device, e.g. 'cpu' or 'cuda'")
+    device: str = _spec("cpu", choices=("cpu", "cuda"), doc="torch device")
     score_threshold: float = _spec(0.2, low=0.0, high=1.0, low_open=True, high_open=True,
                                    doc="decoded boxes below this score are dropped")
     threads: int = _spec(1, low=1, high=256,

@@ -26,7 +26,7 @@ from roco_env.sensing.learned import (
     shipped_weights_path,
 )
 from roco_env.sensing.learned.network import HEAD_CHANNELS
-from roco_env.sensing.learned.targets import build_targets, decode, feature_grid
+from roco_env.sensing.learned.targets import _max_3x3, build_targets, decode, feature_grid
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
 from roco_env.training.data import VALIDATION_SEED_BASE, make_scenes
 
@@ -223,7 +223,7 @@ def test_bad_weights_files_raise_clear_errors(tmp_path):
 def test_learned_detector_options_are_checked():
     with pytest.raises(ValueError, match="unknown key 'detector.params.sigma_xy'; allowed: detector.params.weights"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"sigma_xy": 0.1}})
-    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda'"):
+    with pytest.raises(ValueError, match=r"device='tpu' is not allowed; choose one of \['cpu', 'cuda'\]"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"device": "tpu"}})
     with pytest.raises(ScenarioError, match="needs detector.preset='learned'"):
         roco_env.parallel_env(fusion="intermediate")
@@ -266,6 +266,23 @@ def test_fuse_maps_is_each_egos_maximum_over_its_own_and_warped_maps():
             torch.testing.assert_close(fused[e], expected, rtol=1e-5, atol=1e-5)
 
 
+def test_compiled_fusion_agrees_with_the_torch_path():
+    """fuse_on_canvas on float32 CPU maps (the compiled warp-and-max loop) against its torch
+    path (grid_sample, taken for float64 maps): detector-sized maps, far rotated poses."""
+    grid = BevGrid((-70.4, 70.4), (-40.0, 40.0), 1.6)
+    canvas, _ = fusion_canvas(grid, (-140.8, 140.8), (-40.0, 40.0))
+    features = torch.rand(5, 8, grid.H, grid.W, generator=torch.Generator().manual_seed(3))
+    features = features.contiguous(memory_format=torch.channels_last)
+    collaborators = [[1, 2, 3, 4], [0, 2], [], [4], [3, 0, 1]]
+    rng = np.random.default_rng(5)
+    poses = [rng.normal(size=(len(c), 3)) * [40.0, 15.0, 1.5] for c in collaborators]
+    fast = fuse_on_canvas(features, range(5), collaborators, poses, grid, canvas)
+    reference = fuse_on_canvas(features.double(), range(5), collaborators, poses, grid, canvas)
+    assert fast.dtype == torch.float32 and fast.is_contiguous(memory_format=torch.channels_last)
+    assert not torch.equal(fast[0], torch.nn.functional.pad(features[0], (44, 44)))  # warped in
+    torch.testing.assert_close(fast.double(), reference, rtol=1e-5, atol=1e-5)
+
+
 def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
     grid = BevGrid((-8.0, 8.0), (-4.0, 4.0), 1.0)
     canvas, pads = fusion_canvas(grid, (-12.0, 10.0), (-6.0, 4.0))
@@ -281,12 +298,27 @@ def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
         fuse_on_canvas(features, [0], [[1]], [poses[1]], grid, shifted)
 
 
-def test_make_learned_detector_checks_its_parameters():
-    with pytest.raises(ValueError, match="unknown parameter 'sigma_xy' for detector 'learned'"):
+def test_learned_detector_parameters_are_checked_by_the_scenario_schema():
+    """make_learned_detector and the constructor check against LearnedDetectorParams."""
+    with pytest.raises(ValueError, match="unknown key 'detector.params.sigma_xy'"):
         make_learned_detector({"sigma_xy": 0.1})
     for threads in (0, 1.5, True):
-        with pytest.raises(ValueError, match="threads must be an int >= 1 or None"):
+        with pytest.raises(ValueError, match="detector.params.threads"):
             make_learned_detector({"threads": threads})
+    for threshold in (0.0, 1.0, float("nan"), "high"):
+        with pytest.raises(ValueError, match="detector.params.score_threshold"):
+            make_learned_detector({"score_threshold": threshold})
+    with pytest.raises(ValueError, match=r"detector.params.device='tpu' is not allowed"):
+        LearnedDetector(device="tpu")
+    with pytest.raises(ValueError, match="detector.params.threads=0 is out of range"):
+        LearnedDetector(threads=0)
+
+
+def test_decoding_peaks_use_the_3x3_maximum_of_max_pool():
+    maps = torch.rand(3, 7, 11, generator=torch.Generator().manual_seed(2))
+    maps[0, 2:5, 3:6] = 0.5  # a plateau: ties everywhere
+    expected = torch.nn.functional.max_pool2d(maps[:, None], 3, 1, 1)[:, 0]
+    assert torch.equal(_max_3x3(maps), expected)
 
 
 def test_axial_headings_reach_the_policies_in_one_convention():

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import run_python
 
 from roco_env.scenario import load_scenario
 from roco_env.sensing import BevGrid, compute_visibility
@@ -128,3 +129,33 @@ def test_batched_rasters_equal_each_scan_rastered_alone(scene):
     assert batch.shape == (len(scans), len(LIDAR_CHANNELS), GRID.H, GRID.W)
     for a, scan in enumerate(scans):
         np.testing.assert_array_equal(batch[a], lidar_raster(scan, vis.ray_ranges[a], GRID))
+
+
+def test_the_lidar_module_does_not_import_torch():
+    """Scans and rasters are the numpy core path: the learned detector alone needs torch."""
+    probe = "import sys, roco_env.sensing.lidar; print('torch' in sys.modules)"
+    assert run_python(probe) == "False"
+
+
+def test_raster_equals_a_direct_numpy_binning(scene):
+    """The compiled binning loop against unbuffered numpy accumulation, bit for bit."""
+    state, vis = scene
+    scan = sample_scans(state, vis, ScanNoise(), np.random.default_rng(5))[2]
+    scan = dataclasses.replace(scan, z=scan.z - 1.0)  # some points below the reference
+    raster = lidar_raster(scan, vis.ray_ranges[2], GRID)
+    row, col = GRID.cell_index(scan.x, scan.y)
+    inside = (row[row >= 0], col[row >= 0])
+    count, total, top = (np.zeros((GRID.H, GRID.W)) for _ in range(3))
+    np.add.at(count, inside, 1.0)
+    np.add.at(total, inside, scan.z[row >= 0])
+    np.maximum.at(top, inside, scan.z[row >= 0])  # top starts at 0: the max of z and 0
+    assert (count > 1).sum() > 100 and (scan.z < 0).any()
+    np.testing.assert_array_equal(raster[0], np.log1p(count).astype(np.float32))
+    np.testing.assert_array_equal(raster[1], top.astype(np.float32))
+    np.testing.assert_array_equal(raster[2], (total / np.maximum(count, 1)).astype(np.float32))
+
+
+def test_ray_hits_come_sorted_by_agent(scene):
+    """sample_scans takes each agent's returns as one slice of the hits."""
+    _, vis = scene
+    assert np.unique(vis.hits.agent).size > 1 and np.all(np.diff(vis.hits.agent) >= 0)

@@ -20,7 +20,9 @@ import torch
 import torch.nn.functional as F
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
+from roco_env.fusion.warp_kernels import warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
+from roco_env.sensing.grid import affine_theta
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState
 
@@ -68,17 +70,34 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     if not rows:
         return own
     # Each map is warped onto a window of canvas columns covering its footprint (at most
-    # 161 of the 281.6 m of the default canvas): one grid_sample of all maps on a window of
-    # the same width, each shifted to its own first column, then max-ed into its ego's map.
+    # 161 of the 281.6 m of the default canvas), each shifted to its own first column,
+    # then max-ed into its ego's map.
     all_poses = np.concatenate(poses)
     first, window = _footprint_columns(all_poses, grid, canvas)
     shifted = all_poses.copy()
     shifted[:, 0] -= first * canvas.resolution
-    warped = warp_bev(features[rows], shifted, grid, window)
     owner = [e for e, c in enumerate(collaborators) for _ in c]
+    if features.device.type == "cpu" and features.dtype == torch.float32:
+        # One compiled pass (roco_env.fusion.warp_kernels) on channels-last maps.
+        own = own.contiguous(memory_format=torch.channels_last)
+        warp_max_into(own.permute(0, 2, 3, 1).numpy(),
+                      features.contiguous(memory_format=torch.channels_last)
+                      .permute(0, 2, 3, 1).numpy(),
+                      affine_theta(shifted, grid, window), np.asarray(rows),
+                      np.asarray(owner), first, window.W)
+        return own
+    return _max_warped(own, features[rows], owner, first, shifted, grid, window)
+
+
+def _max_warped(own: torch.Tensor, maps: torch.Tensor, owner: Sequence[int], first: np.ndarray,
+                poses: np.ndarray, grid: BevGrid, window: BevGrid) -> torch.Tensor:
+    """``own`` with every map k (on ``grid``) warped by poses[k] onto ``window`` (canvas
+    columns first[k] onwards) max-ed into own[owner[k]], in place: the torch path of
+    :func:`fuse_on_canvas` (any device and dtype), one ``grid_sample`` for all maps."""
+    warped = warp_bev(maps, poses, grid, window)
     for k, (e, start) in enumerate(zip(owner, first.tolist(), strict=True)):
-        cols = slice(start, start + window.W)
-        own[e, :, :, cols] = torch.maximum(own[e, :, :, cols], warped[k])
+        cols = own[e, :, :, start:start + window.W]
+        torch.maximum(cols, warped[k], out=cols)
     return own
 
 

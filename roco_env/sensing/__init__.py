@@ -11,6 +11,7 @@ import importlib
 from typing import Any
 
 from roco_env.sensing.detector import PRESETS, AgentDetections, Detector, make_detector
+from roco_env.sensing.grid import BevGrid
 from roco_env.sensing.messages import Message, build_messages, select_collaborators
 from roco_env.sensing.visibility import LidarModel, RayHits, Visibility, compute_visibility
 
@@ -33,7 +34,7 @@ __all__ = [
 ]
 
 # BEV features need torch: loaded on first use, so an env without features never imports it.
-_FEATURES = ("CHANNELS", "BevGrid", "bev_features", "warp_bev")
+_FEATURES = ("CHANNELS", "bev_features", "warp_bev")
 
 
 def __getattr__(name: str) -> Any:

@@ -1,12 +1,10 @@
 """BEV feature maps per agent (torch) and their warping between agent frames.
 
-Axis convention (used by :func:`bev_features` and :func:`warp_bev` alike): a
-map is a float32 tensor (C, H, W) in an agent's sensor frame; row ``r`` covers
-``y in [y_min + r*res, y_min + (r+1)*res)`` and column ``c`` covers
-``x in [x_min + c*res, x_min + (c+1)*res)`` (row 0 at the most negative y, i.e.
-the right-hand side of the agent; column 0 at the most negative x, behind it).
-Values live at cell centres, which is exactly torch's ``align_corners=False``
-convention, so :func:`warp_bev` uses ``align_corners=False``.
+Maps are float32 tensors (C, H, W) on a :class:`~roco_env.sensing.grid.BevGrid`, in
+an agent's sensor frame, with that module's axis convention (used by
+:func:`bev_features` and :func:`warp_bev` alike). Values live at cell centres, which
+is exactly torch's ``align_corners=False`` convention, so :func:`warp_bev` uses
+``align_corners=False``.
 
 Channels (:data:`CHANNELS`):
   0 ``log_returns``: log(1 + expected LiDAR returns falling in the cell), from
@@ -19,88 +17,16 @@ Channels (:data:`CHANNELS`):
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-from functools import lru_cache
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from roco_env.sensing.grid import BevGrid, affine_theta, cell_polar
 from roco_env.sensing.visibility import Visibility
 
 __all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev"]
 
 CHANNELS = ("log_returns", "max_height", "observed")
-
-
-def _as_float(value: object) -> float:
-    """float(value), or NaN when it is not a real number (rejected by the caller)."""
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return math.nan
-
-
-@dataclass(frozen=True)
-class BevGrid:
-    """A BEV raster: x_range, y_range (min, max) in metres (agent frame), cell size in m.
-
-    The grid covers [x_min, x_min + W*res) x [y_min, y_min + H*res) with
-    W = round((x_max - x_min) / res) columns and H = round((y_max - y_min) / res) rows.
-    """
-
-    x_range: tuple[float, float]
-    y_range: tuple[float, float]
-    resolution: float = 0.4
-
-    def __post_init__(self) -> None:
-        resolution = _as_float(self.resolution)
-        if not resolution > 0.0 or not math.isfinite(resolution):
-            raise ValueError(f"BevGrid.resolution must be a finite number > 0 m; "
-                             f"got {self.resolution!r}")
-        object.__setattr__(self, "resolution", resolution)
-        for name in ("x_range", "y_range"):
-            value = getattr(self, name)
-            bounds = tuple(_as_float(v) for v in value) if np.ndim(value) == 1 else ()
-            if not (len(bounds) == 2 and all(map(math.isfinite, bounds))
-                    and bounds[1] - bounds[0] >= resolution):
-                raise ValueError(
-                    f"BevGrid.{name} must be (min, max) finite with max - min >= resolution "
-                    f"({resolution} m); got {value!r}"
-                )
-            object.__setattr__(self, name, bounds)
-
-    @classmethod
-    def square(cls, half_extent: float, resolution: float = 0.4) -> BevGrid:
-        """Grid over [-half_extent, half_extent] on both axes (e.g. the sensor range)."""
-        return cls((-half_extent, half_extent), (-half_extent, half_extent), resolution)
-
-    @property
-    def H(self) -> int:  # noqa: N802 (the conventional tensor dimension name)
-        return int(round((self.y_range[1] - self.y_range[0]) / self.resolution))
-
-    @property
-    def W(self) -> int:  # noqa: N802
-        return int(round((self.x_range[1] - self.x_range[0]) / self.resolution))
-
-    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(row, col) int arrays of points (m); -1 in both where outside the grid."""
-        col = np.floor((np.asarray(x) - self.x_range[0]) / self.resolution).astype(np.int64)
-        row = np.floor((np.asarray(y) - self.y_range[0]) / self.resolution).astype(np.int64)
-        inside = (col >= 0) & (col < self.W) & (row >= 0) & (row < self.H)
-        return np.where(inside, row, -1), np.where(inside, col, -1)
-
-
-@lru_cache(maxsize=8)
-def _cell_polar(grid: BevGrid, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat (H*W,) distance (m) and ray index of every cell centre (cached per grid)."""
-    xs = grid.x_range[0] + (np.arange(grid.W) + 0.5) * grid.resolution
-    ys = grid.y_range[0] + (np.arange(grid.H) + 0.5) * grid.resolution
-    x, y = np.meshgrid(xs, ys)  # (H, W): rows along y, columns along x
-    step = 2.0 * np.pi / n_rays
-    ray = np.mod(np.rint(np.arctan2(y, x) / step).astype(np.int64), n_rays)
-    return np.hypot(x, y).ravel(), ray.ravel()
 
 
 def bev_features(visibility: Visibility, agent_index: int, grid: BevGrid) -> torch.Tensor:
@@ -120,28 +46,9 @@ def bev_features(visibility: Visibility, agent_index: int, grid: BevGrid) -> tor
     out = np.zeros((len(CHANNELS), n_cells), dtype=np.float32)
     out[0] = np.log1p(np.bincount(cell, weights=hits.returns[mine][inside], minlength=n_cells))
     np.maximum.at(out[1], cell, hits.top[mine][inside])
-    radius, ray = _cell_polar(grid, n_rays)
+    radius, ray = cell_polar(grid, n_rays)
     out[2] = radius <= visibility.ray_ranges[agent_index][ray]
     return torch.from_numpy(out.reshape(len(CHANNELS), grid.H, grid.W))
-
-
-def _affine_theta(poses: np.ndarray, grid: BevGrid, out_grid: BevGrid) -> torch.Tensor:
-    """affine_grid matrices (N, 2, 3) sampling the source map (on ``grid``) at
-    T^-1 * (cell centre of ``out_grid``)."""
-    def half_and_centre(g: BevGrid) -> tuple[np.ndarray, np.ndarray]:
-        half = np.array([g.W * g.resolution, g.H * g.resolution]) / 2.0
-        return half, np.array([g.x_range[0], g.y_range[0]]) + half
-
-    half, centre = half_and_centre(grid)
-    out_half, out_centre = half_and_centre(out_grid)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    # Inverse pose dst -> src: p_src = A p_dst + b with A = R^T, b = -R^T t.
-    a = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], axis=1)  # (N, 2, 2)
-    b = -np.einsum("nij,nj->ni", a, poses[:, :2])
-    # Normalised coordinates: p = half * n + centre on each grid.
-    lin = a * out_half[None, None, :] / half[None, :, None]
-    shift = (np.einsum("nij,j->ni", a, out_centre) + b - centre) / half
-    return torch.from_numpy(np.concatenate([lin, shift[:, :, None]], axis=2))
 
 
 def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  # noqa: N803
@@ -170,8 +77,8 @@ def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  #
             f"got shape {tuple(np.shape(T_src_to_dst))}"
         )
     out_grid = out_grid or grid
-    theta = _affine_theta(poses.reshape(-1, 3), grid, out_grid).to(dtype=batch.dtype,
-                                                                   device=batch.device)
+    theta = torch.from_numpy(affine_theta(poses.reshape(-1, 3), grid, out_grid)).to(
+        dtype=batch.dtype, device=batch.device)
     sample_at = F.affine_grid(theta, [*batch.shape[:2], out_grid.H, out_grid.W],
                               align_corners=False)
     warped = F.grid_sample(batch, sample_at, mode="bilinear", padding_mode="zeros",

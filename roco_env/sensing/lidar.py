@@ -15,13 +15,13 @@ says is seen, with ``lambda`` expected points (vertical beams on that azimuth):
   uniform over the sensor disk, heights uniform in [0, 2.5] m (dust, rain,
   reflections).
 
-Heights are relative to the ground under the agent: a CAV's reference is the
-bottom of its own vehicle box; an RSU's is the median bottom of the vehicles
-within 30 m of it (0, the world datum, when there are none). So a detector sees
-the same heights for a car next to it on a hill as on flat ground.
+Heights are relative to the ground under the agent (``state.ground_heights``, the
+datum of :mod:`roco_env.sensing.visibility` too: 0 in simulated scenes, LiDAR height
+minus mast height in replays). So a detector sees the same heights for a car next to
+it on a hill as on flat ground.
 
 The raster (:data:`LIDAR_CHANNELS`, (C, H, W) float32 on a :class:`BevGrid`,
-the axis convention of :mod:`roco_env.sensing.features`):
+the axis convention of :mod:`roco_env.sensing.grid`):
   0 ``log_points``: log(1 + sampled points in the cell);
   1 ``max_height``: highest point in the cell (m above the reference, 0 if none);
   2 ``mean_height``: mean point height in the cell (m, 0 if none);
@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.sensing.features import BevGrid, _cell_polar
+from roco_env.sensing.grid import BevGrid, cell_polar
+from roco_env.sensing.lidar_kernels import bin_points
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
@@ -50,8 +51,6 @@ __all__ = ["LIDAR_CHANNELS", "LidarScan", "ScanNoise", "ground_references", "lid
 
 LIDAR_CHANNELS = ("log_points", "max_height", "mean_height", "mean_dx", "mean_dy", "observed")
 
-# RSU ground reference: vehicles within this distance (m) of the mast.
-_RSU_GROUND_RADIUS = 30.0
 # Height span (m) of spurious returns.
 _SPURIOUS_TOP = 2.5
 
@@ -94,19 +93,9 @@ class LidarScan:
 
 
 def ground_references(state: WorldState) -> np.ndarray:
-    """(A,) world height (m) of the ground under each agent (see the module docstring)."""
-    boxes = np.asarray(state.object_boxes, dtype=float).reshape(-1, 7)
-    bottoms = boxes[:, 2] - 0.5 * boxes[:, 5]
-    refs = np.zeros(state.num_agents)
-    for a in range(state.num_agents):
-        own = np.flatnonzero(state.object_ids == state.agent_object_ids[a])
-        if own.size:
-            refs[a] = bottoms[own[0]]
-            continue
-        near = np.hypot(*(boxes[:, :2] - state.agent_poses[a, :2]).T) <= _RSU_GROUND_RADIUS
-        if near.any():
-            refs[a] = float(np.median(bottoms[near]))
-    return refs
+    """(A,) world height (m) of the ground under each agent: ``state.ground_heights``, the
+    datum visibility measures its heights from, so scans, rasters and decoded boxes share it."""
+    return np.asarray(state.ground_heights, dtype=float).reshape(state.num_agents)
 
 
 def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
@@ -120,25 +109,27 @@ def sample_scans(state: WorldState, visibility: Visibility, noise: ScanNoise,
     pick = np.repeat(np.arange(counts.size), counts)
     along = 1.0 + noise.range_noise * rng.standard_normal(pick.size) / np.maximum(
         distance[pick], 1e-6)
-    bottom = boxes[hits.obj[pick], 2] - 0.5 * boxes[hits.obj[pick], 5]
+    obj, agent = hits.obj[pick], hits.agent[pick]
+    bottom = boxes[obj, 2] - 0.5 * boxes[obj, 5]
     # Visibility measures surface heights from the ground under the seeing agent; back to
-    # world heights, like the box bottoms (and the references subtracted below).
-    ground = np.asarray(state.ground_heights, dtype=float)
-    top = hits.top[pick] + ground[hits.agent[pick]]
+    # world heights, like the box bottoms (the ground is subtracted again below).
+    ground = ground_references(state)
+    top = hits.top[pick] + ground[agent]
     height = bottom + rng.random(pick.size) * np.maximum(top - bottom, 0.0)
-    refs = ground_references(state)
+    x, y = hits.x[pick] * along, hits.y[pick] * along
+    # Hits are sorted by agent (RayHits), so each agent's returns are one slice.
+    bounds = np.searchsorted(agent, np.arange(state.num_agents + 1)).tolist()
     scans = []
     for a in range(state.num_agents):
-        mine = hits.agent[pick] == a
-        rows = pick[mine]
+        mine = slice(bounds[a], bounds[a + 1])
         n_fake = int(rng.poisson(noise.spurious_rate))
         radius = float(state.sensor_ranges[a]) * np.sqrt(rng.random(n_fake))
         bearing = rng.uniform(-np.pi, np.pi, n_fake)
         scans.append(LidarScan(
-            x=np.concatenate([hits.x[rows] * along[mine], radius * np.cos(bearing)]),
-            y=np.concatenate([hits.y[rows] * along[mine], radius * np.sin(bearing)]),
-            z=np.concatenate([height[mine] - refs[a], rng.uniform(0.0, _SPURIOUS_TOP, n_fake)]),
-            obj=np.concatenate([hits.obj[rows], np.full(n_fake, -1, dtype=np.int64)]),
+            x=np.concatenate([x[mine], radius * np.cos(bearing)]),
+            y=np.concatenate([y[mine], radius * np.sin(bearing)]),
+            z=np.concatenate([height[mine] - ground[a], rng.uniform(0.0, _SPURIOUS_TOP, n_fake)]),
+            obj=np.concatenate([obj[mine], np.full(n_fake, -1, dtype=np.int64)]),
         ))
     return scans
 
@@ -155,40 +146,29 @@ def lidar_raster(scan: LidarScan, ray_ranges: np.ndarray, grid: BevGrid) -> np.n
 def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
                   grid: BevGrid) -> np.ndarray:
     """BEV rasters (len(scans), len(LIDAR_CHANNELS), H, W) float32 of several scans at once
-    (one binning pass over all points; each equals :func:`lidar_raster` of its scan).
+    (each equals :func:`lidar_raster` of its scan; points binned by a compiled loop,
+    :mod:`roco_env.sensing.lidar_kernels`).
 
     ray_ranges (len(scans), n_rays): each scan's agent's first-hit distance per ray (m).
     """
-    n_cells = grid.H * grid.W
     n = len(scans)
     ray_ranges = np.asarray(ray_ranges, dtype=float).reshape(n, -1)
-    cells, heights, dx, dy = [], [], [], []
-    res = grid.resolution
+    count = np.zeros((n, grid.H * grid.W), dtype=np.int64)
+    total = np.zeros((n, grid.H * grid.W))
+    top = np.zeros((n, grid.H * grid.W))  # highest point per cell, 0 when none is above 0
+    offset_x, offset_y = np.zeros((n, grid.H * grid.W)), np.zeros((n, grid.H * grid.W))
     for k, scan in enumerate(scans):
-        row, col = grid.cell_index(scan.x, scan.y)
-        inside = row >= 0
-        row, col = row[inside], col[inside]
-        cells.append(k * n_cells + row * grid.W + col)
-        heights.append(scan.z[inside])
-        dx.append((scan.x[inside] - grid.x_range[0]) / res - col - 0.5)
-        dy.append((scan.y[inside] - grid.y_range[0]) / res - row - 0.5)
-    cell = np.concatenate(cells) if cells else np.zeros(0, dtype=np.int64)
-    z = np.concatenate(heights) if heights else np.zeros(0)
-    out = np.zeros((len(LIDAR_CHANNELS), n * n_cells), dtype=np.float32)
-    count = np.bincount(cell, minlength=n * n_cells)
-    out[0] = np.log1p(count)
-    # Highest point per cell: sort by cell, one maximum per run of equal cells
-    # (np.maximum.reduceat; several times faster than np.maximum.at on 10^5 points).
-    if cell.size:
-        order = np.argsort(cell, kind="stable")
-        sorted_cell = cell[order]
-        starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
-        out[1, sorted_cell[starts]] = np.maximum.reduceat(np.maximum(z[order], 0.0), starts)
+        bin_points(np.asarray(scan.x, dtype=float), np.asarray(scan.y, dtype=float),
+                   np.asarray(scan.z, dtype=float), grid.x_range[0], grid.y_range[0],
+                   grid.resolution, grid.H, grid.W, count[k], total[k], top[k], offset_x[k],
+                   offset_y[k])
     per_cell = np.maximum(count, 1)
-    out[2] = np.bincount(cell, weights=z, minlength=n * n_cells) / per_cell
-    for channel, offsets in ((3, dx), (4, dy)):
-        weights = np.concatenate(offsets) if offsets else np.zeros(0)
-        out[channel] = np.bincount(cell, weights=weights, minlength=n * n_cells) / per_cell
-    radius, ray = _cell_polar(grid, ray_ranges.shape[1])
-    out[5] = (radius[None, :] <= ray_ranges[:, ray]).ravel()
-    return out.reshape(len(LIDAR_CHANNELS), n, grid.H, grid.W).transpose(1, 0, 2, 3).copy()
+    out = np.empty((n, len(LIDAR_CHANNELS), grid.H, grid.W), dtype=np.float32)
+    out[:, 0] = np.log1p(count).reshape(n, grid.H, grid.W)
+    out[:, 1] = top.reshape(n, grid.H, grid.W)
+    out[:, 2] = (total / per_cell).reshape(n, grid.H, grid.W)
+    out[:, 3] = (offset_x / per_cell).reshape(n, grid.H, grid.W)
+    out[:, 4] = (offset_y / per_cell).reshape(n, grid.H, grid.W)
+    radius, ray = cell_polar(grid, ray_ranges.shape[1])
+    out[:, 5] = (radius[None, :] <= ray_ranges[:, ray]).reshape(n, grid.H, grid.W)
+    return out

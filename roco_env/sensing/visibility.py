@@ -95,7 +95,8 @@ class LidarModel:
 
 @dataclass(frozen=True)
 class RayHits:
-    """Entry points of the rays that see part of an object (P of them).
+    """Entry points of the rays that see part of an object (P of them), sorted by agent,
+    then ray, then entry distance.
 
     agent (P,) agent index; obj (P,) object index (into WorldState objects);
     ray (P,) ray index; x, y (P,) entry point in the agent's true sensor frame (m);

@@ -11,8 +11,8 @@ missing, corrupt or mismatched file raises ValueError naming the problem.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -23,6 +23,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from roco_env.geometry import se2_inverse, transform_boxes
+from roco_env.scenario import LearnedDetectorParams
+from roco_env.schema import build
 from roco_env.sensing.detector import AgentDetections
 from roco_env.sensing.features import BevGrid
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
@@ -44,7 +46,6 @@ SHIPPED_WEIGHTS = "bev_detector.pt"
 # A decoded box is labelled with the true object whose centre is nearest, within this
 # distance (m): ground truth for the privileged info only, never used by the model.
 _LABEL_GATE = 2.0
-_PARAMS = ("weights", "device", "score_threshold", "threads")
 
 
 def shipped_weights_path() -> Path:
@@ -138,9 +139,11 @@ class LearnedDetector:
     weights: a weights file (default: the shipped one); device: ``"cpu"`` or
     ``"cuda"``; score_threshold: minimum heatmap score of a decoded box; threads:
     torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
-    when the detector is built, None to leave it. The default 1 is the fastest for this
-    small network on a batch of a few agents: more threads gain little on an idle CPU
-    and lose several times over on a busy one (measured in ``docs/perception.md``).
+    when the detector is built. The values are checked against
+    :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
+    The default 1 thread is the fastest for this small network on a batch of a few
+    agents: more threads gain little on an idle CPU and lose several times over on a
+    busy one (measured in ``docs/perception.md``).
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
@@ -150,29 +153,22 @@ class LearnedDetector:
     axial_headings = True
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
-                 score_threshold: float = SCORE_THRESHOLD, threads: int | None = 1) -> None:
-        if device not in ("cpu", "cuda"):
-            raise ValueError(f"learned detector device must be 'cpu' or 'cuda'; got {device!r}")
-        if device == "cuda" and not torch.cuda.is_available():
+                 score_threshold: float = SCORE_THRESHOLD, threads: int = 1) -> None:
+        params = _checked({"weights": None if weights is None else str(weights),
+                           "device": device, "score_threshold": score_threshold,
+                           "threads": threads})
+        if params.device == "cuda" and not torch.cuda.is_available():
             raise ValueError("learned detector device='cuda' but torch sees no CUDA device")
-        if not (isinstance(score_threshold, (int, float)) and 0.0 < score_threshold < 1.0):
-            raise ValueError(f"learned detector score_threshold must be in (0, 1); "
-                             f"got {score_threshold!r}")
-        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
-                                    or threads < 1):
-            raise ValueError(f"learned detector threads must be an int >= 1 or None; "
-                             f"got {threads!r}")
-        if threads is not None:
-            torch.set_num_threads(threads)
+        torch.set_num_threads(params.threads)
         path = Path(weights) if weights is not None else shipped_weights_path()
         self.checkpoint = load_checkpoint(path)
         self.net = build_network(self.checkpoint, path).for_inference().to(
-            device, memory_format=torch.channels_last)
-        self.device = torch.device(device)
+            params.device, memory_format=torch.channels_last)
+        self.device = torch.device(params.device)
         self.grid = self.checkpoint.grid
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
         self.noise = self.checkpoint.noise
-        self.score_threshold = float(score_threshold)
+        self.score_threshold = params.score_threshold
 
     def rasters(self, state: WorldState, visibility: Visibility,
                 rng: np.random.Generator) -> torch.Tensor:
@@ -243,17 +239,13 @@ def label_boxes(state: WorldState, agent: int, boxes: np.ndarray) -> np.ndarray:
 
 
 def make_learned_detector(params: dict[str, Any] | None) -> LearnedDetector:
-    """The learned detector from scenario ``detector.params`` (keys: weights, device,
-    score_threshold, threads); ValueError naming an unknown key."""
-    params = dict(params or {})
-    unknown = sorted(set(params) - set(_PARAMS))
-    if unknown:
-        raise ValueError(f"unknown parameter {unknown[0]!r} for detector 'learned'; allowed: "
-                         f"{', '.join(_PARAMS)}")
-    threshold = params.get("score_threshold", SCORE_THRESHOLD)
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) \
-            or not math.isfinite(threshold):
-        raise ValueError(f"detector parameter score_threshold must be a number in (0, 1); "
-                         f"got {threshold!r}")
-    return LearnedDetector(params.get("weights"), params.get("device", "cpu"), float(threshold),
-                           params.get("threads", 1))
+    """The learned detector from scenario ``detector.params`` (the fields of
+    :class:`~roco_env.scenario.LearnedDetectorParams`); ValueError naming an unknown key or
+    a bad value."""
+    return LearnedDetector(**dataclasses.asdict(_checked(dict(params or {}))))
+
+
+def _checked(params: dict[str, Any]) -> LearnedDetectorParams:
+    """``params`` checked against :class:`~roco_env.scenario.LearnedDetectorParams`, the one
+    place the learned detector's parameters are declared (scenario files use it too)."""
+    return build(LearnedDetectorParams, params, "detector 'learned'", "detector.params.")

@@ -5,7 +5,8 @@ Feature cells: the detector grid at ``stride`` times its raster cell size
 assigned to the feature cell holding its BEV centre; its heatmap target is a
 Gaussian bump around that cell (CenterNet), its offset the centre's position
 inside the cell, in cells. Decoding inverts this: heatmap peaks (3x3 local
-maxima) above a score threshold, centre = cell corner + offset, then a BEV NMS.
+maxima) above a score threshold, centre = cell corner + offset, then a BEV NMS
+(one batched NMS for all maps of a batch, the same result as one ``nms_bev`` per map).
 Boxes are (x, y, z, l, w, h, yaw) in the agent's frame, metres and radians.
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from roco_env.geometry import nms_bev
+from roco_env.fusion.nms import batched_nms_bev
 from roco_env.sensing.features import BevGrid
 
 __all__ = ["Decoded", "Targets", "build_targets", "decode", "feature_grid"]
@@ -102,6 +103,15 @@ class Decoded:
     uncertainty: np.ndarray
 
 
+def _max_3x3(maps: torch.Tensor) -> torch.Tensor:
+    """Maximum over each cell's 3 x 3 neighbourhood of maps (N, h, w), what
+    ``max_pool2d(kernel 3, stride 1, padding 1)`` gives, as two separable passes of
+    element-wise maxima (an order of magnitude faster on one-channel maps on the CPU)."""
+    p = F.pad(maps, (1, 1, 1, 1), value=-float("inf"))
+    rows = torch.maximum(torch.maximum(p[:, :, :-2], p[:, :, 1:-1]), p[:, :, 2:])
+    return torch.maximum(torch.maximum(rows[:, :-2], rows[:, 1:-1]), rows[:, 2:])
+
+
 def decode(maps: dict[str, torch.Tensor], fgrid: BevGrid, grounds: np.ndarray,
            score_threshold: float = SCORE_THRESHOLD) -> list[Decoded]:
     """Boxes of every map of a batch of head outputs (see the module docstring).
@@ -110,29 +120,30 @@ def decode(maps: dict[str, torch.Tensor], fgrid: BevGrid, grounds: np.ndarray,
     is its centre height above it (boxes sit on the agent's ground plane).
     """
     heat = torch.sigmoid(maps["heatmap"][:, 0])
-    peaks = heat * (heat == F.max_pool2d(heat[:, None], 3, 1, 1)[:, 0])
+    peaks = heat * (heat == _max_3x3(heat))
     n, h, w = peaks.shape
     k = min(MAX_PEAKS, h * w)
     scores, flat = torch.topk(peaks.reshape(n, -1), k, dim=1)
+    # Only the peaks above the threshold are gathered and turned into boxes, all maps at once.
+    sample_t, rank_t = torch.nonzero(scores > score_threshold, as_tuple=True)
+    flat = flat[sample_t, rank_t]
     row, col = flat // w, flat % w
-    gather = torch.arange(n)[:, None]
 
     def at(name: str) -> np.ndarray:
-        return maps[name][gather, :, row, col].detach().cpu().double().numpy()  # (n, k, c)
+        return maps[name][sample_t, :, row, col].detach().cpu().double().numpy()  # (P, c)
 
     offset, size, yaw, log_sigma = at("offset"), np.exp(at("size")), at("yaw"), at("log_sigma")
-    scores_np, row_np, col_np = (t.detach().cpu().numpy() for t in (scores, row, col))
-    out = []
-    for i in range(n):
-        keep = np.flatnonzero(scores_np[i] > score_threshold)
-        x = fgrid.x_range[0] + (col_np[i, keep] + offset[i, keep, 0]) * fgrid.resolution
-        y = fgrid.y_range[0] + (row_np[i, keep] + offset[i, keep, 1]) * fgrid.resolution
-        length, width, height = size[i, keep].T
-        heading = np.arctan2(yaw[i, keep, 0], yaw[i, keep, 1])
-        boxes = np.column_stack([x, y, grounds[i] + 0.5 * height, length, width, height,
-                                 heading])
-        sc = scores_np[i, keep].astype(float)
-        sig = np.exp(log_sigma[i, keep])
-        kept = nms_bev(boxes, sc, NMS_IOU) if keep.size else np.zeros(0, dtype=np.int64)
-        out.append(Decoded(boxes[kept].reshape(-1, 7), sc[kept], sig[kept].reshape(-1, 3)))
-    return out
+    sample, row_np, col_np = (t.cpu().numpy() for t in (sample_t, row, col))
+    x = fgrid.x_range[0] + (col_np + offset[:, 0]) * fgrid.resolution
+    y = fgrid.y_range[0] + (row_np + offset[:, 1]) * fgrid.resolution
+    length, width, height = size.T
+    boxes = np.column_stack([x, y, np.asarray(grounds, dtype=float)[sample] + 0.5 * height,
+                             length, width, height, np.arctan2(yaw[:, 0], yaw[:, 1])])
+    sc = scores[sample_t, rank_t].detach().cpu().numpy().astype(float)
+    sig = np.exp(log_sigma)
+    bounds = np.searchsorted(sample, np.arange(n + 1))
+    spans = list(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True))
+    kept = batched_nms_bev([boxes[lo:hi] for lo, hi in spans], [sc[lo:hi] for lo, hi in spans],
+                           NMS_IOU)
+    return [Decoded(boxes[lo + keep].reshape(-1, 7), sc[lo + keep], sig[lo + keep].reshape(-1, 3))
+            for (lo, _), keep in zip(spans, kept, strict=True)]
