@@ -25,6 +25,10 @@ from roco_env.policies.v2i_calib import v2i_calib_align
 
 REFERENCE = Path(__file__).parent / "data" / "prior_free_reference.json"
 
+# roco_fallback without the second RoCo pass for slots RoCo itself moved far (the
+# behaviour before refine_beyond_m / refine_beyond_deg existed)
+UNREFINED = {"refine_beyond_m": None, "refine_beyond_deg": None}
+
 # label -> (aligner, params)
 CONFIGS = {
     "ransac": (ransac_align, {}),
@@ -37,9 +41,10 @@ CONFIGS = {
     "freealign_distances_only": (freealign_align, {"edge_yaw_tolerance_deg": None,
                                                    "max_subgraph": None}),
     "ransac_raw": (ransac_align, {"do_no_harm": False}),
+    "roco_fallback_unrefined": (roco_fallback_align, UNREFINED),
+    "roco_fallback_v2i_calib": (roco_fallback_align, {**UNREFINED, "fallback": "v2i_calib"}),
+    "roco_fallback_freealign": (roco_fallback_align, {**UNREFINED, "fallback": "freealign"}),
     "roco_fallback": (roco_fallback_align, {}),
-    "roco_fallback_v2i_calib": (roco_fallback_align, {"fallback": "v2i_calib"}),
-    "roco_fallback_freealign": (roco_fallback_align, {"fallback": "freealign"}),
 }
 
 # ("bench", seed, agents, objects, error m/deg) or ("parking", seed, translation m)

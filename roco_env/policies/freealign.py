@@ -44,13 +44,15 @@ from scipy.spatial.distance import cdist
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
+    Proposer,
     aligner,
     axial_difference,
     distinct_top,
     fit_se2,
 )
 
-__all__ = ["FreeAlignParams", "FreeAlignPolicy", "freealign_align", "common_subgraph"]
+__all__ = ["FreeAlignParams", "FreeAlignPolicy", "common_subgraph", "freealign_align",
+           "freealign_search"]
 
 
 @dataclass(frozen=True)
@@ -141,37 +143,44 @@ def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
     return np.array(nodes_e), np.array(nodes_o)
 
 
-def freealign_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
-                         p: FreeAlignParams) -> np.ndarray:
-    """Candidate T_{j->i} (H, 3), largest common subgraph first, from (M, 7), (K, 7) boxes."""
-    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
-    ego_d, own_d = cdist(ego[:, :2], ego[:, :2]), cdist(own[:, :2], own[:, :2])
-    sim = _node_similarity(_descriptors(ego_d, p.descriptor_neighbors),
-                           _descriptors(own_d, p.descriptor_neighbors), p.edge_tolerance)
-    count = min(int(p.anchors), sim.size)
-    seeds = np.argsort(-sim, axis=None, kind="stable")[:count]
-    found: list[tuple[int, np.ndarray]] = []
-    for seed in seeds:
-        i, k = np.unravel_index(seed, sim.shape)
-        yaw_ok = None
-        if p.edge_yaw_tolerance_deg is not None:
-            # Headings relative to the seed's are pose invariant (modulo pi).
-            yaw_ok = axial_difference((ego[:, 2] - ego[i, 2])[:, None],
-                                      (own[:, 2] - own[k, 2])[None, :]) <= np.deg2rad(
-                p.edge_yaw_tolerance_deg)
-        nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)), p.edge_tolerance,
-                                           yaw_ok, p.max_subgraph)
-        if nodes_e.size >= p.min_subgraph:
-            found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
-    if not found:
-        return np.zeros((0, 3))
-    mass = np.array([m for m, _ in found], dtype=float)
-    poses = np.array([pose for _, pose in found])
-    top = distinct_top(poses, mass, p.max_candidates, p)
-    return poses[top]
+def freealign_search(ego_boxes: np.ndarray, p: FreeAlignParams) -> Proposer:
+    """The FreeAlign proposer for ego boxes (M, 7): collaborator boxes (K, 7) -> candidate
+    T_{j->i} (H, 3), largest common subgraph first. The ego's graph is built once."""
+    ego = ego_boxes[:, [0, 1, 6]]
+    ego_d = cdist(ego[:, :2], ego[:, :2])
+    ego_desc = _descriptors(ego_d, p.descriptor_neighbors)
+
+    def propose(own_boxes: np.ndarray) -> np.ndarray:
+        own = own_boxes[:, [0, 1, 6]]
+        own_d = cdist(own[:, :2], own[:, :2])
+        sim = _node_similarity(ego_desc, _descriptors(own_d, p.descriptor_neighbors),
+                               p.edge_tolerance)
+        count = min(int(p.anchors), sim.size)
+        seeds = np.argsort(-sim, axis=None, kind="stable")[:count]
+        found: list[tuple[int, np.ndarray]] = []
+        for seed in seeds:
+            i, k = np.unravel_index(seed, sim.shape)
+            yaw_ok = None
+            if p.edge_yaw_tolerance_deg is not None:
+                # Headings relative to the seed's are pose invariant (modulo pi).
+                yaw_ok = axial_difference((ego[:, 2] - ego[i, 2])[:, None],
+                                          (own[:, 2] - own[k, 2])[None, :]) <= np.deg2rad(
+                    p.edge_yaw_tolerance_deg)
+            nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)),
+                                               p.edge_tolerance, yaw_ok, p.max_subgraph)
+            if nodes_e.size >= p.min_subgraph:
+                found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
+        if not found:
+            return np.zeros((0, 3))
+        mass = np.array([m for m, _ in found], dtype=float)
+        poses = np.array([pose for _, pose in found])
+        top = distinct_top(poses, mass, p.max_candidates, p)
+        return poses[top]
+
+    return propose
 
 
-freealign_align = aligner(freealign_candidates, FreeAlignParams, "freealign",
+freealign_align = aligner(freealign_search, FreeAlignParams, "freealign",
                           "Correct the collaborators' relative poses with FreeAlign "
                           "(distance-matrix node features instead of the learned GNN).")
 

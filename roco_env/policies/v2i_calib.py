@@ -52,12 +52,14 @@ from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
+    Proposer,
     aligner,
     distinct_top,
     fit_se2,
 )
 
-__all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align"]
+__all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align",
+           "v2i_calib_search"]
 
 METRICS = ("odist", "oiou")
 ASSOCIATIONS = ("sinkhorn", "hungarian")
@@ -104,11 +106,13 @@ def _local_neighbours(boxes: np.ndarray, count: int | None) -> tuple[np.ndarray,
     return local, near
 
 
-def affinity_matrix(ego: np.ndarray, own: np.ndarray,
-                    p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
+def affinity_matrix(ego: np.ndarray, own: np.ndarray, p: V2ICalibParams,
+                    ego_neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Affinity A (M, K) of every (ego box, collaborator box) anchor pair and the heading
-    flip f (M, K) in {0, pi} that achieves it. ego (M, 7) / own (K, 7) boxes."""
-    ego_local, ego_near = _local_neighbours(ego, p.neighbors)
+    flip f (M, K) in {0, pi} that achieves it. ego (M, 7) / own (K, 7) boxes;
+    ego_neighbours: the ego's ``_local_neighbours`` when already computed."""
+    ego_local, ego_near = ego_neighbours or _local_neighbours(ego, p.neighbors)
     own_local, own_near = _local_neighbours(own, p.neighbors)
     m, k = ego.shape[0], own.shape[0]
     if ego_local.shape[1] == 0 or own_local.shape[1] == 0:
@@ -212,26 +216,32 @@ def _associate(affinity: np.ndarray, p: V2ICalibParams) -> tuple[np.ndarray, np.
     return rows[keep], cols[keep]
 
 
-def v2i_calib_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
-                         p: V2ICalibParams) -> np.ndarray:
-    """Candidate T_{j->i} (H, 3), best first, from ego (M, 7) and own (K, 7) boxes."""
-    affinity, flip = affinity_matrix(ego_boxes, own_boxes, p)
-    rows, cols = _associate(affinity, p)
-    if rows.size == 0:
-        return np.zeros((0, 3))
-    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
-    turned = own[cols].copy()
-    turned[:, 2] += flip[rows, cols]
-    single = se2_compose(ego[rows], se2_inverse(turned))
-    weight = affinity[rows, cols]
-    top = distinct_top(single, weight, p.max_candidates, p)
-    candidates = single[top]
-    if rows.size >= 2:
-        candidates = np.vstack([fit_se2(own[cols, :2], ego[rows, :2], weight), candidates])
-    return candidates
+def v2i_calib_search(ego_boxes: np.ndarray, p: V2ICalibParams) -> Proposer:
+    """The V2I-Calib proposer for ego boxes (M, 7): collaborator boxes (K, 7) ->
+    candidate T_{j->i} (H, 3), best first. The ego's neighbourhoods are formed once."""
+    ego_neighbours = _local_neighbours(ego_boxes, p.neighbors)
+    ego = ego_boxes[:, [0, 1, 6]]
+
+    def propose(own_boxes: np.ndarray) -> np.ndarray:
+        affinity, flip = affinity_matrix(ego_boxes, own_boxes, p, ego_neighbours)
+        rows, cols = _associate(affinity, p)
+        if rows.size == 0:
+            return np.zeros((0, 3))
+        own = own_boxes[:, [0, 1, 6]]
+        turned = own[cols].copy()
+        turned[:, 2] += flip[rows, cols]
+        single = se2_compose(ego[rows], se2_inverse(turned))
+        weight = affinity[rows, cols]
+        top = distinct_top(single, weight, p.max_candidates, p)
+        candidates = single[top]
+        if rows.size >= 2:
+            candidates = np.vstack([fit_se2(own[cols, :2], ego[rows, :2], weight), candidates])
+        return candidates
+
+    return propose
 
 
-v2i_calib_align = aligner(v2i_calib_candidates, V2ICalibParams, "v2i_calib",
+v2i_calib_align = aligner(v2i_calib_search, V2ICalibParams, "v2i_calib",
                           "Correct the collaborators' relative poses with V2I-Calib(++).")
 
 
