@@ -130,3 +130,66 @@ def test_fit_se2_matches_the_numpy_closed_form(seed):
                          np.sin(theta) * mu_s[0] + np.cos(theta) * mu_s[1]])
     np.testing.assert_allclose(fit_se2(src, dst, w), [*t, theta], rtol=0, atol=1e-12)
     np.testing.assert_allclose(fit_se2(src, dst)[:2], pose[:2], atol=0.2)
+
+
+def numpy_node_similarity(ego_desc, own_desc, tol):
+    """The dense float32 formulation of FreeAlign's node similarity."""
+    a, b = ego_desc.astype(np.float32), own_desc.astype(np.float32)
+    diff = np.abs(a[:, None, :, None] - b[None, :, None, :])
+    return (diff <= tol).any(axis=3).sum(axis=2).astype(float)
+
+
+def numpy_common_subgraph(ego_d, own_d, seed, tol, yaw_ok, max_nodes):
+    """The array formulation of the greedy growth (candidates updated all at once)."""
+    i, k = seed
+    error = np.abs(ego_d[i][:, None] - own_d[k][None, :])
+    ok = error <= tol
+    ok[i, :] = False
+    ok[:, k] = False
+    if yaw_ok is not None:
+        ok &= yaw_ok
+    rows, cols = np.nonzero(ok)
+    order = np.argsort(error[rows, cols], kind="stable")
+    rows, cols = rows[order], cols[order]
+    alive = np.ones(rows.size, dtype=bool)
+    nodes_e, nodes_o = [i], [k]
+    while max_nodes is None or len(nodes_e) < max_nodes:
+        live = np.flatnonzero(alive)
+        if live.size == 0:
+            break
+        r, c = int(rows[live[0]]), int(cols[live[0]])
+        nodes_e.append(r)
+        nodes_o.append(c)
+        alive[live] = (np.abs(ego_d[rows[live], r] - own_d[cols[live], c]) <= tol) & (
+            rows[live] != r) & (cols[live] != c)
+    return np.array(nodes_e), np.array(nodes_o)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_freealign_kernels_match_the_numpy_path(seed):
+    from scipy.spatial.distance import cdist
+
+    from roco_env.policies.freealign import _descriptors, _node_similarity, common_subgraph
+
+    rng = np.random.default_rng(seed)
+    ego = random_boxes(rng, 50)
+    perm = rng.permutation(50)[:35]
+    own = ego[perm] + rng.normal(0, [0.3, 0.3, 0.05], (35, 3))
+    own = np.vstack([own, random_boxes(rng, 8)])
+    ego_d, own_d = cdist(ego[:, :2], ego[:, :2]), cdist(own[:, :2], own[:, :2])
+    ego_desc, own_desc = _descriptors(ego_d, 6), _descriptors(own_d, 6)
+    np.testing.assert_array_equal(_node_similarity(ego_desc, own_desc, 0.8),
+                                  numpy_node_similarity(ego_desc, own_desc, 0.8))
+    yaw_tol = np.deg2rad(15.0)
+    grown = 0
+    for i, k in [(int(perm[0]), 0), (int(perm[5]), 5), (3, 7), (int(rng.integers(50)), 40)]:
+        yaw_ok = axial_difference((ego[:, 2] - ego[i, 2])[:, None],
+                                  (own[:, 2] - own[k, 2])[None, :]) <= yaw_tol
+        for headings, ok, cap in [(None, None, None),
+                                  ((ego[:, 2], own[:, 2], yaw_tol), yaw_ok, 16)]:
+            got = common_subgraph(ego_d, own_d, (i, k), 0.8, headings, cap)
+            want = numpy_common_subgraph(ego_d, own_d, (i, k), 0.8, ok, cap)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            grown = max(grown, got[0].size)
+    assert grown >= 10  # a true seed grows a large subgraph

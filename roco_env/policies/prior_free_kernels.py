@@ -16,7 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["axial_within", "fit_se2_kernel", "gated_pairs", "inlier_counts", "matching_pairs"]
+__all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
+           "grow_subgraph", "inlier_counts", "matching_pairs"]
 
 
 @njit(cache=True)
@@ -154,3 +155,77 @@ def matching_pairs(elen_sorted, order, clen, erel, ebear, crel, cbear, tol, yaw_
             ego_idx.append(e)
             own_idx.append(j)
     return np.array(ego_idx, dtype=np.int64), np.array(own_idx, dtype=np.int64)
+
+
+@njit(cache=True)
+def descriptor_similarity(ego_desc, own_desc, tol):
+    """FreeAlign's node similarity (M, K): how many of ego node i's descriptor distances
+    (row i of ``ego_desc`` (M, n), float32) have a distance of collaborator node k
+    (``own_desc`` (K, n), float32) within ``tol`` (float32) m; NaN padding never
+    matches. float32 throughout, as the numpy formulation."""
+    m, n = ego_desc.shape
+    k, q = own_desc.shape
+    out = np.zeros((m, k))
+    for i in range(m):
+        for j in range(k):
+            count = 0
+            for a in range(n):
+                for b in range(q):
+                    if abs(ego_desc[i, a] - own_desc[j, b]) <= tol:
+                        count += 1
+                        break
+            out[i, j] = count
+    return out
+
+
+@njit(cache=True)
+def grow_subgraph(ego_d, own_d, i, k, tol, ego_yaw, own_yaw, yaw_tol, max_nodes):
+    """FreeAlign's greedy common-subgraph growth from the seed pair (i, k) (see
+    :func:`roco_env.policies.freealign.common_subgraph`).
+
+    ego_d (M, M), own_d (K, K): centre distance matrices (m). Candidate pairs (r, c),
+    r != i, c != k, with |ego_d[i, r] - own_d[k, c]| <= ``tol`` and (``yaw_tol`` >= 0)
+    headings relative to the seed's within ``yaw_tol`` rad modulo pi, are taken in
+    order of that error (stable: row-major among equals); a pair joins when its
+    distances to every node already accepted agree within ``tol`` and it reuses no box.
+    ``max_nodes`` < 0: no limit. Returns (ego nodes, own nodes), seed first.
+    """
+    rows_l = []
+    cols_l = []
+    errs_l = []
+    for r in range(ego_d.shape[0]):
+        if r == i:
+            continue
+        for c in range(own_d.shape[0]):
+            if c == k:
+                continue
+            e = abs(ego_d[i, r] - own_d[k, c])
+            if e > tol:
+                continue
+            if yaw_tol >= 0.0 and not axial_within(ego_yaw[r] - ego_yaw[i],
+                                                   own_yaw[c] - own_yaw[k], yaw_tol):
+                continue
+            rows_l.append(r)
+            cols_l.append(c)
+            errs_l.append(e)
+    errs = np.array(errs_l, dtype=np.float64)
+    order = np.argsort(errs, kind="mergesort")
+    rows = np.array(rows_l, dtype=np.int64)[order]
+    cols = np.array(cols_l, dtype=np.int64)[order]
+    alive = np.ones(rows.size, dtype=np.bool_)
+    nodes_e = [i]
+    nodes_o = [k]
+    start = 0
+    while max_nodes < 0 or len(nodes_e) < max_nodes:
+        while start < rows.size and not alive[start]:
+            start += 1
+        if start == rows.size:
+            break
+        r, c = rows[start], cols[start]
+        nodes_e.append(r)
+        nodes_o.append(c)
+        for q in range(start, rows.size):
+            if alive[q]:
+                alive[q] = (abs(ego_d[rows[q], r] - own_d[cols[q], c]) <= tol
+                            and rows[q] != r and cols[q] != c)
+    return np.array(nodes_e, dtype=np.int64), np.array(nodes_o, dtype=np.int64)
