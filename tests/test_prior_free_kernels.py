@@ -193,3 +193,50 @@ def test_freealign_kernels_match_the_numpy_path(seed):
             np.testing.assert_array_equal(got[1], want[1])
             grown = max(grown, got[0].size)
     assert grown >= 10  # a true seed grows a large subgraph
+
+
+def test_odist_scores_match_the_matrix_formulation():
+    """The compiled overall distance against the quadratic-form matrix products it
+    replaced (float64 here, so they agree to rounding)."""
+    from roco_env.policies.v2i_calib import V2ICalibParams, _local_neighbours, _odist
+
+    rng = np.random.default_rng(0)
+    boxes = np.zeros((40, 7))
+    boxes[:, [0, 1, 6]] = random_boxes(rng, 40, extent=20.0)
+    own = boxes[rng.permutation(40)[:30]].copy()
+    own[:, [0, 1]] += rng.normal(0, 0.3, (30, 2))
+    p = V2ICalibParams()
+    ego_local, _ = _local_neighbours(boxes, p.neighbors)
+    own_local, _ = _local_neighbours(own, p.neighbors)
+    m, n, _ = ego_local.shape
+    k, q, _ = own_local.shape
+    a = ego_local[..., :2].reshape(-1, 2)
+    b = own_local.transpose(1, 0, 2)[..., :2].reshape(-1, 2)
+    inv_r2 = 1.0 / p.odist_threshold**2
+    cross = 2.0 * inv_r2 * (a @ b.T)
+    base = (1.0 - inv_r2 * (a * a).sum(1))[:, None] - (inv_r2 * (b * b).sum(1))[None, :]
+    yaw_b = own_local.transpose(1, 0, 2)[..., 2].reshape(-1)
+    gated = axial_difference(ego_local[..., 2].reshape(-1)[:, None], yaw_b[None, :]) > (
+        np.deg2rad(p.inlier_yaw_deg))
+    base[gated] = -np.inf
+    want = [np.maximum(sim, 0.0).reshape(m, n, q, k).max(axis=2).sum(axis=1)
+            for sim in (base + cross, base - cross)]
+    got = _odist(ego_local, own_local, p)
+    assert want[0].max() > 3  # true anchors score several agreeing neighbours
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-9)
+
+
+def test_sinkhorn_scaling_matches_the_matrix_iterations():
+    from roco_env.policies.prior_free_kernels import sinkhorn_scaling
+
+    rng = np.random.default_rng(1)
+    kernel = np.exp(rng.normal(0, 2, (9, 7)) - 6)
+    mu, nu = np.r_[np.ones(8), 6.0], np.r_[np.ones(6), 8.0]
+    a, b = np.ones(9), np.ones(7)
+    for _ in range(30):
+        a = mu / np.maximum(kernel @ b, np.finfo(float).tiny)
+        b = nu / np.maximum(kernel.T @ a, np.finfo(float).tiny)
+    got = sinkhorn_scaling(kernel, mu, nu, 30)
+    np.testing.assert_allclose(got[0], a, rtol=1e-12)
+    np.testing.assert_allclose(got[1], b, rtol=1e-12)

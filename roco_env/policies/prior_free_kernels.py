@@ -17,7 +17,8 @@ import numpy as np
 from numba import njit
 
 __all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
-           "grow_subgraph", "inlier_counts", "matching_pairs"]
+           "grow_subgraph", "inlier_counts", "matching_pairs", "odist_scores",
+           "sinkhorn_scaling"]
 
 
 @njit(cache=True)
@@ -229,3 +230,66 @@ def grow_subgraph(ego_d, own_d, i, k, tol, ego_yaw, own_yaw, yaw_tol, max_nodes)
                 alive[q] = (abs(ego_d[rows[q], r] - own_d[cols[q], c]) <= tol
                             and rows[q] != r and cols[q] != c)
     return np.array(nodes_e, dtype=np.int64), np.array(nodes_o, dtype=np.int64)
+
+
+@njit(cache=True)
+def odist_scores(ego_local, own_local, ego_dir, own_dir, inv_r2, cos_gate):
+    """V2I-Calib++'s overall distance for every anchor pair (i, k), unturned and turned
+    by pi: sum over ego neighbours m of the best max(0, 1 - |a_m - b_n|^2 / r^2) over
+    collaborator neighbours n (b_n negated when turned), pairs whose headings differ by
+    more than the gate modulo pi scoring 0.
+
+    ego_local (M, N, 3) / own_local (K, Q, 3): neighbour poses in their anchor's frame;
+    ego_dir (M, N, 2) / own_dir (K, Q, 2): (cos, sin) of twice the neighbour headings
+    (their dot product >= ``cos_gate`` = cos(2 gate) <=> within the gate modulo pi);
+    inv_r2 = 1 / r^2 (1/m^2). Returns two (M, K) arrays.
+    """
+    m, n = ego_local.shape[0], ego_local.shape[1]
+    k, q = own_local.shape[0], own_local.shape[1]
+    plain = np.zeros((m, k))
+    turned = np.zeros((m, k))
+    for i in range(m):
+        for j in range(k):
+            total0 = 0.0
+            total1 = 0.0
+            for a in range(n):
+                ax, ay = ego_local[i, a, 0], ego_local[i, a, 1]
+                best0 = 0.0
+                best1 = 0.0
+                for b in range(q):
+                    if ego_dir[i, a, 0] * own_dir[j, b, 0] + (
+                            ego_dir[i, a, 1] * own_dir[j, b, 1]) < cos_gate:
+                        continue
+                    bx, by = own_local[j, b, 0], own_local[j, b, 1]
+                    dx, dy = ax - bx, ay - by
+                    best0 = max(best0, 1.0 - inv_r2 * (dx * dx + dy * dy))
+                    dx, dy = ax + bx, ay + by
+                    best1 = max(best1, 1.0 - inv_r2 * (dx * dx + dy * dy))
+                total0 += best0
+                total1 += best1
+            plain[i, j] = total0
+            turned[i, j] = total1
+    return plain, turned
+
+
+@njit(cache=True)
+def sinkhorn_scaling(kernel, mu, nu, iterations):
+    """Scaling vectors (a, b) of ``iterations`` Sinkhorn iterations on the positive
+    kernel (R, C) with row / column marginals mu (R,) / nu (C,):
+    a = mu / (K b), b = nu / (K^T a), each denominator at least the smallest float."""
+    r, c = kernel.shape
+    tiny = np.finfo(np.float64).tiny
+    a = np.ones(r)
+    b = np.ones(c)
+    for _ in range(iterations):
+        for i in range(r):
+            acc = 0.0
+            for j in range(c):
+                acc += kernel[i, j] * b[j]
+            a[i] = mu[i] / max(acc, tiny)
+        for j in range(c):
+            acc = 0.0
+            for i in range(r):
+                acc += kernel[i, j] * a[i]
+            b[j] = nu[j] / max(acc, tiny)
+    return a, b

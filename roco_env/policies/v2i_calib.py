@@ -19,8 +19,8 @@ turned by f), so a pair is scored without mapping whole scenes. ``metric`` picks
   r = ``odist_threshold`` m and d the centre distance, and 0 when the headings differ
   by more than ``inlier_yaw_deg`` (modulo pi). The paper measures box distance on box
   vertices; a centre distance with a heading gate is our choice (the vertex distance
-  of two same-size boxes is a function of these two), and the quadratic form lets all
-  K x M anchors be scored by one matrix product.
+  of two same-size boxes is a function of these two), and it scores all K x M anchors
+  in one compiled loop (the pi turn only negates the collaborator's local centres).
 
 Choices the papers leave open or that we made for speed, each a parameter:
 ``neighbors`` (the N(i): each box's nearest boxes, None = all boxes; the papers use all
@@ -57,6 +57,7 @@ from roco_env.policies.prior_free import (
     distinct_top,
     fit_se2,
 )
+from roco_env.policies.prior_free_kernels import odist_scores, sinkhorn_scaling
 
 __all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align",
            "v2i_calib_search"]
@@ -129,28 +130,15 @@ def affinity_matrix(ego: np.ndarray, own: np.ndarray, p: V2ICalibParams,
 def _odist(ego_local: np.ndarray, own_local: np.ndarray,
            p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
     """sum_m max_n max(0, 1 - d^2/r^2) [heading gate] for all anchors, unturned and
-    turned by pi (turning negates the cross term of d^2; the gate is modulo pi)."""
-    m, n, _ = ego_local.shape
-    k, q, _ = own_local.shape
-    # float32 matrix products: the (M N) x (K N) tables dominate the cost.
-    a = ego_local[..., :2].reshape(-1, 2).astype(np.float32)
-    # Columns ordered (neighbour, anchor) so the max over neighbours runs over whole
-    # contiguous rows of K values (a reduction over a short last axis is slow).
-    own_local = own_local.transpose(1, 0, 2)
-    b = own_local[..., :2].reshape(-1, 2).astype(np.float32)
-    inv_r2 = np.float32(1.0 / p.odist_threshold**2)
-    cross = (2.0 * inv_r2) * (a @ b.T)
-    base = (1.0 - inv_r2 * (a * a).sum(1))[:, None] - (inv_r2 * (b * b).sum(1))[None, :]
-    two_a, two_b = 2.0 * ego_local[..., 2].reshape(-1), 2.0 * own_local[..., 2].reshape(-1)
-    # cos(2 (yaw_a - yaw_b)) >= cos(2 gate) <=> heading difference modulo pi within gate.
-    cos2 = np.column_stack([np.cos(two_a), np.sin(two_a)]).astype(np.float32) @ (
-        np.column_stack([np.cos(two_b), np.sin(two_b)]).astype(np.float32).T)
-    base[cos2 < np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))] = -np.inf
-    out = []
-    for sim in (base + cross, base - cross):
-        np.maximum(sim, 0.0, out=sim)
-        out.append(sim.reshape(m, n, q, k).max(axis=2).sum(axis=1, dtype=np.float64))
-    return out[0], out[1]
+    turned by pi (turning negates the collaborator's local centres; the gate is modulo
+    pi, so it is the same for both)."""
+    def doubled(local: np.ndarray) -> np.ndarray:
+        # cos(2 (yaw_a - yaw_b)) >= cos(2 gate) <=> heading difference modulo pi within gate.
+        return np.stack([np.cos(2.0 * local[..., 2]), np.sin(2.0 * local[..., 2])], axis=-1)
+
+    return odist_scores(np.ascontiguousarray(ego_local), np.ascontiguousarray(own_local),
+                        doubled(ego_local), doubled(own_local), 1.0 / p.odist_threshold**2,
+                        float(np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))))
 
 
 def _oiou(ego: np.ndarray, own: np.ndarray, ego_local: np.ndarray, own_local: np.ndarray,
@@ -182,8 +170,8 @@ def sinkhorn(scores: np.ndarray, dustbin: float, iterations: int) -> np.ndarray:
     scores (M, K) are log-affinities; the dustbin row/column scores ``dustbin``; row
     marginals 1 for each of the M rows and K for the dustbin row, column marginals 1 and
     M likewise (every box either matches or goes to the dustbin). Alternating
-    normalisation (scipy has no optimal-transport solver; the loop is a few vectorised
-    lines).
+    normalisation (scipy has no optimal-transport solver; the scaling iterations run as
+    one compiled loop).
     """
     m, k = scores.shape
     coupling = np.full((m + 1, k + 1), float(dustbin))
@@ -193,12 +181,8 @@ def sinkhorn(scores: np.ndarray, dustbin: float, iterations: int) -> np.ndarray:
     kernel = np.exp(coupling - coupling.max())
     mu = np.concatenate([np.ones(m), [k]])
     nu = np.concatenate([np.ones(k), [m]])
-    a, b = np.ones(m + 1), np.ones(k + 1)
-    tiny = np.finfo(float).tiny
-    for _ in range(int(iterations)):
-        a = mu / np.maximum(kernel @ b, tiny)
-        b = nu / np.maximum(kernel.T @ a, tiny)
-    return np.log(np.maximum(kernel * a[:, None] * b[None, :], tiny))
+    a, b = sinkhorn_scaling(kernel, mu, nu, int(iterations))
+    return np.log(np.maximum(kernel * a[:, None] * b[None, :], np.finfo(float).tiny))
 
 
 def _associate(affinity: np.ndarray, p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
