@@ -58,7 +58,7 @@ from roco_env.policies.landmarks import (
     require_positive,
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
-from roco_env.policies.prior_free_kernels import fit_se2_kernel, gated_pairs
+from roco_env.policies.prior_free_kernels import fit_se2_kernel, gated_pairs, refine_rounds
 
 __all__ = [
     "CandidateSearch",
@@ -71,6 +71,7 @@ __all__ = [
     "content_seed",
     "distinct_top",
     "fit_se2",
+    "nearest_neighbours",
     "poses_distinct",
     "prior_free_align",
     "refine_pose",
@@ -165,6 +166,17 @@ def fit_se2(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
                           np.ascontiguousarray(dst, dtype=float), w / w.sum())
 
 
+def nearest_neighbours(xy: np.ndarray, count: int) -> np.ndarray:
+    """Indices (K, count) of each point's ``count`` nearest other points (xy (K, 2),
+    count <= K - 1), nearest first, the lower index first among equally near ones.
+    A dense distance matrix: the box lists are short (tens to a few hundred), where it
+    costs less than building a k-d tree."""
+    d = xy[:, None, :] - xy[None, :, :]
+    dist2 = (d * d).sum(axis=2)
+    np.fill_diagonal(dist2, np.inf)
+    return np.argsort(dist2, axis=1, kind="stable")[:, :count]
+
+
 def _associate(
     pose: np.ndarray, ego: np.ndarray, own: np.ndarray, gate: float, yaw_gate: float | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,10 +219,19 @@ def support(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
 
 def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
                 p: PriorFreeParams) -> np.ndarray:
-    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit."""
+    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit
+    (compiled while the associations are one-to-one; a round whose boxes compete runs
+    here with the Hungarian assignment)."""
     pose = np.asarray(pose, dtype=float).copy()
-    for _ in range(int(p.refine_iterations)):
-        e, o, _ = _associate(pose, ego, own, p.refine_gate, np.deg2rad(p.inlier_yaw_deg))
+    gate, yaw_gate = float(p.refine_gate), float(np.deg2rad(p.inlier_yaw_deg))
+    remaining = int(p.refine_iterations)
+    while remaining > 0:
+        pose, done, competing = refine_rounds(pose, ego, own, gate, yaw_gate, remaining)
+        remaining -= done
+        if not competing:
+            break
+        e, o, _ = _associate(pose, ego, own, gate, yaw_gate)
+        remaining -= 1
         if e.size < 2:
             break
         new = fit_se2(own[o, :2], ego[e, :2])

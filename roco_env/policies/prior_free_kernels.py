@@ -18,7 +18,7 @@ from numba import njit
 
 __all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
            "grow_subgraph", "inlier_counts", "matching_pairs", "odist_scores",
-           "sinkhorn_scaling"]
+           "refine_rounds", "sinkhorn_scaling"]
 
 
 @njit(cache=True)
@@ -293,3 +293,34 @@ def sinkhorn_scaling(kernel, mu, nu, iterations):
                 acc += kernel[i, j] * a[i]
             b[j] = nu[j] / max(acc, tiny)
     return a, b
+
+
+@njit(cache=True)
+def refine_rounds(pose, ego, own, gate, yaw_gate, rounds):
+    """Up to ``rounds`` rounds of association (:func:`gated_pairs`) + SE(2) fit of the
+    associated centres from ``pose`` (3,), as long as every association is one-to-one.
+
+    Stops when fewer than 2 pairs associate, when the fit moves the pose by at most
+    1e-6 in every component (the pose is kept), or at a round whose boxes compete for
+    each other (they need the Hungarian assignment the caller makes). Returns (pose,
+    rounds completed, whether it stopped at competing boxes).
+    """
+    pose = pose.copy()
+    for done in range(rounds):
+        yaw = pose[2]
+        rows, cols, _, one_to_one = gated_pairs(pose[0], pose[1], math.cos(yaw),
+                                                math.sin(yaw), yaw, ego, own, gate, yaw_gate)
+        if not one_to_one:
+            return pose, done, True
+        if rows.size < 2:
+            return pose, done + 1, False
+        src = np.empty((rows.size, 2))
+        dst = np.empty((rows.size, 2))
+        for q in range(rows.size):
+            src[q, 0], src[q, 1] = own[cols[q], 0], own[cols[q], 1]
+            dst[q, 0], dst[q, 1] = ego[rows[q], 0], ego[rows[q], 1]
+        new = fit_se2_kernel(src, dst, np.full(rows.size, 1.0 / rows.size))
+        if max(abs(new[0] - pose[0]), abs(new[1] - pose[1]), abs(new[2] - pose[2])) <= 1e-6:
+            return pose, done + 1, False
+        pose = new
+    return pose, rounds, False

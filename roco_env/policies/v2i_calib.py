@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
 from roco_env.policies.landmarks import require_positive
@@ -56,6 +55,7 @@ from roco_env.policies.prior_free import (
     aligner,
     distinct_top,
     fit_se2,
+    nearest_neighbours,
 )
 from roco_env.policies.prior_free_kernels import odist_scores, sinkhorn_scaling
 
@@ -101,8 +101,7 @@ def _local_neighbours(boxes: np.ndarray, count: int | None) -> tuple[np.ndarray,
     n = k - 1 if count is None else min(int(count), k - 1)
     if n <= 0:
         return np.full((k, 0, 3), _FAR), np.zeros((k, 0), dtype=np.int64)
-    _, near = cKDTree(boxes[:, :2]).query(boxes[:, :2], k=n + 1)
-    near = np.asarray(near).reshape(k, n + 1)[:, 1:]
+    near = nearest_neighbours(boxes[:, :2], n)
     local = se2_compose(se2_inverse(boxes[:, [0, 1, 6]])[:, None, :], boxes[near][..., [0, 1, 6]])
     return local, near
 
