@@ -227,21 +227,6 @@ def test_odist_scores_match_the_matrix_formulation():
         np.testing.assert_allclose(g, w, rtol=0, atol=1e-9)
 
 
-def test_sinkhorn_scaling_matches_the_matrix_iterations():
-    from roco_env.policies.prior_free_kernels import sinkhorn_scaling
-
-    rng = np.random.default_rng(1)
-    kernel = np.exp(rng.normal(0, 2, (9, 7)) - 6)
-    mu, nu = np.r_[np.ones(8), 6.0], np.r_[np.ones(6), 8.0]
-    a, b = np.ones(9), np.ones(7)
-    for _ in range(30):
-        a = mu / np.maximum(kernel @ b, np.finfo(float).tiny)
-        b = nu / np.maximum(kernel.T @ a, np.finfo(float).tiny)
-    got = sinkhorn_scaling(kernel, mu, nu, 30)
-    np.testing.assert_allclose(got[0], a, rtol=1e-12)
-    np.testing.assert_allclose(got[1], b, rtol=1e-12)
-
-
 def numpy_fit(src, dst):
     """Unweighted closed-form SE(2) fit dst ~= T src."""
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)

@@ -71,7 +71,6 @@ __all__ = [
     "content_seed",
     "distinct_top",
     "fit_se2",
-    "nearest_neighbours",
     "poses_distinct",
     "prior_free_align",
     "refine_pose",
@@ -164,17 +163,6 @@ def fit_se2(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
     w = np.ones(src.shape[0]) if weights is None else np.asarray(weights, dtype=float)
     return fit_se2_kernel(np.ascontiguousarray(src, dtype=float),
                           np.ascontiguousarray(dst, dtype=float), w / w.sum())
-
-
-def nearest_neighbours(xy: np.ndarray, count: int) -> np.ndarray:
-    """Indices (K, count) of each point's ``count`` nearest other points (xy (K, 2),
-    count <= K - 1), nearest first, the lower index first among equally near ones.
-    A dense distance matrix: the box lists are short (tens to a few hundred), where it
-    costs less than building a k-d tree."""
-    d = xy[:, None, :] - xy[None, :, :]
-    dist2 = (d * d).sum(axis=2)
-    np.fill_diagonal(dist2, np.inf)
-    return np.argsort(dist2, axis=1, kind="stable")[:, :count]
 
 
 def _associate(

@@ -18,7 +18,7 @@ from numba import njit
 
 __all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
            "grow_subgraph", "inlier_counts", "matching_pairs", "odist_scores",
-           "refine_rounds", "sinkhorn_scaling"]
+           "refine_rounds"]
 
 
 @njit(cache=True)
@@ -270,29 +270,6 @@ def odist_scores(ego_local, own_local, ego_dir, own_dir, inv_r2, cos_gate):
             plain[i, j] = total0
             turned[i, j] = total1
     return plain, turned
-
-
-@njit(cache=True)
-def sinkhorn_scaling(kernel, mu, nu, iterations):
-    """Scaling vectors (a, b) of ``iterations`` Sinkhorn iterations on the positive
-    kernel (R, C) with row / column marginals mu (R,) / nu (C,):
-    a = mu / (K b), b = nu / (K^T a), each denominator at least the smallest float."""
-    r, c = kernel.shape
-    tiny = np.finfo(np.float64).tiny
-    a = np.ones(r)
-    b = np.ones(c)
-    for _ in range(iterations):
-        for i in range(r):
-            acc = 0.0
-            for j in range(c):
-                acc += kernel[i, j] * b[j]
-            a[i] = mu[i] / max(acc, tiny)
-        for j in range(c):
-            acc = 0.0
-            for i in range(r):
-                acc += kernel[i, j] * a[i]
-            b[j] = nu[j] / max(acc, tiny)
-    return a, b
 
 
 @njit(cache=True)

@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
@@ -47,7 +48,6 @@ from roco_env.policies.prior_free import (
     aligner,
     content_seed,
     distinct_top,
-    nearest_neighbours,
 )
 from roco_env.policies.prior_free_kernels import inlier_counts, matching_pairs
 
@@ -92,8 +92,9 @@ def _pairs(poses: np.ndarray, ordered: bool, p: RansacParams) -> tuple:
     if p.pair_neighbors is None or p.pair_neighbors >= k - 1:
         a, b = np.triu_indices(k, 1)
     else:
+        _, near = cKDTree(poses[:, :2]).query(poses[:, :2], k=int(p.pair_neighbors) + 1)
         first = np.repeat(np.arange(k), int(p.pair_neighbors))
-        second = nearest_neighbours(poses[:, :2], int(p.pair_neighbors)).ravel()
+        second = near[:, 1:].ravel()
         code = np.unique(np.minimum(first, second) * k + np.maximum(first, second))
         a, b = code // k, code % k
     if ordered:

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
 from roco_env.policies.landmarks import require_positive
@@ -55,9 +56,8 @@ from roco_env.policies.prior_free import (
     aligner,
     distinct_top,
     fit_se2,
-    nearest_neighbours,
 )
-from roco_env.policies.prior_free_kernels import odist_scores, sinkhorn_scaling
+from roco_env.policies.prior_free_kernels import odist_scores
 
 __all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align",
            "v2i_calib_search"]
@@ -101,7 +101,8 @@ def _local_neighbours(boxes: np.ndarray, count: int | None) -> tuple[np.ndarray,
     n = k - 1 if count is None else min(int(count), k - 1)
     if n <= 0:
         return np.full((k, 0, 3), _FAR), np.zeros((k, 0), dtype=np.int64)
-    near = nearest_neighbours(boxes[:, :2], n)
+    _, near = cKDTree(boxes[:, :2]).query(boxes[:, :2], k=n + 1)
+    near = np.asarray(near).reshape(k, n + 1)[:, 1:]
     local = se2_compose(se2_inverse(boxes[:, [0, 1, 6]])[:, None, :], boxes[near][..., [0, 1, 6]])
     return local, near
 
@@ -169,8 +170,8 @@ def sinkhorn(scores: np.ndarray, dustbin: float, iterations: int) -> np.ndarray:
     scores (M, K) are log-affinities; the dustbin row/column scores ``dustbin``; row
     marginals 1 for each of the M rows and K for the dustbin row, column marginals 1 and
     M likewise (every box either matches or goes to the dustbin). Alternating
-    normalisation (scipy has no optimal-transport solver; the scaling iterations run as
-    one compiled loop).
+    normalisation (scipy has no optimal-transport solver; the loop is a few vectorised
+    lines).
     """
     m, k = scores.shape
     coupling = np.full((m + 1, k + 1), float(dustbin))
@@ -180,8 +181,15 @@ def sinkhorn(scores: np.ndarray, dustbin: float, iterations: int) -> np.ndarray:
     kernel = np.exp(coupling - coupling.max())
     mu = np.concatenate([np.ones(m), [k]])
     nu = np.concatenate([np.ones(k), [m]])
-    a, b = sinkhorn_scaling(kernel, mu, nu, int(iterations))
-    return np.log(np.maximum(kernel * a[:, None] * b[None, :], np.finfo(float).tiny))
+    a, b = np.ones(m + 1), np.ones(k + 1)
+    tiny = np.finfo(float).tiny
+    # BLAS products, not a compiled loop: in symmetric layouts (a line of equally spaced
+    # boxes) transport partners tie exactly and a different summation order flips them.
+    row, col = np.empty(m + 1), np.empty(k + 1)
+    for _ in range(int(iterations)):
+        np.divide(mu, np.maximum(np.dot(kernel, b, out=row), tiny, out=row), out=a)
+        np.divide(nu, np.maximum(np.dot(kernel.T, a, out=col), tiny, out=col), out=b)
+    return np.log(np.maximum(kernel * a[:, None] * b[None, :], tiny))
 
 
 def _associate(affinity: np.ndarray, p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
