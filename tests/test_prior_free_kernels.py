@@ -274,3 +274,24 @@ def test_refinement_matches_the_numpy_rounds(seed, spacing):
             want = new
         np.testing.assert_allclose(refine_pose(start, ego, own, p), want, rtol=0, atol=1e-9)
     assert competed == (spacing < p.refine_gate)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_suppression_matches_the_array_loop(seed):
+    from roco_env.policies.prior_free import PriorFreeParams, distinct_top, poses_distinct
+
+    rng = np.random.default_rng(seed)
+    # Clusters of near-identical poses (yaws straddling +-pi) and ties in the scores.
+    centres = np.column_stack([rng.uniform(-3, 3, (6, 2)), rng.choice([np.pi - 0.005, 0.3], 6)])
+    poses = centres[rng.integers(0, 6, 200)] + rng.normal(0, [0.2, 0.2, 0.01], (200, 3))
+    poses[:, 2] = np.mod(poses[:, 2] + np.pi, 2 * np.pi) - np.pi
+    scores = rng.integers(0, 8, 200).astype(float)
+    p = PriorFreeParams()
+    for count in (1, 3, 50):
+        kept, alive = [], np.ones(200, dtype=bool)
+        order = np.argsort(-scores, kind="stable")
+        while len(kept) < count and alive.any():
+            kept.append(int(order[alive[order]][0]))
+            alive &= poses_distinct(poses, poses[kept[-1]], p)
+        np.testing.assert_array_equal(distinct_top(poses, scores, count, p), kept)
+    assert len(kept) > 3  # clusters survive as separate hypotheses

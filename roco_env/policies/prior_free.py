@@ -58,7 +58,12 @@ from roco_env.policies.landmarks import (
     require_positive,
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
-from roco_env.policies.prior_free_kernels import fit_se2_kernel, gated_pairs, refine_rounds
+from roco_env.policies.prior_free_kernels import (
+    fit_se2_kernel,
+    gated_pairs,
+    refine_rounds,
+    suppress,
+)
 
 __all__ = [
     "CandidateSearch",
@@ -233,14 +238,9 @@ def distinct_top(poses: np.ndarray, scores: np.ndarray, count: int,
                  p: PriorFreeParams) -> np.ndarray:
     """Indices of up to ``count`` highest-scoring poses (H, 3), each distinct
     (:func:`poses_distinct`) from every better one kept (non-maximum suppression)."""
-    kept: list[int] = []
-    alive = np.ones(poses.shape[0], dtype=bool)
-    order = np.argsort(-scores, kind="stable")
-    while len(kept) < count and alive.any():
-        h = int(order[alive[order]][0])
-        kept.append(h)
-        alive &= poses_distinct(poses, poses[h], p)
-    return np.array(kept, dtype=np.int64)
+    return suppress(np.ascontiguousarray(poses, dtype=float),
+                    np.argsort(-np.asarray(scores, dtype=float), kind="stable"), int(count),
+                    float(p.distinct_distance), float(np.deg2rad(p.distinct_yaw_deg)))
 
 
 def poses_distinct(a: np.ndarray, b: np.ndarray, p: PriorFreeParams) -> np.ndarray:

@@ -18,7 +18,7 @@ from numba import njit
 
 __all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
            "grow_subgraph", "inlier_counts", "matching_pairs", "odist_scores",
-           "refine_rounds"]
+           "refine_rounds", "suppress"]
 
 
 @njit(cache=True)
@@ -301,3 +301,28 @@ def refine_rounds(pose, ego, own, gate, yaw_gate, rounds):
             return pose, done + 1, False
         pose = new
     return pose, rounds, False
+
+
+@njit(cache=True)
+def suppress(poses, order, count, distance, yaw):
+    """Non-maximum suppression: up to ``count`` indices of ``poses`` (H, 3) taken in
+    ``order`` (best first), each farther than ``distance`` m or ``yaw`` rad (wrapped to
+    (-pi, pi]) from every pose kept before it."""
+    alive = np.ones(poses.shape[0], dtype=np.bool_)
+    kept = []
+    q = 0
+    while len(kept) < count:
+        while q < order.size and not alive[order[q]]:
+            q += 1
+        if q == order.size:
+            break
+        h = order[q]
+        kept.append(h)
+        for j in range(poses.shape[0]):
+            if alive[j]:
+                turn = (poses[j, 2] - poses[h, 2] + np.pi) % (2.0 * np.pi) - np.pi
+                if turn <= -np.pi:
+                    turn += 2.0 * np.pi
+                alive[j] = (math.hypot(poses[j, 0] - poses[h, 0], poses[j, 1] - poses[h, 1])
+                            > distance or abs(turn) > yaw)
+    return np.array(kept, dtype=np.int64)
