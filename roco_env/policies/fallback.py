@@ -29,14 +29,16 @@ consistent matching and keeps the prior. This policy
    RPE on urban_intersection), and takes RoCo's result for these collaborators; a
    collaborator RoCo's other rules (matches, inliers) reject keeps the estimate;
 5. in the same second pass, every other collaborator RoCo itself moved by more than
-   ``refine_beyond_m`` m or ``refine_beyond_deg`` deg (default 1 / 1, RoCo's prior std
-   ``prior_sigma_t`` / ``prior_sigma_r_deg``; None / None switches this off) is solved
-   again with RoCo's own first-pass estimate as the prior. The first pass started
-   metres away: its prior term pulled the estimate back towards the wrong prior and its
-   first matching round saw the boxes through a displaced gate. Measured on
+   ``refine_beyond_m`` m or ``refine_beyond_deg`` deg (default 1 / 1, the std RoCo
+   gives the prior by default; None / None switches this off) is solved again with
+   RoCo's own first-pass estimate as the prior. A first pass that started metres away
+   is biased towards its prior by the prior term of RoCo's pose graph. Measured on
    urban_intersection at 2 m/deg (large_noise cell): 538 of 800 slots were corrections
    of more than 1 m that the first pass kept; their median error fell from 0.063 m /
    0.067 deg to 0.055 m / 0.060 deg, and AP@0.7 rose from 73.1 to 74.5 (oracle 75.7).
+   RoCo's first-pass errors on its corrections of more than 1 m (544 slots) lean
+   towards the prior's error: median projection on it 2.0 cm and 0.042 deg, 0.3 cm
+   and 0.014 deg after the second pass.
    The other collaborators keep the first pass's result.
 
 Parameters: ``fallback`` names the aligner; ``verify_beyond_m`` / ``verify_beyond_deg``
