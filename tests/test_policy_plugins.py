@@ -24,11 +24,7 @@ PLUGIN = textwrap.dedent('''
 def plugin(tmp_path, monkeypatch):
     """A module my_plugin_mod on sys.path and an installed distribution registering it."""
     (tmp_path / "my_plugin_mod.py").write_text(PLUGIN)
-    dist = tmp_path / "my_plugin-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: my-plugin\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text(
-        "[roco_env.policies]\nmine = my_plugin_mod:make_policy\n")
+    install_plugin(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
     return tmp_path
 
@@ -55,6 +51,41 @@ def test_compare_runs_a_users_policy_from_the_cli(plugin, tmp_path, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "my_plugin_mod:make_policy" in out and "mine" in out
+
+
+def install_plugin(folder):
+    """Write the installed-distribution metadata that registers ``mine``."""
+    dist = folder / "my_plugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: my-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(
+        "[roco_env.policies]\nmine = my_plugin_mod:make_policy\n")
+
+
+def test_entry_points_are_scanned_once_per_path(plugin, monkeypatch):
+    import importlib.metadata
+
+    scans = []
+    real = importlib.metadata.entry_points
+
+    def counting(**kwargs):
+        scans.append(kwargs)
+        return real(**kwargs)
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", counting)
+    monkeypatch.syspath_prepend(str(plugin / "elsewhere"))  # a new path: one new scan
+    for _ in range(3):
+        make_policy("identity")
+        make_policy("mine", gain=1.0)
+    assert "mine" in available_policies() and len(scans) == 1
+
+
+def test_a_plugin_installed_after_a_scan_is_found(tmp_path, monkeypatch):
+    (tmp_path / "my_plugin_mod.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert "mine" not in available_policies()  # scanned without it
+    install_plugin(tmp_path)  # same sys.path: the cached scan does not know it
+    assert make_policy("mine", gain=1.0)({"collab_mask": np.ones(2)})[0, 0] == 1.0
 
 
 def test_bad_targets_say_what_is_wrong(plugin):

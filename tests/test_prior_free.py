@@ -136,13 +136,39 @@ def test_roco_fallback_replaces_a_wrong_large_roco_correction(monkeypatch):
         return result
 
     monkeypatch.setattr(fallback, "roco_align", wrong_first_pass)
-    unchecked = roco_fallback_align(*scene.args(), verify_beyond_m=None,
-                                    verify_beyond_deg=None)
+    unchecked = roco_fallback_align(*scene.args(), verify_beyond_m=None, verify_beyond_deg=None,
+                                    refine_beyond_m=None, refine_beyond_deg=None)
     assert relative_pose_error(unchecked.corrected, scene.true)[0, 0] > 3.9
     calls.clear()
     checked = roco_fallback_align(*scene.args())
     assert len(calls) == 2 and "slots [0]: re-localised" in checked.reason
     assert np.all(relative_pose_error(checked.corrected, scene.true)[:, 0] < 0.15)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_roco_fallback_solves_a_far_correction_again_from_it(monkeypatch, seed):
+    """A slot RoCo itself moves beyond refine_beyond_m / _deg is solved by RoCo once more
+    with its own estimate as the prior (the first pass started metres away)."""
+    import roco_env.policies.fallback as fallback
+
+    scene = sparse_scene(seed, translation=2.5, rotation_deg=2.5)
+    calls = []
+
+    def recording(*args, **kwargs):
+        calls.append((np.array(args[4]), roco_align(*args, **kwargs)))
+        return calls[-1][1]
+
+    monkeypatch.setattr(fallback, "roco_align", recording)
+    once = roco_fallback_align(*scene.args(), refine_beyond_m=None, refine_beyond_deg=None)
+    assert len(calls) == 1 and np.array_equal(once.corrected, calls[0][1].corrected)
+    calls.clear()
+    result = roco_fallback_align(*scene.args())
+    (_, first), (prior, second) = calls
+    moved = relative_pose_error(first.corrected, scene.reported)[:, 0] > 1.0
+    assert moved.any() and "refined by roco from its own estimate" in result.reason
+    np.testing.assert_array_equal(prior[moved], first.corrected[moved])
+    np.testing.assert_array_equal(result.corrected[moved], second.corrected[moved])
+    assert np.all(relative_pose_error(result.corrected, scene.true)[:, 0] < 0.15)
 
 
 def test_policies_are_registered_and_act_in_the_ego_frame():
@@ -168,6 +194,7 @@ def test_policies_are_registered_and_act_in_the_ego_frame():
     ("roco_fallback", {"fallback_nope": 1}, "nope"),
     ("roco_fallback", {"nope": 1}, "nope"),
     ("roco_fallback", {"verify_beyond_m": -1.0}, "verify_beyond_m"),
+    ("roco_fallback", {"refine_beyond_deg": float("nan")}, "refine_beyond_deg"),
     ("v2i_calib", {"tau2": 1}, "tau2"),
 ])
 def test_bad_parameters_name_the_field(name, params, field):

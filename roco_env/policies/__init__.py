@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -49,11 +50,26 @@ _REGISTRY: dict[str, str] = {
 ENTRY_POINT_GROUP = "roco_env.policies"
 
 
-def _registry() -> dict[str, str]:
+# (sys.path when scanned, entry points found then): see _entry_points.
+_SCANNED: tuple[tuple, dict[str, str]] | None = None
+
+
+def _entry_points(refresh: bool = False) -> dict[str, str]:
+    """Installed packages' policies (name -> "module:factory"). A scan reads every
+    installed distribution's metadata (milliseconds), so it is kept until ``sys.path``
+    changes or ``refresh`` asks for a new one (make_policy does for an unknown name: a
+    package installed since the last scan)."""
+    global _SCANNED
+    if refresh or _SCANNED is None or _SCANNED[0] != tuple(sys.path):
+        found = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
+        _SCANNED = (tuple(sys.path), {ep.name: ep.value for ep in found})
+    return _SCANNED[1]
+
+
+def _registry(refresh: bool = False) -> dict[str, str]:
     """Built-in and registered policies, plus installed packages' entry points (which
     never replace a name already taken)."""
-    found = {ep.name: ep.value for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
-    return {**found, **_REGISTRY}
+    return {**_entry_points(refresh), **_REGISTRY}
 
 
 def available_policies() -> list[str]:
@@ -79,6 +95,8 @@ def register_policy(name: str, target: str) -> None:
 def make_policy(name: str, **params: Any) -> Callable:
     """Build the policy registered as ``name``, or imported from ``module:factory``."""
     registry = _registry()
+    if name not in registry and not is_import_target(name):
+        registry = _registry(refresh=True)
     if name in registry:
         target = registry[name]
     elif is_import_target(name):

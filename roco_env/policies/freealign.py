@@ -44,13 +44,15 @@ from scipy.spatial.distance import cdist
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
+    Proposer,
     aligner,
-    axial_difference,
     distinct_top,
     fit_se2,
 )
+from roco_env.policies.prior_free_kernels import descriptor_similarity, grow_subgraph
 
-__all__ = ["FreeAlignParams", "FreeAlignPolicy", "freealign_align", "common_subgraph"]
+__all__ = ["FreeAlignParams", "FreeAlignPolicy", "common_subgraph", "freealign_align",
+           "freealign_search"]
 
 
 @dataclass(frozen=True)
@@ -100,78 +102,68 @@ def _descriptors(distances: np.ndarray, count: int) -> np.ndarray:
 
 def _node_similarity(ego_d: np.ndarray, own_d: np.ndarray, tol: float) -> np.ndarray:
     """sim (M, K): how many of node i's descriptor distances find a distance of node k
-    within ``tol`` m (padding never matches)."""
-    a, b = ego_d.astype(np.float32), own_d.astype(np.float32)
-    diff = np.abs(a[:, None, :, None] - b[None, :, None, :])
-    return (diff <= tol).any(axis=3).sum(axis=2).astype(float)
+    within ``tol`` m (padding never matches); compared in float32."""
+    return descriptor_similarity(ego_d.astype(np.float32), own_d.astype(np.float32),
+                                 np.float32(tol))
 
 
 def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
-                    tol: float, yaw_ok: np.ndarray | None = None,
+                    tol: float, headings: tuple[np.ndarray, np.ndarray, float] | None = None,
                     max_nodes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Grow the common subgraph of two distance matrices (M, M), (K, K) from ``seed``.
 
-    yaw_ok (M, K) bool, optional: node pairs whose headings relative to the seed agree;
+    Candidate node pairs are those whose distances to the seed agree within ``tol`` m,
+    taken in order of that agreement; one joins when its distances to every node
+    already in the subgraph agree within ``tol`` and it reuses neither box.
+    headings (ego yaw (M,), own yaw (K,), tolerance rad), optional: a pair must also
+    have headings relative to the seed's that agree within the tolerance modulo pi;
     max_nodes: stop growing at this many nodes (None = until no pair agrees).
     Returns the matched (ego nodes, own nodes), seed first.
     """
-    i, k = seed
-    error = np.abs(ego_d[i][:, None] - own_d[k][None, :])
-    ok = error <= tol
-    ok[i, :] = False
-    ok[:, k] = False
-    if yaw_ok is not None:
-        ok &= yaw_ok
-    rows, cols = np.nonzero(ok)
-    order = np.argsort(error[rows, cols], kind="stable")
-    rows, cols = rows[order], cols[order]
-    # Candidates stay alive while they agree with every accepted node and use neither of
-    # its boxes; each acceptance updates all of them at once.
-    alive = np.ones(rows.size, dtype=bool)
-    nodes_e, nodes_o = [i], [k]
-    while max_nodes is None or len(nodes_e) < max_nodes:
-        live = np.flatnonzero(alive)
-        if live.size == 0:
-            break
-        r, c = int(rows[live[0]]), int(cols[live[0]])
-        nodes_e.append(r)
-        nodes_o.append(c)
-        alive[live] = (np.abs(ego_d[rows[live], r] - own_d[cols[live], c]) <= tol) & (
-            rows[live] != r) & (cols[live] != c)
-    return np.array(nodes_e), np.array(nodes_o)
+    ego_yaw, own_yaw, yaw_tol = headings if headings is not None else (
+        np.zeros(ego_d.shape[0]), np.zeros(own_d.shape[0]), -1.0)
+    return grow_subgraph(np.ascontiguousarray(ego_d, dtype=float),
+                         np.ascontiguousarray(own_d, dtype=float), int(seed[0]), int(seed[1]),
+                         float(tol), np.ascontiguousarray(ego_yaw, dtype=float),
+                         np.ascontiguousarray(own_yaw, dtype=float), float(yaw_tol),
+                         -1 if max_nodes is None else int(max_nodes))
 
 
-def freealign_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
-                         p: FreeAlignParams) -> np.ndarray:
-    """Candidate T_{j->i} (H, 3), largest common subgraph first, from (M, 7), (K, 7) boxes."""
-    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
-    ego_d, own_d = cdist(ego[:, :2], ego[:, :2]), cdist(own[:, :2], own[:, :2])
-    sim = _node_similarity(_descriptors(ego_d, p.descriptor_neighbors),
-                           _descriptors(own_d, p.descriptor_neighbors), p.edge_tolerance)
-    count = min(int(p.anchors), sim.size)
-    seeds = np.argsort(-sim, axis=None, kind="stable")[:count]
-    found: list[tuple[int, np.ndarray]] = []
-    for seed in seeds:
-        i, k = np.unravel_index(seed, sim.shape)
-        yaw_ok = None
-        if p.edge_yaw_tolerance_deg is not None:
-            # Headings relative to the seed's are pose invariant (modulo pi).
-            yaw_ok = axial_difference((ego[:, 2] - ego[i, 2])[:, None],
-                                      (own[:, 2] - own[k, 2])[None, :]) <= np.deg2rad(
-                p.edge_yaw_tolerance_deg)
-        nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)), p.edge_tolerance,
-                                           yaw_ok, p.max_subgraph)
-        if nodes_e.size >= p.min_subgraph:
-            found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
-    if not found:
-        return np.zeros((0, 3))
-    mass = np.array([m for m, _ in found], dtype=float)
-    poses = np.array([pose for _, pose in found])
-    top = distinct_top(poses, mass, p.max_candidates, p)
-    return poses[top]
+def freealign_search(ego_boxes: np.ndarray, p: FreeAlignParams) -> Proposer:
+    """The FreeAlign proposer for ego boxes (M, 7): collaborator boxes (K, 7) -> candidate
+    T_{j->i} (H, 3), largest common subgraph first. The ego's graph is built once."""
+    ego = ego_boxes[:, [0, 1, 6]]
+    ego_d = cdist(ego[:, :2], ego[:, :2])
+    ego_desc = _descriptors(ego_d, p.descriptor_neighbors)
+
+    def propose(own_boxes: np.ndarray) -> np.ndarray:
+        own = own_boxes[:, [0, 1, 6]]
+        own_d = cdist(own[:, :2], own[:, :2])
+        # Headings relative to the seed's are pose invariant (modulo pi).
+        headings = None if p.edge_yaw_tolerance_deg is None else (
+            ego[:, 2], own[:, 2], float(np.deg2rad(p.edge_yaw_tolerance_deg)))
+        sim = _node_similarity(ego_desc, _descriptors(own_d, p.descriptor_neighbors),
+                               p.edge_tolerance)
+        count = min(int(p.anchors), sim.size)
+        seeds = np.argsort(-sim, axis=None, kind="stable")[:count]
+        found: list[tuple[int, np.ndarray]] = []
+        for seed in seeds:
+            i, k = np.unravel_index(seed, sim.shape)
+            nodes_e, nodes_o = common_subgraph(ego_d, own_d, (int(i), int(k)),
+                                               p.edge_tolerance, headings, p.max_subgraph)
+            if nodes_e.size >= p.min_subgraph:
+                found.append((nodes_e.size, fit_se2(own[nodes_o, :2], ego[nodes_e, :2])))
+        if not found:
+            return np.zeros((0, 3))
+        mass = np.array([m for m, _ in found], dtype=float)
+        poses = np.array([pose for _, pose in found])
+        top = distinct_top(poses, mass, p.max_candidates, p)
+        return poses[top]
+
+    return propose
 
 
-freealign_align = aligner(freealign_candidates, FreeAlignParams, "freealign",
+freealign_align = aligner(freealign_search, FreeAlignParams, "freealign",
                           "Correct the collaborators' relative poses with FreeAlign "
                           "(distance-matrix node features instead of the learned GNN).")
 

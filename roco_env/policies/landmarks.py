@@ -13,6 +13,7 @@ Poses are in the ego's reported frame (ego = identity); metres and radians.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -248,7 +249,26 @@ def pairs_from_observations(
 
 def params_from_kwargs(cls: type, kwargs: dict, method: str):
     """Build the parameter dataclass ``cls`` from keyword arguments; an unknown name
-    raises ValueError listing the accepted ones."""
+    raises ValueError listing the accepted ones.
+
+    The parameter classes are frozen, so one instance serves every call with the same
+    keywords (same names, types and values): aligners are called every frame with the
+    same keywords, and the type checks read the class's annotations (about 0.7 ms).
+    """
+    try:
+        key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))
+        hash(key)
+    except TypeError:  # an unhashable value: build without the cache
+        return _build_params(cls, kwargs, method)
+    return _cached_params(cls, key, method)
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_params(cls: type, key: tuple, method: str):
+    return _build_params(cls, {name: value for name, _, value in key}, method)
+
+
+def _build_params(cls: type, kwargs: dict, method: str):
     allowed = sorted(cls.__dataclass_fields__)
     unknown = sorted(set(kwargs) - set(allowed))
     if unknown:

@@ -58,11 +58,18 @@ from roco_env.policies.landmarks import (
     require_positive,
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
+from roco_env.policies.prior_free_kernels import (
+    fit_se2_kernel,
+    gated_pairs,
+    refine_rounds,
+    suppress,
+)
 
 __all__ = [
     "CandidateSearch",
     "PriorFreeParams",
     "PriorFreePolicy",
+    "Proposer",
     "aligner",
     "axial_difference",
     "consensus",
@@ -75,9 +82,12 @@ __all__ = [
     "support",
 ]
 
-# A candidate search maps (ego boxes (M, 7), collaborator boxes (K, 7) in its own frame,
-# params) to candidate T_{j->i} (H, 3), best first by the method's own ranking.
-CandidateSearch = Callable[[np.ndarray, np.ndarray, "PriorFreeParams"], np.ndarray]
+# A candidate search maps (ego boxes (M, 7), params) to a proposer: a function of one
+# collaborator's boxes (K, 7) in its own frame returning candidate T_{j->i} (H, 3), best
+# first by the method's own ranking. The ego side (pairs, neighbourhoods, distances) is
+# prepared once per frame and shared by every collaborator.
+Proposer = Callable[[np.ndarray], np.ndarray]
+CandidateSearch = Callable[[np.ndarray, "PriorFreeParams"], Proposer]
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
@@ -156,15 +166,8 @@ def fit_se2(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None)
     atan2 of C's antisymmetric and symmetric parts), then t = mean_dst - R mean_src.
     """
     w = np.ones(src.shape[0]) if weights is None else np.asarray(weights, dtype=float)
-    w = w / w.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    s, d = src - mu_s, dst - mu_d
-    sxx, syy = w @ (s[:, 0] * d[:, 0]), w @ (s[:, 1] * d[:, 1])
-    sxy, syx = w @ (s[:, 0] * d[:, 1]), w @ (s[:, 1] * d[:, 0])
-    theta = np.arctan2(sxy - syx, sxx + syy)
-    c, sn = np.cos(theta), np.sin(theta)
-    t = mu_d - np.array([c * mu_s[0] - sn * mu_s[1], sn * mu_s[0] + c * mu_s[1]])
-    return np.array([t[0], t[1], theta])
+    return fit_se2_kernel(np.ascontiguousarray(src, dtype=float),
+                          np.ascontiguousarray(dst, dtype=float), w / w.sum())
 
 
 def _associate(
@@ -176,26 +179,19 @@ def _associate(
     Returns (ego index, own index, distance)."""
     if ego.shape[0] == 0 or own.shape[0] == 0:
         return _EMPTY, _EMPTY, np.zeros(0)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    x = pose[0] + c * own[:, 0] - s * own[:, 1]
-    y = pose[1] + s * own[:, 0] + c * own[:, 1]
-    dx = ego[:, None, 0] - x[None, :]
-    dy = ego[:, None, 1] - y[None, :]
-    dist2 = dx * dx + dy * dy
-    ok = dist2 <= gate * gate
-    rows, cols = np.nonzero(ok)
-    if yaw_gate is not None and rows.size:
-        good = axial_difference(ego[rows, 2], own[cols, 2] + pose[2]) <= yaw_gate
-        ok[rows[~good], cols[~good]] = False
-        rows, cols = rows[good], cols[good]
-    if rows.size == 0:
-        return _EMPTY, _EMPTY, np.zeros(0)
-    # rows come sorted from np.nonzero: distinct iff no two neighbours are equal.
-    if np.all(rows[1:] != rows[:-1]) and np.bincount(cols).max() == 1:
-        return rows, cols, np.sqrt(dist2[rows, cols])
-    r, c = linear_sum_assignment(np.where(ok, np.sqrt(dist2), 1e6))
+    yaw = float(pose[2])
+    rows, cols, dist2, one_to_one = gated_pairs(
+        float(pose[0]), float(pose[1]), float(np.cos(yaw)), float(np.sin(yaw)), yaw, ego, own,
+        float(gate), -1.0 if yaw_gate is None else float(yaw_gate))
+    if one_to_one:
+        return rows, cols, np.sqrt(dist2)
+    cost = np.full((ego.shape[0], own.shape[0]), 1e6)
+    cost[rows, cols] = np.sqrt(dist2)
+    ok = np.zeros(cost.shape, dtype=bool)
+    ok[rows, cols] = True
+    r, c = linear_sum_assignment(cost)
     keep = ok[r, c]
-    return r[keep], c[keep], np.sqrt(dist2[r[keep], c[keep]])
+    return r[keep], c[keep], cost[r[keep], c[keep]]
 
 
 def consensus(
@@ -216,10 +212,19 @@ def support(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
 
 def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
                 p: PriorFreeParams) -> np.ndarray:
-    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit."""
+    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit
+    (compiled while the associations are one-to-one; a round whose boxes compete runs
+    here with the Hungarian assignment)."""
     pose = np.asarray(pose, dtype=float).copy()
-    for _ in range(int(p.refine_iterations)):
-        e, o, _ = _associate(pose, ego, own, p.refine_gate, np.deg2rad(p.inlier_yaw_deg))
+    gate, yaw_gate = float(p.refine_gate), float(np.deg2rad(p.inlier_yaw_deg))
+    remaining = int(p.refine_iterations)
+    while remaining > 0:
+        pose, done, competing = refine_rounds(pose, ego, own, gate, yaw_gate, remaining)
+        remaining -= done
+        if not competing:
+            break
+        e, o, _ = _associate(pose, ego, own, gate, yaw_gate)
+        remaining -= 1
         if e.size < 2:
             break
         new = fit_se2(own[o, :2], ego[e, :2])
@@ -233,14 +238,9 @@ def distinct_top(poses: np.ndarray, scores: np.ndarray, count: int,
                  p: PriorFreeParams) -> np.ndarray:
     """Indices of up to ``count`` highest-scoring poses (H, 3), each distinct
     (:func:`poses_distinct`) from every better one kept (non-maximum suppression)."""
-    kept: list[int] = []
-    alive = np.ones(poses.shape[0], dtype=bool)
-    order = np.argsort(-scores, kind="stable")
-    while len(kept) < count and alive.any():
-        h = int(order[alive[order]][0])
-        kept.append(h)
-        alive &= poses_distinct(poses, poses[h], p)
-    return np.array(kept, dtype=np.int64)
+    return suppress(np.ascontiguousarray(poses, dtype=float),
+                    np.argsort(-np.asarray(scores, dtype=float), kind="stable"), int(count),
+                    float(p.distinct_distance), float(np.deg2rad(p.distinct_yaw_deg)))
 
 
 def poses_distinct(a: np.ndarray, b: np.ndarray, p: PriorFreeParams) -> np.ndarray:
@@ -277,7 +277,7 @@ def _final_solve(pose: np.ndarray, ego: np.ndarray, own: np.ndarray, info: np.nd
 
 
 def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
-                reported: np.ndarray, search: CandidateSearch,
+                reported: np.ndarray, propose: Proposer | None,
                 p: PriorFreeParams) -> _SlotOutcome:
     keep = _SlotOutcome(reported, False, (_EMPTY, _EMPTY))
     if min(ego_boxes.shape[0], own_boxes.shape[0]) < 2:
@@ -285,7 +285,7 @@ def _align_slot(ego_boxes: np.ndarray, own_boxes: np.ndarray, info: np.ndarray,
         keep.reason = f"{count} boxes: an SE(2) pose needs >= 2"
         return keep
     ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
-    candidates = np.asarray(search(ego_boxes, own_boxes, p), dtype=float).reshape(-1, 3)
+    candidates = np.asarray(propose(own_boxes), dtype=float).reshape(-1, 3)
     candidates = candidates[: p.max_candidates]
     keep.candidates = candidates.shape[0]
     if candidates.shape[0] == 0:
@@ -347,9 +347,11 @@ def prior_free_align(
     outer = solver = 0
     boxes = [np.asarray(b, dtype=float).reshape(-1, 7) for b in [ego_boxes, *collab_boxes]]
     ego = inputs.poses[0]
+    # _align_slot needs no proposer when the ego has too few boxes for a pose.
+    propose = search(boxes[0], p) if boxes[0].shape[0] >= 2 else None
     for j in range(n):
         out = _align_slot(boxes[0], boxes[j + 1], inputs.information[j + 1],
-                          inputs.reported[j], search, p)
+                          inputs.reported[j], propose, p)
         outer, solver = outer + out.candidates, solver + out.solver
         if out.reason:
             reasons.append(f"slot {j}: {out.reason}")

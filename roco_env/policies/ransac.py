@@ -44,13 +44,14 @@ from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
+    Proposer,
     aligner,
-    axial_difference,
     content_seed,
     distinct_top,
 )
+from roco_env.policies.prior_free_kernels import inlier_counts, matching_pairs
 
-__all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_candidates"]
+__all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_search"]
 
 
 @dataclass(frozen=True)
@@ -106,64 +107,47 @@ def _pairs(poses: np.ndarray, ordered: bool, p: RansacParams) -> tuple:
     return a, b, length, poses[b, 2] - poses[a, 2], angle - poses[a, 2], angle
 
 
-def ransac_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
-                      p: RansacParams) -> np.ndarray:
-    """Candidate T_{j->i} (H, 3), best first, from ego (M, 7) and own (K, 7) boxes."""
-    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
+def ransac_search(ego_boxes: np.ndarray, p: RansacParams) -> Proposer:
+    """The RANSAC proposer for ego boxes (M, 7): collaborator boxes (K, 7) -> candidate
+    T_{j->i} (H, 3), best first. The ego's ordered pairs are formed once per frame."""
+    ego = ego_boxes[:, [0, 1, 6]]
     ea, eb, elen, erel, ebear, eang = _pairs(ego, True, p)
-    ca, cb, clen, crel, cbear, cang = _pairs(own, False, p)
-    if elen.size == 0 or clen.size == 0:
-        return np.zeros((0, 3))
     order = np.argsort(elen)
-    lo = np.searchsorted(elen[order], clen - p.pair_tolerance, "left")
-    hi = np.searchsorted(elen[order], clen + p.pair_tolerance, "right")
-    counts = hi - lo
-    own_idx = np.repeat(np.arange(clen.size), counts)
-    starts = np.repeat(lo - np.cumsum(counts) + counts, counts)
-    ego_idx = order[np.arange(own_idx.size) + starts]
-    if p.use_yaw_invariants:
-        tol = np.deg2rad(p.yaw_tolerance_deg)
-        ok = (axial_difference(erel[ego_idx], crel[own_idx]) <= tol) & (
-            axial_difference(ebear[ego_idx], cbear[own_idx]) <= tol)
-        ego_idx, own_idx = ego_idx[ok], own_idx[ok]
-    if ego_idx.size == 0:
-        return np.zeros((0, 3))
-    if ego_idx.size > p.max_hypotheses:
-        rng = np.random.default_rng(content_seed(ego, own))
-        pick = np.sort(rng.choice(ego_idx.size, size=int(p.max_hypotheses), replace=False))
-        ego_idx, own_idx = ego_idx[pick], own_idx[pick]
-    theta = eang[ego_idx] - cang[own_idx]
-    c, s = np.cos(theta), np.sin(theta)
-    e_mid = (ego[ea[ego_idx], :2] + ego[eb[ego_idx], :2]) / 2.0
-    c_mid = (own[ca[own_idx], :2] + own[cb[own_idx], :2]) / 2.0
-    tx = e_mid[:, 0] - (c * c_mid[:, 0] - s * c_mid[:, 1])
-    ty = e_mid[:, 1] - (s * c_mid[:, 0] + c * c_mid[:, 1])
-    poses = np.column_stack([tx, ty, theta])
-    scored = own
-    if p.score_boxes is not None and own.shape[0] > p.score_boxes:
-        scored = own[np.linspace(0, own.shape[0] - 1, int(p.score_boxes)).astype(int)]
-    scores = _inlier_counts(poses, ego, scored, p)
-    top = distinct_top(poses, scores.astype(float), p.max_candidates, p)
-    return poses[top]
+    elen_sorted = elen[order]
+    yaw_tol = float(np.deg2rad(p.yaw_tolerance_deg)) if p.use_yaw_invariants else -1.0
+
+    def propose(own_boxes: np.ndarray) -> np.ndarray:
+        own = own_boxes[:, [0, 1, 6]]
+        ca, cb, clen, crel, cbear, cang = _pairs(own, False, p)
+        if elen.size == 0 or clen.size == 0:
+            return np.zeros((0, 3))
+        ego_idx, own_idx = matching_pairs(elen_sorted, order, clen, erel, ebear, crel, cbear,
+                                          float(p.pair_tolerance), yaw_tol)
+        if ego_idx.size == 0:
+            return np.zeros((0, 3))
+        if ego_idx.size > p.max_hypotheses:
+            rng = np.random.default_rng(content_seed(ego, own))
+            pick = np.sort(rng.choice(ego_idx.size, size=int(p.max_hypotheses), replace=False))
+            ego_idx, own_idx = ego_idx[pick], own_idx[pick]
+        theta = eang[ego_idx] - cang[own_idx]
+        c, s = np.cos(theta), np.sin(theta)
+        e_mid = (ego[ea[ego_idx], :2] + ego[eb[ego_idx], :2]) / 2.0
+        c_mid = (own[ca[own_idx], :2] + own[cb[own_idx], :2]) / 2.0
+        tx = e_mid[:, 0] - (c * c_mid[:, 0] - s * c_mid[:, 1])
+        ty = e_mid[:, 1] - (s * c_mid[:, 0] + c * c_mid[:, 1])
+        scored = own
+        if p.score_boxes is not None and own.shape[0] > p.score_boxes:
+            scored = own[np.linspace(0, own.shape[0] - 1, int(p.score_boxes)).astype(int)]
+        scores = inlier_counts(tx, ty, c, s, theta, ego, scored, float(p.inlier_distance),
+                               float(np.deg2rad(p.inlier_yaw_deg)))
+        poses = np.column_stack([tx, ty, theta])
+        top = distinct_top(poses, scores.astype(float), p.max_candidates, p)
+        return poses[top]
+
+    return propose
 
 
-def _inlier_counts(poses: np.ndarray, ego: np.ndarray, own: np.ndarray,
-                   p: RansacParams) -> np.ndarray:
-    """Inliers (H,) per hypothesis: own boxes with an ego box within the gates."""
-    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    x = poses[:, 0:1] + c * own[None, :, 0] - s * own[None, :, 1]
-    y = poses[:, 1:2] + s * own[None, :, 0] + c * own[None, :, 1]
-    dist, nearest = cKDTree(ego[:, :2]).query(
-        np.column_stack([x.ravel(), y.ravel()]), distance_upper_bound=p.inlier_distance)
-    found = np.isfinite(dist)
-    yaw = (poses[:, 2:3] + own[None, :, 2]).ravel()
-    ok = found.copy()
-    ok[found] = axial_difference(ego[nearest[found], 2], yaw[found]) <= np.deg2rad(
-        p.inlier_yaw_deg)
-    return ok.reshape(poses.shape[0], own.shape[0]).sum(axis=1)
-
-
-ransac_align = aligner(ransac_candidates, RansacParams, "ransac",
+ransac_align = aligner(ransac_search, RansacParams, "ransac",
                        "Correct the collaborators' relative poses by box-correspondence RANSAC.")
 
 

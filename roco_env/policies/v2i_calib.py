@@ -19,8 +19,8 @@ turned by f), so a pair is scored without mapping whole scenes. ``metric`` picks
   r = ``odist_threshold`` m and d the centre distance, and 0 when the headings differ
   by more than ``inlier_yaw_deg`` (modulo pi). The paper measures box distance on box
   vertices; a centre distance with a heading gate is our choice (the vertex distance
-  of two same-size boxes is a function of these two), and the quadratic form lets all
-  K x M anchors be scored by one matrix product.
+  of two same-size boxes is a function of these two), and it scores all K x M anchors
+  in one compiled loop (the pi turn only negates the collaborator's local centres).
 
 Choices the papers leave open or that we made for speed, each a parameter:
 ``neighbors`` (the N(i): each box's nearest boxes, None = all boxes; the papers use all
@@ -52,12 +52,15 @@ from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
+    Proposer,
     aligner,
     distinct_top,
     fit_se2,
 )
+from roco_env.policies.prior_free_kernels import odist_scores
 
-__all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align"]
+__all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align",
+           "v2i_calib_search"]
 
 METRICS = ("odist", "oiou")
 ASSOCIATIONS = ("sinkhorn", "hungarian")
@@ -104,11 +107,13 @@ def _local_neighbours(boxes: np.ndarray, count: int | None) -> tuple[np.ndarray,
     return local, near
 
 
-def affinity_matrix(ego: np.ndarray, own: np.ndarray,
-                    p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
+def affinity_matrix(ego: np.ndarray, own: np.ndarray, p: V2ICalibParams,
+                    ego_neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Affinity A (M, K) of every (ego box, collaborator box) anchor pair and the heading
-    flip f (M, K) in {0, pi} that achieves it. ego (M, 7) / own (K, 7) boxes."""
-    ego_local, ego_near = _local_neighbours(ego, p.neighbors)
+    flip f (M, K) in {0, pi} that achieves it. ego (M, 7) / own (K, 7) boxes;
+    ego_neighbours: the ego's ``_local_neighbours`` when already computed."""
+    ego_local, ego_near = ego_neighbours or _local_neighbours(ego, p.neighbors)
     own_local, own_near = _local_neighbours(own, p.neighbors)
     m, k = ego.shape[0], own.shape[0]
     if ego_local.shape[1] == 0 or own_local.shape[1] == 0:
@@ -125,28 +130,15 @@ def affinity_matrix(ego: np.ndarray, own: np.ndarray,
 def _odist(ego_local: np.ndarray, own_local: np.ndarray,
            p: V2ICalibParams) -> tuple[np.ndarray, np.ndarray]:
     """sum_m max_n max(0, 1 - d^2/r^2) [heading gate] for all anchors, unturned and
-    turned by pi (turning negates the cross term of d^2; the gate is modulo pi)."""
-    m, n, _ = ego_local.shape
-    k, q, _ = own_local.shape
-    # float32 matrix products: the (M N) x (K N) tables dominate the cost.
-    a = ego_local[..., :2].reshape(-1, 2).astype(np.float32)
-    # Columns ordered (neighbour, anchor) so the max over neighbours runs over whole
-    # contiguous rows of K values (a reduction over a short last axis is slow).
-    own_local = own_local.transpose(1, 0, 2)
-    b = own_local[..., :2].reshape(-1, 2).astype(np.float32)
-    inv_r2 = np.float32(1.0 / p.odist_threshold**2)
-    cross = (2.0 * inv_r2) * (a @ b.T)
-    base = (1.0 - inv_r2 * (a * a).sum(1))[:, None] - (inv_r2 * (b * b).sum(1))[None, :]
-    two_a, two_b = 2.0 * ego_local[..., 2].reshape(-1), 2.0 * own_local[..., 2].reshape(-1)
-    # cos(2 (yaw_a - yaw_b)) >= cos(2 gate) <=> heading difference modulo pi within gate.
-    cos2 = np.column_stack([np.cos(two_a), np.sin(two_a)]).astype(np.float32) @ (
-        np.column_stack([np.cos(two_b), np.sin(two_b)]).astype(np.float32).T)
-    base[cos2 < np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))] = -np.inf
-    out = []
-    for sim in (base + cross, base - cross):
-        np.maximum(sim, 0.0, out=sim)
-        out.append(sim.reshape(m, n, q, k).max(axis=2).sum(axis=1, dtype=np.float64))
-    return out[0], out[1]
+    turned by pi (turning negates the collaborator's local centres; the gate is modulo
+    pi, so it is the same for both)."""
+    def doubled(local: np.ndarray) -> np.ndarray:
+        # cos(2 (yaw_a - yaw_b)) >= cos(2 gate) <=> heading difference modulo pi within gate.
+        return np.stack([np.cos(2.0 * local[..., 2]), np.sin(2.0 * local[..., 2])], axis=-1)
+
+    return odist_scores(np.ascontiguousarray(ego_local), np.ascontiguousarray(own_local),
+                        doubled(ego_local), doubled(own_local), 1.0 / p.odist_threshold**2,
+                        float(np.cos(2.0 * np.deg2rad(min(p.inlier_yaw_deg, 45.0)))))
 
 
 def _oiou(ego: np.ndarray, own: np.ndarray, ego_local: np.ndarray, own_local: np.ndarray,
@@ -191,9 +183,12 @@ def sinkhorn(scores: np.ndarray, dustbin: float, iterations: int) -> np.ndarray:
     nu = np.concatenate([np.ones(k), [m]])
     a, b = np.ones(m + 1), np.ones(k + 1)
     tiny = np.finfo(float).tiny
+    # BLAS products, not a compiled loop: in symmetric layouts (a line of equally spaced
+    # boxes) transport partners tie exactly and a different summation order flips them.
+    row, col = np.empty(m + 1), np.empty(k + 1)
     for _ in range(int(iterations)):
-        a = mu / np.maximum(kernel @ b, tiny)
-        b = nu / np.maximum(kernel.T @ a, tiny)
+        np.divide(mu, np.maximum(np.dot(kernel, b, out=row), tiny, out=row), out=a)
+        np.divide(nu, np.maximum(np.dot(kernel.T, a, out=col), tiny, out=col), out=b)
     return np.log(np.maximum(kernel * a[:, None] * b[None, :], tiny))
 
 
@@ -212,26 +207,32 @@ def _associate(affinity: np.ndarray, p: V2ICalibParams) -> tuple[np.ndarray, np.
     return rows[keep], cols[keep]
 
 
-def v2i_calib_candidates(ego_boxes: np.ndarray, own_boxes: np.ndarray,
-                         p: V2ICalibParams) -> np.ndarray:
-    """Candidate T_{j->i} (H, 3), best first, from ego (M, 7) and own (K, 7) boxes."""
-    affinity, flip = affinity_matrix(ego_boxes, own_boxes, p)
-    rows, cols = _associate(affinity, p)
-    if rows.size == 0:
-        return np.zeros((0, 3))
-    ego, own = ego_boxes[:, [0, 1, 6]], own_boxes[:, [0, 1, 6]]
-    turned = own[cols].copy()
-    turned[:, 2] += flip[rows, cols]
-    single = se2_compose(ego[rows], se2_inverse(turned))
-    weight = affinity[rows, cols]
-    top = distinct_top(single, weight, p.max_candidates, p)
-    candidates = single[top]
-    if rows.size >= 2:
-        candidates = np.vstack([fit_se2(own[cols, :2], ego[rows, :2], weight), candidates])
-    return candidates
+def v2i_calib_search(ego_boxes: np.ndarray, p: V2ICalibParams) -> Proposer:
+    """The V2I-Calib proposer for ego boxes (M, 7): collaborator boxes (K, 7) ->
+    candidate T_{j->i} (H, 3), best first. The ego's neighbourhoods are formed once."""
+    ego_neighbours = _local_neighbours(ego_boxes, p.neighbors)
+    ego = ego_boxes[:, [0, 1, 6]]
+
+    def propose(own_boxes: np.ndarray) -> np.ndarray:
+        affinity, flip = affinity_matrix(ego_boxes, own_boxes, p, ego_neighbours)
+        rows, cols = _associate(affinity, p)
+        if rows.size == 0:
+            return np.zeros((0, 3))
+        own = own_boxes[:, [0, 1, 6]]
+        turned = own[cols].copy()
+        turned[:, 2] += flip[rows, cols]
+        single = se2_compose(ego[rows], se2_inverse(turned))
+        weight = affinity[rows, cols]
+        top = distinct_top(single, weight, p.max_candidates, p)
+        candidates = single[top]
+        if rows.size >= 2:
+            candidates = np.vstack([fit_se2(own[cols, :2], ego[rows, :2], weight), candidates])
+        return candidates
+
+    return propose
 
 
-v2i_calib_align = aligner(v2i_calib_candidates, V2ICalibParams, "v2i_calib",
+v2i_calib_align = aligner(v2i_calib_search, V2ICalibParams, "v2i_calib",
                           "Correct the collaborators' relative poses with V2I-Calib(++).")
 
 
