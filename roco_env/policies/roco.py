@@ -85,7 +85,7 @@ from roco_env.policies.posegraph import (
     robust_kernel,
 )
 
-__all__ = ["NOT_SIGNIFICANT", "RoCoParams", "RoCoPolicy", "roco_align"]
+__all__ = ["NOT_SIGNIFICANT", "RoCoParams", "RoCoPolicy", "checked_params", "roco_align", "roco_solve"]
 
 # Start of the reason for a prior kept by the significance test: the matched evidence is
 # consistent with the reported pose (a checked prior, unlike "no boxes" or too few matches).
@@ -406,6 +406,22 @@ def _commit(
     world.obs_land = np.concatenate([world.obs_land, att.match_land, new_ids])
 
 
+def checked_params(cls: type, kwargs: dict, method: str):
+    """:func:`~roco_env.policies.landmarks.params_from_kwargs`, memoised for keyword
+    arguments whose values are hashable (the parameter dataclasses are frozen, so one
+    instance serves every call with the same arguments; checking them costs ~1 ms)."""
+    key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))
+    try:
+        return _checked_params(cls, method, key)
+    except TypeError:  # an unhashable value (e.g. a list): checked on every call
+        return params_from_kwargs(cls, kwargs, method)
+
+
+@lru_cache(maxsize=64)
+def _checked_params(cls: type, method: str, key: tuple):
+    return params_from_kwargs(cls, {name: value for name, _, value in key}, method)
+
+
 def roco_align(
     ego_boxes: np.ndarray,
     ego_unc: np.ndarray,
@@ -425,8 +441,20 @@ def roco_align(
     prior edges and the do-no-harm test always use the reported ones).
     params: fields of :class:`RoCoParams`. Returns corrected T_{j->i} and diagnostics.
     """
-    p = params_from_kwargs(RoCoParams, params, "roco")
+    p = checked_params(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
+    return roco_solve(inputs, p, initial)
+
+
+def roco_solve(
+    inputs: AlignmentInputs,
+    p: RoCoParams,
+    initial: np.ndarray | None = None,
+    excluded: frozenset[int] = frozenset(),
+) -> AlignmentResult:
+    """:func:`roco_align` on validated inputs (:func:`~roco_env.policies.landmarks.prepare_inputs`)
+    and checked parameters. Collaborator slots in ``excluded`` are treated as if they sent
+    no boxes (reason "no boxes"; their reported poses are kept)."""
     start = inputs.reported if initial is None else np.asarray(initial, dtype=float)
     if start.shape != inputs.reported.shape or not np.all(np.isfinite(start)):
         raise ValueError(
@@ -440,12 +468,13 @@ def roco_align(
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
     outer = solver = 0
+    has_boxes = [inputs.poses[a].shape[0] > 0 and a - 1 not in excluded for a in range(n + 1)]
     queue = list(range(1, n + 1))
     retried: set[int] = set()
     accepted_since_joint = False
     while queue:
         agent = queue.pop(0)
-        if inputs.poses[agent].shape[0] == 0:
+        if not has_boxes[agent]:
             reasons[agent - 1] = "no boxes"
             continue
         att = _attempt(inputs, world, agent, p, start[agent - 1])
@@ -456,7 +485,7 @@ def roco_align(
             accepted_since_joint = True
             # The map grew: collaborators that failed earlier get one more try.
             failed = [a for a in range(1, agent) if reasons[a - 1] and a not in retried]
-            failed = [a for a in failed if inputs.poses[a].shape[0] and a not in queue]
+            failed = [a for a in failed if has_boxes[a] and a not in queue]
             retried.update(failed)
             queue.extend(failed)
     if accepted_since_joint and not p.joint_every_round:
@@ -487,4 +516,4 @@ class RoCoPolicy(ArrayAlignmentPolicy):
     """RoCo as an env policy: ``RoCoPolicy(**params)(obs, info=None) -> action (N, 3)``."""
 
     def __init__(self, **params) -> None:
-        super().__init__(roco_align, params_from_kwargs(RoCoParams, params, "roco"), params)
+        super().__init__(roco_align, checked_params(RoCoParams, params, "roco"), params)
