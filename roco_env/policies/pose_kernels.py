@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums"]
+__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "solve_pose"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -153,3 +153,281 @@ def damped_step(hess, grad, lam, min_diag):
             acc -= a[i, k] * delta[k]
         delta[i] = acc / a[i, i]
     return delta, max(abs(delta[0]), abs(delta[1]), abs(delta[2]))
+
+
+@njit(cache=True)
+def _wrap(angle):
+    """Wrap to [-pi, pi) as ``posegraph._wrap_scalar`` (Python's float ``%``)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def _pose_cost(pose, land_xy, t_z, angle, info, kernel, delta, prior):
+    """Robust cost and linearisation point at ``pose`` (3,): :func:`evaluate_edges` plus
+    the quadratic prior edge when ``prior`` is given (posegraph._PoseProblem.evaluate).
+    Returns (cost, chi2, u, info_e, weight, prior residual (3,); zeros without a prior)."""
+    yaw = pose[2]
+    cost, chi2, u, info_e, weight = evaluate_edges(
+        pose[0], pose[1], yaw, land_xy, t_z, angle, info, kernel, delta
+    )
+    e_p = np.zeros(3)
+    if prior is not None:
+        j_p, offset, info_p = prior[0], prior[1], prior[2]
+        for r in range(3):
+            e_p[r] = j_p[r, 0] * pose[0] + j_p[r, 1] * pose[1] + j_p[r, 2] * pose[2] - offset[r]
+        e_p[2] = _wrap(e_p[2])
+        quad = 0.0
+        for b in range(3):
+            quad += (e_p[0] * info_p[0, b] + e_p[1] * info_p[1, b] + e_p[2] * info_p[2, b]) * e_p[b]
+        cost += quad
+    return cost, chi2, u, info_e, weight, e_p
+
+
+@njit(cache=True)
+def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_iterations,
+               tolerance, min_diag):
+    """Levenberg-Marquardt of one agent vertex against fixed landmarks, the loop of
+    ``posegraph._levenberg_marquardt`` with ``posegraph._PoseProblem``'s linearisation
+    (same stopping rules, same arithmetic per edge).
+
+    initial (3,) pose; edges as :func:`evaluate_edges`; prior: None or (J_p (3, 3),
+    J_p z (3,), Omega_p (3, 3), J_p^T Omega_p J_p (3, 3), (Omega_p J_p)^T (3, 3)) of the
+    prior edge. Returns (pose (3,), chi2 (E,) at it, initial cost, cost, iterations,
+    converged).
+    """
+    x = initial.copy()
+    cost, chi2, u, info_e, weight, e_p = _pose_cost(
+        x, land_xy, t_z, angle, info, kernel, delta, prior
+    )
+    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
+    while iterations < max_iterations and not converged:
+        iterations += 1
+        hess, grad = normal_sums(
+            math.cos(x[2]), math.sin(x[2]), u, info, info_e, weight, True
+        )
+        if prior is not None:
+            hess += prior[3]
+            for r in range(3):
+                grad[r] += prior[4][0, r] * e_p[0] + prior[4][1, r] * e_p[1] + prior[4][2, r] * e_p[2]
+        while True:
+            step_delta, step = damped_step(hess, grad, lam, min_diag)
+            trial = x + step_delta
+            trial[2] = _wrap(trial[2])
+            t_cost, t_chi2, t_u, t_info_e, t_weight, t_e_p = _pose_cost(
+                trial, land_xy, t_z, angle, info, kernel, delta, prior
+            )
+            if t_cost <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                converged = True  # no damping reduces the cost: a (local) minimum
+                break
+        if converged:
+            break
+        decrease = cost - t_cost
+        x, cost = trial, t_cost
+        chi2, u, info_e, weight, e_p = t_chi2, t_u, t_info_e, t_weight, t_e_p
+        lam = max(lam / 10.0, 1e-12)
+        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+    return x, chi2, initial_cost, cost, iterations, converged
+
+
+@njit(cache=True)
+def _graph_cost(x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta):
+    """Robust cost of the pose graph at the vertices x (V, 3) (agents, then landmarks) and
+    per edge: e (E, 3), chi2 (E,), IRLS weight (E,; 1 on prior edges), and the Jacobian
+    terms c, s, w_x, w_y (E,) of ``Z^{-1} T_a^{-1} T_b`` (``posegraph._residuals``)."""
+    n = from_v.size
+    e = np.empty((n, 3))
+    chi2 = np.empty(n)
+    weight = np.ones(n)
+    terms = np.empty((n, 4))
+    d2 = delta * delta
+    rho_sum = 0.0
+    prior_sum = 0.0
+    for k in range(n):
+        a = from_v[k]
+        b = to_v[k] if k >= n_obs else n_agents + to_v[k]
+        angle = x[a, 2] + meas_yaw[k]
+        c, s = math.cos(angle), math.sin(angle)
+        dx, dy = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1]
+        wx, wy = c * dx + s * dy, -s * dx + c * dy
+        e0, e1, e2 = wx - meas_offset[k, 0], wy - meas_offset[k, 1], _wrap(x[b, 2] - angle)
+        e[k, 0], e[k, 1], e[k, 2] = e0, e1, e2
+        terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3] = c, s, wx, wy
+        q = 0.0
+        for r in range(3):
+            q += e[k, r] * (info[k, r, 0] * e0 + info[k, r, 1] * e1 + info[k, r, 2] * e2)
+        chi2[k] = q
+        if k >= n_obs:
+            prior_sum += q
+        elif kernel == 0:
+            rho_sum += q
+        elif kernel == 1:
+            root = math.sqrt(q)
+            if q <= d2:
+                rho_sum += q
+            else:
+                rho_sum += 2.0 * delta * root - d2
+                weight[k] = delta / max(root, 1e-300)
+        else:
+            ratio = q / d2
+            rho_sum += d2 * math.log1p(ratio)
+            weight[k] = 1.0 / (1.0 + ratio)
+    return rho_sum + prior_sum, e, chi2, weight, terms
+
+
+@njit(cache=True)
+def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms):
+    """H_aa (3N, 3N), H_al (3N, 3M), block-diagonal H_ll (M, 3, 3), g_a (3N,), g_l (M, 3)
+    of the weighted edges: each edge adds J^T w Omega J and J^T w Omega e, J = [J_a | J_b]
+    (3, 6) its Jacobian; rows/columns 3-5 belong to the landmark (observation edges) or
+    to the second agent (prior edges)."""
+    h_aa = np.zeros((3 * n_agents, 3 * n_agents))
+    h_al = np.zeros((3 * n_agents, 3 * n_land))
+    h_ll = np.zeros((n_land, 3, 3))
+    g_a = np.zeros(3 * n_agents)
+    g_l = np.zeros((n_land, 3))
+    jac = np.zeros((3, 6))
+    jac[2, 2], jac[2, 5] = -1.0, 1.0
+    jt_info = np.empty((6, 3))
+    block = np.empty((6, 6))
+    grad = np.empty(6)
+    for k in range(from_v.size):
+        c, s, wx, wy = terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3]
+        jac[0, 0], jac[0, 1], jac[0, 2], jac[0, 3], jac[0, 4] = -c, -s, wy, c, s
+        jac[1, 0], jac[1, 1], jac[1, 2], jac[1, 3], jac[1, 4] = s, -c, -wx, -s, c
+        w = weight[k]
+        for i in range(6):
+            for r in range(3):
+                jt_info[i, r] = (
+                    jac[0, i] * info[k, 0, r] + jac[1, i] * info[k, 1, r] + jac[2, i] * info[k, 2, r]
+                ) * w
+        for i in range(6):
+            for j in range(6):
+                block[i, j] = jt_info[i, 0] * jac[0, j] + jt_info[i, 1] * jac[1, j] + (
+                    jt_info[i, 2] * jac[2, j]
+                )
+            grad[i] = jt_info[i, 0] * e[k, 0] + jt_info[i, 1] * e[k, 1] + jt_info[i, 2] * e[k, 2]
+        a = 3 * from_v[k]
+        if k < n_obs:
+            land = to_v[k]
+            for i in range(3):
+                g_a[a + i] += grad[i]
+                g_l[land, i] += grad[3 + i]
+                for j in range(3):
+                    h_aa[a + i, a + j] += block[i, j]
+                    h_al[a + i, 3 * land + j] += block[i, 3 + j]
+                    h_ll[land, i, j] += block[3 + i, 3 + j]
+        else:
+            b = 3 * to_v[k]
+            for i in range(3):
+                g_a[a + i] += grad[i]
+                g_a[b + i] += grad[3 + i]
+                for j in range(3):
+                    h_aa[a + i, a + j] += block[i, j]
+                    h_aa[a + i, b + j] += block[i, 3 + j]
+                    h_aa[b + i, a + j] += block[3 + i, j]
+                    h_aa[b + i, b + j] += block[3 + i, 3 + j]
+    return h_aa, h_al, h_ll, g_a, g_l
+
+
+@njit(cache=True)
+def _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag):
+    """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) with Marquardt
+    damping ``lam``; the landmarks are eliminated by the Schur complement and the agents
+    not in ``free`` (coordinate indices) stay fixed."""
+    n_a, n_land = h_aa.shape[0], h_ll.shape[0]
+    damped = h_aa.copy()
+    for i in range(n_a):
+        damped[i, i] += lam * max(h_aa[i, i], min_diag)
+    rhs = -g_a
+    h_ll_inv = np.empty((n_land, 3, 3))
+    y = np.empty((n_a, 3))
+    for m in range(n_land):
+        h_ll_d = h_ll[m].copy()
+        for i in range(3):
+            h_ll_d[i, i] += lam * max(h_ll[m, i, i], min_diag)
+        h_ll_inv[m] = np.linalg.inv(h_ll_d)
+        al = h_al[:, 3 * m : 3 * m + 3]
+        for r in range(n_a):  # Y = H_al,m H_ll,m^{-1}
+            for j in range(3):
+                y[r, j] = al[r, 0] * h_ll_inv[m, 0, j] + al[r, 1] * h_ll_inv[m, 1, j] + (
+                    al[r, 2] * h_ll_inv[m, 2, j]
+                )
+        for r in range(n_a):
+            for col in range(n_a):
+                damped[r, col] -= y[r, 0] * al[col, 0] + y[r, 1] * al[col, 1] + y[r, 2] * al[col, 2]
+            rhs[r] += y[r, 0] * g_l[m, 0] + y[r, 1] * g_l[m, 1] + y[r, 2] * g_l[m, 2]
+    d_a = np.zeros(n_a)
+    if free.size:
+        reduced = np.empty((free.size, free.size))
+        for i in range(free.size):
+            for j in range(free.size):
+                reduced[i, j] = damped[free[i], free[j]]
+        solved = np.linalg.solve(reduced, rhs[free])
+        for i in range(free.size):
+            d_a[free[i]] = solved[i]
+    step = 0.0
+    for i in range(n_a):
+        step = max(step, abs(d_a[i]))
+    d_l = np.empty((n_land, 3))
+    for m in range(n_land):
+        v = np.empty(3)
+        for j in range(3):
+            back = 0.0
+            for r in range(n_a):
+                back += h_al[r, 3 * m + j] * d_a[r]
+            v[j] = g_l[m, j] + back
+        for i in range(3):
+            d_l[m, i] = -(h_ll_inv[m, i, 0] * v[0] + h_ll_inv[m, i, 1] * v[1] + h_ll_inv[m, i, 2] * v[2])
+            step = max(step, abs(d_l[m, i]))
+    return d_a, d_l, step
+
+
+@njit(cache=True)
+def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, free, kernel,
+                delta, max_iterations, tolerance, min_diag):
+    """Levenberg-Marquardt on a pose graph (``posegraph.optimize``): vertices x0 (V, 3),
+    agents first then landmarks; E edges, the first ``n_obs`` observations (agent
+    ``from_v`` -> landmark ``to_v``, a landmark index), then priors (agent -> agent);
+    measurement yaw (E,), R_z^T t_z (E, 2), information (E, 3, 3); ``free``: coordinate
+    indices of the agents that move. Starts with lam = 1e-4; an accepted step (cost not
+    raised) divides lam by 10, a rejected one multiplies it by 10 until 1e12 (no
+    progress: converged); stops after ``max_iterations`` linearisations, or when an
+    accepted step's relative cost decrease or largest component is below ``tolerance``.
+    Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations, converged)."""
+    n_land = x0.shape[0] - n_agents
+    x = x0.copy()
+    cost, e, chi2, weight, terms = _graph_cost(
+        x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
+    )
+    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
+    while iterations < max_iterations and not converged:
+        iterations += 1
+        h_aa, h_al, h_ll, g_a, g_l = _graph_normal_equations(
+            n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms
+        )
+        while True:
+            d_a, d_l, step = _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag)
+            trial = x.copy()
+            for v in range(x.shape[0]):
+                for i in range(3):
+                    trial[v, i] += d_a[3 * v + i] if v < n_agents else d_l[v - n_agents, i]
+                trial[v, 2] = _wrap(trial[v, 2])
+            t_cost, t_e, t_chi2, t_weight, t_terms = _graph_cost(
+                trial, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
+            )
+            if t_cost <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                converged = True  # no damping reduces the cost: a (local) minimum
+                break
+        if converged:
+            break
+        decrease = cost - t_cost
+        x, cost, e, chi2, weight, terms = trial, t_cost, t_e, t_chi2, t_weight, t_terms
+        lam = max(lam / 10.0, 1e-12)
+        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+    return x, chi2, initial_cost, cost, iterations, converged

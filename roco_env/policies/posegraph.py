@@ -33,6 +33,8 @@ from roco_env.policies.pose_kernels import (
     damped_step,
     evaluate_edges,
     normal_sums,
+    solve_graph,
+    solve_pose,
 )
 
 __all__ = [
@@ -454,36 +456,29 @@ def optimize(
         raise ValueError(f"fixed must index an agent in [0, {graph.agents.shape[0]}); got {fixed}")
     if max_iterations < 0:
         raise ValueError(f"max_iterations must be >= 0; got {max_iterations}")
-    problem = _Problem(graph, fixed, kernel, kernel_delta)
-    n_agents = graph.agents.shape[0]
-
-    def evaluate(x):
-        return problem.linearize(x[:n_agents], x[n_agents:])
-
-    def propose(x, system, lam):
-        d_a, d_l = problem.step(*system, lam)
-        step = max(np.abs(d_a).max(initial=0.0), np.abs(d_l).max(initial=0.0))
-        return _retract(x, np.concatenate([d_a, d_l])), step
-
-    start = np.concatenate([graph.agents, graph.landmarks])
-    x, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start,
-        evaluate,
-        lambda lin: problem.normal_equations(*lin),
-        propose,
-        max_iterations,
-        tolerance,
+    na = graph.agents.shape[0]
+    free = np.arange(3 * na)
+    free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
+    meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
+    x, chi2, initial_cost, cost, iterations, converged = solve_graph(
+        np.concatenate([graph.agents, graph.landmarks]),
+        na,
+        np.concatenate([graph.obs_agent, graph.prior_from]),
+        np.concatenate([graph.obs_landmark, graph.prior_to]),
+        np.ascontiguousarray(meas[:, 2]),
+        _measurement_offset(meas),
+        np.concatenate([graph.obs_information, graph.prior_information]),
+        graph.obs_agent.size,
+        free,
+        KERNEL_CODES[kernel],
+        float(kernel_delta),
+        int(max_iterations),
+        float(tolerance),
+        _MIN_DIAG,
     )
-    chi2 = lin[2]
+    n_obs = graph.obs_agent.size
     return PoseGraphResult(
-        x[:n_agents],
-        x[n_agents:],
-        chi2[: problem.n_obs],
-        chi2[problem.n_obs :],
-        initial_cost,
-        cost,
-        iterations,
-        converged,
+        x[:na], x[na:], chi2[:n_obs], chi2[n_obs:], initial_cost, cost, iterations, converged
     )
 
 
@@ -601,18 +596,20 @@ def optimize_pose(
     problem = _PoseProblem(
         landmarks, measurement, information, prior, prior_information, kernel, kernel_delta
     )
-
-    def propose(pose, system, lam):
-        delta, step = damped_step(*system, lam, _MIN_DIAG)
-        trial = pose + delta
-        trial[2] = _wrap_scalar(float(trial[2]))
-        return trial, step
-
-    start = np.asarray(initial, dtype=float).copy()
-    pose, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start, problem.evaluate, problem.normal_equations, propose, max_iterations, tolerance
+    pose, chi2, initial_cost, cost, iterations, converged = solve_pose(
+        np.asarray(initial, dtype=float).reshape(3).copy(),
+        problem.land_xy,
+        problem.t_z,
+        problem.angle,
+        problem.info,
+        problem.kernel_code,
+        float(kernel_delta),
+        problem.prior,
+        int(max_iterations),
+        float(tolerance),
+        _MIN_DIAG,
     )
-    return PoseResult(pose, lin[0], initial_cost, cost, iterations, converged)
+    return PoseResult(pose, chi2, initial_cost, cost, iterations, converged)
 
 
 def pose_hessian(
