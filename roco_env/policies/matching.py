@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import edge_similarity_sums, gated_pairs
+from roco_env.policies.matching_kernels import edge_similarity, gated_pairs
 
 __all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
 
@@ -251,42 +251,12 @@ def _edge_similarity_from_features(
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature: (C, 11) and (11, H) factors, summed per usable
-    (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity_sums`.
+    candidate feature and a leaf feature: (C, 11) and (11, H) factors, built and summed per
+    usable (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity`
+    (pairs outside either star, ``neighbor_radius``, are skipped; None = no radius).
     """
-    px, py, p2, pc, ps = land[:, cand_p]
-    qx, qy, q2, qc, qs = box[:, cand_q]
-    mx, my, m2, mc, ms = land[:, leaves]
-    nx, ny, n2, nc, ns = box[:, partner]
-    cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
-    rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
-    rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
-    cand = np.stack(
-        [
-            np.ones_like(px),
-            pc * qc + ps * qs,  # cos(v)
-            ps * qc - pc * qs,  # sin(v)
-            px,
-            py,
-            p2,
-            qx,
-            qy,
-            q2,
-            px * qx + py * qy,
-            py * qx - px * qy,
-        ],
-        axis=1,
-    )
-    h = leaves.size
-    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
-    leaf[0] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
-    leaf[1], leaf[2] = -4.0 * cu, -4.0 * su
-    leaf[3], leaf[4] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
-    leaf[6], leaf[7] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
-    leaf[5] = leaf[8] = 1.0
-    leaf[9], leaf[10] = -2.0 * cu, -2.0 * su
-    leaf[11], leaf[12], leaf[13], leaf[14] = mx, my, nx, ny
-    # Pairs outside either star (neighbor_radius; None = no radius) are skipped in the loop.
     radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2
-    centres = np.stack([px, py, qx, qy], axis=1)
-    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
+    return edge_similarity(
+        np.ascontiguousarray(land), np.ascontiguousarray(box), cand_p, cand_q, leaves, partner,
+        radius2,
+    )

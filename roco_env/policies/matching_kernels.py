@@ -1,4 +1,4 @@
-"""Compiled (numba) pair loop of RoCo's edge similarity.
+"""Compiled (numba) loops of RoCo's matching: the gate search and the edge similarity.
 
 :func:`~roco_env.policies.matching._edge_similarity_from_features` scores every
 candidate pair against every matched leaf; with the star graphs' neighbour radius most
@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["edge_similarity_sums", "gated_pairs"]
+__all__ = ["edge_similarity", "edge_similarity_sums", "gated_pairs"]
 
 
 @njit(cache=True)
@@ -48,6 +48,47 @@ def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, r
             count += 1
         out[c] = total / max(count, 1)
     return out
+
+
+@njit(cache=True)
+def edge_similarity(land, box, cand_p, cand_q, leaves, partner, radius2):
+    """S_edge (C,) of the candidate pairs (cand_p landmark, cand_q box) given the initial
+    matches (leaves (H,) landmarks m, partner (H,) their boxes n = A(m)), from the pose
+    features (5, L) / (5, K) (x, y, x^2 + y^2, cos yaw, sin yaw) of the landmarks and the
+    boxes: the (C, 11) candidate and (11, H) leaf factors of
+    ``matching._edge_similarity_from_features`` (the same arithmetic element by element),
+    summed by :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+    n_cand, h = cand_p.size, leaves.size
+    cand = np.empty((n_cand, 11))
+    centres = np.empty((n_cand, 4))
+    for c in range(n_cand):
+        p, q = cand_p[c], cand_q[c]
+        px, py, p2, pc, ps = land[0, p], land[1, p], land[2, p], land[3, p], land[4, p]
+        qx, qy, q2, qc, qs = box[0, q], box[1, q], box[2, q], box[3, q], box[4, q]
+        cand[c, 0] = 1.0
+        cand[c, 1] = pc * qc + ps * qs  # cos(v)
+        cand[c, 2] = ps * qc - pc * qs  # sin(v)
+        cand[c, 3], cand[c, 4], cand[c, 5] = px, py, p2
+        cand[c, 6], cand[c, 7], cand[c, 8] = qx, qy, q2
+        cand[c, 9] = px * qx + py * qy
+        cand[c, 10] = py * qx - px * qy
+        centres[c, 0], centres[c, 1], centres[c, 2], centres[c, 3] = px, py, qx, qy
+    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
+    for k in range(h):
+        m, n = leaves[k], partner[k]
+        mx, my, m2, mc, ms = land[0, m], land[1, m], land[2, m], land[3, m], land[4, m]
+        nx, ny, n2, nc, ns = box[0, n], box[1, n], box[2, n], box[3, n], box[4, n]
+        cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
+        rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
+        rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
+        leaf[0, k] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
+        leaf[1, k], leaf[2, k] = -4.0 * cu, -4.0 * su
+        leaf[3, k], leaf[4, k] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
+        leaf[6, k], leaf[7, k] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
+        leaf[5, k] = leaf[8, k] = 1.0
+        leaf[9, k], leaf[10, k] = -2.0 * cu, -2.0 * su
+        leaf[11, k], leaf[12, k], leaf[13, k], leaf[14, k] = mx, my, nx, ny
+    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
 
 
 @njit(cache=True)

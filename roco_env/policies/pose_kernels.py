@@ -18,7 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "solve_pose"]
+__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "rotate_information",
+           "solve_graph", "solve_pose"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -69,6 +70,32 @@ def evaluate_edges(x, y, yaw, land_xy, t_z, angle, info, kernel, delta):
             total += d2 * math.log1p(ratio)
             weight[k] = 1.0 / (1.0 + ratio)
     return total, chi2, u, info_e, weight
+
+
+@njit(cache=True)
+def rotate_information(info, meas_yaw):
+    """``C^T Omega C`` (E, 3, 3) per edge, C = blockdiag(R(-yaw_z), 1): the information
+    (E, 3, 3) in the rotated residual frame (meas_yaw (E,) the measured yaws, rad); the
+    products summed in the order of ``C^T (Omega C)`` as matrices."""
+    n = info.shape[0]
+    out = np.empty((n, 3, 3))
+    rot = np.zeros((3, 3))
+    rot[2, 2] = 1.0
+    half = np.empty((3, 3))
+    for k in range(n):
+        c, s = math.cos(meas_yaw[k]), math.sin(meas_yaw[k])
+        rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, s, -s, c
+        for a in range(3):
+            for b in range(3):
+                half[a, b] = info[k, a, 0] * rot[0, b] + info[k, a, 1] * rot[1, b] + (
+                    info[k, a, 2] * rot[2, b]
+                )
+        for a in range(3):
+            for b in range(3):
+                out[k, a, b] = rot[0, a] * half[0, b] + rot[1, a] * half[1, b] + (
+                    rot[2, a] * half[2, b]
+                )
+    return out
 
 
 @njit(cache=True)

@@ -33,6 +33,7 @@ from roco_env.policies.pose_kernels import (
     damped_step,
     evaluate_edges,
     normal_sums,
+    rotate_information,
     solve_graph,
     solve_pose,
 )
@@ -517,11 +518,7 @@ class _PoseProblem:
         self.land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self.t_z = np.ascontiguousarray(measurement[:, :2], dtype=float)
         self.angle = np.ascontiguousarray(landmarks[:, 2] - measurement[:, 2], dtype=float)
-        rot = np.zeros((measurement.shape[0], 3, 3))
-        c, s = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
-        rot[:, 2, 2] = 1.0
-        self._rot, self._rot_t = rot, rot.transpose(0, 2, 1)
+        self._meas_yaw = np.ascontiguousarray(measurement[:, 2], dtype=float)
         self.set_information(information)
         self.prior = None
         if prior is not None:
@@ -551,8 +548,10 @@ class _PoseProblem:
         return cost, (chi2, math.cos(yaw), math.sin(yaw), u, info_e, weight, e_p)
 
     def set_information(self, information: np.ndarray) -> None:
-        """Replace the per-edge information (E, 3, 3) (rotated as in the constructor)."""
-        self.info = np.ascontiguousarray(np.matmul(self._rot_t, np.matmul(information, self._rot)))
+        """Replace the per-edge information (E, 3, 3), rotated to ``C^T Omega C``."""
+        self.info = rotate_information(
+            np.ascontiguousarray(information, dtype=float), self._meas_yaw
+        )
 
     def hessian(self, point: tuple) -> np.ndarray:
         """H (3, 3) of :meth:`normal_equations`, without the gradient."""
