@@ -360,10 +360,12 @@ def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weig
 
 
 @njit(cache=True)
-def _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag):
+def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag):
     """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) with Marquardt
     damping ``lam``; the landmarks are eliminated by the Schur complement and the agents
-    not in ``free`` (coordinate indices) stay fixed."""
+    not in ``free`` (coordinate indices) stay fixed. H_al's block column of landmark m is
+    zero outside the coordinate rows ``rows[row_start[m]:row_start[m + 1]]`` (those of
+    the agents observing it), so only those rows are visited."""
     n_a, n_land = h_aa.shape[0], h_ll.shape[0]
     damped = h_aa.copy()
     for i in range(n_a):
@@ -376,15 +378,18 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag):
         for i in range(3):
             h_ll_d[i, i] += lam * max(h_ll[m, i, i], min_diag)
         h_ll_inv[m] = np.linalg.inv(h_ll_d)
-        al = h_al[:, 3 * m : 3 * m + 3]
-        for r in range(n_a):  # Y = H_al,m H_ll,m^{-1}
+        col = 3 * m
+        seen = rows[row_start[m] : row_start[m + 1]]
+        for r in seen:  # Y = H_al,m H_ll,m^{-1}
             for j in range(3):
-                y[r, j] = al[r, 0] * h_ll_inv[m, 0, j] + al[r, 1] * h_ll_inv[m, 1, j] + (
-                    al[r, 2] * h_ll_inv[m, 2, j]
+                y[r, j] = h_al[r, col] * h_ll_inv[m, 0, j] + h_al[r, col + 1] * h_ll_inv[
+                    m, 1, j
+                ] + h_al[r, col + 2] * h_ll_inv[m, 2, j]
+        for r in seen:
+            for c in seen:
+                damped[r, c] -= y[r, 0] * h_al[c, col] + y[r, 1] * h_al[c, col + 1] + (
+                    y[r, 2] * h_al[c, col + 2]
                 )
-        for r in range(n_a):
-            for col in range(n_a):
-                damped[r, col] -= y[r, 0] * al[col, 0] + y[r, 1] * al[col, 1] + y[r, 2] * al[col, 2]
             rhs[r] += y[r, 0] * g_l[m, 0] + y[r, 1] * g_l[m, 1] + y[r, 2] * g_l[m, 2]
     d_a = np.zeros(n_a)
     if free.size:
@@ -399,17 +404,39 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag):
     for i in range(n_a):
         step = max(step, abs(d_a[i]))
     d_l = np.empty((n_land, 3))
+    v = np.empty(3)
     for m in range(n_land):
-        v = np.empty(3)
         for j in range(3):
             back = 0.0
-            for r in range(n_a):
+            for r in rows[row_start[m] : row_start[m + 1]]:
                 back += h_al[r, 3 * m + j] * d_a[r]
             v[j] = g_l[m, j] + back
         for i in range(3):
-            d_l[m, i] = -(h_ll_inv[m, i, 0] * v[0] + h_ll_inv[m, i, 1] * v[1] + h_ll_inv[m, i, 2] * v[2])
+            d_l[m, i] = -(
+                h_ll_inv[m, i, 0] * v[0] + h_ll_inv[m, i, 1] * v[1] + h_ll_inv[m, i, 2] * v[2]
+            )
             step = max(step, abs(d_l[m, i]))
     return d_a, d_l, step
+
+
+@njit(cache=True)
+def _landmark_rows(n_agents, n_land, from_v, to_v, n_obs):
+    """Per landmark, the coordinate rows (3 per agent, agents in increasing order) of the
+    agents observing it, as CSR (rows, start (M + 1,))."""
+    sees = np.zeros((n_land, n_agents), dtype=np.bool_)
+    for k in range(n_obs):
+        sees[to_v[k], from_v[k]] = True
+    start = np.zeros(n_land + 1, dtype=np.int64)
+    for m in range(n_land):
+        start[m + 1] = start[m] + 3 * sees[m].sum()
+    rows = np.empty(start[n_land], dtype=np.int64)
+    for m in range(n_land):
+        k = start[m]
+        for a in range(n_agents):
+            if sees[m, a]:
+                rows[k], rows[k + 1], rows[k + 2] = 3 * a, 3 * a + 1, 3 * a + 2
+                k += 3
+    return rows, start
 
 
 @njit(cache=True)
@@ -425,6 +452,7 @@ def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, 
     accepted step's relative cost decrease or largest component is below ``tolerance``.
     Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations, converged)."""
     n_land = x0.shape[0] - n_agents
+    rows, row_start = _landmark_rows(n_agents, n_land, from_v, to_v, n_obs)
     x = x0.copy()
     cost, e, chi2, weight, terms = _graph_cost(
         x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
@@ -436,7 +464,9 @@ def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, 
             n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms
         )
         while True:
-            d_a, d_l, step = _graph_step(h_aa, h_al, h_ll, g_a, g_l, free, lam, min_diag)
+            d_a, d_l, step = _graph_step(
+                h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
+            )
             trial = x.copy()
             for v in range(x.shape[0]):
                 for i in range(3):
