@@ -1,11 +1,13 @@
-"""Compiled (numba) per-edge loops of the single-vertex pose problem.
+"""Compiled (numba) loops of the pose-graph solvers of :mod:`roco_env.policies.posegraph`.
 
-:class:`~roco_env.policies.posegraph._PoseProblem` linearises one agent vertex against
-fixed landmarks dozens of times per RoCo call, on tens to hundreds of edges. In numpy
-each linearisation is ~15 array operations on (E, 3, 3) arrays whose fixed call overhead
-dominates at these sizes; these loops do the same arithmetic in one pass per call
-(results agree with the array formulas to rounding: tests/test_posegraph.py and the
-recorded numpy-path results of tests/test_roco_reference.py).
+A RoCo call solves dozens of small problems (one agent vertex against fixed landmarks,
+tens to hundreds of edges) and one joint graph; in numpy each linearisation is ~15 array
+operations whose fixed call overhead dominates at these sizes. Here the per-edge
+linearisation, the 3x3 LM step, the whole Levenberg-Marquardt loop of the single-vertex
+problem (:func:`solve_pose`) and of the joint graph with its Schur complement
+(:func:`solve_graph`) run compiled, with the array path's arithmetic and stopping rules
+(tests/test_pose_kernels.py compares them with that numpy path; the recorded numpy-path
+results of tests/test_roco_reference.py still hold).
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -214,8 +216,8 @@ def _pose_cost(pose, land_xy, t_z, angle, info, kernel, delta, prior):
 def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_iterations,
                tolerance, min_diag):
     """Levenberg-Marquardt of one agent vertex against fixed landmarks, the loop of
-    ``posegraph._levenberg_marquardt`` with ``posegraph._PoseProblem``'s linearisation
-    (same stopping rules, same arithmetic per edge).
+    Levenberg-Marquardt loop of :func:`solve_graph` with ``posegraph._PoseProblem``'s
+    linearisation (same stopping rules, same arithmetic per edge).
 
     initial (3,) pose; edges as :func:`evaluate_edges`; prior: None or (J_p (3, 3),
     J_p z (3,), Omega_p (3, 3), J_p^T Omega_p J_p (3, 3), (Omega_p J_p)^T (3, 3)) of the

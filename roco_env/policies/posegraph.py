@@ -30,7 +30,6 @@ import numpy as np
 
 from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
-    damped_step,
     evaluate_edges,
     normal_sums,
     rotate_information,
@@ -267,118 +266,6 @@ def robust_kernel(
     return d2 * np.log1p(ratio), 1.0 / (1.0 + ratio)
 
 
-def _scatter_indices(graph: PoseGraph) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
-    """Where each edge's 6x6 Hessian block and 6-vector gradient go.
-
-    Hessian entries land in one flat buffer [H_aa (3N x 3N) | H_al (3N x 3M) | H_ll
-    (M, 3, 3) | one unused slot] and gradient entries in [g_a (3N) | g_l (3M)], so that
-    assembling the normal equations is one bincount each. Rows/columns 0-2 of a block
-    belong to the edge's agent, 3-5 to its landmark (observations) or second agent
-    (priors). Returns (hessian index (E, 6, 6), gradient index (E, 6), buffer sizes).
-    """
-    na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
-    obs_a, obs_l = graph.obs_agent, graph.obs_landmark
-    pf, pt = graph.prior_from, graph.prior_to
-    n_obs = obs_a.size
-    sizes = (9 * na * na, 9 * na * nl, 9 * nl)
-    i, j = np.arange(3)[:, None], np.arange(3)[None, :]
-
-    def block(row_base: np.ndarray, width: int, col_base: np.ndarray, offset: int) -> np.ndarray:
-        return offset + (row_base[:, None, None] + i) * width + col_base[:, None, None] + j
-
-    from_all = np.concatenate([obs_a, pf])
-    h = np.empty((from_all.size, 2, 3, 2, 3), dtype=np.int64)
-    h[:, 0, :, 0, :] = block(3 * from_all, 3 * na, 3 * from_all, 0)
-    h[:n_obs, 0, :, 1, :] = block(3 * obs_a, 3 * nl, 3 * obs_l, sizes[0])
-    h[:n_obs, 1, :, 0, :] = sum(sizes)  # H_la = H_al^T is not stored
-    h[:n_obs, 1, :, 1, :] = block(3 * obs_l, 3, np.zeros_like(obs_l), sizes[0] + sizes[1])
-    h[n_obs:, 0, :, 1, :] = block(3 * pf, 3 * na, 3 * pt, 0)
-    h[n_obs:, 1, :, 0, :] = block(3 * pt, 3 * na, 3 * pf, 0)
-    h[n_obs:, 1, :, 1, :] = block(3 * pt, 3 * na, 3 * pt, 0)
-    g = np.concatenate(
-        [
-            3 * from_all[:, None] + np.arange(3),
-            np.concatenate([3 * na + 3 * obs_l, 3 * pt])[:, None] + np.arange(3),
-        ],
-        axis=1,
-    )
-    return h.reshape(-1), g.reshape(-1), sizes
-
-
-class _Problem:
-    """Edge bookkeeping for one optimisation: all edges stacked (observations first),
-    vertices stacked (agents, then landmarks), scatter indices precomputed so that
-    assembling the normal equations is two bincounts (much faster than np.add.at)."""
-
-    def __init__(self, graph: PoseGraph, fixed: int, kernel: str | None, delta: float):
-        self.kernel, self.delta = kernel, delta
-        na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
-        self.n_agents, self.n_land, self.n_obs = na, nl, graph.obs_agent.size
-        self.from_vertex = np.concatenate([graph.obs_agent, graph.prior_from])
-        self.to_vertex = np.concatenate([na + graph.obs_landmark, graph.prior_to])
-        meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
-        self.meas_yaw, self.meas_offset = meas[:, 2], _measurement_offset(meas)
-        self.info = np.concatenate([graph.obs_information, graph.prior_information])
-        free = np.arange(3 * na)
-        self.free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
-        self.free_block = np.ix_(self.free, self.free)
-        self.h_index, self.g_index, self.h_sizes = _scatter_indices(graph)
-
-    def linearize(self, agents: np.ndarray, landmarks: np.ndarray):
-        """Robust cost and the linearisation (e, Jacobian, chi2, IRLS weight) at a state."""
-        vertices = np.concatenate([agents, landmarks])
-        e, jac = _residuals_jacobian(
-            vertices[self.from_vertex], vertices[self.to_vertex], self.meas_yaw, self.meas_offset
-        )
-        info_e = np.matmul(self.info, e[:, :, None])[:, :, 0]
-        chi2 = np.einsum("ei,ei->e", e, info_e)
-        rho, weight = robust_kernel(chi2[: self.n_obs], self.kernel, self.delta)
-        cost = float(rho.sum() + chi2[self.n_obs :].sum())
-        weight = np.concatenate([weight, np.ones(chi2.size - self.n_obs)])
-        return cost, (e, jac, chi2, weight)
-
-    def normal_equations(self, e, jac, _chi2, weight):
-        """Dense H_aa (3N,3N), H_al (3N,3M), block-diagonal H_ll (M,3,3), g_a (3N,), g_l (M,3)."""
-        j_t_info = np.matmul(jac.transpose(0, 2, 1), self.info * weight[:, None, None])
-        blocks = np.matmul(j_t_info, jac)
-        grads = np.matmul(j_t_info, e[:, :, None])
-        na, nl = self.n_agents, self.n_land
-        n_aa, n_al, n_ll = self.h_sizes
-        h = np.bincount(self.h_index, blocks.reshape(-1), minlength=n_aa + n_al + n_ll + 1)
-        g = np.bincount(self.g_index, grads.reshape(-1), minlength=3 * (na + nl))
-        return (
-            h[:n_aa].reshape(3 * na, 3 * na),
-            h[n_aa : n_aa + n_al].reshape(3 * na, 3 * nl),
-            h[n_aa + n_al : n_aa + n_al + n_ll].reshape(nl, 3, 3),
-            g[: 3 * na],
-            g[3 * na :].reshape(nl, 3),
-        )
-
-    def step(self, h_aa, h_al, h_ll, g_a, g_l, lam):
-        """LM step (d_agents (N,3), d_landmarks (M,3)) with Marquardt damping ``lam``."""
-        nl = self.n_land
-        diag_a = np.maximum(np.diagonal(h_aa), _MIN_DIAG)
-        diag_l = np.maximum(np.diagonal(h_ll, axis1=1, axis2=2), _MIN_DIAG)
-        h_ll_d = h_ll.copy()
-        h_ll_d.reshape(nl, 9)[:, ::4] += lam * diag_l
-        h_ll_inv = np.linalg.inv(h_ll_d)
-        # Y = H_al H_ll^{-1}, block column by block column (3N x 3M).
-        h_al_b = h_al.reshape(-1, nl, 3).transpose(1, 0, 2)  # (M, 3N, 3)
-        y = np.matmul(h_al_b, h_ll_inv)  # (M, 3N, 3)
-        y2 = y.transpose(1, 0, 2).reshape(-1, 3 * nl)
-        damped = h_aa.copy()
-        damped.reshape(-1)[:: damped.shape[0] + 1] += lam * diag_a
-        reduced = damped - y2 @ h_al.T
-        rhs = y2 @ g_l.reshape(-1) - g_a
-        free = self.free
-        d_a = np.zeros(3 * self.n_agents)
-        if free.size:
-            d_a[free] = np.linalg.solve(reduced[self.free_block], rhs[free])
-        back = (h_al.T @ d_a).reshape(nl, 3)
-        d_l = -np.matmul(h_ll_inv, (g_l + back)[:, :, None])[:, :, 0]
-        return d_a.reshape(-1, 3), d_l
-
-
 def _wrap(angle: np.ndarray) -> np.ndarray:
     """Wrap to [-pi, pi) (cheaper than geometry.wrap_angle; the end point is irrelevant
     to residuals and retractions)."""
@@ -389,48 +276,6 @@ def _wrap_scalar(angle: float) -> float:
     """:func:`_wrap` of one float without numpy's per-call overhead (Python's float ``%``
     is fmod with numpy's sign fix-up, so the result is the same to the bit)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _retract(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    out = poses + delta
-    out[:, 2] = _wrap(out[:, 2])
-    return out
-
-
-def _levenberg_marquardt(
-    x, evaluate, normal_equations, propose, max_iterations: int, tolerance: float
-):
-    """Levenberg-Marquardt loop shared by :func:`optimize` and :func:`optimize_pose`.
-
-    evaluate(x) -> (cost, linearisation); normal_equations(linearisation) -> system, built
-    once per accepted state; propose(x, system, lam) -> (trial x, largest step
-    component). Starts with lam = 1e-4; a step is accepted when it does not
-    raise the cost (then lam /= 10), else lam *= 10 until 1e12 (no progress: converged).
-    Stops after ``max_iterations`` linearisations, when the relative cost decrease of an
-    accepted step is below ``tolerance`` or when its largest component is.
-    Returns (x, cost, linearisation, initial cost, iterations, converged).
-    """
-    cost, lin = evaluate(x)
-    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
-    while iterations < max_iterations and not converged:
-        iterations += 1
-        system = normal_equations(lin)
-        while True:
-            trial_x, step = propose(x, system, lam)
-            trial_cost, trial_lin = evaluate(trial_x)
-            if trial_cost <= cost:
-                break
-            lam *= 10.0
-            if lam > 1e12:
-                converged = True  # no damping reduces the cost: a (local) minimum
-                break
-        if converged:
-            break
-        decrease = cost - trial_cost
-        x, cost, lin = trial_x, trial_cost, trial_lin
-        lam = max(lam / 10.0, 1e-12)
-        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
-    return x, cost, lin, initial_cost, iterations, converged
 
 
 def optimize(
