@@ -37,8 +37,8 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from roco_env.geometry import wrap_angle
-from roco_env.policies.adapter import ArrayAlignmentPolicy, unpack_observation
-from roco_env.policies.base import AlignmentResult, correction_action
+from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
+from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
     EvidenceParams,
     box_set,
@@ -48,6 +48,7 @@ from roco_env.policies.hypotheses import (
     score_hypotheses,
 )
 from roco_env.policies.landmarks import prepare_inputs, require_positive
+from roco_env.policies.prior_free import poses_distinct
 from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
@@ -83,6 +84,16 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
         )
         if int(self.track_max_age) < 1:
             raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
+
+    # The names under which :func:`~roco_env.policies.prior_free.poses_distinct` reads the
+    # distinctness thresholds (m, deg).
+    @property
+    def distinct_distance(self) -> float:
+        return self.distinct_t
+
+    @property
+    def distinct_yaw_deg(self) -> float:
+        return self.distinct_r_deg
 
 
 _ROCO_FIELDS = tuple(f.name for f in fields(RoCoParams))
@@ -146,9 +157,7 @@ def _decide(
             poses, centre, p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
         )
     best = int(np.argmax(score))
-    t = np.hypot(*(poses[:, :2] - poses[best, :2]).T)
-    r = np.abs(wrap_angle(poses[:, 2] - poses[best, 2]))
-    distinct = (t > p.distinct_t) | (r > np.deg2rad(p.distinct_r_deg))
+    distinct = poses_distinct(poses, poses[best], p)
     # Without a distinct rival the alternative is "no hypothesis explains the boxes" (0).
     runner_up = float(score[distinct].max()) if distinct.any() else 0.0
     margin = float(score[best]) - runner_up
@@ -252,25 +261,19 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
             last[2] = wrap_angle(last[2])
         return last, float(age)
 
-    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
-        view = unpack_observation(observation)
+    def align_view(
+        self, view: ObservationView, observation: dict, info: dict | None
+    ) -> AlignmentResult:
+        """:func:`antialias_align` with each filled slot's track prediction; the decided
+        poses extend the tracks."""
         ego, slot_keys = self._ego_and_keys(info, view.slots)
         step = self._steps.get(ego, 0) + 1
         if ego is not None:
             self._steps[ego] = step
         tracks = [self._prediction(k, step) for k in slot_keys]
-        result, decisions = antialias_align(
-            view.ego_boxes,
-            view.ego_unc,
-            view.collab_boxes,
-            view.collab_unc,
-            view.reported,
-            tracks=tracks,
-            **self._kwargs,
-        )
+        result, decisions = antialias_align(*view.arrays, tracks=tracks, **self._kwargs)
         for key, decision in zip(slot_keys, decisions, strict=True):
             if key is not None and decision.pose is not None:
                 self._tracks[key] = [*self._tracks.get(key, [])[-1:], (step, decision.pose.copy())]
         self.last_decisions = decisions
-        self.last_result = view.expand(result)
-        return correction_action(view.reported_full, self.last_result.corrected)
+        return result
