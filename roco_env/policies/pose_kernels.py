@@ -362,6 +362,26 @@ def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weig
 
 
 @njit(cache=True)
+def _inverse3(a, out):
+    """Inverse of the 3x3 matrix ``a`` into ``out`` (adjugate over determinant; ``a`` is
+    a damped landmark block, symmetric positive definite)."""
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+    if det == 0.0:
+        raise ValueError("singular landmark block")
+    inv = 1.0 / det
+    out[0, 0], out[1, 0], out[2, 0] = c00 * inv, c01 * inv, c02 * inv
+    out[0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) * inv
+    out[1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) * inv
+    out[2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) * inv
+    out[0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) * inv
+    out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) * inv
+    out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) * inv
+
+
+@njit(cache=True)
 def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag):
     """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) with Marquardt
     damping ``lam``; the landmarks are eliminated by the Schur complement and the agents
@@ -379,7 +399,7 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
         h_ll_d = h_ll[m].copy()
         for i in range(3):
             h_ll_d[i, i] += lam * max(h_ll[m, i, i], min_diag)
-        h_ll_inv[m] = np.linalg.inv(h_ll_d)
+        _inverse3(h_ll_d, h_ll_inv[m])
         col = 3 * m
         seen = rows[row_start[m] : row_start[m + 1]]
         for r in seen:  # Y = H_al,m H_ll,m^{-1}
