@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import edge_similarity, gated_pairs
+from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, gated_pairs
 
 __all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
 
@@ -200,11 +200,10 @@ def _assign(
     When every landmark and every box has a single candidate and every score is > 0, the
     unique optimum takes all pairs, so the solver is skipped (the usual sparse scene).
     """
-    if np.bincount(cand_p).max() == 1 and np.bincount(cand_q).max() == 1 and np.all(score > 0):
+    rows, row_idx, cols, col_idx, single = compact_pairs(cand_p, cand_q)
+    if single and np.all(score > 0):
         keep = score >= tau1
         return cand_p[keep], cand_q[keep], score[keep]
-    rows, row_idx = np.unique(cand_p, return_inverse=True)
-    cols, col_idx = np.unique(cand_q, return_inverse=True)
     weights = np.zeros((rows.size, cols.size))
     weights[row_idx, col_idx] = score
     valid = np.zeros_like(weights, dtype=bool)
