@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from roco_env.geometry import se2_relative
-from roco_env.policies.pose_kernels import damped_step
+from roco_env.policies.pose_kernels import KERNEL_CODES, damped_step, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     PoseGraph,
@@ -18,6 +18,7 @@ from roco_env.policies.posegraph import (
     _wrap_scalar,
     optimize,
     optimize_pose,
+    pose_hessians,
     robust_kernel,
 )
 
@@ -182,3 +183,29 @@ def test_compiled_single_pose_solver_matches_the_numpy_path(kernel, with_prior):
     np.testing.assert_allclose(result.chi2, lin[0], rtol=1e-12, atol=1e-12)
     assert np.isclose(result.cost, cost, rtol=1e-12)
     assert np.isclose(result.initial_cost, initial_cost, rtol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", [None, "huber", "cauchy"])
+def test_compiled_wald_statistic_matches_the_numpy_path(kernel):
+    """The robust sandwich statistic d^T A B^-1 A d from optimize_pose, robust_kernel,
+    pose_hessians and numpy's inverse and solve."""
+    rng = np.random.default_rng(12)
+    for trial in range(5):
+        truth = rng.normal(size=3) * [4.0, 4.0, 0.2]
+        lands = rng.normal(size=(30, 3)) * [20, 20, 2]
+        own = se2_relative(truth, lands) + rng.normal(size=(30, 3)) * [0.1, 0.1, 0.01]
+        own[:3, :2] += 2.0  # outliers
+        root = rng.normal(size=(30, 3, 3)) * 0.1
+        covariance = root @ root.transpose(0, 2, 1) + np.diag([0.02, 0.03, 1e-4])
+        reported = truth + rng.normal(size=3) * [0.3, 0.3, 0.01] * trial
+        start = truth + [0.2, -0.1, 0.01]
+        info = np.linalg.inv(covariance)
+        fit = optimize_pose(start, lands, own, info, kernel=kernel, kernel_delta=2.0)
+        weight = robust_kernel(fit.chi2, kernel, 2.0)[1][:, None, None]
+        bread, meat = pose_hessians(fit.pose, lands, own, (info * weight, info * weight**2))
+        d = fit.pose - reported
+        d[2] = _wrap_scalar(float(d[2]))
+        expected = (bread @ d) @ np.linalg.solve(meat, bread @ d)
+        statistic = wald_statistic(start, lands, own, covariance, reported, KERNEL_CODES[kernel],
+                                   2.0, 1000, 1e-6, _MIN_DIAG)
+        assert np.isclose(statistic, expected, rtol=1e-9, atol=1e-9)

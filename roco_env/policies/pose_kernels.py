@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "rotate_information",
-           "solve_graph", "solve_pose"]
+           "solve_graph", "solve_pose", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -510,3 +510,38 @@ def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, 
         lam = max(lam / 10.0, 1e-12)
         converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
     return x, chi2, initial_cost, cost, iterations, converged
+
+
+@njit(cache=True)
+def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, max_iterations,
+                   tolerance, min_diag):
+    """Robust Wald statistic of a correction (RoCo's significance test).
+
+    The agent pose is fitted from ``start`` (3,) to its P edges alone (no prior): fixed
+    landmarks (P, 3), its boxes ``own`` (P, 3) in its frame, each edge with the
+    information ``covariance^-1`` (covariance (P, 3, 3) in the box frame), the robust
+    kernel and the LM rules of :func:`solve_pose`; then ``d = fit - reported`` (yaw
+    wrapped) is weighed by the sandwich ``A^-1 B A^-1``, A = sum w J^T Omega J,
+    B = sum w^2 J^T Omega J with w the IRLS weights at the fit: returns ``d^T A B^-1 A d``.
+    """
+    n = own.shape[0]
+    info = np.empty((n, 3, 3))
+    for k in range(n):
+        _inverse3(covariance[k], info[k])
+    info = rotate_information(info, np.ascontiguousarray(own[:, 2]))
+    land_xy = np.ascontiguousarray(landmarks[:, :2])
+    t_z = np.ascontiguousarray(own[:, :2])
+    angle = landmarks[:, 2] - own[:, 2]
+    pose = solve_pose(start, land_xy, t_z, angle, info, kernel, delta, None, max_iterations,
+                      tolerance, min_diag)[0]
+    _, _, u, info_e, weight = evaluate_edges(
+        pose[0], pose[1], pose[2], land_xy, t_z, angle, info, kernel, delta
+    )
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    bread = normal_sums(c, s, u, info, info_e, weight, False)[0]
+    meat = normal_sums(c, s, u, info, info_e, weight * weight, False)[0]
+    d = pose - reported
+    d[2] = _wrap(d[2])
+    ad = bread @ d
+    solved = damped_step(meat, -ad, 0.0, min_diag)[0]  # B^-1 A d
+    return ad[0] * solved[0] + ad[1] * solved[1] + ad[2] * solved[2]

@@ -62,7 +62,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.geometry import se2_compose
 from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
@@ -75,13 +75,14 @@ from roco_env.policies.landmarks import (
     prior_information,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher
+from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
 from roco_env.policies.posegraph import (
+    _MIN_DIAG,
     ROBUST_KERNELS,
     PoseGraphResult,
     edge_chi2,
     optimize,
     optimize_pose,
-    pose_hessians,
     robust_kernel,
 )
 
@@ -94,6 +95,8 @@ NOT_SIGNIFICANT = "correction not significant"
 # Relative cost decrease that ends a per-round single-vertex solve: those solves only
 # steer the matching (the final joint solve uses the solver's default, 1e-6).
 _ROUND_TOLERANCE = 1e-4
+# Relative cost decrease that ends the significance test's fit (the solver's default).
+_FIT_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -323,25 +326,23 @@ def _correction_statistic(
     re-fitted to its matched edges alone with the box-difference information and the
     kernel, and ``d = fitted - reported`` is weighed by the inverse of its sandwich
     covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
-    IRLS weights at the fit); chi-square with 3 dof when the reported pose is right."""
+    IRLS weights at the fit); chi-square with 3 dof when the reported pose is right.
+    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`)."""
     own = inputs.poses[agent][att.match_box]
-    box_covariance = covariance[agent][att.match_box]
-    info = np.linalg.inv(box_covariance + world.covariance[att.match_land])
-    fit = optimize_pose(
-        att.pose,
-        att.landmarks,
-        own,
-        info,
-        kernel=p.robust_kernel,
-        kernel_delta=p.kernel_delta,
-        max_iterations=p.max_solver_iterations,
+    return float(
+        wald_statistic(
+            att.pose,
+            att.landmarks,
+            own,
+            covariance[agent][att.match_box] + world.covariance[att.match_land],
+            inputs.reported[agent - 1],
+            KERNEL_CODES[p.robust_kernel],
+            float(p.kernel_delta),
+            int(p.max_solver_iterations),
+            _FIT_TOLERANCE,
+            _MIN_DIAG,
+        )
     )
-    weight = robust_kernel(fit.chi2, p.robust_kernel, p.kernel_delta)[1][:, None, None]
-    bread, meat = pose_hessians(fit.pose, att.landmarks, own, (info * weight, info * weight**2))
-    d = fit.pose - inputs.reported[agent - 1]
-    d[2] = wrap_angle(d[2])
-    ad = bread @ d
-    return float(ad @ np.linalg.solve(meat, ad))
 
 
 def _rejection(
