@@ -68,13 +68,14 @@ class ObservationView:
         applied = np.zeros(n, dtype=bool)
         applied[self.slots] = result.applied
         pairs = np.asarray(result.matched_pairs, dtype=np.int64).reshape(-1, 4).copy()
+        # Box k of compact slot c (-1 = ego) sits at box_index[start[c + 1] + k].
+        box_index = np.concatenate([self.ego_index, *self.collab_index]).astype(np.int64)
+        start = np.cumsum([0, self.ego_index.size, *(i.size for i in self.collab_index)])
+        slot_of = np.concatenate([[-1], self.slots]).astype(np.int64)
         for col in (0, 2):
-            slot, box = pairs[:, col].copy(), pairs[:, col + 1].copy()
-            for compact in np.unique(slot):
-                sel = slot == compact
-                index = self.ego_index if compact < 0 else self.collab_index[compact]
-                pairs[sel, col + 1] = index[box[sel]]
-                pairs[sel, col] = -1 if compact < 0 else self.slots[compact]
+            compact = pairs[:, col] + 1
+            pairs[:, col + 1] = box_index[start[compact] + pairs[:, col + 1]]
+            pairs[:, col] = slot_of[compact]
         reasons = [""] * n
         for compact, text in enumerate(result.slot_reasons):
             reasons[self.slots[compact]] = text
