@@ -202,8 +202,12 @@ class _Attempt:
     solver: int = 0
 
 
+@lru_cache(maxsize=16)
 def _prior_info(p: RoCoParams) -> np.ndarray:
-    return prior_information(p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    """Information (3, 3) of the prior edges (read-only: shared by every call with ``p``)."""
+    info = prior_information(p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    info.flags.writeable = False
+    return info
 
 
 def _joint_solve(
