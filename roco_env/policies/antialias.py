@@ -31,6 +31,7 @@ between episodes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, fields, replace
 
@@ -127,7 +128,7 @@ def _prior_chi2(
 def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
     """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other."""
     t, r = pose_distance(a, b)
-    return t <= tolerance and np.rad2deg(r) <= tolerance
+    return t <= tolerance and math.degrees(r) <= tolerance
 
 
 def _decide(

@@ -30,12 +30,12 @@ Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywh
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from roco_env.geometry import wrap_angle
 from roco_env.policies.landmarks import require_positive
 from roco_env.policies.posegraph import optimize_pose
 
@@ -363,4 +363,6 @@ def _mutual_detection(
 
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation m, |yaw| rad) between two poses (3,)."""
-    return float(np.hypot(a[0] - b[0], a[1] - b[1])), float(abs(wrap_angle(a[2] - b[2])))
+    # Scalar math: the same hypot and floor-modulo wrap as np.hypot / geometry.wrap_angle.
+    yaw = (float(a[2]) - float(b[2]) + math.pi) % (2.0 * math.pi) - math.pi
+    return math.hypot(a[0] - b[0], a[1] - b[1]), abs(yaw)
