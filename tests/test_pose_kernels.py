@@ -5,9 +5,10 @@ fixed vertex, and on single-vertex problems with correlated information."""
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_relative
-from roco_env.policies.pose_kernels import KERNEL_CODES, damped_step, wald_statistic
+from roco_env.policies.pose_kernels import KERNEL_CODES, damped_step, refine_pose, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     PoseGraph,
@@ -209,3 +210,45 @@ def test_compiled_wald_statistic_matches_the_numpy_path(kernel):
         statistic = wald_statistic(start, lands, own, covariance, reported, KERNEL_CODES[kernel],
                                    2.0, 1000, 1e-6, _MIN_DIAG)
         assert np.isclose(statistic, expected, rtol=1e-9, atol=1e-9)
+
+
+def _numpy_refine(initial, lands, own, info, gate, kernel, min_matches):
+    """The array path of hypotheses.refine_hypothesis: k-d tree nearest centres within the
+    gate, optimize_pose, twice (the second round only when the pairs changed)."""
+    pose, previous, tree = np.asarray(initial, dtype=float), None, cKDTree(lands[:, :2])
+    for _ in range(2):
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        mapped = np.column_stack([c * own[:, 0] - s * own[:, 1] + pose[0],
+                                  s * own[:, 0] + c * own[:, 1] + pose[1]])
+        distance, nearest = tree.query(mapped, distance_upper_bound=gate)
+        box = np.nonzero(np.isfinite(distance))[0]
+        if box.size < min_matches:
+            return None
+        land = nearest[box]
+        if previous is not None and np.array_equal(land, previous[0]) and np.array_equal(
+                box, previous[1]):
+            break
+        previous = (land, box)
+        pose = optimize_pose(pose, lands[land], own[box], info[box], kernel=kernel,
+                             kernel_delta=2.0, max_iterations=50, tolerance=1e-4).pose
+    return pose
+
+
+@pytest.mark.parametrize("kernel", [None, "cauchy"])
+def test_compiled_refinement_matches_the_numpy_path(kernel):
+    rng = np.random.default_rng(13)
+    for trial in range(20):
+        truth = rng.normal(size=3) * [3.0, 3.0, 0.05]
+        lands = np.column_stack([rng.uniform(-40, 40, (50, 2)), rng.uniform(-3, 3, 50)])
+        seen = rng.choice(50, 30, replace=False)
+        own = se2_relative(truth, lands[seen]) + rng.normal(size=(30, 3)) * [0.2, 0.2, 0.02]
+        root = rng.normal(size=(30, 3, 3)) * 0.3
+        info = root @ root.transpose(0, 2, 1) + np.diag([25.0, 25.0, 400.0])
+        start = truth + rng.normal(size=3) * [0.6, 0.6, 0.01]
+        gate, min_matches = 1.0, 3 if trial % 4 else 40  # every 4th: too few matches
+        expected = _numpy_refine(start, lands, own, info, gate, kernel, min_matches)
+        pose, ok = refine_pose(start, lands, own, info, gate, KERNEL_CODES[kernel], 2.0,
+                               min_matches, 50, 1e-4, _MIN_DIAG)
+        assert ok == (expected is not None)
+        if ok:
+            np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-9)

@@ -37,7 +37,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from roco_env.policies.landmarks import require_positive
-from roco_env.policies.posegraph import optimize_pose
+from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
+from roco_env.policies.posegraph import _MIN_DIAG
 
 __all__ = [
     "BoxSet",
@@ -48,6 +49,9 @@ __all__ = [
     "score_hypotheses",
 ]
 
+
+# LM cap and relative-decrease stop of a refinement solve (they only steer the hypothesis).
+_REFINE_ITERATIONS, _REFINE_TOLERANCE = 50, 1e-4
 
 _POSITIVE_FIELDS = (
     "search_radius",
@@ -244,34 +248,21 @@ def refine_hypothesis(
 ) -> np.ndarray | None:
     """Up to two rounds of nearest matching within ``refine_gate`` and a robust pose solve
     (the second only when the matches changed); None when fewer than ``min_matches``
-    boxes match."""
-    pose = np.asarray(initial, dtype=float)
-    if min(ego.poses.shape[0], collab.poses.shape[0]) < min_matches:
-        return None
-    previous = None
-    for _ in range(2):
-        mapped = _map(pose, collab.poses)
-        distance, nearest = ego.tree.query(mapped[:, :2], distance_upper_bound=p.refine_gate)
-        box = np.nonzero(np.isfinite(distance))[0]
-        if box.size < min_matches:
-            return None
-        land = nearest[box]
-        if previous is not None and np.array_equal(land, previous[0]) and np.array_equal(
-            box, previous[1]
-        ):
-            break
-        previous = (land, box)
-        pose = optimize_pose(
-            pose,
-            ego.poses[land],
-            collab.poses[box],
-            collab.information[box],
-            kernel=kernel,
-            kernel_delta=kernel_delta,
-            max_iterations=50,
-            tolerance=1e-4,
-        ).pose
-    return pose
+    boxes match. One compiled pass (:func:`~roco_env.policies.pose_kernels.refine_pose`)."""
+    pose, ok = refine_pose(
+        np.asarray(initial, dtype=float).reshape(3),
+        ego.poses,
+        collab.poses,
+        collab.information,
+        float(p.refine_gate),
+        KERNEL_CODES[kernel],
+        float(kernel_delta),
+        int(min_matches),
+        _REFINE_ITERATIONS,
+        _REFINE_TOLERANCE,
+        _MIN_DIAG,
+    )
+    return pose if ok else None
 
 
 def _pair_gains(

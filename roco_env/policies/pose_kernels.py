@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "rotate_information",
+__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "rotate_information",
            "solve_graph", "solve_pose", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
@@ -545,3 +545,52 @@ def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, m
     ad = bread @ d
     solved = damped_step(meat, -ad, 0.0, min_diag)[0]  # B^-1 A d
     return ad[0] * solved[0] + ad[1] * solved[1] + ad[2] * solved[2]
+
+
+@njit(cache=True)
+def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, min_matches,
+                max_iterations, tolerance, min_diag):
+    """Up to two rounds of nearest-centre matching and a robust single-vertex solve
+    (``hypotheses.refine_hypothesis``).
+
+    Each round maps the agent's boxes own_poses (K, 3) (its frame) into the landmarks'
+    frame with the current pose (initial (3,) first), pairs every box with its nearest
+    landmark (land_poses (L, 3); lowest index among equal distances) closer than
+    ``gate`` m, and solves the pose from those pairs (boxes' information own_info (K, 3, 3),
+    no prior; LM rules of :func:`solve_pose`). The second round runs only when the pairs
+    changed. Returns (pose (3,), True), or (initial, False) when fewer than
+    ``min_matches`` boxes match in a round.
+    """
+    pose = initial.copy()
+    n_own, n_land = own_poses.shape[0], land_poses.shape[0]
+    if min(n_own, n_land) < min_matches:
+        return pose, False
+    previous = np.full(n_own, -2, dtype=np.int64)
+    nearest = np.empty(n_own, dtype=np.int64)
+    for _ in range(2):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        count = 0
+        for q in range(n_own):
+            x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
+            y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
+            best, best_p = gate, -1
+            for p in range(n_land):
+                d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
+                if d < best:
+                    best, best_p = d, p
+            nearest[q] = best_p
+            count += best_p >= 0
+        if count < min_matches:
+            return initial.copy(), False
+        if np.array_equal(nearest, previous):
+            break
+        previous[:] = nearest
+        box = np.nonzero(nearest >= 0)[0]
+        land = nearest[box]
+        own = own_poses[box]
+        landmarks = land_poses[land]
+        info = rotate_information(np.ascontiguousarray(own_info[box]), np.ascontiguousarray(own[:, 2]))
+        pose = solve_pose(pose, np.ascontiguousarray(landmarks[:, :2]),
+                          np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
+                          kernel, delta, None, max_iterations, tolerance, min_diag)[0]
+    return pose, True
