@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from roco_env.policies.landmarks import require_positive
+from roco_env.policies.matching_kernels import best_pair_gains
 from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
 from roco_env.policies.posegraph import _MIN_DIAG
 
@@ -265,34 +266,27 @@ def refine_hypothesis(
     return pose if ok else None
 
 
-def _pair_gains(
+def _best_gains(
     ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ego index, collaborator index, gain) of the pairs that can gain under ``pose``:
-    gain = outlier_chi2 - chi2 > 0 with chi2 from position, heading modulo pi and (when
-    used) log sizes."""
-    mapped = _map(pose, collab.poses)
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    # chi2 >= distance^2 / var_t, so pairs beyond this radius cannot gain.
-    widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
-    i, j = _pairs(ego, mapped, float(np.sqrt(p.outlier_chi2 * widest)))
-    dx = ego.poses[i, 0] - mapped[j, 0]
-    dy = ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
-    chi2 += dyaw * dyaw / (ego.var_r[i] + collab.var_r[j] + slack_r)
-    if p.use_size:
-        chi2 += _size_chi2(ego, collab, i, j, p)
-    gain = p.outlier_chi2 - chi2
-    keep = gain > 0
-    return i[keep], j[keep], gain[keep]
-
-
-def _best_gain(index: np.ndarray, gain: np.ndarray, count: int) -> np.ndarray:
-    """Per box (count,), the largest gain of its pairs (0 for a box without one)."""
-    best = np.zeros(count)
-    np.maximum.at(best, index, gain)
-    return best
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per box, the largest gain ``outlier_chi2 - chi2 > 0`` of its pairs under ``pose``
+    (0 for a box no pair explains): (collaborator boxes (K1,), ego boxes (K0,)); chi2
+    from position, heading modulo pi and (when used) log sizes, both boxes' variances and
+    the pose slack (:func:`~roco_env.policies.matching_kernels.best_pair_gains`)."""
+    return best_pair_gains(
+        ego.poses,
+        ego.log_sizes,
+        ego.var_t,
+        ego.var_r,
+        _map(pose, collab.poses),
+        collab.log_sizes,
+        collab.var_t,
+        collab.var_r,
+        p.pose_slack_t**2,
+        np.deg2rad(p.pose_slack_r_deg) ** 2,
+        2.0 * p.size_sigma**2 if p.use_size else 0.0,
+        float(p.outlier_chi2),
+    )
 
 
 def score_hypotheses(
@@ -310,9 +304,7 @@ def score_hypotheses(
         backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
     scores = np.zeros(poses.shape[0])
     for h, pose in enumerate(poses):
-        i, j, gain = _pair_gains(ego, collab, pose, p)
-        forward = _best_gain(j, gain, collab.poses.shape[0])
-        backward = _best_gain(i, gain, ego.poses.shape[0])
+        forward, backward = _best_gains(ego, collab, pose, p)
         scores[h] = float(forward[forward_set].sum())
         if p.use_free_space:
             scores[h] += float(backward[backward_set].sum())
