@@ -2,8 +2,9 @@
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from roco_env.policies.matching_kernels import compact_pairs
+from roco_env.policies.matching_kernels import close_pairs, compact_pairs
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -31,12 +32,14 @@ def test_compact_pairs_of_no_pairs_is_empty():
 def _numpy_best_gains(ego, collab, pose, p):
     """The array path: k-d tree pairs within the radius where a pair can still gain, chi2
     per pair, np.maximum.at per box."""
-    from roco_env.policies.hypotheses import _half_turn, _map, _pairs, _size_chi2
+    from roco_env.policies.hypotheses import _half_turn, _map, _size_chi2
 
     mapped = _map(pose, collab.poses)
     slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
     widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
-    i, j = _pairs(ego, mapped, float(np.sqrt(p.outlier_chi2 * widest)))
+    found = cKDTree(ego.poses[:, :2]).sparse_distance_matrix(
+        cKDTree(mapped[:, :2]), float(np.sqrt(p.outlier_chi2 * widest)), output_type="ndarray")
+    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
     dx, dy = ego.poses[i, 0] - mapped[j, 0], ego.poses[i, 1] - mapped[j, 1]
     dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
     chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
@@ -75,3 +78,15 @@ def test_best_pair_gains_match_the_numpy_path(use_size):
         np.testing.assert_array_equal(forward, expected[0])
         np.testing.assert_array_equal(backward, expected[1])
         assert np.count_nonzero(forward) > 5  # the case exercises gaining pairs
+
+
+def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():
+    rng = np.random.default_rng(22)
+    for radius in (0.5, 3.0, 12.0):
+        a, b = rng.uniform(-20, 20, (60, 2)), rng.uniform(-20, 20, (45, 2))
+        first, second = close_pairs(a, b, radius)
+        found = cKDTree(a).sparse_distance_matrix(cKDTree(b), radius, output_type="ndarray")
+        expected = sorted(zip(found["i"].tolist(), found["j"].tolist(), strict=True))
+        assert list(zip(first.tolist(), second.tolist(), strict=True)) == expected
+    empty = close_pairs(np.zeros((0, 2)), b, 3.0)
+    assert empty[0].size == empty[1].size == 0

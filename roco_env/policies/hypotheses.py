@@ -34,10 +34,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from roco_env.policies.landmarks import require_positive
-from roco_env.policies.matching_kernels import best_pair_gains
+from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
 from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
 from roco_env.policies.posegraph import _MIN_DIAG
 
@@ -115,8 +114,7 @@ class BoxSet:
     information (K, 3, 3) (box frame, as the pose graph uses it), var_t (K,) the mean of
     the centre's x and y variances (m^2), var_r (K,) the heading variance (rad^2),
     range (m): the largest distance of a box from the agent (the radius of its observed
-    disk), and a KD-tree of the centres (pair searches are sparse: a few boxes lie within
-    a few metres of any point)."""
+    disk)."""
 
     poses: np.ndarray
     log_sizes: np.ndarray
@@ -124,7 +122,6 @@ class BoxSet:
     var_t: np.ndarray
     var_r: np.ndarray
     range: float
-    tree: cKDTree
 
 
 def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
@@ -143,7 +140,6 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
         var_t,
         1.0 / information[:, 2, 2],
         reach,
-        cKDTree(poses[:, :2]),
     )
 
 
@@ -166,11 +162,7 @@ def _half_turn(angle: np.ndarray) -> np.ndarray:
 def _pairs(ego: BoxSet, mapped: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """(ego index, collaborator index) of every pair of centres at most ``radius`` m apart,
     the collaborator's boxes already mapped into the ego frame (mapped (K1, 3))."""
-    if ego.poses.shape[0] == 0 or mapped.shape[0] == 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty
-    found = ego.tree.sparse_distance_matrix(cKDTree(mapped[:, :2]), radius, output_type="ndarray")
-    return found["i"].astype(np.int64), found["j"].astype(np.int64)
+    return close_pairs(ego.poses[:, :2], mapped[:, :2], float(radius))
 
 
 def _size_chi2(ego: BoxSet, collab: BoxSet, i: np.ndarray, j: np.ndarray, p: EvidenceParams):

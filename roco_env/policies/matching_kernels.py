@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["best_pair_gains", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs"]
+__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs"]
 
 
 @njit(cache=True)
@@ -212,3 +212,25 @@ def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_
                 forward[j] = max(forward[j], gain)
                 backward[i] = max(backward[i], gain)
     return forward, backward
+
+
+@njit(cache=True)
+def close_pairs(a_xy, b_xy, radius):
+    """(index into a (P,), index into b (P,)) of every pair of centres a_xy (A, 2),
+    b_xy (B, 2) at most ``radius`` apart (distance sqrt(dx^2 + dy^2)), in row-major order."""
+    count = 0
+    for i in range(a_xy.shape[0]):
+        for j in range(b_xy.shape[0]):
+            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
+            if math.sqrt(dx * dx + dy * dy) <= radius:
+                count += 1
+    first = np.empty(count, dtype=np.int64)
+    second = np.empty(count, dtype=np.int64)
+    k = 0
+    for i in range(a_xy.shape[0]):
+        for j in range(b_xy.shape[0]):
+            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
+            if math.sqrt(dx * dx + dy * dy) <= radius:
+                first[k], second[k] = i, j
+                k += 1
+    return first, second
