@@ -90,3 +90,23 @@ def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():
         assert list(zip(first.tolist(), second.tolist(), strict=True)) == expected
     empty = close_pairs(np.zeros((0, 2)), b, 3.0)
     assert empty[0].size == empty[1].size == 0
+
+
+def test_gated_pairs_match_the_dense_definition():
+    from roco_env.policies.matching_kernels import gated_pairs
+
+    rng = np.random.default_rng(23)
+    for tau2 in (1.0, 3.0, 6.0):
+        land, centres = rng.uniform(-25, 25, (70, 2)), rng.uniform(-25, 25, (50, 2))
+        dx = land[:, None, 0] - centres[None, :, 0]
+        dy = land[:, None, 1] - centres[None, :, 1]
+        dis = np.sqrt(dx * dx + dy * dy)
+        cand_p, cand_q, d, leaves, partner = gated_pairs(land, centres, tau2)
+        expected_p, expected_q = np.nonzero(dis <= tau2)
+        np.testing.assert_array_equal(cand_p, expected_p)
+        np.testing.assert_array_equal(cand_q, expected_q)
+        np.testing.assert_array_equal(d, dis[expected_p, expected_q])
+        nearest = dis.argmin(axis=1)
+        within = dis.min(axis=1) <= tau2
+        np.testing.assert_array_equal(leaves, np.nonzero(within)[0])
+        np.testing.assert_array_equal(partner, nearest[within])

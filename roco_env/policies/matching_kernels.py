@@ -99,14 +99,18 @@ def gated_pairs(land_xy, centres, tau2):
     land_xy (L, 2), centres (K, 2) in the ego frame; distance = sqrt(dx^2 + dy^2).
     Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
     (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
-    (lowest index among equal distances) is within the gate, with that box.
+    (lowest index among equal distances) is within the gate, with that box. A pair whose
+    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured.
     """
     n_land, n_box = land_xy.shape[0], centres.shape[0]
+    reach = tau2 * (1.0 + 1e-12)
     count = 0
     for p in range(n_land):
         for q in range(n_box):
             dx = land_xy[p, 0] - centres[q, 0]
             dy = land_xy[p, 1] - centres[q, 1]
+            if abs(dx) > reach or abs(dy) > reach:
+                continue
             if math.sqrt(dx * dx + dy * dy) <= tau2:
                 count += 1
     cand_p = np.empty(count, dtype=np.int64)
@@ -120,6 +124,8 @@ def gated_pairs(land_xy, centres, tau2):
         for q in range(n_box):
             dx = land_xy[p, 0] - centres[q, 0]
             dy = land_xy[p, 1] - centres[q, 1]
+            if abs(dx) > reach or abs(dy) > reach:
+                continue  # beyond the gate: neither a pair nor a nearest box within it
             d = math.sqrt(dx * dx + dy * dy)
             if d <= tau2:
                 cand_p[k], cand_q[k], dis[k] = p, q, d
