@@ -395,24 +395,33 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
     rhs = -g_a
     h_ll_inv = np.empty((n_land, 3, 3))
     y = np.empty((n_a, 3))
+    h_ll_d = np.empty((3, 3))
+    al = np.empty((n_a, 3))  # the nonzero rows of H_al's block column, gathered
     for m in range(n_land):
-        h_ll_d = h_ll[m].copy()
+        h_ll_d[:] = h_ll[m]
         for i in range(3):
             h_ll_d[i, i] += lam * max(h_ll[m, i, i], min_diag)
         _inverse3(h_ll_d, h_ll_inv[m])
         col = 3 * m
         seen = rows[row_start[m] : row_start[m + 1]]
-        for r in seen:  # Y = H_al,m H_ll,m^{-1}
+        k = seen.size
+        for a in range(k):
+            al[a, 0], al[a, 1], al[a, 2] = h_al[seen[a], col], h_al[seen[a], col + 1], h_al[
+                seen[a], col + 2
+            ]
+        for a in range(k):  # Y = H_al,m H_ll,m^{-1}
             for j in range(3):
-                y[r, j] = h_al[r, col] * h_ll_inv[m, 0, j] + h_al[r, col + 1] * h_ll_inv[
-                    m, 1, j
-                ] + h_al[r, col + 2] * h_ll_inv[m, 2, j]
-        for r in seen:
-            for c in seen:
-                damped[r, c] -= y[r, 0] * h_al[c, col] + y[r, 1] * h_al[c, col + 1] + (
-                    y[r, 2] * h_al[c, col + 2]
+                y[a, j] = al[a, 0] * h_ll_inv[m, 0, j] + al[a, 1] * h_ll_inv[m, 1, j] + (
+                    al[a, 2] * h_ll_inv[m, 2, j]
                 )
-            rhs[r] += y[r, 0] * g_l[m, 0] + y[r, 1] * g_l[m, 1] + y[r, 2] * g_l[m, 2]
+        for a in range(k):
+            r = seen[a]
+            for b in range(a, k):  # Y H_al^T is symmetric: one triangle, mirrored
+                update = y[a, 0] * al[b, 0] + y[a, 1] * al[b, 1] + y[a, 2] * al[b, 2]
+                damped[r, seen[b]] -= update
+                if b != a:
+                    damped[seen[b], r] -= update
+            rhs[r] += y[a, 0] * g_l[m, 0] + y[a, 1] * g_l[m, 1] + y[a, 2] * g_l[m, 2]
     d_a = np.zeros(n_a)
     if free.size:
         reduced = np.empty((free.size, free.size))
