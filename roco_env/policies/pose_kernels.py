@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "rotate_information",
-           "solve_graph", "solve_pose", "wald_statistic"]
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -603,3 +603,50 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
                           np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
                           kernel, delta, None, max_iterations, tolerance, min_diag)[0]
     return pose, True
+
+
+@njit(cache=True)
+def prior_terms(z, info_p):
+    """Constant terms of the prior edge identity -> agent measuring z (3,) with
+    information info_p (3, 3): (J_p, J_p z, Omega_p, J_p^T Omega_p J_p, Omega_p J_p), with
+    the edge's constant Jacobian J_p = blockdiag(R_z^T, 1); its residual is
+    J_p pose - J_p z, yaw wrapped."""
+    cz, sz = math.cos(z[2]), math.sin(z[2])
+    j_p = np.zeros((3, 3))
+    j_p[0, 0], j_p[0, 1], j_p[1, 0], j_p[1, 1], j_p[2, 2] = cz, sz, -sz, cz, 1.0
+    offset = np.empty(3)
+    ip_jp = np.empty((3, 3))  # Omega_p J_p
+    jt_ip = np.empty((3, 3))  # J_p^T Omega_p
+    for a in range(3):
+        offset[a] = j_p[a, 0] * z[0] + j_p[a, 1] * z[1] + j_p[a, 2] * z[2]
+        for b in range(3):
+            ip_jp[a, b] = info_p[a, 0] * j_p[0, b] + info_p[a, 1] * j_p[1, b] + (
+                info_p[a, 2] * j_p[2, b]
+            )
+            jt_ip[a, b] = j_p[0, a] * info_p[0, b] + j_p[1, a] * info_p[1, b] + (
+                j_p[2, a] * info_p[2, b]
+            )
+    hess = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            hess[a, b] = jt_ip[a, 0] * j_p[0, b] + jt_ip[a, 1] * j_p[1, b] + jt_ip[a, 2] * j_p[2, b]
+    return j_p, offset, info_p.copy(), hess, ip_jp
+
+
+@njit(cache=True)
+def solve_pose_edges(initial, landmarks, measurement, information, prior, kernel, delta,
+                     max_iterations, tolerance, min_diag):
+    """:func:`solve_pose` from the edges as given: landmarks (E, 3), measurements (E, 3)
+    (the landmarks in the agent's frame), information (E, 3, 3), and None or the prior
+    edge's (measurement (3,), information (3, 3)); the per-edge terms and the prior's
+    (:func:`prior_terms`) are built here."""
+    land_xy = np.ascontiguousarray(landmarks[:, :2])
+    t_z = np.ascontiguousarray(measurement[:, :2])
+    angle = landmarks[:, 2] - measurement[:, 2]
+    info = rotate_information(np.ascontiguousarray(information),
+                              np.ascontiguousarray(measurement[:, 2]))
+    if prior is None:
+        return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, None,
+                          max_iterations, tolerance, min_diag)
+    return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta,
+                      prior_terms(prior[0], prior[1]), max_iterations, tolerance, min_diag)

@@ -32,9 +32,10 @@ from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
     evaluate_edges,
     normal_sums,
+    prior_terms,
     rotate_information,
     solve_graph,
-    solve_pose,
+    solve_pose_edges,
 )
 
 __all__ = [
@@ -344,7 +345,8 @@ class PoseResult:
 class _PoseProblem:
     """One agent vertex observing fixed landmarks (and an optional prior edge from a fixed
     identity vertex), linearised by the compiled loops of
-    :mod:`roco_env.policies.pose_kernels`.
+    :mod:`roco_env.policies.pose_kernels` (:func:`pose_hessians` evaluates it;
+    :func:`optimize_pose` runs the same terms inside the compiled solver).
 
     Each observation residual is ``e = C e~`` with ``C = blockdiag(R(-yaw_z), 1)`` and
     ``e~ = (R(-yaw) (t_l - t) - t_z, wrap(yaw_l - yaw_z - yaw))``, so the per-edge
@@ -369,11 +371,10 @@ class _PoseProblem:
         if prior is not None:
             # The prior edge identity -> agent has the constant Jacobian J_p =
             # blockdiag(R_z^T, 1) and residual J_p pose - (R_z^T t_z, yaw_z), yaw wrapped.
-            z = np.asarray(prior, dtype=float).reshape(3)
-            cz, sz = math.cos(z[2]), math.sin(z[2])
-            j_p = np.array([[cz, sz, 0.0], [-sz, cz, 0.0], [0.0, 0.0, 1.0]])
-            info_p = np.asarray(prior_information, dtype=float).reshape(3, 3)
-            self.prior = (j_p, j_p @ z, info_p, j_p.T @ info_p @ j_p, info_p @ j_p)
+            self.prior = prior_terms(
+                np.asarray(prior, dtype=float).reshape(3),
+                np.asarray(prior_information, dtype=float).reshape(3, 3),
+            )
 
     def evaluate(self, pose: np.ndarray) -> tuple[float, tuple]:
         """(robust cost, linearisation point) at ``pose`` (3,); the point starts with the
@@ -437,18 +438,20 @@ def optimize_pose(
     """
     if kernel is not None and kernel not in ROBUST_KERNELS:
         raise ValueError(f"kernel must be None or one of {ROBUST_KERNELS}; got {kernel!r}")
-    problem = _PoseProblem(
-        landmarks, measurement, information, prior, prior_information, kernel, kernel_delta
-    )
-    pose, chi2, initial_cost, cost, iterations, converged = solve_pose(
+    edge_prior = None
+    if prior is not None:
+        edge_prior = (
+            np.asarray(prior, dtype=float).reshape(3),
+            np.asarray(prior_information, dtype=float).reshape(3, 3),
+        )
+    pose, chi2, initial_cost, cost, iterations, converged = solve_pose_edges(
         np.asarray(initial, dtype=float).reshape(3).copy(),
-        problem.land_xy,
-        problem.t_z,
-        problem.angle,
-        problem.info,
-        problem.kernel_code,
+        np.asarray(landmarks, dtype=float),
+        np.asarray(measurement, dtype=float),
+        np.asarray(information, dtype=float),
+        edge_prior,
+        KERNEL_CODES[kernel],
         float(kernel_delta),
-        problem.prior,
         int(max_iterations),
         float(tolerance),
         _MIN_DIAG,
