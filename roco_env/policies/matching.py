@@ -39,7 +39,13 @@ from scipy.optimize import linear_sum_assignment
 
 from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, gated_pairs
 
-__all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
+__all__ = [
+    "MatchingParams",
+    "StarGraphMatcher",
+    "edge_consistency",
+    "match_star_graphs",
+    "pose_features",
+]
 
 _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
 
@@ -103,7 +109,7 @@ def _consistency(ax, ay, ayaw, bx, by, byaw):
     return np.exp(-np.sqrt(4.0 * (1.0 - c) + tx * tx + ty * ty))
 
 
-def _pose_features(poses: np.ndarray) -> np.ndarray:
+def pose_features(poses: np.ndarray) -> np.ndarray:
     """Per-pose factors (5, n) of the bilinear edge-similarity form: x, y, x^2 + y^2,
     cos(yaw), sin(yaw)."""
     x, y, yaw = poses[:, 0], poses[:, 1], poses[:, 2]
@@ -115,14 +121,24 @@ class StarGraphMatcher:
     pose estimates (RoCo's re-matching rounds).
 
     landmarks (L, 3): poses in the ego frame; boxes_own (K, 3): the collaborator's box
-    poses in its own frame. :meth:`match` takes the current pose estimate T_{j->i}.
+    poses in its own frame; land_features (5, L): :func:`pose_features` of the landmarks
+    when the caller keeps them (computed here otherwise). :meth:`match` takes the current
+    pose estimate T_{j->i}.
     """
 
-    def __init__(self, landmarks: np.ndarray, boxes_own: np.ndarray, params: MatchingParams):
+    def __init__(
+        self,
+        landmarks: np.ndarray,
+        boxes_own: np.ndarray,
+        params: MatchingParams,
+        land_features: np.ndarray | None = None,
+    ):
         self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
-        self._land_features = _pose_features(landmarks)
+        self._land_features = (
+            pose_features(landmarks) if land_features is None else land_features
+        )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
-        self._box_features = _pose_features(boxes_own)
+        self._box_features = pose_features(boxes_own)
         self._cached_key: tuple | None = None
         self._cached_edge = np.zeros(0)
 
@@ -226,8 +242,8 @@ def _edge_similarity(
     leaves = np.nonzero(gated.any(axis=1))[0]  # landmarks m with an initial match
     partner = np.argmin(np.where(gated[leaves], dis[leaves], np.inf), axis=1)  # n = A(m)
     return _edge_similarity_from_features(
-        _pose_features(landmarks),
-        _pose_features(boxes_own),
+        pose_features(landmarks),
+        pose_features(boxes_own),
         cand_p,
         cand_q,
         leaves,
@@ -245,7 +261,7 @@ def _edge_similarity_from_features(
     partner: np.ndarray,
     neighbor_radius: float | None,
 ) -> np.ndarray:
-    """S_edge (C,) from :func:`_pose_features` of the landmarks and the boxes.
+    """S_edge (C,) from :func:`pose_features` of the landmarks and the boxes.
 
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own

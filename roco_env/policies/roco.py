@@ -74,7 +74,7 @@ from roco_env.policies.landmarks import (
     prepare_inputs,
     prior_information,
 )
-from roco_env.policies.matching import MatchingParams, StarGraphMatcher
+from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
 from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
@@ -163,11 +163,13 @@ class _Map:
     """Landmarks (ego frame) with their observations, and the accepted agents' poses.
 
     covariance (M, 3, 3): of the box that created each landmark, in the box frame (an
-    upper bound once more observations refine it; used by the significance test).
+    upper bound once more observations refine it; used by the significance test);
+    features (5, M): the matcher's :func:`~roco_env.policies.matching.pose_features`.
     """
 
     def __init__(self, ego_poses: np.ndarray, ego_covariance: np.ndarray):
         self.poses = ego_poses.copy()
+        self.features = pose_features(self.poses)  # kept in step with poses for matching
         self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
@@ -289,7 +291,7 @@ def _attempt(
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
     starting from the pose estimate ``start`` (3,)."""
-    matcher = StarGraphMatcher(world.poses, inputs.poses[agent], p)
+    matcher = StarGraphMatcher(world.poses, inputs.poses[agent], p, world.features)
     empty = np.zeros(0, dtype=np.int64)
     att = _Attempt(np.array(start, dtype=float), empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
@@ -388,6 +390,7 @@ def _store_joint(world: _Map, joint: tuple[PoseGraphResult, np.ndarray, np.ndarr
     for vertex, agent_id in enumerate(agent_ids):
         world.agent_poses[int(agent_id)] = solution.agents[vertex]
     world.poses[shared] = solution.landmarks
+    world.features[:, shared] = pose_features(solution.landmarks)
 
 
 def _commit(
@@ -402,7 +405,9 @@ def _commit(
     unmatched[att.match_box] = False
     new_boxes = np.nonzero(unmatched)[0]
     new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    world.poses = np.concatenate([world.poses, se2_compose(att.pose, own[new_boxes])])
+    new_poses = se2_compose(att.pose, own[new_boxes])
+    world.poses = np.concatenate([world.poses, new_poses])
+    world.features = np.concatenate([world.features, pose_features(new_poses)], axis=1)
     world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
     world.obs_agent = np.concatenate(
         [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
