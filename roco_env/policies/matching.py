@@ -121,9 +121,9 @@ class StarGraphMatcher:
     pose estimates (RoCo's re-matching rounds).
 
     landmarks (L, 3): poses in the ego frame; boxes_own (K, 3): the collaborator's box
-    poses in its own frame; land_features (5, L): :func:`pose_features` of the landmarks
-    when the caller keeps them (computed here otherwise). :meth:`match` takes the current
-    pose estimate T_{j->i}.
+    poses in its own frame; land_features (5, L) / box_features (5, K): their
+    :func:`pose_features` when the caller keeps them (computed here otherwise).
+    :meth:`match` takes the current pose estimate T_{j->i}.
     """
 
     def __init__(
@@ -132,13 +132,14 @@ class StarGraphMatcher:
         boxes_own: np.ndarray,
         params: MatchingParams,
         land_features: np.ndarray | None = None,
+        box_features: np.ndarray | None = None,
     ):
         self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
         self._land_features = (
             pose_features(landmarks) if land_features is None else land_features
         )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
-        self._box_features = pose_features(boxes_own)
+        self._box_features = pose_features(boxes_own) if box_features is None else box_features
         self._cached_key: tuple | None = None
         self._cached_edge = np.zeros(0)
 

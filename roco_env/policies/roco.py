@@ -164,12 +164,18 @@ class _Map:
 
     covariance (M, 3, 3): of the box that created each landmark, in the box frame (an
     upper bound once more observations refine it; used by the significance test);
-    features (5, M): the matcher's :func:`~roco_env.policies.matching.pose_features`.
+    features (5, M): the matcher's :func:`~roco_env.policies.matching.pose_features`;
+    box_features: per agent, those of its boxes in its own frame.
     """
 
-    def __init__(self, ego_poses: np.ndarray, ego_covariance: np.ndarray):
+    def __init__(self, inputs: AlignmentInputs, ego_covariance: np.ndarray):
+        ego_poses = inputs.poses[0]
         self.poses = ego_poses.copy()
         self.features = pose_features(self.poses)  # kept in step with poses for matching
+        # Every agent's boxes' features in its own frame (fixed), computed in one pass.
+        self.box_features = np.split(
+            pose_features(inputs.all_poses), inputs.offsets[1:-1], axis=1
+        )
         self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
@@ -291,7 +297,9 @@ def _attempt(
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
     starting from the pose estimate ``start`` (3,)."""
-    matcher = StarGraphMatcher(world.poses, inputs.poses[agent], p, world.features)
+    matcher = StarGraphMatcher(
+        world.poses, inputs.poses[agent], p, world.features, world.box_features[agent]
+    )
     empty = np.zeros(0, dtype=np.int64)
     att = _Attempt(np.array(start, dtype=float), empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
@@ -474,7 +482,7 @@ def roco_solve(
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
     covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
-    world = _Map(inputs.poses[0], covariance[0])
+    world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
     outer = solver = 0
