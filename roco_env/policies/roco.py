@@ -86,7 +86,14 @@ from roco_env.policies.posegraph import (
     robust_kernel,
 )
 
-__all__ = ["NOT_SIGNIFICANT", "RoCoParams", "RoCoPolicy", "checked_params", "roco_align", "roco_solve"]
+__all__ = [
+    "NOT_SIGNIFICANT",
+    "RoCoParams",
+    "RoCoPolicy",
+    "checked_params",
+    "roco_align",
+    "roco_solve",
+]
 
 # Start of the reason for a prior kept by the significance test: the matched evidence is
 # consistent with the reported pose (a checked prior, unlike "no boxes" or too few matches).
