@@ -193,36 +193,34 @@ def _wrap(angle):
 @njit(cache=True)
 def _pose_cost(pose, land_xy, t_z, angle, info, kernel, delta, prior):
     """Robust cost and linearisation point at ``pose`` (3,): :func:`evaluate_edges` plus
-    the quadratic prior edge when ``prior`` is given (posegraph._PoseProblem.evaluate).
-    Returns (cost, chi2, u, info_e, weight, prior residual (3,); zeros without a prior)."""
+    the quadratic prior edge (posegraph._PoseProblem.evaluate; a zero-information prior,
+    :func:`_no_prior`, adds exact zeros). Returns (cost, chi2, u, info_e, weight, prior
+    residual (3,))."""
     yaw = pose[2]
     cost, chi2, u, info_e, weight = evaluate_edges(
         pose[0], pose[1], yaw, land_xy, t_z, angle, info, kernel, delta
     )
-    e_p = np.zeros(3)
-    if prior is not None:
-        j_p, offset, info_p = prior[0], prior[1], prior[2]
-        for r in range(3):
-            e_p[r] = j_p[r, 0] * pose[0] + j_p[r, 1] * pose[1] + j_p[r, 2] * pose[2] - offset[r]
-        e_p[2] = _wrap(e_p[2])
-        quad = 0.0
-        for b in range(3):
-            quad += (e_p[0] * info_p[0, b] + e_p[1] * info_p[1, b] + e_p[2] * info_p[2, b]) * e_p[b]
-        cost += quad
-    return cost, chi2, u, info_e, weight, e_p
+    e_p = np.empty(3)
+    j_p, offset, info_p = prior[0], prior[1], prior[2]
+    for r in range(3):
+        e_p[r] = j_p[r, 0] * pose[0] + j_p[r, 1] * pose[1] + j_p[r, 2] * pose[2] - offset[r]
+    e_p[2] = _wrap(e_p[2])
+    quad = 0.0
+    for b in range(3):
+        quad += (e_p[0] * info_p[0, b] + e_p[1] * info_p[1, b] + e_p[2] * info_p[2, b]) * e_p[b]
+    return cost + quad, chi2, u, info_e, weight, e_p
 
 
 @njit(cache=True)
 def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_iterations,
                tolerance, min_diag):
-    """Levenberg-Marquardt of one agent vertex against fixed landmarks, the loop of
-    Levenberg-Marquardt loop of :func:`solve_graph` with ``posegraph._PoseProblem``'s
-    linearisation (same stopping rules, same arithmetic per edge).
+    """Levenberg-Marquardt of one agent vertex against fixed landmarks: the loop of
+    :func:`solve_graph` with ``posegraph._PoseProblem``'s linearisation (same stopping
+    rules, same arithmetic per edge).
 
-    initial (3,) pose; edges as :func:`evaluate_edges`; prior: None or (J_p (3, 3),
-    J_p z (3,), Omega_p (3, 3), J_p^T Omega_p J_p (3, 3), (Omega_p J_p)^T (3, 3)) of the
-    prior edge. Returns (pose (3,), chi2 (E,) at it, initial cost, cost, iterations,
-    converged).
+    initial (3,) pose; edges as :func:`evaluate_edges`; prior: the prior edge's terms
+    (:func:`prior_terms`; :func:`_no_prior` for none: its zeros change nothing). Returns
+    (pose (3,), chi2 (E,) at it, initial cost, cost, iterations, converged).
     """
     x = initial.copy()
     cost, chi2, u, info_e, weight, e_p = _pose_cost(
@@ -234,10 +232,9 @@ def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_ite
         hess, grad = normal_sums(
             math.cos(x[2]), math.sin(x[2]), u, info, info_e, weight, True
         )
-        if prior is not None:
-            hess += prior[3]
-            for r in range(3):
-                grad[r] += prior[4][0, r] * e_p[0] + prior[4][1, r] * e_p[1] + prior[4][2, r] * e_p[2]
+        hess += prior[3]
+        for r in range(3):
+            grad[r] += prior[4][0, r] * e_p[0] + prior[4][1, r] * e_p[1] + prior[4][2, r] * e_p[2]
         while True:
             step_delta, step = damped_step(hess, grad, lam, min_diag)
             trial = x + step_delta
@@ -541,7 +538,7 @@ def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, m
     land_xy = np.ascontiguousarray(landmarks[:, :2])
     t_z = np.ascontiguousarray(own[:, :2])
     angle = landmarks[:, 2] - own[:, 2]
-    pose = solve_pose(start, land_xy, t_z, angle, info, kernel, delta, None, max_iterations,
+    pose = solve_pose(start, land_xy, t_z, angle, info, kernel, delta, _no_prior(), max_iterations,
                       tolerance, min_diag)[0]
     _, _, u, info_e, weight = evaluate_edges(
         pose[0], pose[1], pose[2], land_xy, t_z, angle, info, kernel, delta
@@ -601,7 +598,7 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
         info = rotate_information(np.ascontiguousarray(own_info[box]), np.ascontiguousarray(own[:, 2]))
         pose = solve_pose(pose, np.ascontiguousarray(landmarks[:, :2]),
                           np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
-                          kernel, delta, None, max_iterations, tolerance, min_diag)[0]
+                          kernel, delta, _no_prior(), max_iterations, tolerance, min_diag)[0]
     return pose, True
 
 
@@ -634,19 +631,22 @@ def prior_terms(z, info_p):
 
 
 @njit(cache=True)
-def solve_pose_edges(initial, landmarks, measurement, information, prior, kernel, delta,
-                     max_iterations, tolerance, min_diag):
+def _no_prior():
+    """:func:`prior_terms` of a prior edge with zero information (no prior)."""
+    return prior_terms(np.zeros(3), np.zeros((3, 3)))
+
+
+@njit(cache=True)
+def solve_pose_edges(initial, landmarks, measurement, information, prior_z, prior_info, kernel,
+                     delta, max_iterations, tolerance, min_diag):
     """:func:`solve_pose` from the edges as given: landmarks (E, 3), measurements (E, 3)
-    (the landmarks in the agent's frame), information (E, 3, 3), and None or the prior
-    edge's (measurement (3,), information (3, 3)); the per-edge terms and the prior's
-    (:func:`prior_terms`) are built here."""
+    (the landmarks in the agent's frame), information (E, 3, 3), and the prior edge's
+    measurement prior_z (3,) and information prior_info (3, 3) (zeros: no prior); the
+    per-edge terms and the prior's (:func:`prior_terms`) are built here."""
     land_xy = np.ascontiguousarray(landmarks[:, :2])
     t_z = np.ascontiguousarray(measurement[:, :2])
     angle = landmarks[:, 2] - measurement[:, 2]
     info = rotate_information(np.ascontiguousarray(information),
                               np.ascontiguousarray(measurement[:, 2]))
-    if prior is None:
-        return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, None,
-                          max_iterations, tolerance, min_diag)
     return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta,
-                      prior_terms(prior[0], prior[1]), max_iterations, tolerance, min_diag)
+                      prior_terms(prior_z, prior_info), max_iterations, tolerance, min_diag)

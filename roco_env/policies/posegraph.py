@@ -438,18 +438,14 @@ def optimize_pose(
     """
     if kernel is not None and kernel not in ROBUST_KERNELS:
         raise ValueError(f"kernel must be None or one of {ROBUST_KERNELS}; got {kernel!r}")
-    edge_prior = None
-    if prior is not None:
-        edge_prior = (
-            np.asarray(prior, dtype=float).reshape(3),
-            np.asarray(prior_information, dtype=float).reshape(3, 3),
-        )
+    no_prior = prior is None  # a zero-information prior edge changes nothing
     pose, chi2, initial_cost, cost, iterations, converged = solve_pose_edges(
         np.asarray(initial, dtype=float).reshape(3).copy(),
         np.asarray(landmarks, dtype=float),
         np.asarray(measurement, dtype=float),
         np.asarray(information, dtype=float),
-        edge_prior,
+        np.zeros(3) if no_prior else np.asarray(prior, dtype=float).reshape(3),
+        np.zeros((3, 3)) if no_prior else np.asarray(prior_information, dtype=float).reshape(3, 3),
         KERNEL_CODES[kernel],
         float(kernel_delta),
         int(max_iterations),
