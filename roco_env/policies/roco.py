@@ -190,11 +190,13 @@ class _Map:
         self.obs_land = np.arange(count)
         self.agent_poses: dict[int, np.ndarray] = {0: np.zeros(3)}
 
-    def shared(self, extra_land: np.ndarray) -> np.ndarray:
-        """Landmark ids seen by >= 2 agents once ``extra_land`` gets one more observation."""
+    def shared(self, extra_land: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark ids seen by >= 2 agents once ``extra_land`` gets one more observation,
+        and which of the stored observations are of those landmarks (bool mask)."""
         counts = np.bincount(self.obs_land, minlength=self.poses.shape[0])
         counts[extra_land] += 1
-        return np.nonzero(counts >= 2)[0]
+        is_shared = counts >= 2
+        return np.nonzero(is_shared)[0], is_shared[self.obs_land]
 
 
 @dataclass
@@ -243,8 +245,7 @@ def _joint_solve(
     match_box = world.obs_box[:0] if att is None else att.match_box
     if att is not None:
         known, poses = [*known, agent], [*poses, att.pose]
-    shared = world.shared(match_land)
-    keep = np.isin(world.obs_land, shared)
+    shared, keep = world.shared(match_land)
     obs_agent = np.concatenate([world.obs_agent[keep], np.full(match_land.size, agent)])
     obs_box = np.concatenate([world.obs_box[keep], match_box])
     obs_land = np.searchsorted(shared, np.concatenate([world.obs_land[keep], match_land]))
@@ -521,8 +522,7 @@ def roco_solve(
     corrected = inputs.reported.copy()
     for j in np.nonzero(applied)[0]:
         corrected[j] = world.agent_poses[j + 1]
-    shared = world.shared(np.zeros(0, dtype=np.int64))
-    keep = np.isin(world.obs_land, shared)
+    shared, keep = world.shared(np.zeros(0, dtype=np.int64))
     return AlignmentResult(
         corrected=corrected,
         applied=applied,
