@@ -11,8 +11,8 @@ makes the shifts explicit:
    maxima within ``search_radius`` become hypotheses (plus the reported pose and any
    extra seeds, e.g. a temporal track's prediction);
 2. :func:`refine_hypothesis`: nearest-neighbour matching within ``refine_gate`` and a
-   robust single-vertex pose-graph solve (:func:`~roco_env.policies.posegraph.optimize_pose`),
-   twice;
+   robust single-vertex pose-graph solve (the solver of
+   :func:`~roco_env.policies.posegraph.optimize_pose`), twice, in one compiled pass;
 3. :func:`score_hypotheses`: a log-likelihood ratio per hypothesis in chi-square units
    (-2 ln L): every collaborator box explained by an ego box gains
    ``outlier_chi2 - chi2(pair)`` (position with both boxes' covariances, heading modulo pi,
