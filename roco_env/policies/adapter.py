@@ -54,6 +54,12 @@ class ObservationView:
     def reported(self) -> np.ndarray:
         return self.reported_full[self.slots]
 
+    @property
+    def arrays(self) -> tuple:
+        """The positional arguments of an array aligner: (ego_boxes, ego_unc,
+        collab_boxes, collab_unc, reported)."""
+        return self.ego_boxes, self.ego_unc, self.collab_boxes, self.collab_unc, self.reported
+
     def expand(self, result: AlignmentResult) -> AlignmentResult:
         """Map a result over the filled slots/used boxes back to observation positions."""
         n = self.reported_full.shape[0]
@@ -62,13 +68,14 @@ class ObservationView:
         applied = np.zeros(n, dtype=bool)
         applied[self.slots] = result.applied
         pairs = np.asarray(result.matched_pairs, dtype=np.int64).reshape(-1, 4).copy()
+        # Box k of compact slot c (-1 = ego) sits at box_index[start[c + 1] + k].
+        box_index = np.concatenate([self.ego_index, *self.collab_index]).astype(np.int64)
+        start = np.cumsum([0, self.ego_index.size, *(i.size for i in self.collab_index)])
+        slot_of = np.concatenate([[-1], self.slots]).astype(np.int64)
         for col in (0, 2):
-            slot, box = pairs[:, col].copy(), pairs[:, col + 1].copy()
-            for compact in np.unique(slot):
-                sel = slot == compact
-                index = self.ego_index if compact < 0 else self.collab_index[compact]
-                pairs[sel, col + 1] = index[box[sel]]
-                pairs[sel, col] = -1 if compact < 0 else self.slots[compact]
+            compact = pairs[:, col] + 1
+            pairs[:, col + 1] = box_index[start[compact] + pairs[:, col + 1]]
+            pairs[:, col] = slot_of[compact]
         reasons = [""] * n
         for compact, text in enumerate(result.slot_reasons):
             reasons[self.slots[compact]] = text
@@ -114,7 +121,10 @@ class ArrayAlignmentPolicy:
 
     ``params`` (already validated by the subclass) is kept as ``self.params``; the raw
     keyword arguments are passed to ``align`` on every call. ``self.last_result`` holds
-    the last result in observation positions (slots, box indices).
+    the last result in observation positions (slots, box indices). Subclasses that need
+    more per call (arguments from the observation or the info dict, state across calls)
+    override :meth:`align_view`, the one step between unpacking the observation and
+    mapping the result back.
     """
 
     def __init__(self, align: Callable[..., AlignmentResult], params: object, kwargs: dict):
@@ -123,17 +133,16 @@ class ArrayAlignmentPolicy:
         self.params = params
         self.last_result: AlignmentResult | None = None
 
+    def align_view(
+        self, view: ObservationView, observation: dict, info: dict | None
+    ) -> AlignmentResult:
+        """Align the filled part of one observation (result over the filled slots and
+        used boxes, as the array aligner returns it)."""
+        return self._align(*view.arrays, **self._kwargs)
+
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         view = unpack_observation(observation)
-        result = self._align(
-            view.ego_boxes,
-            view.ego_unc,
-            view.collab_boxes,
-            view.collab_unc,
-            view.reported,
-            **self._kwargs,
-        )
-        self.last_result = view.expand(result)
+        self.last_result = view.expand(self.align_view(view, observation, info))
         return correction_action(view.reported_full, self.last_result.corrected)
 
     def reset(self) -> None:

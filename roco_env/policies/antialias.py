@@ -31,14 +31,15 @@ between episodes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from roco_env.geometry import validate_boxes, wrap_angle
-from roco_env.policies.adapter import ArrayAlignmentPolicy, unpack_observation
-from roco_env.policies.base import AlignmentResult, correction_action
+from roco_env.geometry import wrap_angle
+from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
+from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
     EvidenceParams,
     box_set,
@@ -47,8 +48,9 @@ from roco_env.policies.hypotheses import (
     refine_hypothesis,
     score_hypotheses,
 )
-from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs, require_positive
-from roco_env.policies.roco import RoCoParams, roco_align
+from roco_env.policies.landmarks import prepare_inputs, require_positive
+from roco_env.policies.prior_free import poses_distinct
+from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
 
@@ -84,6 +86,16 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
         if int(self.track_max_age) < 1:
             raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
 
+    # The names under which :func:`~roco_env.policies.prior_free.poses_distinct` reads the
+    # distinctness thresholds (m, deg).
+    @property
+    def distinct_distance(self) -> float:
+        return self.distinct_t
+
+    @property
+    def distinct_yaw_deg(self) -> float:
+        return self.distinct_r_deg
+
 
 _ROCO_FIELDS = tuple(f.name for f in fields(RoCoParams))
 
@@ -116,7 +128,7 @@ def _prior_chi2(
 def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
     """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other."""
     t, r = pose_distance(a, b)
-    return t <= tolerance and np.rad2deg(r) <= tolerance
+    return t <= tolerance and math.degrees(r) <= tolerance
 
 
 def _decide(
@@ -146,9 +158,7 @@ def _decide(
             poses, centre, p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
         )
     best = int(np.argmax(score))
-    t = np.hypot(*(poses[:, :2] - poses[best, :2]).T)
-    r = np.abs(wrap_angle(poses[:, 2] - poses[best, 2]))
-    distinct = (t > p.distinct_t) | (r > np.deg2rad(p.distinct_r_deg))
+    distinct = poses_distinct(poses, poses[best], p)
     # Without a distinct rival the alternative is "no hypothesis explains the boxes" (0).
     runner_up = float(score[distinct].max()) if distinct.any() else 0.0
     margin = float(score[best]) - runner_up
@@ -172,36 +182,31 @@ def antialias_align(
     (predicted T_{j->i} (3,), age in steps >= 1) from earlier decisions. params: fields of
     :class:`AntiAliasParams`. Returns the result and one :class:`Decision` per collaborator.
     """
-    p = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
-    roco_params = {k: v for k, v in params.items() if k in _ROCO_FIELDS}
-    if not p.use_hypotheses:
-        result = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
-        n = result.corrected.shape[0]
-        return result, [Decision(None, float("nan"), 0)] * n
+    p = checked_params(AntiAliasParams, params, "roco_antialias")
+    # RoCo's stage gets its own parameters (checked as roco_align checks them).
+    roco_p = checked_params(
+        RoCoParams, {k: v for k, v in params.items() if k in _ROCO_FIELDS}, "roco"
+    )
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
     n = inputs.n_collaborators
+    if not p.use_hypotheses:
+        return roco_solve(inputs, roco_p), [Decision(None, float("nan"), 0)] * n
     tracks = list(tracks) if tracks is not None and p.use_track else [None] * n
     if len(tracks) != n:
         raise ValueError(f"tracks must have one entry per reported pose ({n}); got {len(tracks)}")
-    boxes = [validate_boxes(ego_boxes, "ego boxes")] + [
-        validate_boxes(b, f"collab[{j}] boxes") for j, b in enumerate(collab_boxes)
-    ]
+    # prepare_inputs has validated the boxes; the sizes come from the same arrays.
+    boxes = [np.asarray(b, dtype=float).reshape(-1, 7) for b in (ego_boxes, *collab_boxes)]
     sets = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]
     start = inputs.reported.copy()
-    kept_boxes = list(boxes[1:])
     decisions = []
     for j in range(n):
         decision = _decide(sets[0], sets[j + 1], inputs.reported[j], tracks[j], p)
         decisions.append(decision)
         if decision.pose is not None:
             start[j] = decision.pose
-        elif decision.hypotheses:
-            kept_boxes[j] = boxes[j + 1][:0]  # ambiguous: RoCo leaves it at its reported pose
-    kept_unc = [np.asarray(u)[: b.shape[0]] for u, b in zip(collab_unc, kept_boxes, strict=True)]
-    result = roco_align(
-        boxes[0], ego_unc, kept_boxes, kept_unc, inputs.reported, initial=start, **roco_params
-    )
     ambiguous = [j for j, d in enumerate(decisions) if d.pose is None and d.hypotheses]
+    # An ambiguous collaborator is left out: RoCo keeps its reported pose.
+    result = roco_solve(inputs, roco_p, start, frozenset(ambiguous))
     notes = [
         f"slot {j}: ambiguous (margin {decisions[j].margin:.1f} < {p.min_margin:g}), "
         "reported pose kept"
@@ -221,7 +226,7 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
 
     def __init__(self, **params) -> None:
-        checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
+        checked = checked_params(AntiAliasParams, params, "roco_antialias")
         super().__init__(antialias_align, checked, params)
         self._tracks: dict[Hashable, list[tuple[int, np.ndarray]]] = {}
         self._steps: dict[Hashable, int] = {}
@@ -257,25 +262,19 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
             last[2] = wrap_angle(last[2])
         return last, float(age)
 
-    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
-        view = unpack_observation(observation)
+    def align_view(
+        self, view: ObservationView, observation: dict, info: dict | None
+    ) -> AlignmentResult:
+        """:func:`antialias_align` with each filled slot's track prediction; the decided
+        poses extend the tracks."""
         ego, slot_keys = self._ego_and_keys(info, view.slots)
         step = self._steps.get(ego, 0) + 1
         if ego is not None:
             self._steps[ego] = step
         tracks = [self._prediction(k, step) for k in slot_keys]
-        result, decisions = antialias_align(
-            view.ego_boxes,
-            view.ego_unc,
-            view.collab_boxes,
-            view.collab_unc,
-            view.reported,
-            tracks=tracks,
-            **self._kwargs,
-        )
+        result, decisions = antialias_align(*view.arrays, tracks=tracks, **self._kwargs)
         for key, decision in zip(slot_keys, decisions, strict=True):
             if key is not None and decision.pose is not None:
                 self._tracks[key] = [*self._tracks.get(key, [])[-1:], (step, decision.pose.copy())]
         self.last_decisions = decisions
-        self.last_result = view.expand(result)
-        return correction_action(view.reported_full, self.last_result.corrected)
+        return result

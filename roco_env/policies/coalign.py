@@ -51,7 +51,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_compose, wrap_angle
-from roco_env.policies.adapter import ArrayAlignmentPolicy
+from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     UncertaintyParams,
@@ -268,10 +268,12 @@ class CoAlignPolicy(ArrayAlignmentPolicy):
         super().__init__(
             coalign_align, params_from_kwargs(CoAlignParams, params, "coalign"), params
         )
-        self._base_kwargs = dict(self._kwargs)
 
-    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
+    def align_view(
+        self, view: ObservationView, observation: dict, info: dict | None
+    ) -> AlignmentResult:
         # The released yaw variance is taken in the world frame: the ego's reported yaw.
         if self.params.yaw_variance == "released":
-            self._kwargs = {**self._base_kwargs, "ego_yaw": float(observation["pose"][2])}
-        return super().__call__(observation, info)
+            return self._align(*view.arrays, **self._kwargs,
+                               ego_yaw=float(observation["pose"][2]))
+        return super().align_view(view, observation, info)

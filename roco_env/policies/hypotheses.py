@@ -11,8 +11,8 @@ makes the shifts explicit:
    maxima within ``search_radius`` become hypotheses (plus the reported pose and any
    extra seeds, e.g. a temporal track's prediction);
 2. :func:`refine_hypothesis`: nearest-neighbour matching within ``refine_gate`` and a
-   robust single-vertex pose-graph solve (:func:`~roco_env.policies.posegraph.optimize_pose`),
-   twice;
+   robust single-vertex pose-graph solve (the solver of
+   :func:`~roco_env.policies.posegraph.optimize_pose`), twice, in one compiled pass;
 3. :func:`score_hypotheses`: a log-likelihood ratio per hypothesis in chi-square units
    (-2 ln L): every collaborator box explained by an ego box gains
    ``outlier_chi2 - chi2(pair)`` (position with both boxes' covariances, heading modulo pi,
@@ -30,14 +30,15 @@ Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywh
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from roco_env.geometry import wrap_angle
 from roco_env.policies.landmarks import require_positive
-from roco_env.policies.posegraph import optimize_pose
+from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
+from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
+from roco_env.policies.posegraph import _MIN_DIAG
 
 __all__ = [
     "BoxSet",
@@ -48,6 +49,9 @@ __all__ = [
     "score_hypotheses",
 ]
 
+
+# LM cap and relative-decrease stop of a refinement solve (they only steer the hypothesis).
+_REFINE_ITERATIONS, _REFINE_TOLERANCE = 50, 1e-4
 
 _POSITIVE_FIELDS = (
     "search_radius",
@@ -110,8 +114,7 @@ class BoxSet:
     information (K, 3, 3) (box frame, as the pose graph uses it), var_t (K,) the mean of
     the centre's x and y variances (m^2), var_r (K,) the heading variance (rad^2),
     range (m): the largest distance of a box from the agent (the radius of its observed
-    disk), and a KD-tree of the centres (pair searches are sparse: a few boxes lie within
-    a few metres of any point)."""
+    disk)."""
 
     poses: np.ndarray
     log_sizes: np.ndarray
@@ -119,7 +122,6 @@ class BoxSet:
     var_t: np.ndarray
     var_r: np.ndarray
     range: float
-    tree: cKDTree
 
 
 def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
@@ -138,7 +140,6 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
         var_t,
         1.0 / information[:, 2, 2],
         reach,
-        cKDTree(poses[:, :2]),
     )
 
 
@@ -161,11 +162,7 @@ def _half_turn(angle: np.ndarray) -> np.ndarray:
 def _pairs(ego: BoxSet, mapped: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """(ego index, collaborator index) of every pair of centres at most ``radius`` m apart,
     the collaborator's boxes already mapped into the ego frame (mapped (K1, 3))."""
-    if ego.poses.shape[0] == 0 or mapped.shape[0] == 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty
-    found = ego.tree.sparse_distance_matrix(cKDTree(mapped[:, :2]), radius, output_type="ndarray")
-    return found["i"].astype(np.int64), found["j"].astype(np.int64)
+    return close_pairs(ego.poses[:, :2], mapped[:, :2], float(radius))
 
 
 def _size_chi2(ego: BoxSet, collab: BoxSet, i: np.ndarray, j: np.ndarray, p: EvidenceParams):
@@ -214,7 +211,8 @@ def generate_hypotheses(
     iy = np.minimum(((dy[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
     grid = np.bincount(ix * n + iy, weight, n * n).reshape(n, n)
     # 3x3 box sum: a true offset splits its votes over neighbouring cells.
-    padded = np.pad(grid, 1)
+    padded = np.zeros((n + 2, n + 2))  # np.pad(grid, 1) without its per-call overhead
+    padded[1:-1, 1:-1] = grid
     smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
     peaks: list[tuple[int, int]] = []
     suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
@@ -244,64 +242,44 @@ def refine_hypothesis(
 ) -> np.ndarray | None:
     """Up to two rounds of nearest matching within ``refine_gate`` and a robust pose solve
     (the second only when the matches changed); None when fewer than ``min_matches``
-    boxes match."""
-    pose = np.asarray(initial, dtype=float)
-    if min(ego.poses.shape[0], collab.poses.shape[0]) < min_matches:
-        return None
-    previous = None
-    for _ in range(2):
-        mapped = _map(pose, collab.poses)
-        distance, nearest = ego.tree.query(mapped[:, :2], distance_upper_bound=p.refine_gate)
-        box = np.nonzero(np.isfinite(distance))[0]
-        if box.size < min_matches:
-            return None
-        land = nearest[box]
-        if previous is not None and np.array_equal(land, previous[0]) and np.array_equal(
-            box, previous[1]
-        ):
-            break
-        previous = (land, box)
-        pose = optimize_pose(
-            pose,
-            ego.poses[land],
-            collab.poses[box],
-            collab.information[box],
-            kernel=kernel,
-            kernel_delta=kernel_delta,
-            max_iterations=50,
-            tolerance=1e-4,
-        ).pose
-    return pose
+    boxes match. One compiled pass (:func:`~roco_env.policies.pose_kernels.refine_pose`)."""
+    pose, ok = refine_pose(
+        np.asarray(initial, dtype=float).reshape(3),
+        ego.poses,
+        collab.poses,
+        collab.information,
+        float(p.refine_gate),
+        KERNEL_CODES[kernel],
+        float(kernel_delta),
+        int(min_matches),
+        _REFINE_ITERATIONS,
+        _REFINE_TOLERANCE,
+        _MIN_DIAG,
+    )
+    return pose if ok else None
 
 
-def _pair_gains(
+def _best_gains(
     ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ego index, collaborator index, gain) of the pairs that can gain under ``pose``:
-    gain = outlier_chi2 - chi2 > 0 with chi2 from position, heading modulo pi and (when
-    used) log sizes."""
-    mapped = _map(pose, collab.poses)
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    # chi2 >= distance^2 / var_t, so pairs beyond this radius cannot gain.
-    widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
-    i, j = _pairs(ego, mapped, float(np.sqrt(p.outlier_chi2 * widest)))
-    dx = ego.poses[i, 0] - mapped[j, 0]
-    dy = ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
-    chi2 += dyaw * dyaw / (ego.var_r[i] + collab.var_r[j] + slack_r)
-    if p.use_size:
-        chi2 += _size_chi2(ego, collab, i, j, p)
-    gain = p.outlier_chi2 - chi2
-    keep = gain > 0
-    return i[keep], j[keep], gain[keep]
-
-
-def _best_gain(index: np.ndarray, gain: np.ndarray, count: int) -> np.ndarray:
-    """Per box (count,), the largest gain of its pairs (0 for a box without one)."""
-    best = np.zeros(count)
-    np.maximum.at(best, index, gain)
-    return best
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per box, the largest gain ``outlier_chi2 - chi2 > 0`` of its pairs under ``pose``
+    (0 for a box no pair explains): (collaborator boxes (K1,), ego boxes (K0,)); chi2
+    from position, heading modulo pi and (when used) log sizes, both boxes' variances and
+    the pose slack (:func:`~roco_env.policies.matching_kernels.best_pair_gains`)."""
+    return best_pair_gains(
+        ego.poses,
+        ego.log_sizes,
+        ego.var_t,
+        ego.var_r,
+        _map(pose, collab.poses),
+        collab.log_sizes,
+        collab.var_t,
+        collab.var_r,
+        p.pose_slack_t**2,
+        np.deg2rad(p.pose_slack_r_deg) ** 2,
+        2.0 * p.size_sigma**2 if p.use_size else 0.0,
+        float(p.outlier_chi2),
+    )
 
 
 def score_hypotheses(
@@ -319,9 +297,7 @@ def score_hypotheses(
         backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
     scores = np.zeros(poses.shape[0])
     for h, pose in enumerate(poses):
-        i, j, gain = _pair_gains(ego, collab, pose, p)
-        forward = _best_gain(j, gain, collab.poses.shape[0])
-        backward = _best_gain(i, gain, ego.poses.shape[0])
+        forward, backward = _best_gains(ego, collab, pose, p)
         scores[h] = float(forward[forward_set].sum())
         if p.use_free_space:
             scores[h] += float(backward[backward_set].sum())
@@ -363,4 +339,6 @@ def _mutual_detection(
 
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation m, |yaw| rad) between two poses (3,)."""
-    return float(np.hypot(a[0] - b[0], a[1] - b[1])), float(abs(wrap_angle(a[2] - b[2])))
+    # Scalar math: the same hypot and floor-modulo wrap as np.hypot / geometry.wrap_angle.
+    yaw = (float(a[2]) - float(b[2]) + math.pi) % (2.0 * math.pi) - math.pi
+    return math.hypot(a[0] - b[0], a[1] - b[1]), abs(yaw)

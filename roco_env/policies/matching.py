@@ -37,9 +37,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import edge_similarity_sums, gated_pairs
+from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, gated_pairs
 
-__all__ = ["MatchingParams", "StarGraphMatcher", "match_star_graphs", "edge_consistency"]
+__all__ = [
+    "MatchingParams",
+    "StarGraphMatcher",
+    "edge_consistency",
+    "match_star_graphs",
+    "pose_features",
+]
 
 _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
 
@@ -103,7 +109,7 @@ def _consistency(ax, ay, ayaw, bx, by, byaw):
     return np.exp(-np.sqrt(4.0 * (1.0 - c) + tx * tx + ty * ty))
 
 
-def _pose_features(poses: np.ndarray) -> np.ndarray:
+def pose_features(poses: np.ndarray) -> np.ndarray:
     """Per-pose factors (5, n) of the bilinear edge-similarity form: x, y, x^2 + y^2,
     cos(yaw), sin(yaw)."""
     x, y, yaw = poses[:, 0], poses[:, 1], poses[:, 2]
@@ -115,14 +121,25 @@ class StarGraphMatcher:
     pose estimates (RoCo's re-matching rounds).
 
     landmarks (L, 3): poses in the ego frame; boxes_own (K, 3): the collaborator's box
-    poses in its own frame. :meth:`match` takes the current pose estimate T_{j->i}.
+    poses in its own frame; land_features (5, L) / box_features (5, K): their
+    :func:`pose_features` when the caller keeps them (computed here otherwise).
+    :meth:`match` takes the current pose estimate T_{j->i}.
     """
 
-    def __init__(self, landmarks: np.ndarray, boxes_own: np.ndarray, params: MatchingParams):
+    def __init__(
+        self,
+        landmarks: np.ndarray,
+        boxes_own: np.ndarray,
+        params: MatchingParams,
+        land_features: np.ndarray | None = None,
+        box_features: np.ndarray | None = None,
+    ):
         self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
-        self._land_features = _pose_features(landmarks)
+        self._land_features = (
+            pose_features(landmarks) if land_features is None else land_features
+        )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
-        self._box_features = _pose_features(boxes_own)
+        self._box_features = pose_features(boxes_own) if box_features is None else box_features
         self._cached_key: tuple | None = None
         self._cached_edge = np.zeros(0)
 
@@ -200,11 +217,10 @@ def _assign(
     When every landmark and every box has a single candidate and every score is > 0, the
     unique optimum takes all pairs, so the solver is skipped (the usual sparse scene).
     """
-    if np.bincount(cand_p).max() == 1 and np.bincount(cand_q).max() == 1 and np.all(score > 0):
+    rows, row_idx, cols, col_idx, single = compact_pairs(cand_p, cand_q)
+    if single and np.all(score > 0):
         keep = score >= tau1
         return cand_p[keep], cand_q[keep], score[keep]
-    rows, row_idx = np.unique(cand_p, return_inverse=True)
-    cols, col_idx = np.unique(cand_q, return_inverse=True)
     weights = np.zeros((rows.size, cols.size))
     weights[row_idx, col_idx] = score
     valid = np.zeros_like(weights, dtype=bool)
@@ -227,8 +243,8 @@ def _edge_similarity(
     leaves = np.nonzero(gated.any(axis=1))[0]  # landmarks m with an initial match
     partner = np.argmin(np.where(gated[leaves], dis[leaves], np.inf), axis=1)  # n = A(m)
     return _edge_similarity_from_features(
-        _pose_features(landmarks),
-        _pose_features(boxes_own),
+        pose_features(landmarks),
+        pose_features(boxes_own),
         cand_p,
         cand_q,
         leaves,
@@ -246,47 +262,17 @@ def _edge_similarity_from_features(
     partner: np.ndarray,
     neighbor_radius: float | None,
 ) -> np.ndarray:
-    """S_edge (C,) from :func:`_pose_features` of the landmarks and the boxes.
+    """S_edge (C,) from :func:`pose_features` of the landmarks and the boxes.
 
     ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature: (C, 11) and (11, H) factors, summed per usable
-    (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity_sums`.
+    candidate feature and a leaf feature: (C, 11) and (11, H) factors, built and summed per
+    usable (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity`
+    (pairs outside either star, ``neighbor_radius``, are skipped; None = no radius).
     """
-    px, py, p2, pc, ps = land[:, cand_p]
-    qx, qy, q2, qc, qs = box[:, cand_q]
-    mx, my, m2, mc, ms = land[:, leaves]
-    nx, ny, n2, nc, ns = box[:, partner]
-    cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
-    rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
-    rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
-    cand = np.stack(
-        [
-            np.ones_like(px),
-            pc * qc + ps * qs,  # cos(v)
-            ps * qc - pc * qs,  # sin(v)
-            px,
-            py,
-            p2,
-            qx,
-            qy,
-            q2,
-            px * qx + py * qy,
-            py * qx - px * qy,
-        ],
-        axis=1,
-    )
-    h = leaves.size
-    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
-    leaf[0] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
-    leaf[1], leaf[2] = -4.0 * cu, -4.0 * su
-    leaf[3], leaf[4] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
-    leaf[6], leaf[7] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
-    leaf[5] = leaf[8] = 1.0
-    leaf[9], leaf[10] = -2.0 * cu, -2.0 * su
-    leaf[11], leaf[12], leaf[13], leaf[14] = mx, my, nx, ny
-    # Pairs outside either star (neighbor_radius; None = no radius) are skipped in the loop.
     radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2
-    centres = np.stack([px, py, qx, qy], axis=1)
-    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
+    return edge_similarity(
+        np.ascontiguousarray(land), np.ascontiguousarray(box), cand_p, cand_q, leaves, partner,
+        radius2,
+    )

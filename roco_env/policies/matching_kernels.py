@@ -1,4 +1,5 @@
-"""Compiled (numba) pair loop of RoCo's edge similarity.
+"""Compiled (numba) loops of RoCo's matching (the gate search, the edge similarity, the
+assignment's index compaction) and of the hypothesis evidence's box pairing.
 
 :func:`~roco_env.policies.matching._edge_similarity_from_features` scores every
 candidate pair against every matched leaf; with the star graphs' neighbour radius most
@@ -14,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["edge_similarity_sums", "gated_pairs"]
+__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs"]
 
 
 @njit(cache=True)
@@ -51,20 +52,65 @@ def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, r
 
 
 @njit(cache=True)
+def edge_similarity(land, box, cand_p, cand_q, leaves, partner, radius2):
+    """S_edge (C,) of the candidate pairs (cand_p landmark, cand_q box) given the initial
+    matches (leaves (H,) landmarks m, partner (H,) their boxes n = A(m)), from the pose
+    features (5, L) / (5, K) (x, y, x^2 + y^2, cos yaw, sin yaw) of the landmarks and the
+    boxes: the (C, 11) candidate and (11, H) leaf factors of
+    ``matching._edge_similarity_from_features`` (the same arithmetic element by element),
+    summed by :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+    n_cand, h = cand_p.size, leaves.size
+    cand = np.empty((n_cand, 11))
+    centres = np.empty((n_cand, 4))
+    for c in range(n_cand):
+        p, q = cand_p[c], cand_q[c]
+        px, py, p2, pc, ps = land[0, p], land[1, p], land[2, p], land[3, p], land[4, p]
+        qx, qy, q2, qc, qs = box[0, q], box[1, q], box[2, q], box[3, q], box[4, q]
+        cand[c, 0] = 1.0
+        cand[c, 1] = pc * qc + ps * qs  # cos(v)
+        cand[c, 2] = ps * qc - pc * qs  # sin(v)
+        cand[c, 3], cand[c, 4], cand[c, 5] = px, py, p2
+        cand[c, 6], cand[c, 7], cand[c, 8] = qx, qy, q2
+        cand[c, 9] = px * qx + py * qy
+        cand[c, 10] = py * qx - px * qy
+        centres[c, 0], centres[c, 1], centres[c, 2], centres[c, 3] = px, py, qx, qy
+    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
+    for k in range(h):
+        m, n = leaves[k], partner[k]
+        mx, my, m2, mc, ms = land[0, m], land[1, m], land[2, m], land[3, m], land[4, m]
+        nx, ny, n2, nc, ns = box[0, n], box[1, n], box[2, n], box[3, n], box[4, n]
+        cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
+        rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
+        rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
+        leaf[0, k] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
+        leaf[1, k], leaf[2, k] = -4.0 * cu, -4.0 * su
+        leaf[3, k], leaf[4, k] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
+        leaf[6, k], leaf[7, k] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
+        leaf[5, k] = leaf[8, k] = 1.0
+        leaf[9, k], leaf[10, k] = -2.0 * cu, -2.0 * su
+        leaf[11, k], leaf[12, k], leaf[13, k], leaf[14, k] = mx, my, nx, ny
+    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
+
+
+@njit(cache=True)
 def gated_pairs(land_xy, centres, tau2):
     """Candidate pairs of the gate and the initial matches, without (L x K) temporaries.
 
     land_xy (L, 2), centres (K, 2) in the ego frame; distance = sqrt(dx^2 + dy^2).
     Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
     (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
-    (lowest index among equal distances) is within the gate, with that box.
+    (lowest index among equal distances) is within the gate, with that box. A pair whose
+    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured.
     """
     n_land, n_box = land_xy.shape[0], centres.shape[0]
+    reach = tau2 * (1.0 + 1e-12)
     count = 0
     for p in range(n_land):
         for q in range(n_box):
             dx = land_xy[p, 0] - centres[q, 0]
             dy = land_xy[p, 1] - centres[q, 1]
+            if abs(dx) > reach or abs(dy) > reach:
+                continue
             if math.sqrt(dx * dx + dy * dy) <= tau2:
                 count += 1
     cand_p = np.empty(count, dtype=np.int64)
@@ -78,6 +124,8 @@ def gated_pairs(land_xy, centres, tau2):
         for q in range(n_box):
             dx = land_xy[p, 0] - centres[q, 0]
             dy = land_xy[p, 1] - centres[q, 1]
+            if abs(dx) > reach or abs(dy) > reach:
+                continue  # beyond the gate: neither a pair nor a nearest box within it
             d = math.sqrt(dx * dx + dy * dy)
             if d <= tau2:
                 cand_p[k], cand_q[k], dis[k] = p, q, d
@@ -88,3 +136,107 @@ def gated_pairs(land_xy, centres, tau2):
             leaves[h], partner[h] = p, best_q
             h += 1
     return cand_p, cand_q, dis, leaves[:h], partner[:h]
+
+
+@njit(cache=True)
+def compact_pairs(cand_p, cand_q):
+    """The rows and columns the candidate pairs (C,) use (non-negative indices), as
+    ``np.unique`` with ``return_inverse`` gives them: (rows (R,) sorted, row index of each
+    pair (C,), cols (Q,) sorted, column index of each pair (C,)), and whether every row
+    and every column has a single pair."""
+    n_rows = n_cols = 0
+    for k in range(cand_p.size):
+        n_rows = max(n_rows, cand_p[k] + 1)
+        n_cols = max(n_cols, cand_q[k] + 1)
+    row_count = np.zeros(n_rows, dtype=np.int64)
+    col_count = np.zeros(n_cols, dtype=np.int64)
+    for k in range(cand_p.size):
+        row_count[cand_p[k]] += 1
+        col_count[cand_q[k]] += 1
+    single = True
+    row_pos = np.empty(n_rows, dtype=np.int64)
+    n_used = 0
+    for i in range(n_rows):
+        row_pos[i] = n_used
+        if row_count[i]:
+            n_used += 1
+            single = single and row_count[i] == 1
+    rows = np.empty(n_used, dtype=np.int64)
+    for i in range(n_rows):
+        if row_count[i]:
+            rows[row_pos[i]] = i
+    col_pos = np.empty(n_cols, dtype=np.int64)
+    n_used = 0
+    for i in range(n_cols):
+        col_pos[i] = n_used
+        if col_count[i]:
+            n_used += 1
+            single = single and col_count[i] == 1
+    cols = np.empty(n_used, dtype=np.int64)
+    for i in range(n_cols):
+        if col_count[i]:
+            cols[col_pos[i]] = i
+    row_idx = np.empty(cand_p.size, dtype=np.int64)
+    col_idx = np.empty(cand_p.size, dtype=np.int64)
+    for k in range(cand_p.size):
+        row_idx[k] = row_pos[cand_p[k]]
+        col_idx[k] = col_pos[cand_q[k]]
+    return rows, row_idx, cols, col_idx, single
+
+
+@njit(cache=True)
+def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_log_sizes,
+                    col_var_t, col_var_r, slack_t, slack_r, size_denominator, outlier_chi2):
+    """Per box, the largest gain ``outlier_chi2 - chi2`` of its pairs with the other set's
+    boxes (0 without a pair that gains): (collaborator boxes (K1,), ego boxes (K0,)).
+
+    chi2 of ego box i and collaborator box j (mapped (K1, 3) into the ego frame):
+    |t_i - t_j|^2 / (var_t_i + var_t_j + slack_t) + half-turn yaw difference^2 /
+    (var_r_i + var_r_j + slack_r) + (size_denominator > 0) |log size difference|^2 /
+    size_denominator, as ``hypotheses._pair_gains`` computes it; every pair is visited
+    (no radius: a pair beyond it cannot gain)."""
+    n_ego, n_col = ego_poses.shape[0], mapped.shape[0]
+    forward = np.zeros(n_col)
+    backward = np.zeros(n_ego)
+    half = math.pi / 2
+    for i in range(n_ego):
+        for j in range(n_col):
+            dx = ego_poses[i, 0] - mapped[j, 0]
+            dy = ego_poses[i, 1] - mapped[j, 1]
+            chi2 = (dx * dx + dy * dy) / (ego_var_t[i] + col_var_t[j] + slack_t)
+            if chi2 >= outlier_chi2:
+                continue  # the other terms are >= 0: no gain
+            dyaw = (ego_poses[i, 2] - mapped[j, 2] + half) % math.pi - half
+            chi2 += dyaw * dyaw / (ego_var_r[i] + col_var_r[j] + slack_r)
+            if size_denominator > 0.0:
+                d0 = ego_log_sizes[i, 0] - col_log_sizes[j, 0]
+                d1 = ego_log_sizes[i, 1] - col_log_sizes[j, 1]
+                d2 = ego_log_sizes[i, 2] - col_log_sizes[j, 2]
+                chi2 += (d0 * d0 + d1 * d1 + d2 * d2) / size_denominator
+            gain = outlier_chi2 - chi2
+            if gain > 0.0:
+                forward[j] = max(forward[j], gain)
+                backward[i] = max(backward[i], gain)
+    return forward, backward
+
+
+@njit(cache=True)
+def close_pairs(a_xy, b_xy, radius):
+    """(index into a (P,), index into b (P,)) of every pair of centres a_xy (A, 2),
+    b_xy (B, 2) at most ``radius`` apart (distance sqrt(dx^2 + dy^2)), in row-major order."""
+    count = 0
+    for i in range(a_xy.shape[0]):
+        for j in range(b_xy.shape[0]):
+            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
+            if math.sqrt(dx * dx + dy * dy) <= radius:
+                count += 1
+    first = np.empty(count, dtype=np.int64)
+    second = np.empty(count, dtype=np.int64)
+    k = 0
+    for i in range(a_xy.shape[0]):
+        for j in range(b_xy.shape[0]):
+            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
+            if math.sqrt(dx * dx + dy * dy) <= radius:
+                first[k], second[k] = i, j
+                k += 1
+    return first, second

@@ -1,11 +1,13 @@
-"""Compiled (numba) per-edge loops of the single-vertex pose problem.
+"""Compiled (numba) loops of the pose-graph solvers of :mod:`roco_env.policies.posegraph`.
 
-:class:`~roco_env.policies.posegraph._PoseProblem` linearises one agent vertex against
-fixed landmarks dozens of times per RoCo call, on tens to hundreds of edges. In numpy
-each linearisation is ~15 array operations on (E, 3, 3) arrays whose fixed call overhead
-dominates at these sizes; these loops do the same arithmetic in one pass per call
-(results agree with the array formulas to rounding: tests/test_posegraph.py and the
-recorded numpy-path results of tests/test_roco_reference.py).
+A RoCo call solves dozens of small problems (one agent vertex against fixed landmarks,
+tens to hundreds of edges) and one joint graph; in numpy each linearisation is ~15 array
+operations whose fixed call overhead dominates at these sizes. Here the per-edge
+linearisation, the 3x3 LM step, the whole Levenberg-Marquardt loop of the single-vertex
+problem (:func:`solve_pose`) and of the joint graph with its Schur complement
+(:func:`solve_graph`) run compiled, with the array path's arithmetic and stopping rules
+(tests/test_pose_kernels.py compares them with that numpy path; the recorded numpy-path
+results of tests/test_roco_reference.py still hold).
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -18,7 +20,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums"]
+__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "rotate_information",
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -69,6 +72,32 @@ def evaluate_edges(x, y, yaw, land_xy, t_z, angle, info, kernel, delta):
             total += d2 * math.log1p(ratio)
             weight[k] = 1.0 / (1.0 + ratio)
     return total, chi2, u, info_e, weight
+
+
+@njit(cache=True)
+def rotate_information(info, meas_yaw):
+    """``C^T Omega C`` (E, 3, 3) per edge, C = blockdiag(R(-yaw_z), 1): the information
+    (E, 3, 3) in the rotated residual frame (meas_yaw (E,) the measured yaws, rad); the
+    products summed in the order of ``C^T (Omega C)`` as matrices."""
+    n = info.shape[0]
+    out = np.empty((n, 3, 3))
+    rot = np.zeros((3, 3))
+    rot[2, 2] = 1.0
+    half = np.empty((3, 3))
+    for k in range(n):
+        c, s = math.cos(meas_yaw[k]), math.sin(meas_yaw[k])
+        rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, s, -s, c
+        for a in range(3):
+            for b in range(3):
+                half[a, b] = info[k, a, 0] * rot[0, b] + info[k, a, 1] * rot[1, b] + (
+                    info[k, a, 2] * rot[2, b]
+                )
+        for a in range(3):
+            for b in range(3):
+                out[k, a, b] = rot[0, a] * half[0, b] + rot[1, a] * half[1, b] + (
+                    rot[2, a] * half[2, b]
+                )
+    return out
 
 
 @njit(cache=True)
@@ -153,3 +182,471 @@ def damped_step(hess, grad, lam, min_diag):
             acc -= a[i, k] * delta[k]
         delta[i] = acc / a[i, i]
     return delta, max(abs(delta[0]), abs(delta[1]), abs(delta[2]))
+
+
+@njit(cache=True)
+def _wrap(angle):
+    """Wrap to [-pi, pi) as ``posegraph._wrap_scalar`` (Python's float ``%``)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def _pose_cost(pose, land_xy, t_z, angle, info, kernel, delta, prior):
+    """Robust cost and linearisation point at ``pose`` (3,): :func:`evaluate_edges` plus
+    the quadratic prior edge (posegraph._PoseProblem.evaluate; a zero-information prior,
+    :func:`_no_prior`, adds exact zeros). Returns (cost, chi2, u, info_e, weight, prior
+    residual (3,))."""
+    yaw = pose[2]
+    cost, chi2, u, info_e, weight = evaluate_edges(
+        pose[0], pose[1], yaw, land_xy, t_z, angle, info, kernel, delta
+    )
+    e_p = np.empty(3)
+    j_p, offset, info_p = prior[0], prior[1], prior[2]
+    for r in range(3):
+        e_p[r] = j_p[r, 0] * pose[0] + j_p[r, 1] * pose[1] + j_p[r, 2] * pose[2] - offset[r]
+    e_p[2] = _wrap(e_p[2])
+    quad = 0.0
+    for b in range(3):
+        quad += (e_p[0] * info_p[0, b] + e_p[1] * info_p[1, b] + e_p[2] * info_p[2, b]) * e_p[b]
+    return cost + quad, chi2, u, info_e, weight, e_p
+
+
+@njit(cache=True)
+def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_iterations,
+               tolerance, min_diag):
+    """Levenberg-Marquardt of one agent vertex against fixed landmarks: the loop of
+    :func:`solve_graph` with ``posegraph._PoseProblem``'s linearisation (same stopping
+    rules, same arithmetic per edge).
+
+    initial (3,) pose; edges as :func:`evaluate_edges`; prior: the prior edge's terms
+    (:func:`prior_terms`; :func:`_no_prior` for none: its zeros change nothing). Returns
+    (pose (3,), chi2 (E,) at it, initial cost, cost, iterations, converged).
+    """
+    x = initial.copy()
+    cost, chi2, u, info_e, weight, e_p = _pose_cost(
+        x, land_xy, t_z, angle, info, kernel, delta, prior
+    )
+    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
+    while iterations < max_iterations and not converged:
+        iterations += 1
+        hess, grad = normal_sums(
+            math.cos(x[2]), math.sin(x[2]), u, info, info_e, weight, True
+        )
+        hess += prior[3]
+        for r in range(3):
+            grad[r] += prior[4][0, r] * e_p[0] + prior[4][1, r] * e_p[1] + prior[4][2, r] * e_p[2]
+        while True:
+            step_delta, step = damped_step(hess, grad, lam, min_diag)
+            trial = x + step_delta
+            trial[2] = _wrap(trial[2])
+            t_cost, t_chi2, t_u, t_info_e, t_weight, t_e_p = _pose_cost(
+                trial, land_xy, t_z, angle, info, kernel, delta, prior
+            )
+            if t_cost <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                converged = True  # no damping reduces the cost: a (local) minimum
+                break
+        if converged:
+            break
+        decrease = cost - t_cost
+        x, cost = trial, t_cost
+        chi2, u, info_e, weight, e_p = t_chi2, t_u, t_info_e, t_weight, t_e_p
+        lam = max(lam / 10.0, 1e-12)
+        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+    return x, chi2, initial_cost, cost, iterations, converged
+
+
+@njit(cache=True)
+def _graph_cost(x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta):
+    """Robust cost of the pose graph at the vertices x (V, 3) (agents, then landmarks) and
+    per edge: e (E, 3), chi2 (E,), IRLS weight (E,; 1 on prior edges), and the Jacobian
+    terms c, s, w_x, w_y (E,) of ``Z^{-1} T_a^{-1} T_b`` (``posegraph._residuals``)."""
+    n = from_v.size
+    e = np.empty((n, 3))
+    chi2 = np.empty(n)
+    weight = np.ones(n)
+    terms = np.empty((n, 4))
+    d2 = delta * delta
+    rho_sum = 0.0
+    prior_sum = 0.0
+    for k in range(n):
+        a = from_v[k]
+        b = to_v[k] if k >= n_obs else n_agents + to_v[k]
+        angle = x[a, 2] + meas_yaw[k]
+        c, s = math.cos(angle), math.sin(angle)
+        dx, dy = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1]
+        wx, wy = c * dx + s * dy, -s * dx + c * dy
+        e0, e1, e2 = wx - meas_offset[k, 0], wy - meas_offset[k, 1], _wrap(x[b, 2] - angle)
+        e[k, 0], e[k, 1], e[k, 2] = e0, e1, e2
+        terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3] = c, s, wx, wy
+        q = 0.0
+        for r in range(3):
+            q += e[k, r] * (info[k, r, 0] * e0 + info[k, r, 1] * e1 + info[k, r, 2] * e2)
+        chi2[k] = q
+        if k >= n_obs:
+            prior_sum += q
+        elif kernel == 0:
+            rho_sum += q
+        elif kernel == 1:
+            root = math.sqrt(q)
+            if q <= d2:
+                rho_sum += q
+            else:
+                rho_sum += 2.0 * delta * root - d2
+                weight[k] = delta / max(root, 1e-300)
+        else:
+            ratio = q / d2
+            rho_sum += d2 * math.log1p(ratio)
+            weight[k] = 1.0 / (1.0 + ratio)
+    return rho_sum + prior_sum, e, chi2, weight, terms
+
+
+@njit(cache=True)
+def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms):
+    """H_aa (3N, 3N), H_al (3N, 3M), block-diagonal H_ll (M, 3, 3), g_a (3N,), g_l (M, 3)
+    of the weighted edges: each edge adds J^T w Omega J and J^T w Omega e, J = [J_a | J_b]
+    (3, 6) its Jacobian; rows/columns 3-5 belong to the landmark (observation edges) or
+    to the second agent (prior edges)."""
+    h_aa = np.zeros((3 * n_agents, 3 * n_agents))
+    h_al = np.zeros((3 * n_agents, 3 * n_land))
+    h_ll = np.zeros((n_land, 3, 3))
+    g_a = np.zeros(3 * n_agents)
+    g_l = np.zeros((n_land, 3))
+    jac = np.zeros((3, 6))
+    jac[2, 2], jac[2, 5] = -1.0, 1.0
+    jt_info = np.empty((6, 3))
+    block = np.empty((6, 6))
+    grad = np.empty(6)
+    for k in range(from_v.size):
+        c, s, wx, wy = terms[k, 0], terms[k, 1], terms[k, 2], terms[k, 3]
+        jac[0, 0], jac[0, 1], jac[0, 2], jac[0, 3], jac[0, 4] = -c, -s, wy, c, s
+        jac[1, 0], jac[1, 1], jac[1, 2], jac[1, 3], jac[1, 4] = s, -c, -wx, -s, c
+        w = weight[k]
+        for i in range(6):
+            for r in range(3):
+                jt_info[i, r] = (
+                    jac[0, i] * info[k, 0, r] + jac[1, i] * info[k, 1, r] + jac[2, i] * info[k, 2, r]
+                ) * w
+        for i in range(6):
+            for j in range(6):
+                block[i, j] = jt_info[i, 0] * jac[0, j] + jt_info[i, 1] * jac[1, j] + (
+                    jt_info[i, 2] * jac[2, j]
+                )
+            grad[i] = jt_info[i, 0] * e[k, 0] + jt_info[i, 1] * e[k, 1] + jt_info[i, 2] * e[k, 2]
+        a = 3 * from_v[k]
+        if k < n_obs:
+            land = to_v[k]
+            for i in range(3):
+                g_a[a + i] += grad[i]
+                g_l[land, i] += grad[3 + i]
+                for j in range(3):
+                    h_aa[a + i, a + j] += block[i, j]
+                    h_al[a + i, 3 * land + j] += block[i, 3 + j]
+                    h_ll[land, i, j] += block[3 + i, 3 + j]
+        else:
+            b = 3 * to_v[k]
+            for i in range(3):
+                g_a[a + i] += grad[i]
+                g_a[b + i] += grad[3 + i]
+                for j in range(3):
+                    h_aa[a + i, a + j] += block[i, j]
+                    h_aa[a + i, b + j] += block[i, 3 + j]
+                    h_aa[b + i, a + j] += block[3 + i, j]
+                    h_aa[b + i, b + j] += block[3 + i, 3 + j]
+    return h_aa, h_al, h_ll, g_a, g_l
+
+
+@njit(cache=True)
+def _inverse3(a, out):
+    """Inverse of the 3x3 matrix ``a`` into ``out`` (adjugate over determinant; ``a`` is
+    a damped landmark block, symmetric positive definite)."""
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+    if det == 0.0:
+        raise ValueError("singular landmark block")
+    inv = 1.0 / det
+    out[0, 0], out[1, 0], out[2, 0] = c00 * inv, c01 * inv, c02 * inv
+    out[0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) * inv
+    out[1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) * inv
+    out[2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) * inv
+    out[0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) * inv
+    out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) * inv
+    out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) * inv
+
+
+@njit(cache=True)
+def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag):
+    """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) with Marquardt
+    damping ``lam``; the landmarks are eliminated by the Schur complement and the agents
+    not in ``free`` (coordinate indices) stay fixed. H_al's block column of landmark m is
+    zero outside the coordinate rows ``rows[row_start[m]:row_start[m + 1]]`` (those of
+    the agents observing it), so only those rows are visited."""
+    n_a, n_land = h_aa.shape[0], h_ll.shape[0]
+    damped = h_aa.copy()
+    for i in range(n_a):
+        damped[i, i] += lam * max(h_aa[i, i], min_diag)
+    rhs = -g_a
+    h_ll_inv = np.empty((n_land, 3, 3))
+    y = np.empty((n_a, 3))
+    h_ll_d = np.empty((3, 3))
+    al = np.empty((n_a, 3))  # the nonzero rows of H_al's block column, gathered
+    for m in range(n_land):
+        h_ll_d[:] = h_ll[m]
+        for i in range(3):
+            h_ll_d[i, i] += lam * max(h_ll[m, i, i], min_diag)
+        _inverse3(h_ll_d, h_ll_inv[m])
+        col = 3 * m
+        seen = rows[row_start[m] : row_start[m + 1]]
+        k = seen.size
+        for a in range(k):
+            al[a, 0], al[a, 1], al[a, 2] = h_al[seen[a], col], h_al[seen[a], col + 1], h_al[
+                seen[a], col + 2
+            ]
+        for a in range(k):  # Y = H_al,m H_ll,m^{-1}
+            for j in range(3):
+                y[a, j] = al[a, 0] * h_ll_inv[m, 0, j] + al[a, 1] * h_ll_inv[m, 1, j] + (
+                    al[a, 2] * h_ll_inv[m, 2, j]
+                )
+        for a in range(k):
+            r = seen[a]
+            for b in range(a, k):  # Y H_al^T is symmetric: one triangle, mirrored
+                update = y[a, 0] * al[b, 0] + y[a, 1] * al[b, 1] + y[a, 2] * al[b, 2]
+                damped[r, seen[b]] -= update
+                if b != a:
+                    damped[seen[b], r] -= update
+            rhs[r] += y[a, 0] * g_l[m, 0] + y[a, 1] * g_l[m, 1] + y[a, 2] * g_l[m, 2]
+    d_a = np.zeros(n_a)
+    if free.size:
+        reduced = np.empty((free.size, free.size))
+        for i in range(free.size):
+            for j in range(free.size):
+                reduced[i, j] = damped[free[i], free[j]]
+        solved = np.linalg.solve(reduced, rhs[free])
+        for i in range(free.size):
+            d_a[free[i]] = solved[i]
+    step = 0.0
+    for i in range(n_a):
+        step = max(step, abs(d_a[i]))
+    d_l = np.empty((n_land, 3))
+    v = np.empty(3)
+    for m in range(n_land):
+        for j in range(3):
+            back = 0.0
+            for r in rows[row_start[m] : row_start[m + 1]]:
+                back += h_al[r, 3 * m + j] * d_a[r]
+            v[j] = g_l[m, j] + back
+        for i in range(3):
+            d_l[m, i] = -(
+                h_ll_inv[m, i, 0] * v[0] + h_ll_inv[m, i, 1] * v[1] + h_ll_inv[m, i, 2] * v[2]
+            )
+            step = max(step, abs(d_l[m, i]))
+    return d_a, d_l, step
+
+
+@njit(cache=True)
+def _landmark_rows(n_agents, n_land, from_v, to_v, n_obs):
+    """Per landmark, the coordinate rows (3 per agent, agents in increasing order) of the
+    agents observing it, as CSR (rows, start (M + 1,))."""
+    sees = np.zeros((n_land, n_agents), dtype=np.bool_)
+    for k in range(n_obs):
+        sees[to_v[k], from_v[k]] = True
+    start = np.zeros(n_land + 1, dtype=np.int64)
+    for m in range(n_land):
+        start[m + 1] = start[m] + 3 * sees[m].sum()
+    rows = np.empty(start[n_land], dtype=np.int64)
+    for m in range(n_land):
+        k = start[m]
+        for a in range(n_agents):
+            if sees[m, a]:
+                rows[k], rows[k + 1], rows[k + 2] = 3 * a, 3 * a + 1, 3 * a + 2
+                k += 3
+    return rows, start
+
+
+@njit(cache=True)
+def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, free, kernel,
+                delta, max_iterations, tolerance, min_diag):
+    """Levenberg-Marquardt on a pose graph (``posegraph.optimize``): vertices x0 (V, 3),
+    agents first then landmarks; E edges, the first ``n_obs`` observations (agent
+    ``from_v`` -> landmark ``to_v``, a landmark index), then priors (agent -> agent);
+    measurement yaw (E,), R_z^T t_z (E, 2), information (E, 3, 3); ``free``: coordinate
+    indices of the agents that move. Starts with lam = 1e-4; an accepted step (cost not
+    raised) divides lam by 10, a rejected one multiplies it by 10 until 1e12 (no
+    progress: converged); stops after ``max_iterations`` linearisations, or when an
+    accepted step's relative cost decrease or largest component is below ``tolerance``.
+    Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations, converged)."""
+    n_land = x0.shape[0] - n_agents
+    rows, row_start = _landmark_rows(n_agents, n_land, from_v, to_v, n_obs)
+    x = x0.copy()
+    cost, e, chi2, weight, terms = _graph_cost(
+        x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
+    )
+    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
+    while iterations < max_iterations and not converged:
+        iterations += 1
+        h_aa, h_al, h_ll, g_a, g_l = _graph_normal_equations(
+            n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms
+        )
+        while True:
+            d_a, d_l, step = _graph_step(
+                h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
+            )
+            trial = x.copy()
+            for v in range(x.shape[0]):
+                for i in range(3):
+                    trial[v, i] += d_a[3 * v + i] if v < n_agents else d_l[v - n_agents, i]
+                trial[v, 2] = _wrap(trial[v, 2])
+            t_cost, t_e, t_chi2, t_weight, t_terms = _graph_cost(
+                trial, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
+            )
+            if t_cost <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                converged = True  # no damping reduces the cost: a (local) minimum
+                break
+        if converged:
+            break
+        decrease = cost - t_cost
+        x, cost, e, chi2, weight, terms = trial, t_cost, t_e, t_chi2, t_weight, t_terms
+        lam = max(lam / 10.0, 1e-12)
+        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+    return x, chi2, initial_cost, cost, iterations, converged
+
+
+@njit(cache=True)
+def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, max_iterations,
+                   tolerance, min_diag):
+    """Robust Wald statistic of a correction (RoCo's significance test).
+
+    The agent pose is fitted from ``start`` (3,) to its P edges alone (no prior): fixed
+    landmarks (P, 3), its boxes ``own`` (P, 3) in its frame, each edge with the
+    information ``covariance^-1`` (covariance (P, 3, 3) in the box frame), the robust
+    kernel and the LM rules of :func:`solve_pose`; then ``d = fit - reported`` (yaw
+    wrapped) is weighed by the sandwich ``A^-1 B A^-1``, A = sum w J^T Omega J,
+    B = sum w^2 J^T Omega J with w the IRLS weights at the fit: returns ``d^T A B^-1 A d``.
+    """
+    n = own.shape[0]
+    info = np.empty((n, 3, 3))
+    for k in range(n):
+        _inverse3(covariance[k], info[k])
+    info = rotate_information(info, np.ascontiguousarray(own[:, 2]))
+    land_xy = np.ascontiguousarray(landmarks[:, :2])
+    t_z = np.ascontiguousarray(own[:, :2])
+    angle = landmarks[:, 2] - own[:, 2]
+    pose = solve_pose(start, land_xy, t_z, angle, info, kernel, delta, _no_prior(), max_iterations,
+                      tolerance, min_diag)[0]
+    _, _, u, info_e, weight = evaluate_edges(
+        pose[0], pose[1], pose[2], land_xy, t_z, angle, info, kernel, delta
+    )
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    bread = normal_sums(c, s, u, info, info_e, weight, False)[0]
+    meat = normal_sums(c, s, u, info, info_e, weight * weight, False)[0]
+    d = pose - reported
+    d[2] = _wrap(d[2])
+    ad = bread @ d
+    solved = damped_step(meat, -ad, 0.0, min_diag)[0]  # B^-1 A d
+    return ad[0] * solved[0] + ad[1] * solved[1] + ad[2] * solved[2]
+
+
+@njit(cache=True)
+def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, min_matches,
+                max_iterations, tolerance, min_diag):
+    """Up to two rounds of nearest-centre matching and a robust single-vertex solve
+    (``hypotheses.refine_hypothesis``).
+
+    Each round maps the agent's boxes own_poses (K, 3) (its frame) into the landmarks'
+    frame with the current pose (initial (3,) first), pairs every box with its nearest
+    landmark (land_poses (L, 3); lowest index among equal distances) closer than
+    ``gate`` m, and solves the pose from those pairs (boxes' information own_info (K, 3, 3),
+    no prior; LM rules of :func:`solve_pose`). The second round runs only when the pairs
+    changed. Returns (pose (3,), True), or (initial, False) when fewer than
+    ``min_matches`` boxes match in a round.
+    """
+    pose = initial.copy()
+    n_own, n_land = own_poses.shape[0], land_poses.shape[0]
+    if min(n_own, n_land) < min_matches:
+        return pose, False
+    previous = np.full(n_own, -2, dtype=np.int64)
+    nearest = np.empty(n_own, dtype=np.int64)
+    for _ in range(2):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        count = 0
+        for q in range(n_own):
+            x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
+            y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
+            best, best_p = gate, -1
+            for p in range(n_land):
+                d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
+                if d < best:
+                    best, best_p = d, p
+            nearest[q] = best_p
+            count += best_p >= 0
+        if count < min_matches:
+            return initial.copy(), False
+        if np.array_equal(nearest, previous):
+            break
+        previous[:] = nearest
+        box = np.nonzero(nearest >= 0)[0]
+        land = nearest[box]
+        own = own_poses[box]
+        landmarks = land_poses[land]
+        info = rotate_information(np.ascontiguousarray(own_info[box]), np.ascontiguousarray(own[:, 2]))
+        pose = solve_pose(pose, np.ascontiguousarray(landmarks[:, :2]),
+                          np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
+                          kernel, delta, _no_prior(), max_iterations, tolerance, min_diag)[0]
+    return pose, True
+
+
+@njit(cache=True)
+def prior_terms(z, info_p):
+    """Constant terms of the prior edge identity -> agent measuring z (3,) with
+    information info_p (3, 3): (J_p, J_p z, Omega_p, J_p^T Omega_p J_p, Omega_p J_p), with
+    the edge's constant Jacobian J_p = blockdiag(R_z^T, 1); its residual is
+    J_p pose - J_p z, yaw wrapped."""
+    cz, sz = math.cos(z[2]), math.sin(z[2])
+    j_p = np.zeros((3, 3))
+    j_p[0, 0], j_p[0, 1], j_p[1, 0], j_p[1, 1], j_p[2, 2] = cz, sz, -sz, cz, 1.0
+    offset = np.empty(3)
+    ip_jp = np.empty((3, 3))  # Omega_p J_p
+    jt_ip = np.empty((3, 3))  # J_p^T Omega_p
+    for a in range(3):
+        offset[a] = j_p[a, 0] * z[0] + j_p[a, 1] * z[1] + j_p[a, 2] * z[2]
+        for b in range(3):
+            ip_jp[a, b] = info_p[a, 0] * j_p[0, b] + info_p[a, 1] * j_p[1, b] + (
+                info_p[a, 2] * j_p[2, b]
+            )
+            jt_ip[a, b] = j_p[0, a] * info_p[0, b] + j_p[1, a] * info_p[1, b] + (
+                j_p[2, a] * info_p[2, b]
+            )
+    hess = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            hess[a, b] = jt_ip[a, 0] * j_p[0, b] + jt_ip[a, 1] * j_p[1, b] + jt_ip[a, 2] * j_p[2, b]
+    return j_p, offset, info_p.copy(), hess, ip_jp
+
+
+@njit(cache=True)
+def _no_prior():
+    """:func:`prior_terms` of a prior edge with zero information (no prior)."""
+    return prior_terms(np.zeros(3), np.zeros((3, 3)))
+
+
+@njit(cache=True)
+def solve_pose_edges(initial, landmarks, measurement, information, prior_z, prior_info, kernel,
+                     delta, max_iterations, tolerance, min_diag):
+    """:func:`solve_pose` from the edges as given: landmarks (E, 3), measurements (E, 3)
+    (the landmarks in the agent's frame), information (E, 3, 3), and the prior edge's
+    measurement prior_z (3,) and information prior_info (3, 3) (zeros: no prior); the
+    per-edge terms and the prior's (:func:`prior_terms`) are built here."""
+    land_xy = np.ascontiguousarray(landmarks[:, :2])
+    t_z = np.ascontiguousarray(measurement[:, :2])
+    angle = landmarks[:, 2] - measurement[:, 2]
+    info = rotate_information(np.ascontiguousarray(information),
+                              np.ascontiguousarray(measurement[:, 2]))
+    return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta,
+                      prior_terms(prior_z, prior_info), max_iterations, tolerance, min_diag)

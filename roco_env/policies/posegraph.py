@@ -30,9 +30,12 @@ import numpy as np
 
 from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
-    damped_step,
     evaluate_edges,
     normal_sums,
+    prior_terms,
+    rotate_information,
+    solve_graph,
+    solve_pose_edges,
 )
 
 __all__ = [
@@ -264,118 +267,6 @@ def robust_kernel(
     return d2 * np.log1p(ratio), 1.0 / (1.0 + ratio)
 
 
-def _scatter_indices(graph: PoseGraph) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
-    """Where each edge's 6x6 Hessian block and 6-vector gradient go.
-
-    Hessian entries land in one flat buffer [H_aa (3N x 3N) | H_al (3N x 3M) | H_ll
-    (M, 3, 3) | one unused slot] and gradient entries in [g_a (3N) | g_l (3M)], so that
-    assembling the normal equations is one bincount each. Rows/columns 0-2 of a block
-    belong to the edge's agent, 3-5 to its landmark (observations) or second agent
-    (priors). Returns (hessian index (E, 6, 6), gradient index (E, 6), buffer sizes).
-    """
-    na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
-    obs_a, obs_l = graph.obs_agent, graph.obs_landmark
-    pf, pt = graph.prior_from, graph.prior_to
-    n_obs = obs_a.size
-    sizes = (9 * na * na, 9 * na * nl, 9 * nl)
-    i, j = np.arange(3)[:, None], np.arange(3)[None, :]
-
-    def block(row_base: np.ndarray, width: int, col_base: np.ndarray, offset: int) -> np.ndarray:
-        return offset + (row_base[:, None, None] + i) * width + col_base[:, None, None] + j
-
-    from_all = np.concatenate([obs_a, pf])
-    h = np.empty((from_all.size, 2, 3, 2, 3), dtype=np.int64)
-    h[:, 0, :, 0, :] = block(3 * from_all, 3 * na, 3 * from_all, 0)
-    h[:n_obs, 0, :, 1, :] = block(3 * obs_a, 3 * nl, 3 * obs_l, sizes[0])
-    h[:n_obs, 1, :, 0, :] = sum(sizes)  # H_la = H_al^T is not stored
-    h[:n_obs, 1, :, 1, :] = block(3 * obs_l, 3, np.zeros_like(obs_l), sizes[0] + sizes[1])
-    h[n_obs:, 0, :, 1, :] = block(3 * pf, 3 * na, 3 * pt, 0)
-    h[n_obs:, 1, :, 0, :] = block(3 * pt, 3 * na, 3 * pf, 0)
-    h[n_obs:, 1, :, 1, :] = block(3 * pt, 3 * na, 3 * pt, 0)
-    g = np.concatenate(
-        [
-            3 * from_all[:, None] + np.arange(3),
-            np.concatenate([3 * na + 3 * obs_l, 3 * pt])[:, None] + np.arange(3),
-        ],
-        axis=1,
-    )
-    return h.reshape(-1), g.reshape(-1), sizes
-
-
-class _Problem:
-    """Edge bookkeeping for one optimisation: all edges stacked (observations first),
-    vertices stacked (agents, then landmarks), scatter indices precomputed so that
-    assembling the normal equations is two bincounts (much faster than np.add.at)."""
-
-    def __init__(self, graph: PoseGraph, fixed: int, kernel: str | None, delta: float):
-        self.kernel, self.delta = kernel, delta
-        na, nl = graph.agents.shape[0], graph.landmarks.shape[0]
-        self.n_agents, self.n_land, self.n_obs = na, nl, graph.obs_agent.size
-        self.from_vertex = np.concatenate([graph.obs_agent, graph.prior_from])
-        self.to_vertex = np.concatenate([na + graph.obs_landmark, graph.prior_to])
-        meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
-        self.meas_yaw, self.meas_offset = meas[:, 2], _measurement_offset(meas)
-        self.info = np.concatenate([graph.obs_information, graph.prior_information])
-        free = np.arange(3 * na)
-        self.free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
-        self.free_block = np.ix_(self.free, self.free)
-        self.h_index, self.g_index, self.h_sizes = _scatter_indices(graph)
-
-    def linearize(self, agents: np.ndarray, landmarks: np.ndarray):
-        """Robust cost and the linearisation (e, Jacobian, chi2, IRLS weight) at a state."""
-        vertices = np.concatenate([agents, landmarks])
-        e, jac = _residuals_jacobian(
-            vertices[self.from_vertex], vertices[self.to_vertex], self.meas_yaw, self.meas_offset
-        )
-        info_e = np.matmul(self.info, e[:, :, None])[:, :, 0]
-        chi2 = np.einsum("ei,ei->e", e, info_e)
-        rho, weight = robust_kernel(chi2[: self.n_obs], self.kernel, self.delta)
-        cost = float(rho.sum() + chi2[self.n_obs :].sum())
-        weight = np.concatenate([weight, np.ones(chi2.size - self.n_obs)])
-        return cost, (e, jac, chi2, weight)
-
-    def normal_equations(self, e, jac, _chi2, weight):
-        """Dense H_aa (3N,3N), H_al (3N,3M), block-diagonal H_ll (M,3,3), g_a (3N,), g_l (M,3)."""
-        j_t_info = np.matmul(jac.transpose(0, 2, 1), self.info * weight[:, None, None])
-        blocks = np.matmul(j_t_info, jac)
-        grads = np.matmul(j_t_info, e[:, :, None])
-        na, nl = self.n_agents, self.n_land
-        n_aa, n_al, n_ll = self.h_sizes
-        h = np.bincount(self.h_index, blocks.reshape(-1), minlength=n_aa + n_al + n_ll + 1)
-        g = np.bincount(self.g_index, grads.reshape(-1), minlength=3 * (na + nl))
-        return (
-            h[:n_aa].reshape(3 * na, 3 * na),
-            h[n_aa : n_aa + n_al].reshape(3 * na, 3 * nl),
-            h[n_aa + n_al : n_aa + n_al + n_ll].reshape(nl, 3, 3),
-            g[: 3 * na],
-            g[3 * na :].reshape(nl, 3),
-        )
-
-    def step(self, h_aa, h_al, h_ll, g_a, g_l, lam):
-        """LM step (d_agents (N,3), d_landmarks (M,3)) with Marquardt damping ``lam``."""
-        nl = self.n_land
-        diag_a = np.maximum(np.diagonal(h_aa), _MIN_DIAG)
-        diag_l = np.maximum(np.diagonal(h_ll, axis1=1, axis2=2), _MIN_DIAG)
-        h_ll_d = h_ll.copy()
-        h_ll_d.reshape(nl, 9)[:, ::4] += lam * diag_l
-        h_ll_inv = np.linalg.inv(h_ll_d)
-        # Y = H_al H_ll^{-1}, block column by block column (3N x 3M).
-        h_al_b = h_al.reshape(-1, nl, 3).transpose(1, 0, 2)  # (M, 3N, 3)
-        y = np.matmul(h_al_b, h_ll_inv)  # (M, 3N, 3)
-        y2 = y.transpose(1, 0, 2).reshape(-1, 3 * nl)
-        damped = h_aa.copy()
-        damped.reshape(-1)[:: damped.shape[0] + 1] += lam * diag_a
-        reduced = damped - y2 @ h_al.T
-        rhs = y2 @ g_l.reshape(-1) - g_a
-        free = self.free
-        d_a = np.zeros(3 * self.n_agents)
-        if free.size:
-            d_a[free] = np.linalg.solve(reduced[self.free_block], rhs[free])
-        back = (h_al.T @ d_a).reshape(nl, 3)
-        d_l = -np.matmul(h_ll_inv, (g_l + back)[:, :, None])[:, :, 0]
-        return d_a.reshape(-1, 3), d_l
-
-
 def _wrap(angle: np.ndarray) -> np.ndarray:
     """Wrap to [-pi, pi) (cheaper than geometry.wrap_angle; the end point is irrelevant
     to residuals and retractions)."""
@@ -386,48 +277,6 @@ def _wrap_scalar(angle: float) -> float:
     """:func:`_wrap` of one float without numpy's per-call overhead (Python's float ``%``
     is fmod with numpy's sign fix-up, so the result is the same to the bit)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _retract(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    out = poses + delta
-    out[:, 2] = _wrap(out[:, 2])
-    return out
-
-
-def _levenberg_marquardt(
-    x, evaluate, normal_equations, propose, max_iterations: int, tolerance: float
-):
-    """Levenberg-Marquardt loop shared by :func:`optimize` and :func:`optimize_pose`.
-
-    evaluate(x) -> (cost, linearisation); normal_equations(linearisation) -> system, built
-    once per accepted state; propose(x, system, lam) -> (trial x, largest step
-    component). Starts with lam = 1e-4; a step is accepted when it does not
-    raise the cost (then lam /= 10), else lam *= 10 until 1e12 (no progress: converged).
-    Stops after ``max_iterations`` linearisations, when the relative cost decrease of an
-    accepted step is below ``tolerance`` or when its largest component is.
-    Returns (x, cost, linearisation, initial cost, iterations, converged).
-    """
-    cost, lin = evaluate(x)
-    initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
-    while iterations < max_iterations and not converged:
-        iterations += 1
-        system = normal_equations(lin)
-        while True:
-            trial_x, step = propose(x, system, lam)
-            trial_cost, trial_lin = evaluate(trial_x)
-            if trial_cost <= cost:
-                break
-            lam *= 10.0
-            if lam > 1e12:
-                converged = True  # no damping reduces the cost: a (local) minimum
-                break
-        if converged:
-            break
-        decrease = cost - trial_cost
-        x, cost, lin = trial_x, trial_cost, trial_lin
-        lam = max(lam / 10.0, 1e-12)
-        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
-    return x, cost, lin, initial_cost, iterations, converged
 
 
 def optimize(
@@ -454,36 +303,29 @@ def optimize(
         raise ValueError(f"fixed must index an agent in [0, {graph.agents.shape[0]}); got {fixed}")
     if max_iterations < 0:
         raise ValueError(f"max_iterations must be >= 0; got {max_iterations}")
-    problem = _Problem(graph, fixed, kernel, kernel_delta)
-    n_agents = graph.agents.shape[0]
-
-    def evaluate(x):
-        return problem.linearize(x[:n_agents], x[n_agents:])
-
-    def propose(x, system, lam):
-        d_a, d_l = problem.step(*system, lam)
-        step = max(np.abs(d_a).max(initial=0.0), np.abs(d_l).max(initial=0.0))
-        return _retract(x, np.concatenate([d_a, d_l])), step
-
-    start = np.concatenate([graph.agents, graph.landmarks])
-    x, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start,
-        evaluate,
-        lambda lin: problem.normal_equations(*lin),
-        propose,
-        max_iterations,
-        tolerance,
+    na = graph.agents.shape[0]
+    free = np.arange(3 * na)
+    free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
+    meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
+    x, chi2, initial_cost, cost, iterations, converged = solve_graph(
+        np.concatenate([graph.agents, graph.landmarks]),
+        na,
+        np.concatenate([graph.obs_agent, graph.prior_from]),
+        np.concatenate([graph.obs_landmark, graph.prior_to]),
+        np.ascontiguousarray(meas[:, 2]),
+        _measurement_offset(meas),
+        np.concatenate([graph.obs_information, graph.prior_information]),
+        graph.obs_agent.size,
+        free,
+        KERNEL_CODES[kernel],
+        float(kernel_delta),
+        int(max_iterations),
+        float(tolerance),
+        _MIN_DIAG,
     )
-    chi2 = lin[2]
+    n_obs = graph.obs_agent.size
     return PoseGraphResult(
-        x[:n_agents],
-        x[n_agents:],
-        chi2[: problem.n_obs],
-        chi2[problem.n_obs :],
-        initial_cost,
-        cost,
-        iterations,
-        converged,
+        x[:na], x[na:], chi2[:n_obs], chi2[n_obs:], initial_cost, cost, iterations, converged
     )
 
 
@@ -503,7 +345,8 @@ class PoseResult:
 class _PoseProblem:
     """One agent vertex observing fixed landmarks (and an optional prior edge from a fixed
     identity vertex), linearised by the compiled loops of
-    :mod:`roco_env.policies.pose_kernels`.
+    :mod:`roco_env.policies.pose_kernels` (:func:`pose_hessians` evaluates it;
+    :func:`optimize_pose` runs the same terms inside the compiled solver).
 
     Each observation residual is ``e = C e~`` with ``C = blockdiag(R(-yaw_z), 1)`` and
     ``e~ = (R(-yaw) (t_l - t) - t_z, wrap(yaw_l - yaw_z - yaw))``, so the per-edge
@@ -522,21 +365,16 @@ class _PoseProblem:
         self.land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self.t_z = np.ascontiguousarray(measurement[:, :2], dtype=float)
         self.angle = np.ascontiguousarray(landmarks[:, 2] - measurement[:, 2], dtype=float)
-        rot = np.zeros((measurement.shape[0], 3, 3))
-        c, s = np.cos(measurement[:, 2]), np.sin(measurement[:, 2])
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
-        rot[:, 2, 2] = 1.0
-        self._rot, self._rot_t = rot, rot.transpose(0, 2, 1)
+        self._meas_yaw = np.ascontiguousarray(measurement[:, 2], dtype=float)
         self.set_information(information)
         self.prior = None
         if prior is not None:
             # The prior edge identity -> agent has the constant Jacobian J_p =
             # blockdiag(R_z^T, 1) and residual J_p pose - (R_z^T t_z, yaw_z), yaw wrapped.
-            z = np.asarray(prior, dtype=float).reshape(3)
-            cz, sz = math.cos(z[2]), math.sin(z[2])
-            j_p = np.array([[cz, sz, 0.0], [-sz, cz, 0.0], [0.0, 0.0, 1.0]])
-            info_p = np.asarray(prior_information, dtype=float).reshape(3, 3)
-            self.prior = (j_p, j_p @ z, info_p, j_p.T @ info_p @ j_p, info_p @ j_p)
+            self.prior = prior_terms(
+                np.asarray(prior, dtype=float).reshape(3),
+                np.asarray(prior_information, dtype=float).reshape(3, 3),
+            )
 
     def evaluate(self, pose: np.ndarray) -> tuple[float, tuple]:
         """(robust cost, linearisation point) at ``pose`` (3,); the point starts with the
@@ -556,8 +394,10 @@ class _PoseProblem:
         return cost, (chi2, math.cos(yaw), math.sin(yaw), u, info_e, weight, e_p)
 
     def set_information(self, information: np.ndarray) -> None:
-        """Replace the per-edge information (E, 3, 3) (rotated as in the constructor)."""
-        self.info = np.ascontiguousarray(np.matmul(self._rot_t, np.matmul(information, self._rot)))
+        """Replace the per-edge information (E, 3, 3), rotated to ``C^T Omega C``."""
+        self.info = rotate_information(
+            np.ascontiguousarray(information, dtype=float), self._meas_yaw
+        )
 
     def hessian(self, point: tuple) -> np.ndarray:
         """H (3, 3) of :meth:`normal_equations`, without the gradient."""
@@ -598,21 +438,21 @@ def optimize_pose(
     """
     if kernel is not None and kernel not in ROBUST_KERNELS:
         raise ValueError(f"kernel must be None or one of {ROBUST_KERNELS}; got {kernel!r}")
-    problem = _PoseProblem(
-        landmarks, measurement, information, prior, prior_information, kernel, kernel_delta
+    no_prior = prior is None  # a zero-information prior edge changes nothing
+    pose, chi2, initial_cost, cost, iterations, converged = solve_pose_edges(
+        np.asarray(initial, dtype=float).reshape(3).copy(),
+        np.asarray(landmarks, dtype=float),
+        np.asarray(measurement, dtype=float),
+        np.asarray(information, dtype=float),
+        np.zeros(3) if no_prior else np.asarray(prior, dtype=float).reshape(3),
+        np.zeros((3, 3)) if no_prior else np.asarray(prior_information, dtype=float).reshape(3, 3),
+        KERNEL_CODES[kernel],
+        float(kernel_delta),
+        int(max_iterations),
+        float(tolerance),
+        _MIN_DIAG,
     )
-
-    def propose(pose, system, lam):
-        delta, step = damped_step(*system, lam, _MIN_DIAG)
-        trial = pose + delta
-        trial[2] = _wrap_scalar(float(trial[2]))
-        return trial, step
-
-    start = np.asarray(initial, dtype=float).copy()
-    pose, cost, lin, initial_cost, iterations, converged = _levenberg_marquardt(
-        start, problem.evaluate, problem.normal_equations, propose, max_iterations, tolerance
-    )
-    return PoseResult(pose, lin[0], initial_cost, cost, iterations, converged)
+    return PoseResult(pose, chi2, initial_cost, cost, iterations, converged)
 
 
 def pose_hessian(

@@ -62,7 +62,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.geometry import se2_compose
 from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
@@ -74,18 +74,26 @@ from roco_env.policies.landmarks import (
     prepare_inputs,
     prior_information,
 )
-from roco_env.policies.matching import MatchingParams, StarGraphMatcher
+from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
+from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
 from roco_env.policies.posegraph import (
+    _MIN_DIAG,
     ROBUST_KERNELS,
     PoseGraphResult,
     edge_chi2,
     optimize,
     optimize_pose,
-    pose_hessians,
     robust_kernel,
 )
 
-__all__ = ["NOT_SIGNIFICANT", "RoCoParams", "RoCoPolicy", "roco_align"]
+__all__ = [
+    "NOT_SIGNIFICANT",
+    "RoCoParams",
+    "RoCoPolicy",
+    "checked_params",
+    "roco_align",
+    "roco_solve",
+]
 
 # Start of the reason for a prior kept by the significance test: the matched evidence is
 # consistent with the reported pose (a checked prior, unlike "no boxes" or too few matches).
@@ -94,6 +102,8 @@ NOT_SIGNIFICANT = "correction not significant"
 # Relative cost decrease that ends a per-round single-vertex solve: those solves only
 # steer the matching (the final joint solve uses the solver's default, 1e-6).
 _ROUND_TOLERANCE = 1e-4
+# Relative cost decrease that ends the significance test's fit (the solver's default).
+_FIT_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -160,11 +170,19 @@ class _Map:
     """Landmarks (ego frame) with their observations, and the accepted agents' poses.
 
     covariance (M, 3, 3): of the box that created each landmark, in the box frame (an
-    upper bound once more observations refine it; used by the significance test).
+    upper bound once more observations refine it; used by the significance test);
+    features (5, M): the matcher's :func:`~roco_env.policies.matching.pose_features`;
+    box_features: per agent, those of its boxes in its own frame.
     """
 
-    def __init__(self, ego_poses: np.ndarray, ego_covariance: np.ndarray):
+    def __init__(self, inputs: AlignmentInputs, ego_covariance: np.ndarray):
+        ego_poses = inputs.poses[0]
         self.poses = ego_poses.copy()
+        self.features = pose_features(self.poses)  # kept in step with poses for matching
+        # Every agent's boxes' features in its own frame (fixed), computed in one pass.
+        self.box_features = np.split(
+            pose_features(inputs.all_poses), inputs.offsets[1:-1], axis=1
+        )
         self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
@@ -172,11 +190,13 @@ class _Map:
         self.obs_land = np.arange(count)
         self.agent_poses: dict[int, np.ndarray] = {0: np.zeros(3)}
 
-    def shared(self, extra_land: np.ndarray) -> np.ndarray:
-        """Landmark ids seen by >= 2 agents once ``extra_land`` gets one more observation."""
+    def shared(self, extra_land: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark ids seen by >= 2 agents once ``extra_land`` gets one more observation,
+        and which of the stored observations are of those landmarks (bool mask)."""
         counts = np.bincount(self.obs_land, minlength=self.poses.shape[0])
         counts[extra_land] += 1
-        return np.nonzero(counts >= 2)[0]
+        is_shared = counts >= 2
+        return np.nonzero(is_shared)[0], is_shared[self.obs_land]
 
 
 @dataclass
@@ -199,8 +219,12 @@ class _Attempt:
     solver: int = 0
 
 
+@lru_cache(maxsize=16)
 def _prior_info(p: RoCoParams) -> np.ndarray:
-    return prior_information(p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    """Information (3, 3) of the prior edges (read-only: shared by every call with ``p``)."""
+    info = prior_information(p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    info.flags.writeable = False
+    return info
 
 
 def _joint_solve(
@@ -221,8 +245,7 @@ def _joint_solve(
     match_box = world.obs_box[:0] if att is None else att.match_box
     if att is not None:
         known, poses = [*known, agent], [*poses, att.pose]
-    shared = world.shared(match_land)
-    keep = np.isin(world.obs_land, shared)
+    shared, keep = world.shared(match_land)
     obs_agent = np.concatenate([world.obs_agent[keep], np.full(match_land.size, agent)])
     obs_box = np.concatenate([world.obs_box[keep], match_box])
     obs_land = np.searchsorted(shared, np.concatenate([world.obs_land[keep], match_land]))
@@ -282,7 +305,9 @@ def _attempt(
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
     starting from the pose estimate ``start`` (3,)."""
-    matcher = StarGraphMatcher(world.poses, inputs.poses[agent], p)
+    matcher = StarGraphMatcher(
+        world.poses, inputs.poses[agent], p, world.features, world.box_features[agent]
+    )
     empty = np.zeros(0, dtype=np.int64)
     att = _Attempt(np.array(start, dtype=float), empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
@@ -323,25 +348,23 @@ def _correction_statistic(
     re-fitted to its matched edges alone with the box-difference information and the
     kernel, and ``d = fitted - reported`` is weighed by the inverse of its sandwich
     covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
-    IRLS weights at the fit); chi-square with 3 dof when the reported pose is right."""
+    IRLS weights at the fit); chi-square with 3 dof when the reported pose is right.
+    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`)."""
     own = inputs.poses[agent][att.match_box]
-    box_covariance = covariance[agent][att.match_box]
-    info = np.linalg.inv(box_covariance + world.covariance[att.match_land])
-    fit = optimize_pose(
-        att.pose,
-        att.landmarks,
-        own,
-        info,
-        kernel=p.robust_kernel,
-        kernel_delta=p.kernel_delta,
-        max_iterations=p.max_solver_iterations,
+    return float(
+        wald_statistic(
+            att.pose,
+            att.landmarks,
+            own,
+            covariance[agent][att.match_box] + world.covariance[att.match_land],
+            inputs.reported[agent - 1],
+            KERNEL_CODES[p.robust_kernel],
+            float(p.kernel_delta),
+            int(p.max_solver_iterations),
+            _FIT_TOLERANCE,
+            _MIN_DIAG,
+        )
     )
-    weight = robust_kernel(fit.chi2, p.robust_kernel, p.kernel_delta)[1][:, None, None]
-    bread, meat = pose_hessians(fit.pose, att.landmarks, own, (info * weight, info * weight**2))
-    d = fit.pose - inputs.reported[agent - 1]
-    d[2] = wrap_angle(d[2])
-    ad = bread @ d
-    return float(ad @ np.linalg.solve(meat, ad))
 
 
 def _rejection(
@@ -383,6 +406,7 @@ def _store_joint(world: _Map, joint: tuple[PoseGraphResult, np.ndarray, np.ndarr
     for vertex, agent_id in enumerate(agent_ids):
         world.agent_poses[int(agent_id)] = solution.agents[vertex]
     world.poses[shared] = solution.landmarks
+    world.features[:, shared] = pose_features(solution.landmarks)
 
 
 def _commit(
@@ -397,13 +421,31 @@ def _commit(
     unmatched[att.match_box] = False
     new_boxes = np.nonzero(unmatched)[0]
     new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    world.poses = np.concatenate([world.poses, se2_compose(att.pose, own[new_boxes])])
+    new_poses = se2_compose(att.pose, own[new_boxes])
+    world.poses = np.concatenate([world.poses, new_poses])
+    world.features = np.concatenate([world.features, pose_features(new_poses)], axis=1)
     world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
     world.obs_agent = np.concatenate(
         [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
     )
     world.obs_box = np.concatenate([world.obs_box, att.match_box, new_boxes])
     world.obs_land = np.concatenate([world.obs_land, att.match_land, new_ids])
+
+
+def checked_params(cls: type, kwargs: dict, method: str):
+    """:func:`~roco_env.policies.landmarks.params_from_kwargs`, memoised for keyword
+    arguments whose values are hashable (the parameter dataclasses are frozen, so one
+    instance serves every call with the same arguments; checking them costs ~1 ms)."""
+    key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))
+    try:
+        return _checked_params(cls, method, key)
+    except TypeError:  # an unhashable value (e.g. a list): checked on every call
+        return params_from_kwargs(cls, kwargs, method)
+
+
+@lru_cache(maxsize=64)
+def _checked_params(cls: type, method: str, key: tuple):
+    return params_from_kwargs(cls, {name: value for name, _, value in key}, method)
 
 
 def roco_align(
@@ -425,8 +467,20 @@ def roco_align(
     prior edges and the do-no-harm test always use the reported ones).
     params: fields of :class:`RoCoParams`. Returns corrected T_{j->i} and diagnostics.
     """
-    p = params_from_kwargs(RoCoParams, params, "roco")
+    p = checked_params(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
+    return roco_solve(inputs, p, initial)
+
+
+def roco_solve(
+    inputs: AlignmentInputs,
+    p: RoCoParams,
+    initial: np.ndarray | None = None,
+    excluded: frozenset[int] = frozenset(),
+) -> AlignmentResult:
+    """:func:`roco_align` on validated inputs (:func:`~roco_env.policies.landmarks.prepare_inputs`)
+    and checked parameters. Collaborator slots in ``excluded`` are treated as if they sent
+    no boxes (reason "no boxes"; their reported poses are kept)."""
     start = inputs.reported if initial is None else np.asarray(initial, dtype=float)
     if start.shape != inputs.reported.shape or not np.all(np.isfinite(start)):
         raise ValueError(
@@ -436,16 +490,17 @@ def roco_align(
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
     covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
-    world = _Map(inputs.poses[0], covariance[0])
+    world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
     outer = solver = 0
+    has_boxes = [inputs.poses[a].shape[0] > 0 and a - 1 not in excluded for a in range(n + 1)]
     queue = list(range(1, n + 1))
     retried: set[int] = set()
     accepted_since_joint = False
     while queue:
         agent = queue.pop(0)
-        if inputs.poses[agent].shape[0] == 0:
+        if not has_boxes[agent]:
             reasons[agent - 1] = "no boxes"
             continue
         att = _attempt(inputs, world, agent, p, start[agent - 1])
@@ -456,7 +511,7 @@ def roco_align(
             accepted_since_joint = True
             # The map grew: collaborators that failed earlier get one more try.
             failed = [a for a in range(1, agent) if reasons[a - 1] and a not in retried]
-            failed = [a for a in failed if inputs.poses[a].shape[0] and a not in queue]
+            failed = [a for a in failed if has_boxes[a] and a not in queue]
             retried.update(failed)
             queue.extend(failed)
     if accepted_since_joint and not p.joint_every_round:
@@ -467,8 +522,7 @@ def roco_align(
     corrected = inputs.reported.copy()
     for j in np.nonzero(applied)[0]:
         corrected[j] = world.agent_poses[j + 1]
-    shared = world.shared(np.zeros(0, dtype=np.int64))
-    keep = np.isin(world.obs_land, shared)
+    shared, keep = world.shared(np.zeros(0, dtype=np.int64))
     return AlignmentResult(
         corrected=corrected,
         applied=applied,
@@ -487,4 +541,4 @@ class RoCoPolicy(ArrayAlignmentPolicy):
     """RoCo as an env policy: ``RoCoPolicy(**params)(obs, info=None) -> action (N, 3)``."""
 
     def __init__(self, **params) -> None:
-        super().__init__(roco_align, params_from_kwargs(RoCoParams, params, "roco"), params)
+        super().__init__(roco_align, checked_params(RoCoParams, params, "roco"), params)
