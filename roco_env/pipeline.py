@@ -185,9 +185,10 @@ class Pipeline:
         for ego, (sent, slot) in enumerate(zip(messages, slots, strict=True)):
             mine, rows = detections[ego], slice(start[ego], start[ego + 1])
             own_boxes, collab_boxes = mine.boxes, tuple(m.boxes for m in sent)
-            if axial:  # one heading convention for the ego and what it receives
-                own_boxes = _with_axial_yaw(own_boxes, 0.0)
-                collab_boxes = tuple(_with_axial_yaw(b, rel[2]) for b, rel in
+            if axial:  # one world-anchored heading convention for the ego and its inbox
+                heading = float(own[ego][2])  # the ego's own (reported) heading
+                own_boxes = _with_axial_yaw(own_boxes, heading)
+                collab_boxes = tuple(_with_axial_yaw(b, heading + rel[2]) for b, rel in
                                      zip(collab_boxes, reported_relative[rows], strict=True))
             views.append(EgoView(
                 agent=ego,
@@ -212,7 +213,10 @@ class Pipeline:
 
 def _with_axial_yaw(boxes: np.ndarray, frame_yaw: float) -> np.ndarray:
     """A copy of boxes (K, 7) whose axial headings are put in the half-turn convention of
-    :func:`roco_env.geometry.canonical_axial_yaw`, seen from a frame rotated by frame_yaw."""
+    :func:`roco_env.geometry.canonical_axial_yaw`, seen from a frame rotated by frame_yaw
+    (the boxes' frame's heading in the world, as far as the ego knows it: anchoring the
+    half-turn in the world keeps its edges on the diagonals, away from traffic on
+    axis-aligned roads, whichever way an agent, an RSU say, faces)."""
     out = boxes.copy()
     out[:, 6] = canonical_axial_yaw(boxes[:, 6], frame_yaw)
     return out
