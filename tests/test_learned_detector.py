@@ -10,7 +10,7 @@ import torch
 
 import roco_env
 from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
-from roco_env.geometry import AXIAL_HEADING_LOW, transform_boxes
+from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
 from roco_env.scenario import ScenarioError

@@ -65,7 +65,7 @@ def _seeded_weights(path: Path) -> Path:
         else:
             continue
         state[name] = torch.as_tensor(drawn, dtype=value.dtype)
-    # Heatmap logits around sigmoid(-2) = 0.12 (some peaks above the 0.2 threshold), car-sized
+    # Heatmap logits around sigmoid(-1) = 0.27 (some peaks above the 0.2 threshold), car-sized
     # boxes (log length, width, height) with small head weights, so NMS has neighbours to suppress.
     state["heads.weight"] *= HEAD_SCALE
     state["heads.bias"][0] = HEAT_BIAS

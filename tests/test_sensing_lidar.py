@@ -153,6 +153,38 @@ def test_raster_equals_a_direct_numpy_binning(scene):
     np.testing.assert_array_equal(raster[0], np.log1p(count).astype(np.float32))
     np.testing.assert_array_equal(raster[1], top.astype(np.float32))
     np.testing.assert_array_equal(raster[2], (total / np.maximum(count, 1)).astype(np.float32))
+    u = (scan.x[row >= 0] - GRID.x_range[0]) / GRID.resolution
+    v = (scan.y[row >= 0] - GRID.y_range[0]) / GRID.resolution
+    for channel, offset in (("mean_dx", u - inside[1] - 0.5), ("mean_dy", v - inside[0] - 0.5)):
+        summed = np.zeros((GRID.H, GRID.W))
+        np.add.at(summed, inside, offset)
+        np.testing.assert_allclose(raster[LIDAR_CHANNELS.index(channel)],
+                                   summed / np.maximum(count, 1), atol=1e-6)
+
+
+@pytest.mark.parametrize("flip_x, flip_y", [(True, False), (False, True), (True, True)])
+def test_a_mirrored_raster_is_the_raster_of_the_mirrored_scan(scene, flip_x, flip_y):
+    """Training's mirror augmentation: flipping a raster must give what the sensor would
+    record of the mirrored scene, point offsets included (the grid is symmetric)."""
+    import torch
+
+    from roco_env.training.train import mirror_rasters
+
+    state, vis = scene
+    scan = sample_scans(state, vis, ScanNoise(), np.random.default_rng(6))[0]
+    # A point on a cell edge (x = 0, say) falls in the cell above the edge both ways.
+    on_edge = np.zeros(scan.x.size, dtype=bool)
+    for value, low in ((scan.x, GRID.x_range[0]), (scan.y, GRID.y_range[0])):
+        cells = (value - low) / GRID.resolution
+        on_edge |= np.abs(cells - np.round(cells)) < 1e-6
+    scan = LidarScan(*(getattr(scan, k)[~on_edge] for k in ("x", "y", "z", "obj")))
+    mirrored = dataclasses.replace(scan, x=-scan.x if flip_x else scan.x,
+                                   y=-scan.y if flip_y else scan.y)
+    no_rays = np.zeros(720)
+    got = mirror_rasters(torch.from_numpy(lidar_rasters([scan], no_rays[None], GRID)),
+                         flip_x, flip_y)[0].numpy()
+    want = lidar_raster(mirrored, no_rays, GRID)
+    np.testing.assert_allclose(got, want, atol=1e-5)
 
 
 def test_ray_hits_come_sorted_by_agent(scene):

@@ -90,8 +90,9 @@ class AgentDetections:
 class Detector:
     """The detector model of the module docstring with fixed, validated parameters."""
 
-    #: Headings are the objects' true headings plus noise, front and back told apart
-    #: (a learned detector that only knows them up to pi sets this True).
+    #: Headings are the objects' true headings plus noise (the presets' ``flip_prob``
+    #: turns a few by pi, as real detectors' direction classifiers err): not declared
+    #: up to pi, as a learned detector that cannot tell front from back declares them.
     axial_headings = False
 
     def __init__(self, params: dict[str, Any]) -> None:

@@ -1,10 +1,11 @@
 """Compiled (numba) binning loop of the LiDAR rasters (:mod:`roco_env.sensing.lidar`).
 
 One pass over a scan's points gives every cell's point count, height sum, highest
-point and sums of the points' offsets inside the cell; the numpy path it replaced needed a cell index array, two ``bincount`` calls and
-a sort by cell for the per-cell maximum (several times slower on 10^5 points). Sums run
-in float64 in point order, as ``bincount`` does, so the rasters are bit-identical
-(tests/test_learned_pinned.py holds rasters recorded with the numpy path).
+point and sums of the points' offsets inside the cell; the numpy path it replaced
+needed a cell index array, a ``bincount`` per sum and a sort by cell for the per-cell
+maximum (several times slower on 10^5 points). Sums run in float64 in point order, as
+``bincount`` does, so the rasters equal the numpy path's bit for bit
+(tests/test_sensing_lidar.py checks them against ``np.add.at`` accumulation).
 """
 
 from __future__ import annotations

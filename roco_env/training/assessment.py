@@ -30,6 +30,7 @@ from roco_env.env import CollabPerceptionEnv
 from roco_env.evaluation import info_frame_stats
 from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.metrics import APAccumulator
+from roco_env.sensing.learned.model import sha256_of, shipped_weights_path
 
 SCENARIO = "urban_intersection"
 
@@ -97,6 +98,7 @@ def assess(seeds: int, steps: int) -> dict:
 
 def _markdown(result: dict, command: str) -> str:
     lines = [f"# Learned detector on {SCENARIO} (held-out seeds)", "", f"Command: `{command}`", "",
+             f"Weights: the shipped file, sha256 `{result['weights_sha256']}`.", "",
              "All egos (4 CAVs + the RSU, whose 100 m range exceeds the learned detector's "
              "+-70.4 m grid) and the CAV egos alone:", "",
              "| setting | AP@0.3 | AP@0.5 | AP@0.7 | CAVs AP@0.3 | CAVs AP@0.5 | CAVs AP@0.7 |",
@@ -125,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     command = "python -m roco_env.training.assessment " + shlex.join(
         argv if argv is not None else sys.argv[1:])
     args.out.mkdir(parents=True, exist_ok=True)
+    result = {"weights_sha256": sha256_of(shipped_weights_path()), **result}
     (args.out / "assessment.json").write_text(json.dumps({"command": command, **result},
                                                          indent=2) + "\n")
     (args.out / "assessment.md").write_text(_markdown(result, command))

@@ -39,8 +39,12 @@ from roco_env.sensing.messages import select_collaborators
 from roco_env.sensing.visibility import compute_visibility
 from roco_env.traffic import make_traffic_source
 
-__all__ = ["TRAIN_SCENARIOS", "TRAIN_SEED_BASE", "VALIDATION_SEED_BASE", "Scene", "make_scenes"]
+__all__ = ["TRAIN_SCENARIOS", "TRAIN_SEED_BASE", "VALIDATION_SEED_BASE", "WORKER_CONTEXT", "Scene",
+           "make_scenes"]
 
+# Worker processes (scene generation, training batches) are forked: they share the
+# scenes with the parent without copying or pickling them (Linux; elsewhere use 0 workers).
+WORKER_CONTEXT = "fork"
 TRAIN_SEED_BASE = 1_000_000
 VALIDATION_SEED_BASE = 2_000_000
 # The synthetic scenarios of the library (replay and highway-env sources need external data).
@@ -133,5 +137,5 @@ def make_scenes(scenarios: tuple[str, ...], count: int, seed_base: int, grid: Be
     bar = partial(tqdm, total=count, desc="scenes", disable=not progress, leave=False)
     if workers <= 0:
         return list(bar(map(_scene_at, jobs)))
-    with multiprocessing.get_context("fork").Pool(workers) as pool:
+    with multiprocessing.get_context(WORKER_CONTEXT).Pool(workers) as pool:
         return list(bar(pool.imap(_scene_at, jobs, chunksize=8)))

@@ -23,6 +23,7 @@ learning-rate schedule. Deterministic: numpy and torch seeded from ``seed``,
 from __future__ import annotations
 
 import math
+import multiprocessing
 import os
 import time
 from collections.abc import Callable
@@ -43,11 +44,12 @@ from roco_env.training.data import (
     TRAIN_SCENARIOS,
     TRAIN_SEED_BASE,
     VALIDATION_SEED_BASE,
+    WORKER_CONTEXT,
     Scene,
     make_scenes,
 )
 
-__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "set_determinism"]
+__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "mirror_rasters", "set_determinism"]
 
 # Loss weights: heatmap, offset, size, yaw, uncertainty NLL.
 _WEIGHTS = {"heatmap": 1.0, "offset": 1.0, "size": 1.0, "yaw": 1.0, "nll": 0.2}
@@ -178,12 +180,23 @@ def detection_loss(maps: dict[str, torch.Tensor], targets: Targets,
     return terms
 
 
+def mirror_rasters(rasters: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tensor:
+    """LiDAR rasters (N, C, H, W) of the scans mirrored along x and/or y (the detector grid
+    is symmetric about the sensor): the cells flipped, and the point-offset channels
+    (``mean_dx`` / ``mean_dy``, signed positions inside a cell) negated with them."""
+    dims = [d for d, f in ((-1, flip_x), (-2, flip_y)) if f]
+    if not dims:
+        return rasters
+    mirrored = torch.flip(rasters, dims)
+    for flipped, channel in ((flip_x, "mean_dx"), (flip_y, "mean_dy")):
+        if flipped:
+            mirrored[:, LIDAR_CHANNELS.index(channel)] *= -1.0
+    return mirrored
+
+
 def _mirror(scene: Scene, flip_x: bool, flip_y: bool):
     """Rasters, per-agent boxes, group boxes and relative poses of a mirrored scene."""
-    rasters = torch.from_numpy(scene.rasters)
-    dims = [d for d, f in ((-1, flip_x), (-2, flip_y)) if f]
-    if dims:
-        rasters = torch.flip(rasters, dims)
+    rasters = mirror_rasters(torch.from_numpy(scene.rasters), flip_x, flip_y)
 
     def boxes(b: np.ndarray) -> np.ndarray:
         b = b.copy()
@@ -256,15 +269,26 @@ class _Batches(torch.utils.data.Dataset):
                       poses, build_targets(groups, self.fgrid) if egos else None)
 
 
+def _as_is(batch: _Batch) -> _Batch:
+    """The loader's collate function: a step's batch is already whole."""
+    return batch
+
+
 def train(config: TrainConfig, progress: bool = True,
           log: Callable[[str], None] | None = None) -> TrainResult:
     """Generate the scenes, train the network, validate it (module docstring)."""
-    previous = (torch.are_deterministic_algorithms_enabled(), torch.get_num_threads())
+    if config.workers and WORKER_CONTEXT not in multiprocessing.get_all_start_methods():
+        raise ValueError(f"workers={config.workers} needs the {WORKER_CONTEXT!r} start method, "
+                         "which this platform lacks; use workers=0")
+    previous = (torch.are_deterministic_algorithms_enabled(),
+                torch.is_deterministic_algorithms_warn_only_enabled(), torch.get_num_threads(),
+                torch.backends.cudnn.benchmark)
     try:
         return _train(config, progress, log)
     finally:  # leave the caller's torch settings as they were
-        torch.use_deterministic_algorithms(previous[0])
-        torch.set_num_threads(previous[1])
+        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+        torch.set_num_threads(previous[2])
+        torch.backends.cudnn.benchmark = previous[3]
 
 
 def _train(config: TrainConfig, progress: bool,
@@ -288,7 +312,7 @@ def _train(config: TrainConfig, progress: bool,
     net.train()
     loader = torch.utils.data.DataLoader(
         _Batches(scenes, config), batch_size=None, shuffle=False, num_workers=config.workers,
-        collate_fn=lambda batch: batch, multiprocessing_context="fork" if config.workers else None,
+        collate_fn=_as_is, multiprocessing_context=WORKER_CONTEXT if config.workers else None,
         prefetch_factor=4 if config.workers else None)
     bar = tqdm(loader, desc="train-detector", disable=not progress, mininterval=5.0)
     for step, batch in enumerate(bar):

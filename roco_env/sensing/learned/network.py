@@ -45,7 +45,7 @@ class NetConfig:
     """
 
     in_channels: int = len(LIDAR_CHANNELS)
-    widths: tuple[int, int, int] = (24, 48, 32)
+    widths: tuple[int, int, int] = (32, 64, 48)
 
     def to_dict(self) -> dict:
         return {"in_channels": self.in_channels, "widths": list(self.widths)}
