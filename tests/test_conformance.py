@@ -9,11 +9,13 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, seed_test
 from test_replay import write_opv2v
 
 import roco_env
-from roco_env.evaluation import UNDEFINED, info_capacity
+from roco_env.evaluation import UNDEFINED, _padded, info_capacity
 
 CYCLES = 3
 
@@ -104,3 +106,17 @@ def test_make_vec_stacks_infos(mode):
         assert "rpe_after" in infos or "collaborators" in infos
     finally:
         envs.close()
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(0, 6), cols=st.integers(0, 6), extra=st.integers(0, 5),
+       axis=st.integers(0, 1), boolean=st.booleans())
+def test_info_padding_equals_numpy_pad(rows, cols, extra, axis, boolean):
+    """The info arrays' zero padding (a preallocated fill) is np.pad's, dtype included."""
+    values = np.arange(rows * cols).reshape(rows, cols)
+    values = (values % 2 == 0) if boolean else values.astype(np.float32)
+    capacity = values.shape[axis] + extra
+    widths = [(0, 0), (0, 0)]
+    widths[axis] = (0, extra)
+    padded = _padded(values, capacity, axis)
+    assert padded.dtype == values.dtype and np.array_equal(padded, np.pad(values, widths))
