@@ -71,12 +71,12 @@ class TrainConfig:
     y_range: tuple[float, float] = (-40.0, 40.0)
     resolution: float = 0.8
     widths: tuple[int, int, int] = (32, 64, 48)
-    train_scenes: int = 240
+    train_scenes: int = 800
     val_scenes: int = 20
     scenarios: tuple[str, ...] = TRAIN_SCENARIOS
     val_scenarios: tuple[str, ...] = ("urban_intersection",)
-    steps: int = 300
-    scenes_per_step: int = 2
+    steps: int = 1200
+    scenes_per_step: int = 4
     lr: float = 3e-3
     pose_sigma_t: float = 0.2
     pose_sigma_r: float = 0.2
