@@ -139,49 +139,42 @@ def gated_pairs(land_xy, centres, tau2):
 
 
 @njit(cache=True)
+def _compact_axis(index):
+    """The distinct values of ``index`` (C,) (non-negative), sorted, the position of each
+    entry's value among them (C,), and whether every value occurs once."""
+    size = 0
+    for k in range(index.size):
+        size = max(size, index[k] + 1)
+    count = np.zeros(size, dtype=np.int64)
+    for k in range(index.size):
+        count[index[k]] += 1
+    single = True
+    position = np.empty(size, dtype=np.int64)
+    n_used = 0
+    for i in range(size):
+        position[i] = n_used
+        if count[i]:
+            n_used += 1
+            single = single and count[i] == 1
+    used = np.empty(n_used, dtype=np.int64)
+    for i in range(size):
+        if count[i]:
+            used[position[i]] = i
+    inverse = np.empty(index.size, dtype=np.int64)
+    for k in range(index.size):
+        inverse[k] = position[index[k]]
+    return used, inverse, single
+
+
+@njit(cache=True)
 def compact_pairs(cand_p, cand_q):
     """The rows and columns the candidate pairs (C,) use (non-negative indices), as
     ``np.unique`` with ``return_inverse`` gives them: (rows (R,) sorted, row index of each
     pair (C,), cols (Q,) sorted, column index of each pair (C,)), and whether every row
     and every column has a single pair."""
-    n_rows = n_cols = 0
-    for k in range(cand_p.size):
-        n_rows = max(n_rows, cand_p[k] + 1)
-        n_cols = max(n_cols, cand_q[k] + 1)
-    row_count = np.zeros(n_rows, dtype=np.int64)
-    col_count = np.zeros(n_cols, dtype=np.int64)
-    for k in range(cand_p.size):
-        row_count[cand_p[k]] += 1
-        col_count[cand_q[k]] += 1
-    single = True
-    row_pos = np.empty(n_rows, dtype=np.int64)
-    n_used = 0
-    for i in range(n_rows):
-        row_pos[i] = n_used
-        if row_count[i]:
-            n_used += 1
-            single = single and row_count[i] == 1
-    rows = np.empty(n_used, dtype=np.int64)
-    for i in range(n_rows):
-        if row_count[i]:
-            rows[row_pos[i]] = i
-    col_pos = np.empty(n_cols, dtype=np.int64)
-    n_used = 0
-    for i in range(n_cols):
-        col_pos[i] = n_used
-        if col_count[i]:
-            n_used += 1
-            single = single and col_count[i] == 1
-    cols = np.empty(n_used, dtype=np.int64)
-    for i in range(n_cols):
-        if col_count[i]:
-            cols[col_pos[i]] = i
-    row_idx = np.empty(cand_p.size, dtype=np.int64)
-    col_idx = np.empty(cand_p.size, dtype=np.int64)
-    for k in range(cand_p.size):
-        row_idx[k] = row_pos[cand_p[k]]
-        col_idx[k] = col_pos[cand_q[k]]
-    return rows, row_idx, cols, col_idx, single
+    rows, row_idx, single_rows = _compact_axis(cand_p)
+    cols, col_idx, single_cols = _compact_axis(cand_q)
+    return rows, row_idx, cols, col_idx, single_rows and single_cols
 
 
 @njit(cache=True)
