@@ -167,6 +167,106 @@ def test_training_smoke_run_lowers_the_loss_and_is_deterministic():
         assert torch.equal(value, again.net.state_dict()[name]), name
 
 
+def test_fine_tuning_with_a_frozen_encoder_changes_only_the_trunk_and_heads(tmp_path):
+    """A run from a weights file with train_encoder=False and the fused loss on a canvas
+    beyond the detector grid: the encoder (weights and batch-norm statistics) is the
+    file's, the trunk and heads moved, the loss fell."""
+    from roco_env.training.train import TrainConfig, train
+
+    grid = BevGrid((-25.6, 25.6), (-12.8, 12.8), 0.8)
+    start = tmp_path / "start.pt"
+    net = BevDetectorNet(NetConfig(widths=(4, 8, 8)))
+    save_checkpoint(start, net, grid, ScanNoise(), {})
+    config = TrainConfig(x_range=grid.x_range, y_range=grid.y_range, widths=(4, 8, 8),
+                         train_scenes=2, val_scenes=1, steps=16, lr=1e-2,
+                         scenarios=("urban_intersection",), threads=1, init=str(start),
+                         train_encoder=False, fused_x_range=(-40.0, 40.0),
+                         fused_y_range=(-16.0, 16.0))
+    assert (config.fused_canvas.W, config.fused_canvas.H) == (50, 20)
+    result = train(config, progress=False)
+    total = result.history["total"]
+    assert np.mean(total[-4:]) < np.mean(total[:4])
+    encoder = {f"{name}.": module for name, module in result.net.named_children()
+               if module in result.net.encoder_modules()}
+    before, after = net.state_dict(), result.net.state_dict()
+    for name, value in after.items():
+        frozen = name.startswith(tuple(encoder))
+        assert torch.equal(value, before[name]) == frozen or "num_batches" in name, name
+    assert "fused_ap50" in result.validation
+
+
+def test_warp_augmentation_moves_maps_and_their_targets_alike():
+    """With warp_augment=1 every single-agent map is warped and its targets moved: the
+    plain batch's target heatmap, warped as the maps are, peaks on the moved targets."""
+    from roco_env.geometry import se2_apply, se2_inverse
+    from roco_env.training.data import TRAIN_SEED_BASE
+    from roco_env.training.train import TrainConfig, _Batches, _warped
+
+    config = TrainConfig(x_range=(-25.6, 25.6), y_range=(-12.8, 12.8), train_scenes=2,
+                         steps=1, scenes_per_step=2, scenarios=("urban_intersection",),
+                         warp_augment=1.0)
+    scenes = make_scenes(config.scenarios, 2, TRAIN_SEED_BASE, config.grid, config.noise)
+    moved = _Batches(scenes, config)[0]
+    plain = _Batches(scenes, dataclasses.replace(config, warp_augment=0.0))[0]
+    fgrid = config.feature_grid
+    n_maps = plain.rasters.shape[0]
+    assert moved.warped.tolist() == list(range(n_maps)) and plain.warped.size == 0
+    assert np.ptp(moved.warps[:, 2]) > 1.0 and np.abs(moved.warps[:, :2]).max() <= 1.6
+    heat = _warped(plain.single.heatmap, moved, fgrid)[:, 0]
+    t = moved.single
+    centres = np.column_stack([fgrid.x_range[0] + (t.col.numpy() + 0.5) * 1.6,
+                               fgrid.y_range[0] + (t.row.numpy() + 0.5) * 1.6])
+    source = np.array([se2_apply(se2_inverse(moved.warps[k]), c)
+                       for k, c in zip(t.sample.numpy(), centres, strict=True)])
+    inside = ((np.abs(source[:, 0]) < 25.6 - 1.6) & (np.abs(source[:, 1]) < 12.8 - 1.6))
+    values = heat[t.sample, t.row, t.col].numpy()[inside]
+    assert inside.sum() >= 10 and np.mean(values > 0.25) > 0.9
+
+
+def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
+    """Stage 1 from scratch, stage 2 fine-tuning it: the second weights record every option
+    and the sha256 of the file they started from; a frozen encoder without --init is
+    exit 2 with the reason."""
+    from roco_env.cli import main
+
+    tiny = ["--steps=2", "--train-scenes=1", "--val-scenes=0", "--scenes-per-step=1",
+            "--widths", "4", "8", "8", "--scenarios", "highway_dense", "--threads=1", "--quiet"]
+    assert main(["train-detector", "--out", str(tmp_path / "one"), *tiny]) == 0
+    first = tmp_path / "one" / "bev_detector.pt"
+    stage2 = ["--init", str(first), "--freeze-encoder", "--warp-augment=0.5",
+              "--fused-x-range", "-100", "100", "--fused-y-range", "-40", "40"]
+    assert main(["train-detector", "--out", str(tmp_path / "two"), *tiny, *stage2]) == 0
+    meta = load_checkpoint(tmp_path / "two" / "bev_detector.pt").meta
+    assert meta["init_sha256"] == sha256_of(first)
+    for option in (f"--init={first}", "--freeze-encoder", "--warp-augment=0.5",
+                   "--fused-x-range -100.0 100.0", "--fused-y-range -40.0 40.0"):
+        assert option in meta["command"]
+    capsys.readouterr()
+    assert main(["train-detector", "--out", str(tmp_path / "three"), *tiny,
+                 "--freeze-encoder"]) == 2
+    assert "needs init" in capsys.readouterr().err
+
+
+def test_fine_tuning_inputs_are_checked(tmp_path):
+    from roco_env.training.train import TrainConfig, train
+
+    with pytest.raises(ValueError, match="train_encoder=False .* needs init"):
+        TrainConfig(train_encoder=False)
+    with pytest.raises(ValueError, match="fused_x_range must be None or two finite numbers"):
+        TrainConfig(fused_x_range=(40.0, -40.0))
+    with pytest.raises(ValueError, match=r"warp_augment must be a share in \[0, 1\]"):
+        TrainConfig(warp_augment=1.5)
+    start = tmp_path / "start.pt"
+    save_checkpoint(start, BevDetectorNet(NetConfig(widths=(4, 8, 8))), GRID, ScanNoise(), {})
+    for change, field in (({"widths": (4, 8, 4)}, "widths"),
+                          ({"widths": (4, 8, 8), "x_range": (-25.6, 25.6)}, "grid")):
+        config = TrainConfig(train_scenes=1, val_scenes=0, steps=1, init=str(start), **change)
+        with pytest.raises(ValueError, match=f"init weights .* were trained with {field}"):
+            train(config, progress=False)
+    with pytest.raises(ValueError, match="does not exist"):
+        train(TrainConfig(init=str(tmp_path / "missing.pt"), train_scenes=1), progress=False)
+
+
 def _episode(seed: int):
     env = roco_env.parallel_env("urban_intersection", max_cycles=2, detector="learned",
                                 fusion="intermediate", density=2.0)
@@ -293,6 +393,9 @@ def test_fusing_onto_a_larger_canvas_equals_fusing_zero_padded_maps():
     padded = fuse_maps(torch.nn.functional.pad(features, pads), [0, 1], collaborators, poses,
                        canvas)
     torch.testing.assert_close(direct, padded, rtol=1e-5, atol=1e-5)
+    # The training path (differentiable) onto the canvas gives the same maps.
+    trained = fuse_maps(features, [0, 1], collaborators, poses, grid, canvas)
+    torch.testing.assert_close(trained, padded, rtol=1e-5, atol=1e-5)
     shifted = BevGrid((-12.5, 9.5), (-6.0, 4.0), 1.0)
     with pytest.raises(ValueError, match="must contain the feature grid"):
         fuse_on_canvas(features, [0], [[1]], [poses[1]], grid, shifted)

@@ -41,6 +41,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pose-sigma-r", type=float, default=d.pose_sigma_r,
                    help="pose noise of the fused loss, rotation std in degrees (default "
                    "%(default)s)")
+    p.add_argument("--fused-x-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="ego-frame x extent (m) the fused loss decodes, e.g. the evaluation "
+                   "range -140.8 140.8 (default: the detector grid's)")
+    p.add_argument("--fused-y-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="ego-frame y extent (m) the fused loss decodes (default: the detector "
+                   "grid's)")
+    p.add_argument("--init", type=Path,
+                   help="weights file to start from (default: random initialisation)")
+    p.add_argument("--freeze-encoder", action="store_true",
+                   help="train the trunk and heads only (needs --init): a fine-tuning stage "
+                   "that keeps every encoder map as it was")
+    p.add_argument("--warp-augment", type=float, default=d.warp_augment,
+                   help="share of single-agent maps decoded after a random rigid warp (any "
+                   "heading, sub-cell shift), so the heads learn to decode resampled maps as "
+                   "fused ones are (default %(default)s)")
     p.add_argument("--threads", type=int, default=d.threads,
                    help="torch CPU threads (default %(default)s)")
     p.add_argument("--workers", type=int, default=d.workers,
@@ -52,7 +67,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from roco_env.sensing.learned.model import SHIPPED_WEIGHTS, save_checkpoint, sha256_of
+    from roco_env.sensing.learned.model import (
+        SHIPPED_WEIGHTS,
+        load_checkpoint,
+        save_checkpoint,
+        sha256_of,
+    )
     from roco_env.training.report import write_report
     from roco_env.training.train import TrainConfig, train
 
@@ -60,13 +80,21 @@ def _run(args: argparse.Namespace) -> int:
         widths=tuple(args.widths), train_scenes=args.train_scenes, val_scenes=args.val_scenes,
         scenarios=tuple(args.scenarios), steps=args.steps, scenes_per_step=args.scenes_per_step,
         lr=args.lr, pose_sigma_t=args.pose_sigma_t, pose_sigma_r=args.pose_sigma_r,
-        seed=args.seed, threads=args.threads, workers=args.workers, device=args.device)
+        fused_x_range=_pair(args.fused_x_range), fused_y_range=_pair(args.fused_y_range),
+        init=None if args.init is None else str(args.init),
+        train_encoder=not args.freeze_encoder, warp_augment=args.warp_augment, seed=args.seed, threads=args.threads,
+        workers=args.workers, device=args.device)
     command = "roco-env train-detector " + shlex.join(_argv_of(args))
+    init = {}
+    if args.init is not None:
+        load_checkpoint(args.init)  # ValueError naming a missing, corrupt or foreign file
+        # Hashed before the run: the output may overwrite the file it starts from.
+        init = {"init_sha256": sha256_of(args.init)}
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(config, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr))
     weights = args.out / SHIPPED_WEIGHTS
     save_checkpoint(weights, result.net.cpu(), config.grid, config.noise,
-                    {"command": command, "seed": config.seed,
+                    {"command": command, "seed": config.seed, **init,
                      "train_config": result.summary()["config"],
                      "validation": result.validation})
     write_report(result, args.out, command, sha256_of(weights))
@@ -76,11 +104,23 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pair(values: list[float] | None) -> tuple[float, float] | None:
+    return None if values is None else (values[0], values[1])
+
+
 def _argv_of(args: argparse.Namespace) -> list[str]:
     """Every option of this run, spelled out: the command that reproduces it."""
+    optional = [*(["--fused-x-range", *map(str, args.fused_x_range)] if args.fused_x_range
+                  else []),
+                *(["--fused-y-range", *map(str, args.fused_y_range)] if args.fused_y_range
+                  else []),
+                *([f"--init={args.init}"] if args.init else []),
+                *(["--freeze-encoder"] if args.freeze_encoder else []),
+                *([f"--warp-augment={args.warp_augment}"] if args.warp_augment else [])]
     return [f"--out={args.out}", f"--seed={args.seed}", f"--steps={args.steps}",
             f"--train-scenes={args.train_scenes}", f"--val-scenes={args.val_scenes}",
             f"--scenes-per-step={args.scenes_per_step}", f"--lr={args.lr}",
             "--widths", *map(str, args.widths), "--scenarios", *args.scenarios,
             f"--pose-sigma-t={args.pose_sigma_t}", f"--pose-sigma-r={args.pose_sigma_r}",
-            f"--threads={args.threads}", f"--workers={args.workers}", f"--device={args.device}"]
+            *optional, f"--threads={args.threads}", f"--workers={args.workers}",
+            f"--device={args.device}"]

@@ -31,19 +31,24 @@ __all__ = ["fuse_features", "fuse_maps", "fuse_on_canvas", "fusion_canvas",
 
 
 def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
-              poses: Sequence[np.ndarray], grid: BevGrid) -> torch.Tensor:
-    """Max-fused maps (E, C, h, w), all egos in one warp.
+              poses: Sequence[np.ndarray], grid: BevGrid,
+              canvas: BevGrid | None = None) -> torch.Tensor:
+    """Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp;
+    differentiable (the training path; :func:`fuse_on_canvas` is the run-time one).
 
     features (N, C, h, w) on ``grid``, one per agent; egos: rows of the egos;
     collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
-    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with.
+    T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas: a
+    grid of ``grid``'s cells containing it (:func:`fusion_canvas`).
     """
+    canvas = canvas or grid
+    pads = _placement(grid, canvas)
     poses = _checked_poses(egos, collaborators, poses)
-    own = features[list(egos)]
+    own = F.pad(features[list(egos)], pads)
     rows = [j for c in collaborators for j in c]
     if not rows:
         return own
-    warped = warp_bev(features[rows], np.concatenate(poses), grid)
+    warped = warp_bev(features[rows], np.concatenate(poses), grid, canvas)
     per_ego = torch.split(warped, [len(c) for c in collaborators])
     return torch.stack([torch.maximum(mine, theirs.amax(dim=0)) if theirs.shape[0] else mine
                         for mine, theirs in zip(own, per_ego, strict=True)])

@@ -4,11 +4,22 @@ Every step takes ``scenes_per_step`` training scenes (:mod:`.data`), mirrors
 each at random (x and/or y axis, the same for all its agents, poses included),
 encodes all their agents in one batch and sums two losses:
 
-* **single-agent**: each agent's map decoded against its own targets;
+* **single-agent**: each agent's map decoded against its own targets; with
+  ``warp_augment`` > 0 that share of the maps is first warped by a random rigid
+  motion (any heading, a sub-cell shift) and decoded against its boxes moved alike,
+  so the heads learn to read a resampled, rotated map as the fused ones are;
 * **fused**: for every agent as an ego, its collaborators' maps warped into its
   frame with the relative poses (true, or perturbed by N(0, ``pose_sigma_t``) m
   per axis and N(0, ``pose_sigma_r``) deg when training for pose noise), fused
-  by element-wise max with its own, decoded against the collaboration's targets.
+  by element-wise max with its own, decoded against the collaboration's targets,
+  on the detector grid or on a larger canvas (``fused_x_range`` x ``fused_y_range``,
+  the env's evaluation range), where a collaborator's view beyond the ego's grid is
+  decoded as the env decodes it.
+
+A run starts from random weights or from a weights file (``init``); with
+``train_encoder=False`` the encoder is frozen (eval mode, no gradients) and only the
+trunk and heads learn: a fine-tuning stage that leaves every agent's encoder map as
+it was.
 
 Loss per decoded map set: CenterNet focal loss on the heatmap; at object
 centre cells L1 on the offset and log size, L1 on (sin, cos) of the yaw up to
@@ -33,10 +44,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from roco_env.fusion.intermediate import fuse_maps
-from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
+from roco_env.geometry import se2_compose, transform_boxes, wrap_angle
 from roco_env.metrics import APAccumulator
-from roco_env.sensing.features import BevGrid
+from roco_env.sensing.features import BevGrid, warp_bev
+from roco_env.sensing.learned.model import build_network, load_checkpoint
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import Targets, build_targets, decode, feature_grid
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
@@ -62,9 +74,12 @@ class TrainConfig:
     grid: detector raster extent and cell (m); net: widths; train_scenes /
     val_scenes: scene counts; steps: optimiser steps; scenes_per_step: scenes per
     batch; lr: peak learning rate; pose_sigma_t (m) / pose_sigma_r (deg): pose
-    noise of the fused loss; seed; threads: torch CPU threads; workers: processes that
-    generate the scenes and prepare the batches (0: the training process; the run does
-    not depend on it); device.
+    noise of the fused loss; fused_x_range / fused_y_range: the ego-frame extent (m) the
+    fused loss decodes (None: the detector grid's); init: weights file to start from
+    (None: random); train_encoder: False freezes the encoder (needs ``init``);
+    warp_augment: share of single-agent maps decoded after a random warp; seed;
+    threads: torch CPU threads; workers: processes that generate the scenes and prepare
+    the batches (0: the training process; the run does not depend on it); device.
     """
 
     x_range: tuple[float, float] = (-70.4, 70.4)
@@ -80,6 +95,11 @@ class TrainConfig:
     lr: float = 3e-3
     pose_sigma_t: float = 0.2
     pose_sigma_r: float = 0.2
+    fused_x_range: tuple[float, float] | None = None
+    fused_y_range: tuple[float, float] | None = None
+    init: str | None = None
+    train_encoder: bool = True
+    warp_augment: float = 0.0
     seed: int = 0
     threads: int = 2
     workers: int = 0
@@ -99,10 +119,34 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a finite number >= 0 (lr > 0); got {value!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda'; got {self.device!r}")
+        for name in ("fused_x_range", "fused_y_range"):
+            value = getattr(self, name)
+            if value is not None and not (len(value) == 2 and all(map(math.isfinite, value))
+                                          and value[0] < value[1]):
+                raise ValueError(f"{name} must be None or two finite numbers (low, high) with "
+                                 f"low < high, in m; got {value!r}")
+        if not (isinstance(self.warp_augment, int | float) and 0.0 <= self.warp_augment <= 1.0):
+            raise ValueError(f"warp_augment must be a share in [0, 1]; got {self.warp_augment!r}")
+        if not self.train_encoder and self.init is None:
+            raise ValueError("train_encoder=False (a frozen encoder) needs init, the weights "
+                             "file to start from")
 
     @property
     def grid(self) -> BevGrid:
         return BevGrid(self.x_range, self.y_range, self.resolution)
+
+    @property
+    def feature_grid(self) -> BevGrid:
+        """The encoder map's grid (the network's stride on :attr:`grid`)."""
+        return feature_grid(self.grid, NetConfig().stride)
+
+    @property
+    def fused_canvas(self) -> BevGrid:
+        """The grid the fused loss decodes on: :attr:`feature_grid` grown to cover
+        ``fused_x_range`` x ``fused_y_range``."""
+        fgrid = self.feature_grid
+        return fusion_canvas(fgrid, self.fused_x_range or fgrid.x_range,
+                             self.fused_y_range or fgrid.y_range)[0]
 
 
 @dataclass
@@ -220,11 +264,14 @@ def _mirror(scene: Scene, flip_x: bool, flip_y: bool):
 
 @dataclass(frozen=True)
 class _Batch:
-    """One training step's inputs: rasters (N, C, H, W), single-agent targets, and for the
+    """One training step's inputs: rasters (N, C, H, W), single-agent targets (of the maps
+    as decoded: rows ``warped`` moved by ``warps`` (k, 3), x m, y m, yaw rad), and for the
     fused loss the ego rows, their collaborators' rows, the (noisy) poses and the targets."""
 
     rasters: torch.Tensor
     single: Targets
+    warped: np.ndarray
+    warps: np.ndarray
     egos: list[int]
     collaborators: list[list[int]]
     poses: list[np.ndarray]
@@ -237,7 +284,7 @@ class _Batches(torch.utils.data.Dataset):
 
     def __init__(self, scenes: list[Scene], config: TrainConfig) -> None:
         self.scenes, self.config = scenes, config
-        self.fgrid = feature_grid(config.grid, 2)
+        self.fgrid, self.canvas = config.feature_grid, config.fused_canvas
 
     def __len__(self) -> int:
         return self.config.steps
@@ -265,8 +312,24 @@ class _Batches(torch.utils.data.Dataset):
                 poses.append(se2_compose(noise, rel[a]).reshape(-1, 3))
                 groups.append(group[a])
             offset += r.shape[0]
-        return _Batch(torch.cat(rasters), build_targets(singles, self.fgrid), egos, collabs,
-                      poses, build_targets(groups, self.fgrid) if egos else None)
+        warped, warps = self._warps(rng, len(singles))
+        for k, pose in zip(warped, warps, strict=True):
+            singles[k] = transform_boxes(singles[k], pose)
+        return _Batch(torch.cat(rasters), build_targets(singles, self.fgrid), warped, warps,
+                      egos, collabs, poses,
+                      build_targets(groups, self.canvas) if egos else None)
+
+    def _warps(self, rng: np.random.Generator, n_maps: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the maps to warp and their motions: any heading, a shift of up to one
+        feature cell per axis (drawn only when ``warp_augment`` > 0, so runs without it
+        keep their random stream)."""
+        if not self.config.warp_augment:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        rows = np.flatnonzero(rng.random(n_maps) < self.config.warp_augment)
+        cell = self.fgrid.resolution
+        warps = np.column_stack([rng.uniform(-cell, cell, (rows.size, 2)),
+                                 rng.uniform(-np.pi, np.pi, rows.size)])
+        return rows, warps
 
 
 def _as_is(batch: _Batch) -> _Batch:
@@ -299,28 +362,32 @@ def _train(config: TrainConfig, progress: bool,
     set_determinism(config.seed, config.threads, config.device)
     device = torch.device(config.device)
     grid = config.grid
-    fgrid = feature_grid(grid, 2)
+    fgrid, canvas = config.feature_grid, config.fused_canvas
     log = log or (lambda _msg: None)
     log(f"generating {config.train_scenes} training scenes")
     scenes = make_scenes(config.scenarios, config.train_scenes, TRAIN_SEED_BASE + config.seed,
                          grid, config.noise, progress, config.workers)
-    net = BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths))).to(device)
-    optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=1e-4)
+    net = _initial_network(config).to(device)
+    _train_mode(net, config.train_encoder)
+    trainable = [p for p in net.parameters() if p.requires_grad]
+    optimiser = torch.optim.AdamW(trainable, lr=config.lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, config.lr, total_steps=config.steps,
                                                    pct_start=0.15)
     history: dict[str, list[float]] = {k: [] for k in ("total", "single", "fused", *_WEIGHTS)}
-    net.train()
     loader = torch.utils.data.DataLoader(
         _Batches(scenes, config), batch_size=None, shuffle=False, num_workers=config.workers,
         collate_fn=_as_is, multiprocessing_context=WORKER_CONTEXT if config.workers else None,
         prefetch_factor=4 if config.workers else None)
     bar = tqdm(loader, desc="train-detector", disable=not progress, mininterval=5.0)
     for step, batch in enumerate(bar):
-        features = net.encode(batch.rasters.to(device))
-        single = detection_loss(net.decode(features), batch.single, fgrid.resolution)
+        with torch.set_grad_enabled(config.train_encoder):
+            features = net.encode(batch.rasters.to(device))
+        single = detection_loss(net.decode(_warped(features, batch, fgrid)), batch.single,
+                                fgrid.resolution)
         loss_single = sum(_WEIGHTS[k] * v for k, v in single.items())
         if batch.fused is not None:
-            fused_maps = fuse_maps(features, batch.egos, batch.collaborators, batch.poses, fgrid)
+            fused_maps = fuse_maps(features, batch.egos, batch.collaborators, batch.poses, fgrid,
+                                   canvas)
             fused = detection_loss(net.decode(fused_maps), batch.fused, fgrid.resolution)
             loss_fused = sum(_WEIGHTS[k] * v for k, v in fused.items())
         else:
@@ -328,7 +395,7 @@ def _train(config: TrainConfig, progress: bool,
         loss = loss_single + loss_fused
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        torch.nn.utils.clip_grad_norm_(trainable, 10.0)
         optimiser.step()
         schedule.step()
         history["total"].append(loss.item())
@@ -346,18 +413,53 @@ def _train(config: TrainConfig, progress: bool,
                           VALIDATION_SEED_BASE + config.seed, grid, config.noise, progress,
                           config.workers)
         net_cpu = net.cpu()
-        validation = evaluate(net_cpu, val, fgrid)
+        validation = evaluate(net_cpu, val, fgrid, canvas=canvas)
         if config.pose_sigma_t or config.pose_sigma_r:
-            noisy = evaluate(net_cpu, val, fgrid, (config.pose_sigma_t, config.pose_sigma_r))
+            noisy = evaluate(net_cpu, val, fgrid, (config.pose_sigma_t, config.pose_sigma_r),
+                             canvas=canvas)
             validation.update({f"noisy_{k}": v for k, v in noisy.items() if k.startswith("fused")})
     return TrainResult(net, history, validation, time.perf_counter() - start, config)
 
 
+def _warped(features: torch.Tensor, batch: _Batch, fgrid: BevGrid) -> torch.Tensor:
+    """The maps of the single-agent loss: ``features`` with the batch's warped rows moved."""
+    if not batch.warped.size:
+        return features
+    maps = features.clone()
+    maps[batch.warped] = warp_bev(features[batch.warped], batch.warps, fgrid)
+    return maps
+
+
+def _initial_network(config: TrainConfig) -> BevDetectorNet:
+    """A randomly initialised network, or the one of ``config.init``, whose shape, grid and
+    scan noise must be the config's (ValueError naming the mismatch)."""
+    if config.init is None:
+        return BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths)))
+    checkpoint = load_checkpoint(config.init)
+    for name, theirs, ours in (("widths", tuple(checkpoint.net.widths), tuple(config.widths)),
+                               ("grid", checkpoint.grid, config.grid),
+                               ("noise", checkpoint.noise, config.noise)):
+        if theirs != ours:
+            raise ValueError(f"init weights {config.init} were trained with {name} {theirs}; "
+                             f"this run's {name} is {ours}")
+    return build_network(checkpoint, config.init)
+
+
+def _train_mode(net: BevDetectorNet, train_encoder: bool) -> None:
+    """Training mode; a frozen encoder stays in eval mode (its batch norms keep their
+    statistics) and gets no gradients."""
+    net.train()
+    for module in net.encoder_modules():
+        module.train(train_encoder).requires_grad_(train_encoder)
+
+
 @torch.no_grad()
 def evaluate(net: BevDetectorNet, scenes: list[Scene], fgrid: BevGrid,
-             pose_noise: tuple[float, float] = (0.0, 0.0), seed: int = 0) -> dict[str, float]:
-    """AP@0.3/0.5/0.7 of single-agent and fused (true or noisy poses) detection, and the share
-    of matched centre/yaw errors within 1 and 2 predicted sigmas (single agent, IoU >= 0.5)."""
+             pose_noise: tuple[float, float] = (0.0, 0.0), seed: int = 0,
+             canvas: BevGrid | None = None) -> dict[str, float]:
+    """AP@0.3/0.5/0.7 of single-agent and fused (true or noisy poses; decoded on ``canvas``,
+    default ``fgrid``) detection, and the share of matched centre/yaw errors within 1 and 2
+    predicted sigmas (single agent, IoU >= 0.5)."""
     from roco_env.geometry import bev_iou
 
     rng = np.random.default_rng(seed)
@@ -386,8 +488,9 @@ def evaluate(net: BevDetectorNet, scenes: list[Scene], fgrid: BevGrid,
                                          rng.normal(0.0, np.deg2rad(pose_noise[1]), n)])
                 poses.append(se2_compose(noise, scene.relative[a]).reshape(-1, 3))
             fused = fuse_maps(features, egos, [list(scene.collaborators[a]) for a in egos],
-                               poses, fgrid)
-            for a, det in zip(egos, decode(net.decode(fused), fgrid, scene.grounds[egos]),
+                               poses, fgrid, canvas)
+            for a, det in zip(egos, decode(net.decode(fused), canvas or fgrid,
+                                           scene.grounds[egos]),
                               strict=True):
                 fused_acc.add_frame(det.boxes, det.scores, scene.group_eval_gt[a])
     out = {f"single_ap{round(t * 100)}": v for t, v in single_acc.ap().items()}

@@ -94,6 +94,10 @@ class BevDetectorNet(nn.Module):
             self.heads.bias.zero_()
             self.heads.bias[0] = _HEATMAP_PRIOR
 
+    def encoder_modules(self) -> tuple[nn.Module, ...]:
+        """The modules of :meth:`encode` (the rest, trunk and heads, is :meth:`decode`)."""
+        return self.stage1, self.stage2, self.up, self.merge
+
     def encode(self, raster: torch.Tensor) -> torch.Tensor:
         """(N, C_in, H, W) -> non-negative features (N, C, H/2, W/2); H, W must be even."""
         if raster.dim() != 4 or raster.shape[1] != self.config.in_channels:
