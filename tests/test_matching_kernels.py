@@ -1,7 +1,6 @@
 """The compiled helpers of RoCo's matching against the numpy calls they replace."""
 
 import numpy as np
-import pytest
 from scipy.spatial import cKDTree
 
 from roco_env.policies.matching_kernels import close_pairs, compact_pairs
@@ -27,57 +26,6 @@ def test_compact_pairs_of_no_pairs_is_empty():
     empty = np.zeros(0, dtype=np.int64)
     rows, row_idx, cols, col_idx, single = compact_pairs(empty, empty)
     assert rows.size == row_idx.size == cols.size == col_idx.size == 0 and single
-
-
-def _numpy_best_gains(ego, collab, pose, p):
-    """The array path: k-d tree pairs within the radius where a pair can still gain, chi2
-    per pair, np.maximum.at per box."""
-    from roco_env.policies.hypotheses import _half_turn, _map, _size_chi2
-
-    mapped = _map(pose, collab.poses)
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
-    found = cKDTree(ego.poses[:, :2]).sparse_distance_matrix(
-        cKDTree(mapped[:, :2]), float(np.sqrt(p.outlier_chi2 * widest)), output_type="ndarray")
-    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
-    dx, dy = ego.poses[i, 0] - mapped[j, 0], ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
-    chi2 += dyaw * dyaw / (ego.var_r[i] + collab.var_r[j] + slack_r)
-    if p.use_size:
-        chi2 += _size_chi2(ego, collab, i, j, p)
-    gain = p.outlier_chi2 - chi2
-    keep = gain > 0
-    forward, backward = np.zeros(collab.poses.shape[0]), np.zeros(ego.poses.shape[0])
-    np.maximum.at(forward, j[keep], gain[keep])
-    np.maximum.at(backward, i[keep], gain[keep])
-    return forward, backward
-
-
-@pytest.mark.parametrize("use_size", [True, False])
-def test_best_pair_gains_match_the_numpy_path(use_size):
-    from roco_env.policies.hypotheses import EvidenceParams, _best_gains, box_set
-
-    rng = np.random.default_rng(21)
-    p = EvidenceParams(use_size=use_size)
-    for _ in range(10):
-        ego_boxes = np.column_stack([rng.uniform(-30, 30, (40, 2)), rng.normal(size=40),
-                                     rng.uniform(1, 5, (40, 3)), rng.uniform(-3, 3, 40)])
-        collab_boxes = ego_boxes[rng.choice(40, 25, replace=False)].copy()
-        collab_boxes[:, [0, 1, 6]] += rng.normal(size=(25, 3)) * [0.3, 0.3, 0.05]
-        sets = []
-        for boxes in (ego_boxes, collab_boxes):
-            poses = boxes[:, [0, 1, 6]]
-            sigma = rng.uniform(0.1, 0.6, (boxes.shape[0], 3))
-            info = np.zeros((boxes.shape[0], 3, 3))
-            info[:, [0, 1, 2], [0, 1, 2]] = sigma**-2
-            sets.append(box_set(boxes, poses, info))
-        pose = rng.normal(size=3) * [0.3, 0.3, 0.02]
-        forward, backward = _best_gains(sets[0], sets[1], pose, p)
-        expected = _numpy_best_gains(sets[0], sets[1], pose, p)
-        np.testing.assert_array_equal(forward, expected[0])
-        np.testing.assert_array_equal(backward, expected[1])
-        assert np.count_nonzero(forward) > 5  # the case exercises gaining pairs
 
 
 def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():

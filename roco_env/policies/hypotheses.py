@@ -35,8 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roco_env.policies.hypothesis_kernels import (
+    hypothesis_scores,
+    rotation_votes,
+    translation_votes,
+)
 from roco_env.policies.landmarks import require_positive
-from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
 from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
 from roco_env.policies.posegraph import _MIN_DIAG
 
@@ -143,40 +147,9 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
     )
 
 
-def _map(pose: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Poses (K, 3) moved by the SE(2) pose (3,) (heading not wrapped: only its
-    differences modulo pi are used)."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    out = np.empty_like(poses)
-    out[:, 0] = c * poses[:, 0] - s * poses[:, 1] + pose[0]
-    out[:, 1] = s * poses[:, 0] + c * poses[:, 1] + pose[1]
-    out[:, 2] = poses[:, 2] + pose[2]
-    return out
-
-
-def _half_turn(angle: np.ndarray) -> np.ndarray:
-    """Angle difference modulo pi, in [-pi/2, pi/2) (detected headings may be flipped)."""
-    return np.mod(angle + np.pi / 2, np.pi) - np.pi / 2
-
-
-def _pairs(ego: BoxSet, mapped: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(ego index, collaborator index) of every pair of centres at most ``radius`` m apart,
-    the collaborator's boxes already mapped into the ego frame (mapped (K1, 3))."""
-    return close_pairs(ego.poses[:, :2], mapped[:, :2], float(radius))
-
-
-def _size_chi2(ego: BoxSet, collab: BoxSet, i: np.ndarray, j: np.ndarray, p: EvidenceParams):
-    """chi2 (P,) of the log-size differences of pairs (both boxes noisy: variance 2 sigma^2)."""
-    diff = ego.log_sizes[i] - collab.log_sizes[j]
-    return (diff * diff).sum(axis=1) / (2.0 * p.size_sigma**2)
-
-
-def _vote_peak(values: np.ndarray, weight: np.ndarray, half: float, cell: float) -> float:
-    """Centre of the strongest (5-cell smoothed) bin of a weighted 1D vote over [-half, half]."""
-    bins = int(np.ceil(2 * half / cell))
-    votes = np.bincount(
-        np.minimum(((values + half) / cell).astype(np.int64), bins - 1), weight, bins
-    )
+def _vote_peak(votes: np.ndarray, half: float, cell: float) -> float:
+    """Centre of the strongest (5-cell smoothed) bin of a 1D vote (bins of ``cell`` over
+    [-half, half])."""
     smooth = np.convolve(votes, np.ones(5), mode="same")
     return -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
 
@@ -185,35 +158,28 @@ def generate_hypotheses(
     ego: BoxSet, collab: BoxSet, reported: np.ndarray, p: EvidenceParams
 ) -> np.ndarray:
     """Initial poses (H, 3) of the strongest votes (module docstring, step 1); the first
-    row is the vote maximum; empty (0, 3) when no box pair lies within the search."""
+    row is the vote maximum; empty (0, 3) when no box pair lies within the search.
+
+    The votes are compiled loops (:func:`~roco_env.policies.hypothesis_kernels.rotation_votes`,
+    :func:`~roco_env.policies.hypothesis_kernels.translation_votes`)."""
+    size_denominator = 2.0 * p.size_sigma**2 if p.use_size else 0.0
     # Rotation: heading differences (modulo pi) of nearby pairs, 0.25 deg cells.
-    half = np.deg2rad(p.search_yaw_deg)
-    mapped = _map(reported, collab.poses)
-    i, j = _pairs(ego, mapped, p.search_radius + 2.0)
-    if i.size == 0:
+    half, cell = np.deg2rad(p.search_yaw_deg), np.deg2rad(0.25)
+    votes, n_pairs = rotation_votes(
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, reported,
+        float(p.search_radius + 2.0), size_denominator, half, cell, int(np.ceil(2 * half / cell)),
+    )
+    if n_pairs == 0:
         return np.zeros((0, 3))
-    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    use = np.abs(dyaw) <= half
-    rotation = _vote_peak(dyaw[use], size_weight[use], half, np.deg2rad(0.25))
-    rotated = reported + np.array([0.0, 0.0, rotation])
-    # Translation: centre offsets on a grid of vote_bin cells, headings weighing each pair.
-    mapped = _map(rotated, collab.poses)
-    i, j = _pairs(ego, mapped, p.search_radius * np.sqrt(2.0))
-    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
-    dx = ego.poses[i, 0] - mapped[j, 0]
-    dy = ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    use = (np.abs(dx) <= p.search_radius) & (np.abs(dy) <= p.search_radius)
-    weight = (size_weight * np.exp(-0.5 * (dyaw / np.deg2rad(3.0)) ** 2))[use]
+    rotated = reported + np.array([0.0, 0.0, _vote_peak(votes, half, cell)])
+    # Translation: centre offsets on a grid of vote_bin cells, headings weighing each pair,
+    # smoothed by a 3x3 box sum (a true offset splits its votes over neighbouring cells).
     n = int(np.ceil(2 * p.search_radius / p.vote_bin))
-    ix = np.minimum(((dx[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
-    iy = np.minimum(((dy[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
-    grid = np.bincount(ix * n + iy, weight, n * n).reshape(n, n)
-    # 3x3 box sum: a true offset splits its votes over neighbouring cells.
-    padded = np.zeros((n + 2, n + 2))  # np.pad(grid, 1) without its per-call overhead
-    padded[1:-1, 1:-1] = grid
-    smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
+    smooth = translation_votes(
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated,
+        float(p.search_radius * np.sqrt(2.0)), float(p.search_radius), float(p.vote_bin), n,
+        size_denominator, np.deg2rad(3.0),
+    )
     peaks: list[tuple[int, int]] = []
     suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
     floor = max(p.vote_floor * smooth.max(), 0.0)
@@ -259,82 +225,31 @@ def refine_hypothesis(
     return pose if ok else None
 
 
-def _best_gains(
-    ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per box, the largest gain ``outlier_chi2 - chi2 > 0`` of its pairs under ``pose``
-    (0 for a box no pair explains): (collaborator boxes (K1,), ego boxes (K0,)); chi2
-    from position, heading modulo pi and (when used) log sizes, both boxes' variances and
-    the pose slack (:func:`~roco_env.policies.matching_kernels.best_pair_gains`)."""
-    return best_pair_gains(
-        ego.poses,
-        ego.log_sizes,
-        ego.var_t,
-        ego.var_r,
-        _map(pose, collab.poses),
-        collab.log_sizes,
-        collab.var_t,
-        collab.var_r,
-        p.pose_slack_t**2,
-        np.deg2rad(p.pose_slack_r_deg) ** 2,
-        2.0 * p.size_sigma**2 if p.use_size else 0.0,
-        float(p.outlier_chi2),
-    )
-
-
 def score_hypotheses(
     ego: BoxSet, collab: BoxSet, poses: np.ndarray, p: EvidenceParams
 ) -> np.ndarray:
     """Evidence (H,) of each hypothesis pose (H, 3), in chi2 units (module docstring, step 3;
-    priors not included)."""
-    # Only boxes inside the other agent's observed disk under *every* hypothesis count:
-    # otherwise a hypothesis that pulls more boxes into the overlap scores higher.
-    forward_set = np.ones(collab.poses.shape[0], dtype=bool)
-    backward_set = np.ones(ego.poses.shape[0], dtype=bool)
-    for pose in poses:
-        mapped = _map(pose, collab.poses)
-        forward_set &= np.hypot(mapped[:, 0], mapped[:, 1]) <= ego.range
-        backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
-    scores = np.zeros(poses.shape[0])
-    for h, pose in enumerate(poses):
-        forward, backward = _best_gains(ego, collab, pose, p)
-        scores[h] = float(forward[forward_set].sum())
-        if p.use_free_space:
-            scores[h] += float(backward[backward_set].sum())
-            unexplained = backward_set & (backward == 0)
-            scores[h] -= p.free_space_penalty * float(np.count_nonzero(unexplained))
-        if p.use_mutual_detection:
-            scores[h] += _mutual_detection(ego, collab, pose, backward == 0, forward == 0, p)
-    return scores
+    priors not included), in one compiled pass
+    (:func:`~roco_env.policies.hypothesis_kernels.hypothesis_scores`).
 
-
-def _mutual_detection(
-    ego: BoxSet,
-    collab: BoxSet,
-    pose: np.ndarray,
-    ego_unexplained: np.ndarray,
-    collab_unexplained: np.ndarray,
-    p: EvidenceParams,
-) -> float:
-    """Gain of the two direct detections the hypothesis predicts: an ego box where it puts
-    the collaborator's vehicle (pose ``pose``, heading modulo pi) that no collaborator box
-    explains (nobody detects itself), and a collaborator box where it puts the ego."""
-    total = 0.0
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    inverse = np.array([-c * pose[0] - s * pose[1], s * pose[0] - c * pose[1], -pose[2]])
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    for boxes, target, unexplained in (
-        (ego, pose, ego_unexplained),
-        (collab, inverse, collab_unexplained),
-    ):
-        if boxes.poses.shape[0] == 0:
-            continue
-        d = boxes.poses[:, :2] - target[:2]
-        dyaw = _half_turn(boxes.poses[:, 2] - target[2])
-        chi2 = (d * d).sum(axis=1) / (boxes.var_t + slack_t) + dyaw * dyaw / (boxes.var_r + slack_r)
-        gains = np.where(unexplained, np.maximum(p.outlier_chi2 - chi2, 0.0), 0.0)
-        total += float(gains.max())
-    return total
+    Only boxes inside the other agent's observed disk under *every* hypothesis count
+    (otherwise a hypothesis that pulls more boxes into the overlap scores higher). Per
+    box, the best pair's gain ``outlier_chi2 - chi2 > 0`` (chi2 from position, heading
+    modulo pi and, when used, log sizes, with both boxes' variances and the pose slack:
+    :func:`~roco_env.policies.matching_kernels.best_pair_gains`); the direct detections
+    count an ego box where the hypothesis puts the collaborator's vehicle that no
+    collaborator box explains (nobody detects itself), and a collaborator box where it
+    puts the ego.
+    """
+    return hypothesis_scores(
+        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
+        collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
+        np.ascontiguousarray(poses, dtype=float),
+        p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2,
+        2.0 * p.size_sigma**2 if p.use_size else 0.0,
+        float(p.outlier_chi2), float(p.free_space_penalty),
+        bool(p.use_free_space), bool(p.use_mutual_detection),
+    )
 
 
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
