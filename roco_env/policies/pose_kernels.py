@@ -573,6 +573,11 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
         return pose, False
     previous = np.full(n_own, -2, dtype=np.int64)
     nearest = np.empty(n_own, dtype=np.int64)
+    # Landmarks sorted by x: only those within the gate in x (with a margin far above
+    # rounding) can be nearer than the gate; ties go to the lowest index, as in a scan.
+    by_x = np.argsort(land_poses[:, 0])
+    sorted_x = land_poses[by_x, 0]
+    reach = gate * (1.0 + 1e-9)
     for _ in range(2):
         c, s = math.cos(pose[2]), math.sin(pose[2])
         count = 0
@@ -580,9 +585,12 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
             x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
             y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
             best, best_p = gate, -1
-            for p in range(n_land):
+            for k in range(np.searchsorted(sorted_x, x - reach), n_land):
+                if sorted_x[k] > x + reach:
+                    break
+                p = by_x[k]
                 d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
-                if d < best:
+                if d < best or (d == best and 0 <= p < best_p):
                     best, best_p = d, p
             nearest[q] = best_p
             count += best_p >= 0
