@@ -247,3 +247,75 @@ def test_best_pair_gains_match_the_numpy_path(use_size):
         np.testing.assert_array_equal(forward, expected[0])
         np.testing.assert_array_equal(backward, expected[1])
         assert np.count_nonzero(forward) > 5  # the case exercises gaining pairs
+
+
+def numpy_decide(ego, collab, reported, track, p):
+    """The Python path of antialias._decide: (pose or None, margin, refined count)."""
+    import math
+
+    from roco_env.geometry import wrap_angle
+    from roco_env.policies.hypotheses import refine_terms
+    from roco_env.policies.pose_kernels import refine_pose
+    from roco_env.policies.prior_free import poses_distinct
+
+    def close(a, b, tolerance):
+        yaw = (float(a[2]) - float(b[2]) + math.pi) % (2.0 * math.pi) - math.pi
+        return np.hypot(a[0] - b[0], a[1] - b[1]) <= tolerance and math.degrees(abs(yaw)) <= tolerance
+
+    def prior_chi2(poses, centre, sigma_t, sigma_r):
+        d = poses - centre
+        yaw = wrap_angle(d[:, 2])
+        return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
+
+    starts = [numpy_generate_hypotheses(ego, collab, reported, p)]
+    for seed in (reported, None if track is None else track[0]):
+        if seed is not None and not any(close(seed, peak, 0.5) for peak in starts[0]):
+            starts.append(seed[None])
+    refined = []
+    for start in np.concatenate(starts):
+        pose, ok = refine_pose(start, ego.poses, collab.poses, collab.information,
+                               *refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
+        if ok and not any(close(pose, other, 0.3) for other in refined):
+            refined.append(pose)
+    if not refined:
+        return None, float("nan"), 0
+    poses = np.stack(refined)
+    score = numpy_score_hypotheses(ego, collab, poses, p)
+    score -= prior_chi2(poses, reported, p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
+    if track is not None:
+        centre, age = track
+        score -= prior_chi2(poses, centre, p.track_sigma_t * age,
+                            np.deg2rad(p.track_sigma_r_deg) * age)
+    best = int(np.argmax(score))
+    distinct = poses_distinct(poses, poses[best], p)
+    runner_up = float(score[distinct].max()) if distinct.any() else 0.0
+    margin = float(score[best]) - runner_up
+    return (None if margin < p.min_margin else poses[best]), margin, len(refined)
+
+
+@pytest.mark.parametrize("with_track", [False, True])
+def test_decisions_match_the_python_path(with_track):
+    from roco_env.policies.antialias import AntiAliasParams, _decide
+
+    rng = np.random.default_rng(17)
+    outcomes = set()
+    # The second set's margin is out of reach: every slot is left ambiguous.
+    for p in (AntiAliasParams(), AntiAliasParams(use_free_space=False, min_margin=1e4)):
+        for scene in _scenes():
+            sets = _box_sets(scene)
+            for j, reported in enumerate(scene.reported):
+                track = None
+                if with_track:  # a prediction near the truth or one stall off it
+                    shift = rng.choice([0.0, 2.5]) + rng.normal(0.0, 0.2)
+                    track = (scene.true[j] + np.array([shift, 0.0, 0.002]), float(rng.integers(1, 4)))
+                got = _decide(sets[0], sets[j + 1], reported, track, p)
+                pose, margin, count = numpy_decide(sets[0], sets[j + 1], reported, track, p)
+                assert (got.pose is None) == (pose is None)
+                if pose is not None:
+                    np.testing.assert_array_equal(got.pose, pose)
+                np.testing.assert_array_equal(got.margin, margin)  # nan == nan here
+                assert got.hypotheses == count
+                outcomes.add((pose is None, count))
+    # Decided and ambiguous slots, one and several refined hypotheses.
+    assert {ambiguous for ambiguous, _ in outcomes} == {False, True}
+    assert min(count for _, count in outcomes) == 1 < max(count for _, count in outcomes)

@@ -10,8 +10,8 @@ makes the shifts explicit:
    centre offsets on a 2D grid (a Hough vote); the ``max_hypotheses`` strongest local
    maxima within ``search_radius`` become hypotheses (plus the reported pose and any
    extra seeds, e.g. a temporal track's prediction);
-2. :func:`refine_hypothesis`: nearest-neighbour matching within ``refine_gate`` and a
-   robust single-vertex pose-graph solve (the solver of
+2. refinement (:func:`refine_terms`): nearest-neighbour matching within ``refine_gate``
+   and a robust single-vertex pose-graph solve (the solver of
    :func:`~roco_env.policies.posegraph.optimize_pose`), twice, in one compiled pass;
 3. :func:`score_hypotheses`: a log-likelihood ratio per hypothesis in chi-square units
    (-2 ln L): every collaborator box explained by an ego box gains
@@ -30,7 +30,6 @@ Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywh
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +40,7 @@ from roco_env.policies.hypothesis_kernels import (
     translation_votes,
 )
 from roco_env.policies.landmarks import require_positive
-from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
+from roco_env.policies.pose_kernels import KERNEL_CODES
 from roco_env.policies.posegraph import _MIN_DIAG
 
 __all__ = [
@@ -49,7 +48,8 @@ __all__ = [
     "EvidenceParams",
     "box_set",
     "generate_hypotheses",
-    "refine_hypothesis",
+    "evidence_terms",
+    "refine_terms",
     "score_hypotheses",
 ]
 
@@ -197,32 +197,26 @@ def generate_hypotheses(
     return out
 
 
-def refine_hypothesis(
-    ego: BoxSet,
-    collab: BoxSet,
-    initial: np.ndarray,
-    p: EvidenceParams,
-    kernel: str | None,
-    kernel_delta: float,
-    min_matches: int,
-) -> np.ndarray | None:
-    """Up to two rounds of nearest matching within ``refine_gate`` and a robust pose solve
-    (the second only when the matches changed); None when fewer than ``min_matches``
-    boxes match. One compiled pass (:func:`~roco_env.policies.pose_kernels.refine_pose`)."""
-    pose, ok = refine_pose(
-        np.asarray(initial, dtype=float).reshape(3),
-        ego.poses,
-        collab.poses,
-        collab.information,
-        float(p.refine_gate),
-        KERNEL_CODES[kernel],
-        float(kernel_delta),
-        int(min_matches),
-        _REFINE_ITERATIONS,
-        _REFINE_TOLERANCE,
-        _MIN_DIAG,
-    )
-    return pose if ok else None
+def refine_terms(
+    p: EvidenceParams, kernel: str | None, kernel_delta: float, min_matches: int
+) -> tuple:
+    """The refinement's settings as :func:`~roco_env.policies.pose_kernels.refine_pose`
+    takes them (module docstring, step 2): (gate m, kernel code, kernel delta, min_matches,
+    LM iteration cap, relative-decrease stop, minimum damping diagonal). Up to two rounds
+    of nearest matching within ``refine_gate`` and a robust pose solve (the second only
+    when the matches changed); a start matching fewer than ``min_matches`` boxes refines
+    to nothing."""
+    return (float(p.refine_gate), KERNEL_CODES[kernel], float(kernel_delta), int(min_matches),
+            _REFINE_ITERATIONS, _REFINE_TOLERANCE, _MIN_DIAG)
+
+
+def evidence_terms(p: EvidenceParams) -> tuple:
+    """The evidence settings as :func:`~roco_env.policies.hypothesis_kernels.hypothesis_scores`
+    takes them: (pose slack variances m^2 and rad^2, 2 size_sigma^2 (0 = sizes not used),
+    outlier_chi2, free_space_penalty, use_free_space, use_mutual_detection)."""
+    return (float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2),
+            2.0 * p.size_sigma**2 if p.use_size else 0.0, float(p.outlier_chi2),
+            float(p.free_space_penalty), bool(p.use_free_space), bool(p.use_mutual_detection))
 
 
 def score_hypotheses(
@@ -244,16 +238,5 @@ def score_hypotheses(
     return hypothesis_scores(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
-        np.ascontiguousarray(poses, dtype=float),
-        p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2,
-        2.0 * p.size_sigma**2 if p.use_size else 0.0,
-        float(p.outlier_chi2), float(p.free_space_penalty),
-        bool(p.use_free_space), bool(p.use_mutual_detection),
+        np.ascontiguousarray(poses, dtype=float), *evidence_terms(p),
     )
-
-
-def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(translation m, |yaw| rad) between two poses (3,)."""
-    # Scalar math: the same hypot and floor-modulo wrap as np.hypot / geometry.wrap_angle.
-    yaw = (float(a[2]) - float(b[2]) + math.pi) % (2.0 * math.pi) - math.pi
-    return math.hypot(a[0] - b[0], a[1] - b[1]), abs(yaw)

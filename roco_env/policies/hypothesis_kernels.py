@@ -21,8 +21,10 @@ import numpy as np
 from numba import njit
 
 from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
+from roco_env.policies.pose_kernels import refine_pose
 
-__all__ = ["hypothesis_scores", "pairwise_sum", "rotation_votes", "translation_votes"]
+__all__ = ["decide_hypotheses", "hypothesis_scores", "pairwise_sum", "rotation_votes",
+           "translation_votes"]
 
 _HALF_PI = math.pi / 2
 
@@ -240,3 +242,97 @@ def hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
                                       slack_t, slack_r, outlier_chi2)
             scores[h] += total
     return scores
+
+
+@njit(cache=True)
+def _wrap(angle):
+    """``geometry.wrap_angle`` of one angle: to (-pi, pi]."""
+    wrapped = (angle + math.pi) % (2.0 * math.pi) - math.pi
+    return wrapped + 2.0 * math.pi if wrapped <= -math.pi else wrapped
+
+
+@njit(cache=True)
+def _close(a, b, tolerance):
+    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other (translation
+    by the C library's hypot, the yaw difference wrapped to [-pi, pi))."""
+    yaw = (a[2] - b[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return math.hypot(a[0] - b[0], a[1] - b[1]) <= tolerance and (
+        math.degrees(abs(yaw)) <= tolerance
+    )
+
+
+@njit(cache=True)
+def _prior_chi2(pose, centre, sigma_t2, sigma_r2):
+    """Mahalanobis distance of ``pose`` from ``centre`` (3,) with variances sigma_t2 (m^2)
+    in translation and sigma_r2 (rad^2) in yaw (``antialias._prior_chi2``)."""
+    dx, dy = pose[0] - centre[0], pose[1] - centre[1]
+    yaw = _wrap(pose[2] - centre[2])
+    return (dx * dx + dy * dy) / sigma_t2 + yaw * yaw / sigma_r2
+
+
+@njit(cache=True)
+def decide_hypotheses(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, col_poses,
+                      col_log_sizes, col_var_t, col_var_r, col_range, col_information,
+                      peaks, reported, track, use_track, refine, score, priors, distinct):
+    """Steps 1-3 of ``roco_env.policies.antialias`` for one collaborator after the votes:
+    the vote peaks (H, 3), then the reported pose (3,) and, with ``use_track``, the track's
+    prediction ``track`` (3,), each unless within 0.5 m / 0.5 deg of a peak, are refined
+    (``pose_kernels.refine_pose`` with ``refine`` = (gate m, kernel code, kernel delta,
+    min_matches, iterations, tolerance, min_diag)); refined poses within 0.3 m / 0.3 deg of
+    an earlier one are dropped; the rest are scored (:func:`hypothesis_scores` with
+    ``score`` = its (slack_t, slack_r, size_denominator, outlier_chi2, free_space_penalty,
+    use_free_space, use_mutual_detection)) minus the prior terms, ``priors`` = (reported
+    pose's variances m^2, rad^2, then the track's). Two poses are distinct when farther
+    apart than ``distinct`` = (m, rad).
+
+    Returns (best pose (3,), margin over the best distinct one (0 without one; nan when
+    nothing was refined), number of refined poses).
+    """
+    gate, kernel, delta, min_matches, iterations, tolerance, min_diag = refine
+    n_peaks = peaks.shape[0]
+    starts = np.empty((n_peaks + 2, 3))
+    starts[:n_peaks] = peaks
+    n_starts = n_peaks
+    for seed, use in ((reported, True), (track, use_track)):
+        if not use:
+            continue
+        near = False
+        for h in range(n_peaks):
+            near = near or _close(seed, peaks[h], 0.5)
+        if not near:
+            starts[n_starts] = seed
+            n_starts += 1
+    refined = np.empty((n_starts, 3))
+    count = 0
+    for k in range(n_starts):
+        pose, ok = refine_pose(starts[k], ego_poses, col_poses, col_information, gate, kernel,
+                               delta, min_matches, iterations, tolerance, min_diag)
+        if not ok:
+            continue
+        duplicate = False
+        for other in range(count):
+            duplicate = duplicate or _close(pose, refined[other], 0.3)
+        if not duplicate:
+            refined[count] = pose
+            count += 1
+    if count == 0:
+        return np.full(3, np.nan), np.nan, 0
+    poses = refined[:count].copy()
+    slack_t, slack_r, size_denominator, outlier_chi2, penalty, free_space, mutual = score
+    scores = hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
+                               col_poses, col_log_sizes, col_var_t, col_var_r, col_range, poses,
+                               slack_t, slack_r, size_denominator, outlier_chi2, penalty,
+                               free_space, mutual)
+    for h in range(count):
+        scores[h] -= _prior_chi2(poses[h], reported, priors[0], priors[1])
+    if use_track:
+        for h in range(count):
+            scores[h] -= _prior_chi2(poses[h], track, priors[2], priors[3])
+    best = np.argmax(scores)
+    runner_up, found = 0.0, False
+    for h in range(count):
+        far = np.hypot(poses[h, 0] - poses[best, 0], poses[h, 1] - poses[best, 1]) > distinct[0]
+        if far or abs(_wrap(poses[h, 2] - poses[best, 2])) > distinct[1]:
+            runner_up = scores[h] if not found else max(runner_up, scores[h])
+            found = True
+    return poses[best].copy(), scores[best] - runner_up, count
