@@ -31,6 +31,7 @@ Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywh
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -38,6 +39,7 @@ from roco_env.policies.hypothesis_kernels import (
     hypothesis_scores,
     rotation_votes,
     translation_votes,
+    vote_peaks,
 )
 from roco_env.policies.landmarks import require_positive
 from roco_env.policies.pose_kernels import KERNEL_CODES
@@ -147,11 +149,21 @@ def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> Bo
     )
 
 
-def _vote_peak(votes: np.ndarray, half: float, cell: float) -> float:
-    """Centre of the strongest (5-cell smoothed) bin of a 1D vote (bins of ``cell`` over
-    [-half, half])."""
-    smooth = np.convolve(votes, np.ones(5), mode="same")
-    return -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
+@lru_cache(maxsize=16)
+def _vote_terms(p: EvidenceParams) -> tuple:
+    """The vote settings of ``p`` (read-only: shared by every call with ``p``): rotation
+    search half-width and 0.25 deg cell (rad), its bin count and pair radius (m); the
+    translation grid's pair radius (m), search half-width (m), cell (m) and cells per
+    axis; 2 size_sigma^2 (0 = sizes not used); the heading std weighing the translation
+    votes (3 deg, in rad); the peaks' suppression radius (cells^2)."""
+    half, cell = np.deg2rad(p.search_yaw_deg), np.deg2rad(0.25)
+    return (
+        half, cell, int(np.ceil(2 * half / cell)), float(p.search_radius + 2.0),
+        float(p.search_radius * np.sqrt(2.0)), float(p.search_radius), float(p.vote_bin),
+        int(np.ceil(2 * p.search_radius / p.vote_bin)),
+        2.0 * p.size_sigma**2 if p.use_size else 0.0, np.deg2rad(3.0),
+        (1.25 / p.vote_bin) ** 2,  # lattice pitches (2.5 m) stay apart
+    )
 
 
 def generate_hypotheses(
@@ -160,41 +172,28 @@ def generate_hypotheses(
     """Initial poses (H, 3) of the strongest votes (module docstring, step 1); the first
     row is the vote maximum; empty (0, 3) when no box pair lies within the search.
 
-    The votes are compiled loops (:func:`~roco_env.policies.hypothesis_kernels.rotation_votes`,
-    :func:`~roco_env.policies.hypothesis_kernels.translation_votes`)."""
-    size_denominator = 2.0 * p.size_sigma**2 if p.use_size else 0.0
-    # Rotation: heading differences (modulo pi) of nearby pairs, 0.25 deg cells.
-    half, cell = np.deg2rad(p.search_yaw_deg), np.deg2rad(0.25)
+    The rotation is the strongest (5-cell smoothed) bin of the heading-difference votes;
+    the translation votes are smoothed by a 3x3 box sum (a true offset splits its votes
+    over neighbouring cells); peaks are taken in decreasing vote order, above
+    ``vote_floor`` of the strongest, away from the earlier ones. The votes and the peak
+    scan are compiled loops (:mod:`roco_env.policies.hypothesis_kernels`)."""
+    half, cell, bins, rotation_radius, radius, search, vote_bin, n, size_den, yaw_sigma, \
+        suppress = _vote_terms(p)
     votes, n_pairs = rotation_votes(
-        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, reported,
-        float(p.search_radius + 2.0), size_denominator, half, cell, int(np.ceil(2 * half / cell)),
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, reported, rotation_radius,
+        size_den, half, cell, bins,
     )
     if n_pairs == 0:
         return np.zeros((0, 3))
-    rotated = reported + np.array([0.0, 0.0, _vote_peak(votes, half, cell)])
-    # Translation: centre offsets on a grid of vote_bin cells, headings weighing each pair,
-    # smoothed by a 3x3 box sum (a true offset splits its votes over neighbouring cells).
-    n = int(np.ceil(2 * p.search_radius / p.vote_bin))
-    smooth = translation_votes(
-        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated,
-        float(p.search_radius * np.sqrt(2.0)), float(p.search_radius), float(p.vote_bin), n,
-        size_denominator, np.deg2rad(3.0),
+    smooth = np.convolve(votes, np.ones(5), mode="same")
+    rotation = -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
+    rotated = reported + np.array([0.0, 0.0, rotation])
+    grid = translation_votes(
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated, radius, search,
+        vote_bin, n, size_den, yaw_sigma,
     )
-    peaks: list[tuple[int, int]] = []
-    suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
-    floor = max(p.vote_floor * smooth.max(), 0.0)
-    for flat in np.argsort(-smooth, axis=None):
-        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= floor:
-            break
-        a, b = divmod(int(flat), n)
-        if all((a - c) ** 2 + (b - d) ** 2 > suppress for c, d in peaks):
-            peaks.append((a, b))
-    if not peaks:
-        return np.zeros((0, 3))
-    offsets = (np.array(peaks, dtype=float) + 0.5) * p.vote_bin - p.search_radius
-    out = np.tile(rotated, (offsets.shape[0], 1))
-    out[:, :2] += offsets
-    return out
+    return vote_peaks(grid, np.argsort(-grid, axis=None), int(p.max_hypotheses),
+                      float(p.vote_floor), suppress, rotated, vote_bin, search)
 
 
 def refine_terms(

@@ -24,7 +24,7 @@ from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
 from roco_env.policies.pose_kernels import refine_pose
 
 __all__ = ["decide_hypotheses", "hypothesis_scores", "pairwise_sum", "rotation_votes",
-           "translation_votes"]
+           "translation_votes", "vote_peaks"]
 
 _HALF_PI = math.pi / 2
 
@@ -169,6 +169,37 @@ def translation_votes(ego_poses, ego_log_sizes, col_poses, col_log_sizes, rotate
                         total += padded[x + a, y + b]
             smooth[x, y] = total
     return smooth
+
+
+@njit(cache=True)
+def vote_peaks(smooth, order, max_hypotheses, vote_floor, suppress, rotated, vote_bin,
+               search_radius):
+    """Hypotheses (H, 3) at the peaks of the smoothed translation votes (cells, cells):
+    cells in ``order`` (decreasing votes, as ``np.argsort(-smooth, axis=None)`` gives them)
+    until ``max_hypotheses`` are found or the votes fall to ``vote_floor`` of the
+    strongest (or 0); a cell within ``suppress`` (cells^2) of an earlier peak is skipped.
+    Each peak moves the rotated pose (3,) by its cell centre's offset (m)."""
+    cells = smooth.shape[1]
+    votes = smooth.ravel()
+    floor = max(vote_floor * smooth.max(), 0.0)
+    peaks = np.empty((max_hypotheses, 2), dtype=np.int64)
+    count = 0
+    for flat in order:
+        if count == max_hypotheses or votes[flat] <= floor:
+            break
+        a, b = flat // cells, flat % cells
+        apart = True
+        for k in range(count):
+            apart = apart and (a - peaks[k, 0]) ** 2 + (b - peaks[k, 1]) ** 2 > suppress
+        if apart:
+            peaks[count, 0], peaks[count, 1] = a, b
+            count += 1
+    out = np.empty((count, 3))
+    for k in range(count):
+        out[k, 0] = rotated[0] + ((peaks[k, 0] + 0.5) * vote_bin - search_radius)
+        out[k, 1] = rotated[1] + ((peaks[k, 1] + 0.5) * vote_bin - search_radius)
+        out[k, 2] = rotated[2]
+    return out
 
 
 @njit(cache=True)
