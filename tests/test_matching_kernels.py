@@ -58,3 +58,20 @@ def test_gated_pairs_match_the_dense_definition():
         within = dis.min(axis=1) <= tau2
         np.testing.assert_array_equal(leaves, np.nonzero(within)[0])
         np.testing.assert_array_equal(partner, nearest[within])
+
+
+def test_placed_landmarks_are_se2_compose_and_pose_features():
+    from roco_env.geometry import se2_compose
+    from roco_env.policies.matching import pose_features
+    from roco_env.policies.matching_kernels import placed_landmarks
+
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        own = np.column_stack([rng.uniform(-60, 60, (50, 2)), rng.uniform(-np.pi, np.pi, 50)])
+        own[:5, 2] = [np.pi, -np.pi, np.pi / 2, 0.0, -0.0]  # wrap edges
+        pose = np.array([*rng.normal(0, 20, 2), rng.choice([np.pi, -np.pi, rng.normal()])])
+        boxes = np.sort(rng.choice(50, int(rng.integers(0, 50)), replace=False))
+        poses, features = placed_landmarks(pose, own, boxes)
+        expected = se2_compose(pose, own[boxes])
+        np.testing.assert_array_equal(poses, expected)
+        np.testing.assert_array_equal(features, pose_features(expected))

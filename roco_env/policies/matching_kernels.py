@@ -1,5 +1,6 @@
 """Compiled (numba) loops of RoCo's matching (the gate search, the edge similarity, the
-assignment's index compaction) and of the hypothesis evidence's box pairing.
+assignment's index compaction, the new landmarks of an accepted collaborator) and of the
+hypothesis evidence's box pairing.
 
 :func:`~roco_env.policies.matching._edge_similarity_from_features` scores every
 candidate pair against every matched leaf; with the star graphs' neighbour radius most
@@ -15,7 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs"]
+__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs",
+           "placed_landmarks"]
 
 
 @njit(cache=True)
@@ -233,3 +235,25 @@ def close_pairs(a_xy, b_xy, radius):
                 first[k], second[k] = i, j
                 k += 1
     return first, second
+
+
+@njit(cache=True)
+def placed_landmarks(pose, own, boxes):
+    """The agent's boxes ``own[boxes]`` (own (K, 3) in its frame, boxes (B,) indices) placed
+    in the ego frame by its pose (3,) as ``geometry.se2_compose(pose, own[boxes])`` does
+    (yaw wrapped to (-pi, pi]), with their pose features (5, B) (``matching.pose_features``:
+    x, y, x^2 + y^2, cos(yaw), sin(yaw))."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    poses = np.empty((boxes.size, 3))
+    features = np.empty((5, boxes.size))
+    for k in range(boxes.size):
+        bx, by, byaw = own[boxes[k], 0], own[boxes[k], 1], own[boxes[k], 2]
+        x = pose[0] + c * bx - s * by
+        y = pose[1] + s * bx + c * by
+        yaw = (pose[2] + byaw + math.pi) % (2.0 * math.pi) - math.pi
+        if yaw <= -math.pi:
+            yaw += 2.0 * math.pi
+        poses[k, 0], poses[k, 1], poses[k, 2] = x, y, yaw
+        features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
+        features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
+    return poses, features

@@ -62,7 +62,6 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.geometry import se2_compose
 from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
@@ -75,6 +74,7 @@ from roco_env.policies.landmarks import (
     prior_information,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
+from roco_env.policies.matching_kernels import placed_landmarks
 from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
@@ -421,9 +421,9 @@ def _commit(
     unmatched[att.match_box] = False
     new_boxes = np.nonzero(unmatched)[0]
     new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    new_poses = se2_compose(att.pose, own[new_boxes])
+    new_poses, new_features = placed_landmarks(att.pose, own, new_boxes)
     world.poses = np.concatenate([world.poses, new_poses])
-    world.features = np.concatenate([world.features, pose_features(new_poses)], axis=1)
+    world.features = np.concatenate([world.features, new_features], axis=1)
     world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
     world.obs_agent = np.concatenate(
         [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
