@@ -75,14 +75,13 @@ from roco_env.policies.landmarks import (
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
 from roco_env.policies.matching_kernels import placed_landmarks
-from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
+from roco_env.policies.pose_kernels import KERNEL_CODES, solve_pose_edges, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
     PoseGraphResult,
     edge_chi2,
     optimize,
-    optimize_pose,
     robust_kernel,
 )
 
@@ -284,20 +283,21 @@ def _optimise_round(
         att.solver += solution.iterations
         return
     att.landmarks = world.poses[att.match_land]
-    result = optimize_pose(
+    # optimize_pose's compiled solver, called directly (the inputs are already checked).
+    att.pose, att.chi2, _, _, iterations, _ = solve_pose_edges(
         att.pose,
         att.landmarks,
         own,
         inputs.information[agent][att.match_box],
-        prior=inputs.reported[agent - 1],
-        prior_information=_prior_info(p),
-        kernel=p.robust_kernel,
-        kernel_delta=p.kernel_delta,
-        max_iterations=p.max_solver_iterations,
-        tolerance=_ROUND_TOLERANCE,
+        inputs.reported[agent - 1],
+        _prior_info(p),
+        KERNEL_CODES[p.robust_kernel],
+        float(p.kernel_delta),
+        int(p.max_solver_iterations),
+        _ROUND_TOLERANCE,
+        _MIN_DIAG,
     )
-    att.pose, att.chi2 = result.pose, result.chi2
-    att.solver += result.iterations
+    att.solver += iterations
 
 
 def _attempt(
