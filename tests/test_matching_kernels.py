@@ -1,6 +1,7 @@
 """The compiled helpers of RoCo's matching against the numpy calls they replace."""
 
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from roco_env.policies.matching_kernels import close_pairs, compact_pairs
@@ -75,3 +76,49 @@ def test_placed_landmarks_are_se2_compose_and_pose_features():
         expected = se2_compose(pose, own[boxes])
         np.testing.assert_array_equal(poses, expected)
         np.testing.assert_array_equal(features, pose_features(expected))
+
+
+@pytest.mark.parametrize("terms", [(True, True), (True, False), (False, True)])
+def test_scored_pairs_match_the_array_path(terms):
+    """Gate, S = lam S_dis + S_edge (all boxes leaves; cached S_edge reused) and the
+    assignment shortcut, against gated_pairs + np.exp + the features' edge similarity + matching._assign."""
+    from roco_env.policies.matching import (
+        MatchingParams,
+        _assign,
+        _edge_similarity_from_features,
+        pose_features,
+    )
+    from roco_env.policies.matching_kernels import gated_pairs, scored_pairs
+
+    use_distance, use_edge = terms
+    p = MatchingParams(use_distance_similarity=use_distance, use_edge_similarity=use_edge,
+                       lam=1.0 if use_distance else 0.0)
+    rng = np.random.default_rng(12)
+    empty = np.zeros(0, dtype=np.int64)
+    cache = (empty, empty, empty, empty, np.zeros(0))
+    shortcuts = 0
+    for trial in range(30):
+        lands = np.column_stack([rng.uniform(-120, 120, (40, 2)), rng.uniform(-3, 3, 40)])
+        own = lands[rng.choice(40, 25, replace=False)] + rng.normal(0, [0.4, 0.4, 0.02], (25, 3))
+        centres = np.ascontiguousarray(own[:, :2] + rng.normal(0, 0.2, 2))
+        tau2 = 3.0 if trial % 3 else 8.0  # the wide gate gives several candidates per box
+        for _ in range(2):  # the second call reuses the cached S_edge
+            assigned, land, box, score, cand_p, cand_q, cand_score, cache = scored_pairs(
+                np.ascontiguousarray(lands[:, :2]), centres, tau2, p.lam if use_distance else 0.0,
+                use_edge, pose_features(lands), pose_features(own), -1.0,
+                p.similarity_threshold, cache)
+        ref_p, ref_q, dis, leaves, partner = gated_pairs(np.ascontiguousarray(lands[:, :2]),
+                                                         centres, tau2)
+        expected = p.lam * np.exp(-dis) if use_distance else 0.0
+        if use_edge:
+            expected = expected + _edge_similarity_from_features(
+                pose_features(lands), pose_features(own), ref_p, ref_q, leaves, partner, None)
+        np.testing.assert_array_equal(cand_p, ref_p)
+        np.testing.assert_array_equal(cand_q, ref_q)
+        np.testing.assert_array_equal(cand_score, expected)
+        if assigned:
+            shortcuts += 1
+            for got, want in zip((land, box, score), _assign(ref_p, ref_q, expected,
+                                                             p.similarity_threshold), strict=True):
+                np.testing.assert_array_equal(got, want)
+    assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs",
-           "placed_landmarks"]
+           "placed_landmarks", "scored_pairs"]
 
 
 @njit(cache=True)
@@ -257,3 +257,45 @@ def placed_landmarks(pose, own, boxes):
         features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
         features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
     return poses, features
+
+
+@njit(cache=True)
+def scored_pairs(land_xy, centres, tau2, lam, use_edge, land_features, box_features, radius2,
+                 tau1, cached):
+    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    (:func:`gated_pairs`) scored S = lam * S_dis (lam = 0: no distance term) + S_edge
+    (with ``use_edge``, :func:`edge_similarity`; reused from ``cached`` = (cand_p, cand_q,
+    leaves, partner, S_edge) of an earlier call when the pairs and the initial matches
+    are the same), and the assignment's shortcut: when every landmark and every box has a
+    single candidate and every score is > 0, the pairs with S >= tau1 are the assignment.
+
+    Returns (assigned?, landmark (P,), box (P,), S (P,) of the assignment when the
+    shortcut applies (else empty), then the candidates (cand_p, cand_q, S) for the full
+    assignment, and the new cache (cand_p, cand_q, leaves, partner, S_edge)).
+    """
+    cand_p, cand_q, dis, leaves, partner = gated_pairs(land_xy, centres, tau2)
+    score = np.empty(cand_p.size)
+    for k in range(cand_p.size):
+        score[k] = lam * math.exp(-dis[k])
+    edge = cached[4]
+    if use_edge:
+        old_p, old_q, old_leaves, old_partner = cached[0], cached[1], cached[2], cached[3]
+        same = old_p.size == cand_p.size and old_leaves.size == leaves.size
+        for k in range(cand_p.size if same else 0):
+            same = same and old_p[k] == cand_p[k] and old_q[k] == cand_q[k]
+        for k in range(leaves.size if same else 0):
+            same = same and old_leaves[k] == leaves[k] and old_partner[k] == partner[k]
+        if not same:
+            edge = edge_similarity(land_features, box_features, cand_p, cand_q, leaves, partner,
+                                   radius2)
+        for k in range(cand_p.size):
+            score[k] = score[k] + edge[k]
+    single = compact_pairs(cand_p, cand_q)[4]
+    for k in range(cand_p.size):
+        single = single and score[k] > 0
+    kept = np.zeros(cand_p.size, dtype=np.bool_)
+    if single:
+        for k in range(cand_p.size):
+            kept[k] = score[k] >= tau1
+    return (single, cand_p[kept], cand_q[kept], score[kept], cand_p, cand_q, score,
+            (cand_p, cand_q, leaves, partner, edge))
