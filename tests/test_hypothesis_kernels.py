@@ -319,3 +319,21 @@ def test_decisions_match_the_python_path(with_track):
     # Decided and ambiguous slots, one and several refined hypotheses.
     assert {ambiguous for ambiguous, _ in outcomes} == {False, True}
     assert min(count for _, count in outcomes) == 1 < max(count for _, count in outcomes)
+
+
+def test_box_sets_in_one_pass_are_the_per_agent_sets():
+    from roco_env.policies.hypotheses import box_sets
+
+    for scene in _scenes():
+        boxes = [scene.ego_boxes, *scene.collab_boxes]
+        boxes[-1] = boxes[-1][:0]  # an agent without boxes
+        unc = [scene.ego_unc, *scene.collab_unc]
+        unc[-1] = unc[-1][:0]
+        inputs = prepare_inputs(boxes[0], unc[0], boxes[1:], unc[1:], scene.reported,
+                                UncertaintyParams())
+        expected = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]
+        got = box_sets(boxes, inputs)
+        assert len(got) == len(expected)
+        for one, other in zip(got, expected, strict=True):
+            for field in ("poses", "log_sizes", "information", "var_t", "var_r", "range"):
+                np.testing.assert_array_equal(getattr(one, field), getattr(other, field))

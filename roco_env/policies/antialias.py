@@ -42,7 +42,7 @@ from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
     BoxSet,
     EvidenceParams,
-    box_set,
+    box_sets,
     evidence_terms,
     generate_hypotheses,
     refine_terms,
@@ -177,7 +177,7 @@ def antialias_align(
         raise ValueError(f"tracks must have one entry per reported pose ({n}); got {len(tracks)}")
     # prepare_inputs has validated the boxes; the sizes come from the same arrays.
     boxes = [np.asarray(b, dtype=float).reshape(-1, 7) for b in (ego_boxes, *collab_boxes)]
-    sets = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]
+    sets = box_sets(boxes, inputs)
     start = inputs.reported.copy()
     decisions = []
     for j in range(n):
