@@ -230,7 +230,7 @@ def _dense_nearest(lands, x, y, gate):
 
 
 def _numpy_refine(initial, lands, own, info, gate, kernel, min_matches, pairing=_tree_nearest):
-    """The array path of hypotheses.refine_hypothesis: nearest centres within the gate
+    """The array path of the hypothesis refinement: nearest centres within the gate
     (``pairing``), optimize_pose, twice (the second round only when the pairs changed)."""
     pose, previous = np.asarray(initial, dtype=float), None
     for _ in range(2):

@@ -557,7 +557,7 @@ def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, m
 def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, min_matches,
                 max_iterations, tolerance, min_diag):
     """Up to two rounds of nearest-centre matching and a robust single-vertex solve
-    (``hypotheses.refine_hypothesis``).
+    (the refinement of ``hypothesis_kernels.decide_hypotheses``).
 
     Each round maps the agent's boxes own_poses (K, 3) (its frame) into the landmarks'
     frame with the current pose (initial (3,) first), pairs every box with its nearest
