@@ -337,3 +337,16 @@ def test_box_sets_in_one_pass_are_the_per_agent_sets():
         for one, other in zip(got, expected, strict=True):
             for field in ("poses", "log_sizes", "information", "var_t", "var_r", "range"):
                 np.testing.assert_array_equal(getattr(one, field), getattr(other, field))
+
+
+def test_centre_covariance_is_the_inverse_of_the_xy_information():
+    """box_sets reads the centres' covariances from the 3x3 inverses RoCo computes; with no
+    xy-yaw information terms they equal the 2x2 inverses box_set takes, to the bit."""
+    from roco_env.policies.landmarks import box_information
+
+    rng = np.random.default_rng(6)
+    poses = np.column_stack([rng.uniform(-80, 80, (20000, 2)), rng.uniform(-4, 4, 20000)])
+    sigma = np.exp(rng.uniform(-5, 1, (20000, 3)))
+    sigma[::3, 1] = sigma[::3, 0]  # isotropic centres too
+    info = box_information(poses, sigma, 0.01, 0.001, (0.5, 0.5, 0.05))
+    np.testing.assert_array_equal(np.linalg.inv(info)[:, :2, :2], np.linalg.inv(info[:, :2, :2]))

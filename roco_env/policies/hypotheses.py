@@ -133,21 +133,22 @@ class BoxSet:
 
 
 def _box_arrays(
-    boxes: np.ndarray, poses: np.ndarray, information: np.ndarray
+    boxes: np.ndarray, poses: np.ndarray, information: np.ndarray, xy_covariance: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per box: log sizes (K, 3), var_t (K,), var_r (K,) and distance from the agent (K,)
-    (:class:`BoxSet`), every value from its own box only."""
+    (:class:`BoxSet`), every value from its own box only; xy_covariance (K, 2, 2): the
+    covariance of the box centre."""
     sizes = np.maximum(boxes[:, 3:6], 1e-3)
-    # sigma_x^2 + sigma_y^2 is the trace of the xy block's inverse (rotation invariant).
-    xy_cov = np.linalg.inv(information[:, :2, :2]) if boxes.shape[0] else np.zeros((0, 2, 2))
-    var_t = 0.5 * (xy_cov[:, 0, 0] + xy_cov[:, 1, 1])
+    # sigma_x^2 + sigma_y^2 is the trace of the centre's covariance (rotation invariant).
+    var_t = 0.5 * (xy_covariance[:, 0, 0] + xy_covariance[:, 1, 1])
     return np.log(sizes), var_t, 1.0 / information[:, 2, 2], np.hypot(poses[:, 0], poses[:, 1])
 
 
 def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
     """:class:`BoxSet` of validated boxes (K, 7) with their poses (K, 3) and information
     (K, 3, 3) from :func:`~roco_env.policies.landmarks.prepare_inputs`."""
-    log_sizes, var_t, var_r, distance = _box_arrays(boxes, poses, information)
+    xy_cov = np.linalg.inv(information[:, :2, :2]) if boxes.shape[0] else np.zeros((0, 2, 2))
+    log_sizes, var_t, var_r, distance = _box_arrays(boxes, poses, information, xy_cov)
     return BoxSet(poses, log_sizes, information, var_t, var_r, _reach(distance))
 
 
@@ -155,8 +156,12 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     """:func:`box_set` of every agent (ego first): boxes[a] (K_a, 7) validated, with the
     poses and information of ``inputs`` (:func:`~roco_env.policies.landmarks.prepare_inputs`),
     derived in one pass over all agents' boxes (per-agent calls cost more in overhead;
-    every value depends on its own box only, so the sets are the same)."""
-    arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information)
+    every value depends on its own box only). The centres' covariances are the xy blocks
+    of ``inputs.all_covariance``, which RoCo computes anyway (the information has no
+    xy-yaw terms, so they are the inverses of the information's xy blocks; LAPACK gives
+    the same values, tested)."""
+    arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
+                         inputs.all_covariance[:, :2, :2])
     cuts = inputs.offsets[1:-1]
     parts = zip(*(np.split(values, cuts) for values in arrays), strict=True)
     return [

@@ -489,7 +489,7 @@ def roco_solve(
         )
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
-    covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
+    covariance = np.split(inputs.all_covariance, inputs.offsets[1:-1])
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
