@@ -22,9 +22,8 @@ from roco_env.policies.hypotheses import (
     generate_hypotheses,
     score_hypotheses,
 )
-from roco_env.policies.hypothesis_kernels import pairwise_sum
+from roco_env.policies.hypothesis_kernels import best_pair_gains, close_pairs, pairwise_sum
 from roco_env.policies.landmarks import UncertaintyParams, prepare_inputs
-from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
 
 
 def numpy_map(pose, poses):

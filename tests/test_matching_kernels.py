@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from roco_env.policies.matching_kernels import close_pairs, compact_pairs
+from roco_env.policies.hypothesis_kernels import close_pairs
+from roco_env.policies.matching_kernels import compact_pairs
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -122,3 +123,19 @@ def test_scored_pairs_match_the_array_path(terms):
                                                              p.similarity_threshold), strict=True):
                 np.testing.assert_array_equal(got, want)
     assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised
+
+
+def test_close_pairs_keep_ties_and_the_radius_edge_of_the_dense_scan():
+    """Centres on a lattice (many equal x, distances exactly at the radius) and repeated
+    centres: the windowed search gives the dense scan's pairs in row-major order."""
+    rng = np.random.default_rng(23)
+    lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)
+    for radius in (0.0, 1.0, 2.0, 5.0):
+        a = lattice[rng.permutation(lattice.shape[0])[:80]] * 1.5
+        b = np.vstack([lattice[rng.permutation(lattice.shape[0])[:90]], lattice[:10]]) * 1.5
+        first, second = close_pairs(a, b, radius * 1.5)
+        dx = a[:, None, 0] - b[None, :, 0]
+        dy = a[:, None, 1] - b[None, :, 1]
+        i, j = np.nonzero(np.sqrt(dx * dx + dy * dy) <= radius * 1.5)
+        np.testing.assert_array_equal(first, i)
+        np.testing.assert_array_equal(second, j)

@@ -47,8 +47,9 @@ from roco_env.policies.hypotheses import (
     generate_hypotheses,
     refine_terms,
 )
-from roco_env.policies.hypothesis_kernels import decide_hypotheses
+from roco_env.policies.hypothesis_kernels import decision_margin
 from roco_env.policies.landmarks import prepare_inputs, require_positive
+from roco_env.policies.pose_kernels import refine_starts
 from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
@@ -122,30 +123,33 @@ def _decide(
     p: AntiAliasParams,
 ) -> Decision:
     """Steps 1-3 of the module docstring for one collaborator: the vote peaks
-    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`), then refinement,
-    evidence, priors and margin in one compiled pass
-    (:func:`~roco_env.policies.hypothesis_kernels.decide_hypotheses`): the reported pose
-    and the track's prediction are refined too unless within 0.5 m / 0.5 deg of a peak (a
-    seed next to a peak would refine to the same pose), refined poses within 0.3 m /
-    0.3 deg of an earlier one are dropped."""
+    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`); with the reported pose and
+    the track's prediction, refined in one compiled pass
+    (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
+    of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
+    0.3 deg of an earlier one is dropped); evidence, priors and margin in another
+    (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`)."""
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
-    centre, age = (np.zeros(3), 1.0) if track is None else (
+    centre, age = (reported, 1.0) if track is None else (
         np.ascontiguousarray(track[0], dtype=float), track[1])
+    seeds = reported[None] if track is None else np.stack([reported, centre])
+    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information,
+                          *refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
+    if poses.shape[0] == 0:
+        return Decision(None, float("nan"), 0)
     sigma_r = np.deg2rad(p.prior_sigma_r_deg)
     track_t, track_r = p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
-    pose, margin, count = decide_hypotheses(
+    best, margin = decision_margin(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
-        collab.information, peaks, reported, centre, track is not None,
-        refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches),
-        evidence_terms(p),
+        poses, reported, centre, track is not None, evidence_terms(p),
         (float(p.prior_sigma_t**2), float(sigma_r**2), float(track_t**2), float(track_r**2)),
         (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
     )
-    if count == 0 or margin < p.min_margin:
-        return Decision(None, float(margin), int(count))
-    return Decision(pose, float(margin), int(count))
+    if margin < p.min_margin:
+        return Decision(None, float(margin), poses.shape[0])
+    return Decision(poses[best], float(margin), poses.shape[0])
 
 
 def antialias_align(

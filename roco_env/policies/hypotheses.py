@@ -255,7 +255,7 @@ def score_hypotheses(
     (otherwise a hypothesis that pulls more boxes into the overlap scores higher). Per
     box, the best pair's gain ``outlier_chi2 - chi2 > 0`` (chi2 from position, heading
     modulo pi and, when used, log sizes, with both boxes' variances and the pose slack:
-    :func:`~roco_env.policies.matching_kernels.best_pair_gains`); the direct detections
+    :func:`~roco_env.policies.hypothesis_kernels.best_pair_gains`); the direct detections
     count an ego box where the hypothesis puts the collaborator's vehicle that no
     collaborator box explains (nobody detects itself), and a collaborator box where it
     puts the ego.

@@ -3,14 +3,18 @@
 A roco_antialias call votes, refines and scores pose hypotheses for every collaborator;
 in numpy each of those stages is tens of array operations on a few hundred box pairs,
 whose fixed call overhead dominated the call (about half of it at 10 agents and 200
-objects). Here the rotation vote, the translation vote grid and the evidence of every
-hypothesis run compiled, element by element with the array path's arithmetic in the
-same order: the votes are accumulated pair by pair as ``np.bincount`` does, the grid's
-3x3 box sum adds the shifted cells in the order of the array path, and the evidence
-sums the selected gains with numpy's pairwise summation (:func:`pairwise_sum`), so the
-results are those of the array path to the bit (tests/test_hypothesis_kernels.py keeps
-that path as the reference). Poses are (x m, y m, yaw rad); boxes as in
-:class:`~roco_env.policies.hypotheses.BoxSet`.
+objects). Here the box pairing, the rotation vote, the translation vote grid, its peak
+scan and the evidence and margin of the hypotheses run compiled (the refinement is
+:func:`~roco_env.policies.pose_kernels.refine_starts`), element by element with the
+array path's arithmetic in the same order: the votes are accumulated pair by pair as
+``np.bincount`` does, the grid's 3x3 box sum adds the shifted cells in the order of the
+array path, and the evidence sums the selected gains with numpy's pairwise summation
+(:func:`pairwise_sum`), so the results are those of the array path to the bit
+(tests/test_hypothesis_kernels.py keeps that path as the reference). Poses are (x m, y m,
+yaw rad); boxes as in :class:`~roco_env.policies.hypotheses.BoxSet`.
+
+Every compiled function here calls only functions of this module: numba's on-disk cache
+recompiles a function when its own file changes, not when a callee in another file does.
 """
 
 from __future__ import annotations
@@ -20,13 +24,88 @@ import math
 import numpy as np
 from numba import njit
 
-from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
-from roco_env.policies.pose_kernels import refine_pose
-
-__all__ = ["decide_hypotheses", "hypothesis_scores", "pairwise_sum", "rotation_votes",
-           "translation_votes", "vote_peaks"]
+__all__ = ["best_pair_gains", "close_pairs", "decision_margin", "hypothesis_scores",
+           "pairwise_sum", "rotation_votes", "translation_votes", "vote_peaks"]
 
 _HALF_PI = math.pi / 2
+
+
+@njit(cache=True)
+def close_pairs(a_xy, b_xy, radius):
+    """(index into a (P,), index into b (P,)) of every pair of centres a_xy (A, 2),
+    b_xy (B, 2) at most ``radius`` apart (distance sqrt(dx^2 + dy^2)), in row-major order.
+
+    Only the b centres within the radius in x (with a margin far above rounding) are
+    measured: b is sorted by x once and each row scans its window, its pairs then put
+    back in index order."""
+    n_a, n_b = a_xy.shape[0], b_xy.shape[0]
+    by_x = np.argsort(b_xy[:, 0])
+    sorted_x = b_xy[by_x, 0]
+    reach = radius * (1.0 + 1e-6)
+    first = np.empty(max(8 * n_a, 16), dtype=np.int64)
+    second = np.empty_like(first)
+    window = np.empty(n_b, dtype=np.int64)
+    count = 0
+    for i in range(n_a):
+        ax, ay = a_xy[i, 0], a_xy[i, 1]
+        size = 0
+        for k in range(np.searchsorted(sorted_x, ax - reach), n_b):
+            if sorted_x[k] > ax + reach:
+                break
+            j = by_x[k]
+            dx, dy = ax - b_xy[j, 0], ay - b_xy[j, 1]
+            if math.sqrt(dx * dx + dy * dy) <= radius:
+                # Insertion into the row's pairs, kept in increasing index order.
+                slot = size
+                while slot and window[slot - 1] > j:
+                    window[slot] = window[slot - 1]
+                    slot -= 1
+                window[slot] = j
+                size += 1
+        if count + size > first.size:
+            grown = max(2 * first.size, count + size)
+            first = np.concatenate((first, np.empty(grown - first.size, dtype=np.int64)))
+            second = np.concatenate((second, np.empty(grown - second.size, dtype=np.int64)))
+        for k in range(size):
+            first[count + k], second[count + k] = i, window[k]
+        count += size
+    return first[:count].copy(), second[:count].copy()
+
+
+@njit(cache=True)
+def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_log_sizes,
+                    col_var_t, col_var_r, slack_t, slack_r, size_denominator, outlier_chi2):
+    """Per box, the largest gain ``outlier_chi2 - chi2`` of its pairs with the other set's
+    boxes (0 without a pair that gains): (collaborator boxes (K1,), ego boxes (K0,)).
+
+    chi2 of ego box i and collaborator box j (mapped (K1, 3) into the ego frame):
+    |t_i - t_j|^2 / (var_t_i + var_t_j + slack_t) + half-turn yaw difference^2 /
+    (var_r_i + var_r_j + slack_r) + (size_denominator > 0) |log size difference|^2 /
+    size_denominator; every pair is visited
+    (no radius: a pair beyond it cannot gain)."""
+    n_ego, n_col = ego_poses.shape[0], mapped.shape[0]
+    forward = np.zeros(n_col)
+    backward = np.zeros(n_ego)
+    half = math.pi / 2
+    for i in range(n_ego):
+        for j in range(n_col):
+            dx = ego_poses[i, 0] - mapped[j, 0]
+            dy = ego_poses[i, 1] - mapped[j, 1]
+            chi2 = (dx * dx + dy * dy) / (ego_var_t[i] + col_var_t[j] + slack_t)
+            if chi2 >= outlier_chi2:
+                continue  # the other terms are >= 0: no gain
+            dyaw = (ego_poses[i, 2] - mapped[j, 2] + half) % math.pi - half
+            chi2 += dyaw * dyaw / (ego_var_r[i] + col_var_r[j] + slack_r)
+            if size_denominator > 0.0:
+                d0 = ego_log_sizes[i, 0] - col_log_sizes[j, 0]
+                d1 = ego_log_sizes[i, 1] - col_log_sizes[j, 1]
+                d2 = ego_log_sizes[i, 2] - col_log_sizes[j, 2]
+                chi2 += (d0 * d0 + d1 * d1 + d2 * d2) / size_denominator
+            gain = outlier_chi2 - chi2
+            if gain > 0.0:
+                forward[j] = max(forward[j], gain)
+                backward[i] = max(backward[i], gain)
+    return forward, backward
 
 
 @njit(cache=True)
@@ -87,7 +166,7 @@ def pairwise_sum(values, start, count):
 
 @njit(cache=True)
 def _mapped(pose, poses):
-    """Poses (K, 3) moved by the SE(2) pose (3,), heading not wrapped (``hypotheses._map``)."""
+    """Poses (K, 3) moved by the SE(2) pose (3,), heading not wrapped."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     out = np.empty_like(poses)
     for k in range(poses.shape[0]):
@@ -99,14 +178,14 @@ def _mapped(pose, poses):
 
 @njit(cache=True)
 def _half_turn(angle):
-    """Angle modulo pi in [-pi/2, pi/2) (``hypotheses._half_turn``)."""
+    """Angle modulo pi in [-pi/2, pi/2) (detected headings may be flipped)."""
     return (angle + _HALF_PI) % math.pi - _HALF_PI
 
 
 @njit(cache=True)
 def _size_weight(ego_log_sizes, col_log_sizes, i, j, size_denominator):
     """exp(-chi2 / 2) of the log-size difference of ego box i and collaborator box j
-    (``hypotheses._size_chi2``); 1 when sizes are not used (size_denominator 0)."""
+    (both boxes noisy); 1 when sizes are not used (size_denominator 0)."""
     if size_denominator <= 0.0:
         return 1.0
     d0 = ego_log_sizes[i, 0] - col_log_sizes[j, 0]
@@ -283,16 +362,6 @@ def _wrap(angle):
 
 
 @njit(cache=True)
-def _close(a, b, tolerance):
-    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other (translation
-    by the C library's hypot, the yaw difference wrapped to [-pi, pi))."""
-    yaw = (a[2] - b[2] + math.pi) % (2.0 * math.pi) - math.pi
-    return math.hypot(a[0] - b[0], a[1] - b[1]) <= tolerance and (
-        math.degrees(abs(yaw)) <= tolerance
-    )
-
-
-@njit(cache=True)
 def _prior_chi2(pose, centre, sigma_t2, sigma_r2):
     """Mahalanobis distance of ``pose`` from ``centre`` (3,) with variances sigma_t2 (m^2)
     in translation and sigma_r2 (rad^2) in yaw (``antialias._prior_chi2``)."""
@@ -302,58 +371,26 @@ def _prior_chi2(pose, centre, sigma_t2, sigma_r2):
 
 
 @njit(cache=True)
-def decide_hypotheses(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, col_poses,
-                      col_log_sizes, col_var_t, col_var_r, col_range, col_information,
-                      peaks, reported, track, use_track, refine, score, priors, distinct):
-    """Steps 1-3 of ``roco_env.policies.antialias`` for one collaborator after the votes:
-    the vote peaks (H, 3), then the reported pose (3,) and, with ``use_track``, the track's
-    prediction ``track`` (3,), each unless within 0.5 m / 0.5 deg of a peak, are refined
-    (``pose_kernels.refine_pose`` with ``refine`` = (gate m, kernel code, kernel delta,
-    min_matches, iterations, tolerance, min_diag)); refined poses within 0.3 m / 0.3 deg of
-    an earlier one are dropped; the rest are scored (:func:`hypothesis_scores` with
-    ``score`` = its (slack_t, slack_r, size_denominator, outlier_chi2, free_space_penalty,
-    use_free_space, use_mutual_detection)) minus the prior terms, ``priors`` = (reported
-    pose's variances m^2, rad^2, then the track's). Two poses are distinct when farther
-    apart than ``distinct`` = (m, rad).
+def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, col_poses,
+                    col_log_sizes, col_var_t, col_var_r, col_range, poses, reported, track,
+                    use_track, score, priors, distinct):
+    """Step 2-3 of ``roco_env.policies.antialias`` for one collaborator's refined hypotheses
+    (H, 3), H >= 1: their evidence (:func:`hypothesis_scores` with ``score`` = its
+    (slack_t, slack_r, size_denominator, outlier_chi2, free_space_penalty, use_free_space,
+    use_mutual_detection)) minus the prior terms of the reported pose (3,) and, with
+    ``use_track``, of the track's prediction ``track`` (3,), ``priors`` = their variances
+    (m^2, rad^2, m^2, rad^2). Two poses are distinct when farther apart than ``distinct``
+    = (m, rad).
 
-    Returns (best pose (3,), margin over the best distinct one (0 without one; nan when
-    nothing was refined), number of refined poses).
+    Returns (index of the best hypothesis, its score minus the best distinct one's, 0
+    without a distinct one).
     """
-    gate, kernel, delta, min_matches, iterations, tolerance, min_diag = refine
-    n_peaks = peaks.shape[0]
-    starts = np.empty((n_peaks + 2, 3))
-    starts[:n_peaks] = peaks
-    n_starts = n_peaks
-    for seed, use in ((reported, True), (track, use_track)):
-        if not use:
-            continue
-        near = False
-        for h in range(n_peaks):
-            near = near or _close(seed, peaks[h], 0.5)
-        if not near:
-            starts[n_starts] = seed
-            n_starts += 1
-    refined = np.empty((n_starts, 3))
-    count = 0
-    for k in range(n_starts):
-        pose, ok = refine_pose(starts[k], ego_poses, col_poses, col_information, gate, kernel,
-                               delta, min_matches, iterations, tolerance, min_diag)
-        if not ok:
-            continue
-        duplicate = False
-        for other in range(count):
-            duplicate = duplicate or _close(pose, refined[other], 0.3)
-        if not duplicate:
-            refined[count] = pose
-            count += 1
-    if count == 0:
-        return np.full(3, np.nan), np.nan, 0
-    poses = refined[:count].copy()
     slack_t, slack_r, size_denominator, outlier_chi2, penalty, free_space, mutual = score
     scores = hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
                                col_poses, col_log_sizes, col_var_t, col_var_r, col_range, poses,
                                slack_t, slack_r, size_denominator, outlier_chi2, penalty,
                                free_space, mutual)
+    count = poses.shape[0]
     for h in range(count):
         scores[h] -= _prior_chi2(poses[h], reported, priors[0], priors[1])
     if use_track:
@@ -366,4 +403,4 @@ def decide_hypotheses(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
         if far or abs(_wrap(poses[h, 2] - poses[best, 2])) > distinct[1]:
             runner_up = scores[h] if not found else max(runner_up, scores[h])
             found = True
-    return poses[best].copy(), scores[best] - runner_up, count
+    return best, scores[best] - runner_up

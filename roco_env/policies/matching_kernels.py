@@ -1,6 +1,5 @@
 """Compiled (numba) loops of RoCo's matching (the gate search, the edge similarity, the
-assignment's index compaction, the new landmarks of an accepted collaborator) and of the
-hypothesis evidence's box pairing.
+assignment's index compaction, the new landmarks of an accepted collaborator).
 
 :func:`~roco_env.policies.matching._edge_similarity_from_features` scores every
 candidate pair against every matched leaf; with the star graphs' neighbour radius most
@@ -16,8 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs",
-           "placed_landmarks", "scored_pairs"]
+__all__ = ["compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs", "placed_landmarks",
+           "scored_pairs"]
 
 
 @njit(cache=True)
@@ -177,64 +176,6 @@ def compact_pairs(cand_p, cand_q):
     rows, row_idx, single_rows = _compact_axis(cand_p)
     cols, col_idx, single_cols = _compact_axis(cand_q)
     return rows, row_idx, cols, col_idx, single_rows and single_cols
-
-
-@njit(cache=True)
-def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_log_sizes,
-                    col_var_t, col_var_r, slack_t, slack_r, size_denominator, outlier_chi2):
-    """Per box, the largest gain ``outlier_chi2 - chi2`` of its pairs with the other set's
-    boxes (0 without a pair that gains): (collaborator boxes (K1,), ego boxes (K0,)).
-
-    chi2 of ego box i and collaborator box j (mapped (K1, 3) into the ego frame):
-    |t_i - t_j|^2 / (var_t_i + var_t_j + slack_t) + half-turn yaw difference^2 /
-    (var_r_i + var_r_j + slack_r) + (size_denominator > 0) |log size difference|^2 /
-    size_denominator, as ``hypotheses._pair_gains`` computes it; every pair is visited
-    (no radius: a pair beyond it cannot gain)."""
-    n_ego, n_col = ego_poses.shape[0], mapped.shape[0]
-    forward = np.zeros(n_col)
-    backward = np.zeros(n_ego)
-    half = math.pi / 2
-    for i in range(n_ego):
-        for j in range(n_col):
-            dx = ego_poses[i, 0] - mapped[j, 0]
-            dy = ego_poses[i, 1] - mapped[j, 1]
-            chi2 = (dx * dx + dy * dy) / (ego_var_t[i] + col_var_t[j] + slack_t)
-            if chi2 >= outlier_chi2:
-                continue  # the other terms are >= 0: no gain
-            dyaw = (ego_poses[i, 2] - mapped[j, 2] + half) % math.pi - half
-            chi2 += dyaw * dyaw / (ego_var_r[i] + col_var_r[j] + slack_r)
-            if size_denominator > 0.0:
-                d0 = ego_log_sizes[i, 0] - col_log_sizes[j, 0]
-                d1 = ego_log_sizes[i, 1] - col_log_sizes[j, 1]
-                d2 = ego_log_sizes[i, 2] - col_log_sizes[j, 2]
-                chi2 += (d0 * d0 + d1 * d1 + d2 * d2) / size_denominator
-            gain = outlier_chi2 - chi2
-            if gain > 0.0:
-                forward[j] = max(forward[j], gain)
-                backward[i] = max(backward[i], gain)
-    return forward, backward
-
-
-@njit(cache=True)
-def close_pairs(a_xy, b_xy, radius):
-    """(index into a (P,), index into b (P,)) of every pair of centres a_xy (A, 2),
-    b_xy (B, 2) at most ``radius`` apart (distance sqrt(dx^2 + dy^2)), in row-major order."""
-    count = 0
-    for i in range(a_xy.shape[0]):
-        for j in range(b_xy.shape[0]):
-            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
-            if math.sqrt(dx * dx + dy * dy) <= radius:
-                count += 1
-    first = np.empty(count, dtype=np.int64)
-    second = np.empty(count, dtype=np.int64)
-    k = 0
-    for i in range(a_xy.shape[0]):
-        for j in range(b_xy.shape[0]):
-            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
-            if math.sqrt(dx * dx + dy * dy) <= radius:
-                first[k], second[k] = i, j
-                k += 1
-    return first, second
 
 
 @njit(cache=True)
