@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, fields, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -115,6 +116,23 @@ class Decision:
     hypotheses: int
 
 
+@lru_cache(maxsize=16)
+def _decision_terms(p: AntiAliasParams) -> tuple:
+    """The settings of ``p`` as the compiled decision stage takes them, computed once per
+    parameter set: the refinement's (:func:`~roco_env.policies.hypotheses.refine_terms`),
+    the evidence's (:func:`~roco_env.policies.hypotheses.evidence_terms`), the reported
+    pose prior's variances (m^2, rad^2), the track's std per step of age (m, rad) and the
+    distinctness thresholds (m, rad)."""
+    sigma_r = np.deg2rad(p.prior_sigma_r_deg)
+    return (
+        refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches),
+        evidence_terms(p),
+        (float(p.prior_sigma_t**2), float(sigma_r**2)),
+        (p.track_sigma_t, np.deg2rad(p.track_sigma_r_deg)),
+        (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
+    )
+
+
 def _decide(
     ego: BoxSet,
     collab: BoxSet,
@@ -129,23 +147,22 @@ def _decide(
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
     0.3 deg of an earlier one is dropped); evidence, priors and margin in another
     (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`)."""
+    refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
-    centre, age = (reported, 1.0) if track is None else (
-        np.ascontiguousarray(track[0], dtype=float), track[1])
-    seeds = reported[None] if track is None else np.stack([reported, centre])
-    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information,
-                          *refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
+    if track is None:
+        centre, seeds, priors = reported, reported[None], prior + (1.0, 1.0)
+    else:
+        centre, age = np.ascontiguousarray(track[0], dtype=float), track[1]
+        seeds = np.stack([reported, centre])
+        priors = prior + (float((track_t * age) ** 2), float((track_r * age) ** 2))
+    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
     if poses.shape[0] == 0:
         return Decision(None, float("nan"), 0)
-    sigma_r = np.deg2rad(p.prior_sigma_r_deg)
-    track_t, track_r = p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
     best, margin = decision_margin(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
-        poses, reported, centre, track is not None, evidence_terms(p),
-        (float(p.prior_sigma_t**2), float(sigma_r**2), float(track_t**2), float(track_r**2)),
-        (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
+        poses, reported, centre, track is not None, evidence, priors, distinct,
     )
     if margin < p.min_margin:
         return Decision(None, float(margin), poses.shape[0])
