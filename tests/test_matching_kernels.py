@@ -139,3 +139,27 @@ def test_close_pairs_keep_ties_and_the_radius_edge_of_the_dense_scan():
         i, j = np.nonzero(np.sqrt(dx * dx + dy * dy) <= radius * 1.5)
         np.testing.assert_array_equal(first, i)
         np.testing.assert_array_equal(second, j)
+
+
+def test_gated_pairs_keep_ties_and_the_gate_edge_of_the_dense_scan():
+    """Lattice centres (equal x, distances exactly at the gate, equidistant boxes) and
+    repeated boxes: the windowed scan keeps the dense definition's pairs and nearest boxes
+    (the lowest index among equal distances)."""
+    from roco_env.policies.matching_kernels import gated_pairs
+
+    rng = np.random.default_rng(24)
+    lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)
+    for tau2 in (1.0, 2.0, 3.0):
+        land = lattice[rng.permutation(lattice.shape[0])[:70]] * 1.5 + 0.75
+        centres = np.vstack([lattice[rng.permutation(lattice.shape[0])[:60]], lattice[:8]]) * 1.5
+        dx = land[:, None, 0] - centres[None, :, 0]
+        dy = land[:, None, 1] - centres[None, :, 1]
+        dis = np.sqrt(dx * dx + dy * dy)
+        cand_p, cand_q, d, leaves, partner = gated_pairs(land, centres, tau2 * 1.5)
+        expected_p, expected_q = np.nonzero(dis <= tau2 * 1.5)
+        np.testing.assert_array_equal(cand_p, expected_p)
+        np.testing.assert_array_equal(cand_q, expected_q)
+        np.testing.assert_array_equal(d, dis[expected_p, expected_q])
+        within = dis.min(axis=1) <= tau2 * 1.5
+        np.testing.assert_array_equal(leaves, np.nonzero(within)[0])
+        np.testing.assert_array_equal(partner, dis.argmin(axis=1)[within])

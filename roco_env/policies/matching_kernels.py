@@ -101,42 +101,55 @@ def gated_pairs(land_xy, centres, tau2):
     Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
     (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
     (lowest index among equal distances) is within the gate, with that box. A pair whose
-    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured.
+    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured; the
+    boxes are sorted by x once, so each landmark scans only its window in x.
     """
     n_land, n_box = land_xy.shape[0], centres.shape[0]
     reach = tau2 * (1.0 + 1e-12)
-    count = 0
-    for p in range(n_land):
-        for q in range(n_box):
-            dx = land_xy[p, 0] - centres[q, 0]
-            dy = land_xy[p, 1] - centres[q, 1]
-            if abs(dx) > reach or abs(dy) > reach:
-                continue
-            if math.sqrt(dx * dx + dy * dy) <= tau2:
-                count += 1
-    cand_p = np.empty(count, dtype=np.int64)
-    cand_q = np.empty(count, dtype=np.int64)
-    dis = np.empty(count)
+    window = tau2 * (1.0 + 1e-6)  # holds every box within reach in x
+    by_x = np.argsort(centres[:, 0])
+    sorted_x = centres[by_x, 0]
+    cand_p = np.empty(max(4 * n_land, 16), dtype=np.int64)
+    cand_q = np.empty_like(cand_p)
+    dis = np.empty(cand_p.size)
     leaves = np.empty(n_land, dtype=np.int64)
     partner = np.empty(n_land, dtype=np.int64)
+    row_q = np.empty(n_box, dtype=np.int64)
+    row_d = np.empty(n_box)
     k = h = 0
     for p in range(n_land):
-        best, best_q = math.inf, -1
-        for q in range(n_box):
-            dx = land_xy[p, 0] - centres[q, 0]
-            dy = land_xy[p, 1] - centres[q, 1]
+        lx, ly = land_xy[p, 0], land_xy[p, 1]
+        best, best_q, size = math.inf, -1, 0
+        for w in range(np.searchsorted(sorted_x, lx - window), n_box):
+            if sorted_x[w] > lx + window:
+                break
+            q = by_x[w]
+            dx = lx - centres[q, 0]
+            dy = ly - centres[q, 1]
             if abs(dx) > reach or abs(dy) > reach:
                 continue  # beyond the gate: neither a pair nor a nearest box within it
             d = math.sqrt(dx * dx + dy * dy)
-            if d <= tau2:
-                cand_p[k], cand_q[k], dis[k] = p, q, d
-                k += 1
-            if d < best:
+            if d <= tau2:  # the row's pairs, kept in increasing box order
+                slot = size
+                while slot and row_q[slot - 1] > q:
+                    row_q[slot], row_d[slot] = row_q[slot - 1], row_d[slot - 1]
+                    slot -= 1
+                row_q[slot], row_d[slot] = q, d
+                size += 1
+            if d < best or (d == best and q < best_q):
                 best, best_q = d, q
+        if k + size > cand_p.size:
+            grown = max(2 * cand_p.size, k + size)
+            cand_p = np.concatenate((cand_p, np.empty(grown - cand_p.size, dtype=np.int64)))
+            cand_q = np.concatenate((cand_q, np.empty(grown - cand_q.size, dtype=np.int64)))
+            dis = np.concatenate((dis, np.empty(grown - dis.size)))
+        for r in range(size):
+            cand_p[k], cand_q[k], dis[k] = p, row_q[r], row_d[r]
+            k += 1
         if best <= tau2:
             leaves[h], partner[h] = p, best_q
             h += 1
-    return cand_p, cand_q, dis, leaves[:h], partner[:h]
+    return cand_p[:k].copy(), cand_q[:k].copy(), dis[:k].copy(), leaves[:h], partner[:h]
 
 
 @njit(cache=True)
