@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from roco_env.policies.matching_kernels import close_pairs, compact_pairs
+from roco_env.policies.hypothesis_kernels import close_pairs
+from roco_env.policies.matching_kernels import compact_pairs
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -27,57 +28,6 @@ def test_compact_pairs_of_no_pairs_is_empty():
     empty = np.zeros(0, dtype=np.int64)
     rows, row_idx, cols, col_idx, single = compact_pairs(empty, empty)
     assert rows.size == row_idx.size == cols.size == col_idx.size == 0 and single
-
-
-def _numpy_best_gains(ego, collab, pose, p):
-    """The array path: k-d tree pairs within the radius where a pair can still gain, chi2
-    per pair, np.maximum.at per box."""
-    from roco_env.policies.hypotheses import _half_turn, _map, _size_chi2
-
-    mapped = _map(pose, collab.poses)
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    widest = ego.var_t.max(initial=0.0) + collab.var_t.max(initial=0.0) + slack_t
-    found = cKDTree(ego.poses[:, :2]).sparse_distance_matrix(
-        cKDTree(mapped[:, :2]), float(np.sqrt(p.outlier_chi2 * widest)), output_type="ndarray")
-    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
-    dx, dy = ego.poses[i, 0] - mapped[j, 0], ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    chi2 = (dx * dx + dy * dy) / (ego.var_t[i] + collab.var_t[j] + slack_t)
-    chi2 += dyaw * dyaw / (ego.var_r[i] + collab.var_r[j] + slack_r)
-    if p.use_size:
-        chi2 += _size_chi2(ego, collab, i, j, p)
-    gain = p.outlier_chi2 - chi2
-    keep = gain > 0
-    forward, backward = np.zeros(collab.poses.shape[0]), np.zeros(ego.poses.shape[0])
-    np.maximum.at(forward, j[keep], gain[keep])
-    np.maximum.at(backward, i[keep], gain[keep])
-    return forward, backward
-
-
-@pytest.mark.parametrize("use_size", [True, False])
-def test_best_pair_gains_match_the_numpy_path(use_size):
-    from roco_env.policies.hypotheses import EvidenceParams, _best_gains, box_set
-
-    rng = np.random.default_rng(21)
-    p = EvidenceParams(use_size=use_size)
-    for _ in range(10):
-        ego_boxes = np.column_stack([rng.uniform(-30, 30, (40, 2)), rng.normal(size=40),
-                                     rng.uniform(1, 5, (40, 3)), rng.uniform(-3, 3, 40)])
-        collab_boxes = ego_boxes[rng.choice(40, 25, replace=False)].copy()
-        collab_boxes[:, [0, 1, 6]] += rng.normal(size=(25, 3)) * [0.3, 0.3, 0.05]
-        sets = []
-        for boxes in (ego_boxes, collab_boxes):
-            poses = boxes[:, [0, 1, 6]]
-            sigma = rng.uniform(0.1, 0.6, (boxes.shape[0], 3))
-            info = np.zeros((boxes.shape[0], 3, 3))
-            info[:, [0, 1, 2], [0, 1, 2]] = sigma**-2
-            sets.append(box_set(boxes, poses, info))
-        pose = rng.normal(size=3) * [0.3, 0.3, 0.02]
-        forward, backward = _best_gains(sets[0], sets[1], pose, p)
-        expected = _numpy_best_gains(sets[0], sets[1], pose, p)
-        np.testing.assert_array_equal(forward, expected[0])
-        np.testing.assert_array_equal(backward, expected[1])
-        assert np.count_nonzero(forward) > 5  # the case exercises gaining pairs
 
 
 def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():
@@ -110,3 +60,106 @@ def test_gated_pairs_match_the_dense_definition():
         within = dis.min(axis=1) <= tau2
         np.testing.assert_array_equal(leaves, np.nonzero(within)[0])
         np.testing.assert_array_equal(partner, nearest[within])
+
+
+def test_placed_landmarks_are_se2_compose_and_pose_features():
+    from roco_env.geometry import se2_compose
+    from roco_env.policies.matching import pose_features
+    from roco_env.policies.matching_kernels import placed_landmarks
+
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        own = np.column_stack([rng.uniform(-60, 60, (50, 2)), rng.uniform(-np.pi, np.pi, 50)])
+        own[:5, 2] = [np.pi, -np.pi, np.pi / 2, 0.0, -0.0]  # wrap edges
+        pose = np.array([*rng.normal(0, 20, 2), rng.choice([np.pi, -np.pi, rng.normal()])])
+        boxes = np.sort(rng.choice(50, int(rng.integers(0, 50)), replace=False))
+        poses, features = placed_landmarks(pose, own, boxes)
+        expected = se2_compose(pose, own[boxes])
+        np.testing.assert_array_equal(poses, expected)
+        np.testing.assert_array_equal(features, pose_features(expected))
+
+
+@pytest.mark.parametrize("terms", [(True, True), (True, False), (False, True)])
+def test_scored_pairs_match_the_array_path(terms):
+    """Gate, S = lam S_dis + S_edge (all boxes leaves; cached S_edge reused) and the
+    assignment shortcut, against gated_pairs + np.exp + the features' edge similarity + matching._assign."""
+    from roco_env.policies.matching import (
+        MatchingParams,
+        _assign,
+        _edge_similarity_from_features,
+        pose_features,
+    )
+    from roco_env.policies.matching_kernels import gated_pairs, scored_pairs
+
+    use_distance, use_edge = terms
+    p = MatchingParams(use_distance_similarity=use_distance, use_edge_similarity=use_edge,
+                       lam=1.0 if use_distance else 0.0)
+    rng = np.random.default_rng(12)
+    empty = np.zeros(0, dtype=np.int64)
+    cache = (empty, empty, empty, empty, np.zeros(0))
+    shortcuts = 0
+    for trial in range(30):
+        lands = np.column_stack([rng.uniform(-120, 120, (40, 2)), rng.uniform(-3, 3, 40)])
+        own = lands[rng.choice(40, 25, replace=False)] + rng.normal(0, [0.4, 0.4, 0.02], (25, 3))
+        centres = np.ascontiguousarray(own[:, :2] + rng.normal(0, 0.2, 2))
+        tau2 = 3.0 if trial % 3 else 8.0  # the wide gate gives several candidates per box
+        for _ in range(2):  # the second call reuses the cached S_edge
+            assigned, land, box, score, cand_p, cand_q, cand_score, cache = scored_pairs(
+                np.ascontiguousarray(lands[:, :2]), centres, tau2, p.lam if use_distance else 0.0,
+                use_edge, pose_features(lands), pose_features(own), -1.0,
+                p.similarity_threshold, cache)
+        ref_p, ref_q, dis, leaves, partner = gated_pairs(np.ascontiguousarray(lands[:, :2]),
+                                                         centres, tau2)
+        expected = p.lam * np.exp(-dis) if use_distance else 0.0
+        if use_edge:
+            expected = expected + _edge_similarity_from_features(
+                pose_features(lands), pose_features(own), ref_p, ref_q, leaves, partner, None)
+        np.testing.assert_array_equal(cand_p, ref_p)
+        np.testing.assert_array_equal(cand_q, ref_q)
+        np.testing.assert_array_equal(cand_score, expected)
+        if assigned:
+            shortcuts += 1
+            for got, want in zip((land, box, score), _assign(ref_p, ref_q, expected,
+                                                             p.similarity_threshold), strict=True):
+                np.testing.assert_array_equal(got, want)
+    assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised
+
+
+def test_close_pairs_keep_ties_and_the_radius_edge_of_the_dense_scan():
+    """Centres on a lattice (many equal x, distances exactly at the radius) and repeated
+    centres: the windowed search gives the dense scan's pairs in row-major order."""
+    rng = np.random.default_rng(23)
+    lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)
+    for radius in (0.0, 1.0, 2.0, 5.0):
+        a = lattice[rng.permutation(lattice.shape[0])[:80]] * 1.5
+        b = np.vstack([lattice[rng.permutation(lattice.shape[0])[:90]], lattice[:10]]) * 1.5
+        first, second = close_pairs(a, b, radius * 1.5)
+        dx = a[:, None, 0] - b[None, :, 0]
+        dy = a[:, None, 1] - b[None, :, 1]
+        i, j = np.nonzero(np.sqrt(dx * dx + dy * dy) <= radius * 1.5)
+        np.testing.assert_array_equal(first, i)
+        np.testing.assert_array_equal(second, j)
+
+
+def test_gated_pairs_keep_ties_and_the_gate_edge_of_the_dense_scan():
+    """Lattice centres (equal x, distances exactly at the gate, equidistant boxes) and
+    repeated boxes: the windowed scan keeps the dense definition's pairs and nearest boxes
+    (the lowest index among equal distances)."""
+    from roco_env.policies.matching_kernels import gated_pairs
+
+    rng = np.random.default_rng(24)
+    lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)
+    for tau2 in (1.0, 2.0, 3.0):
+        land = lattice[rng.permutation(lattice.shape[0])[:70]] * 1.5 + 0.75
+        centres = np.vstack([lattice[rng.permutation(lattice.shape[0])[:60]], lattice[:8]]) * 1.5
+        dx = land[:, None, 0] - centres[None, :, 0]
+        dy = land[:, None, 1] - centres[None, :, 1]
+        dis = np.sqrt(dx * dx + dy * dy)
+        cand_p, cand_q, d, leaves, partner = gated_pairs(land, centres, tau2 * 1.5)
+        expected_p, expected_q = np.nonzero(dis <= tau2 * 1.5)
+        np.testing.assert_array_equal(cand_p, expected_p)
+        np.testing.assert_array_equal(cand_q, expected_q)
+        np.testing.assert_array_equal(d, dis[expected_p, expected_q])
+        within = dis.min(axis=1) <= tau2 * 1.5
+        np.testing.assert_array_equal(leaves, np.nonzero(within)[0])
+        np.testing.assert_array_equal(partner, dis.argmin(axis=1)[within])

@@ -212,19 +212,33 @@ def test_compiled_wald_statistic_matches_the_numpy_path(kernel):
         assert np.isclose(statistic, expected, rtol=1e-9, atol=1e-9)
 
 
-def _numpy_refine(initial, lands, own, info, gate, kernel, min_matches):
-    """The array path of hypotheses.refine_hypothesis: k-d tree nearest centres within the
-    gate, optimize_pose, twice (the second round only when the pairs changed)."""
-    pose, previous, tree = np.asarray(initial, dtype=float), None, cKDTree(lands[:, :2])
+def _tree_nearest(lands, x, y, gate):
+    """(box indices, their nearest landmark) within the gate, by a k-d tree."""
+    distance, nearest = cKDTree(lands[:, :2]).query(np.column_stack([x, y]),
+                                                   distance_upper_bound=gate)
+    box = np.nonzero(np.isfinite(distance))[0]
+    return box, nearest[box]
+
+
+def _dense_nearest(lands, x, y, gate):
+    """:func:`_tree_nearest` by a dense scan: the lowest index among equal distances, the
+    pairing rule of the compiled loop."""
+    distance = np.sqrt((lands[None, :, 0] - x[:, None]) ** 2 + (lands[None, :, 1] - y[:, None]) ** 2)
+    nearest = np.argmin(distance, axis=1)
+    box = np.nonzero(distance[np.arange(x.size), nearest] < gate)[0]
+    return box, nearest[box]
+
+
+def _numpy_refine(initial, lands, own, info, gate, kernel, min_matches, pairing=_tree_nearest):
+    """The array path of the hypothesis refinement: nearest centres within the gate
+    (``pairing``), optimize_pose, twice (the second round only when the pairs changed)."""
+    pose, previous = np.asarray(initial, dtype=float), None
     for _ in range(2):
         c, s = np.cos(pose[2]), np.sin(pose[2])
-        mapped = np.column_stack([c * own[:, 0] - s * own[:, 1] + pose[0],
-                                  s * own[:, 0] + c * own[:, 1] + pose[1]])
-        distance, nearest = tree.query(mapped, distance_upper_bound=gate)
-        box = np.nonzero(np.isfinite(distance))[0]
+        box, land = pairing(lands, c * own[:, 0] - s * own[:, 1] + pose[0],
+                            s * own[:, 0] + c * own[:, 1] + pose[1], gate)
         if box.size < min_matches:
             return None
-        land = nearest[box]
         if previous is not None and np.array_equal(land, previous[0]) and np.array_equal(
                 box, previous[1]):
             break
@@ -249,6 +263,31 @@ def test_compiled_refinement_matches_the_numpy_path(kernel):
         expected = _numpy_refine(start, lands, own, info, gate, kernel, min_matches)
         pose, ok = refine_pose(start, lands, own, info, gate, KERNEL_CODES[kernel], 2.0,
                                min_matches, 50, 1e-4, _MIN_DIAG)
+        assert ok == (expected is not None)
+        if ok:
+            np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-9)
+
+
+def test_compiled_refinement_pairs_ties_with_the_lowest_index():
+    """Landmarks doubled at the same centres (other headings, higher indices) and rows at
+    the same x: the windowed nearest search keeps the dense scan's choice."""
+    rng = np.random.default_rng(31)
+    for _ in range(20):
+        truth = rng.normal(size=3) * [3.0, 3.0, 0.05]
+        lands = np.column_stack([rng.uniform(-40, 40, (60, 2)), rng.uniform(-3, 3, 60)])
+        lands[:20, 0] = np.round(lands[:20, 0])  # shared x values
+        seen = rng.choice(60, 30, replace=False)
+        own = se2_relative(truth, lands[seen]) + rng.normal(size=(30, 3)) * [0.2, 0.2, 0.02]
+        twins = lands[seen[:10]].copy()
+        twins[:, 2] += 0.3
+        lands = np.vstack([lands, twins])
+        order = rng.permutation(lands.shape[0])  # twins before or after the originals
+        lands = lands[order]
+        info = np.tile(np.diag([25.0, 25.0, 400.0]), (30, 1, 1))
+        start = truth + rng.normal(size=3) * [0.3, 0.3, 0.01]
+        expected = _numpy_refine(start, lands, own, info, 1.0, "cauchy", 3, _dense_nearest)
+        pose, ok = refine_pose(start, lands, own, info, 1.0, KERNEL_CODES["cauchy"], 2.0, 3, 50,
+                               1e-4, _MIN_DIAG)
         assert ok == (expected is not None)
         if ok:
             np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-9)

@@ -31,9 +31,9 @@ between episodes.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, fields, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -41,15 +41,16 @@ from roco_env.geometry import wrap_angle
 from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
+    BoxSet,
     EvidenceParams,
-    box_set,
+    box_sets,
+    evidence_terms,
     generate_hypotheses,
-    pose_distance,
-    refine_hypothesis,
-    score_hypotheses,
+    refine_terms,
 )
+from roco_env.policies.hypothesis_kernels import decision_margin
 from roco_env.policies.landmarks import prepare_inputs, require_positive
-from roco_env.policies.prior_free import poses_distinct
+from roco_env.policies.pose_kernels import refine_starts
 from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
@@ -115,56 +116,57 @@ class Decision:
     hypotheses: int
 
 
-def _prior_chi2(
-    poses: np.ndarray, centre: np.ndarray, sigma_t: float, sigma_r: float
-) -> np.ndarray:
-    """Mahalanobis distance (H,) of poses (H, 3) from ``centre`` with isotropic std
-    ``sigma_t`` (m) in translation and ``sigma_r`` (rad) in yaw."""
-    d = poses - centre
-    yaw = wrap_angle(d[:, 2])
-    return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
-
-
-def _close(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
-    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other."""
-    t, r = pose_distance(a, b)
-    return t <= tolerance and math.degrees(r) <= tolerance
+@lru_cache(maxsize=16)
+def _decision_terms(p: AntiAliasParams) -> tuple:
+    """The settings of ``p`` as the compiled decision stage takes them, computed once per
+    parameter set: the refinement's (:func:`~roco_env.policies.hypotheses.refine_terms`),
+    the evidence's (:func:`~roco_env.policies.hypotheses.evidence_terms`), the reported
+    pose prior's variances (m^2, rad^2), the track's std per step of age (m, rad) and the
+    distinctness thresholds (m, rad)."""
+    sigma_r = np.deg2rad(p.prior_sigma_r_deg)
+    return (
+        refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches),
+        evidence_terms(p),
+        (float(p.prior_sigma_t**2), float(sigma_r**2)),
+        (p.track_sigma_t, np.deg2rad(p.track_sigma_r_deg)),
+        (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
+    )
 
 
 def _decide(
-    ego, collab, reported: np.ndarray, track: tuple[np.ndarray, float] | None, p: AntiAliasParams
+    ego: BoxSet,
+    collab: BoxSet,
+    reported: np.ndarray,
+    track: tuple[np.ndarray, float] | None,
+    p: AntiAliasParams,
 ) -> Decision:
-    """Steps 1-3 of the module docstring for one collaborator (ego / collab: BoxSets)."""
-    starts = [generate_hypotheses(ego, collab, reported, p)]
-    for seed in (reported, None if track is None else track[0]):
-        # A seed next to a vote peak would refine to the same pose.
-        if seed is not None and not any(_close(seed, peak, 0.5) for peak in starts[0]):
-            starts.append(seed[None])
-    refined: list[np.ndarray] = []
-    for start in np.concatenate(starts):
-        pose = refine_hypothesis(
-            ego, collab, start, p, p.robust_kernel, p.kernel_delta, p.min_matches
-        )
-        if pose is not None and not any(_close(pose, other, 0.3) for other in refined):
-            refined.append(pose)
-    if not refined:
+    """Steps 1-3 of the module docstring for one collaborator: the vote peaks
+    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`); with the reported pose and
+    the track's prediction, refined in one compiled pass
+    (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
+    of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
+    0.3 deg of an earlier one is dropped); evidence, priors and margin in another
+    (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`)."""
+    refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
+    reported = np.ascontiguousarray(reported, dtype=float)
+    peaks = generate_hypotheses(ego, collab, reported, p)
+    if track is None:
+        centre, seeds, priors = reported, reported[None], prior + (1.0, 1.0)
+    else:
+        centre, age = np.ascontiguousarray(track[0], dtype=float), track[1]
+        seeds = np.stack([reported, centre])
+        priors = prior + (float((track_t * age) ** 2), float((track_r * age) ** 2))
+    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
+    if poses.shape[0] == 0:
         return Decision(None, float("nan"), 0)
-    poses = np.stack(refined)
-    score = score_hypotheses(ego, collab, poses, p)
-    score -= _prior_chi2(poses, reported, p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
-    if track is not None:
-        centre, age = track
-        score -= _prior_chi2(
-            poses, centre, p.track_sigma_t * age, np.deg2rad(p.track_sigma_r_deg) * age
-        )
-    best = int(np.argmax(score))
-    distinct = poses_distinct(poses, poses[best], p)
-    # Without a distinct rival the alternative is "no hypothesis explains the boxes" (0).
-    runner_up = float(score[distinct].max()) if distinct.any() else 0.0
-    margin = float(score[best]) - runner_up
+    best, margin = decision_margin(
+        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
+        collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
+        poses, reported, centre, track is not None, evidence, priors, distinct,
+    )
     if margin < p.min_margin:
-        return Decision(None, margin, len(refined))
-    return Decision(poses[best], margin, len(refined))
+        return Decision(None, float(margin), poses.shape[0])
+    return Decision(poses[best], float(margin), poses.shape[0])
 
 
 def antialias_align(
@@ -196,7 +198,7 @@ def antialias_align(
         raise ValueError(f"tracks must have one entry per reported pose ({n}); got {len(tracks)}")
     # prepare_inputs has validated the boxes; the sizes come from the same arrays.
     boxes = [np.asarray(b, dtype=float).reshape(-1, 7) for b in (ego_boxes, *collab_boxes)]
-    sets = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]
+    sets = box_sets(boxes, inputs)
     start = inputs.reported.copy()
     decisions = []
     for j in range(n):

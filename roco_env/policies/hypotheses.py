@@ -10,8 +10,8 @@ makes the shifts explicit:
    centre offsets on a 2D grid (a Hough vote); the ``max_hypotheses`` strongest local
    maxima within ``search_radius`` become hypotheses (plus the reported pose and any
    extra seeds, e.g. a temporal track's prediction);
-2. :func:`refine_hypothesis`: nearest-neighbour matching within ``refine_gate`` and a
-   robust single-vertex pose-graph solve (the solver of
+2. refinement (:func:`refine_terms`): nearest-neighbour matching within ``refine_gate``
+   and a robust single-vertex pose-graph solve (the solver of
    :func:`~roco_env.policies.posegraph.optimize_pose`), twice, in one compiled pass;
 3. :func:`score_hypotheses`: a log-likelihood ratio per hypothesis in chi-square units
    (-2 ln L): every collaborator box explained by an ego box gains
@@ -30,22 +30,30 @@ Poses are T_{j->i} (x m, y m, yaw rad) in the ego frame; boxes (K, 7) as everywh
 
 from __future__ import annotations
 
-import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
-from roco_env.policies.landmarks import require_positive
-from roco_env.policies.matching_kernels import best_pair_gains, close_pairs
-from roco_env.policies.pose_kernels import KERNEL_CODES, refine_pose
+from roco_env.policies.hypothesis_kernels import (
+    hypothesis_scores,
+    rotation_votes,
+    translation_votes,
+    vote_peaks,
+)
+from roco_env.policies.landmarks import AlignmentInputs, require_positive
+from roco_env.policies.pose_kernels import KERNEL_CODES
 from roco_env.policies.posegraph import _MIN_DIAG
 
 __all__ = [
     "BoxSet",
     "EvidenceParams",
     "box_set",
+    "box_sets",
     "generate_hypotheses",
-    "refine_hypothesis",
+    "evidence_terms",
+    "refine_terms",
     "score_hypotheses",
 ]
 
@@ -124,221 +132,136 @@ class BoxSet:
     range: float
 
 
+def _box_arrays(
+    boxes: np.ndarray, poses: np.ndarray, information: np.ndarray, xy_covariance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per box: log sizes (K, 3), var_t (K,), var_r (K,) and distance from the agent (K,)
+    (:class:`BoxSet`), every value from its own box only; xy_covariance (K, 2, 2): the
+    covariance of the box centre."""
+    sizes = np.maximum(boxes[:, 3:6], 1e-3)
+    # sigma_x^2 + sigma_y^2 is the trace of the centre's covariance (rotation invariant).
+    var_t = 0.5 * (xy_covariance[:, 0, 0] + xy_covariance[:, 1, 1])
+    return np.log(sizes), var_t, 1.0 / information[:, 2, 2], np.hypot(poses[:, 0], poses[:, 1])
+
+
 def box_set(boxes: np.ndarray, poses: np.ndarray, information: np.ndarray) -> BoxSet:
     """:class:`BoxSet` of validated boxes (K, 7) with their poses (K, 3) and information
     (K, 3, 3) from :func:`~roco_env.policies.landmarks.prepare_inputs`."""
-    sizes = np.maximum(boxes[:, 3:6], 1e-3)
-    # sigma_x^2 + sigma_y^2 is the trace of the xy block's inverse (rotation invariant).
     xy_cov = np.linalg.inv(information[:, :2, :2]) if boxes.shape[0] else np.zeros((0, 2, 2))
-    var_t = 0.5 * (xy_cov[:, 0, 0] + xy_cov[:, 1, 1])
-    distance = np.hypot(poses[:, 0], poses[:, 1])
-    reach = float(distance.max()) if distance.size else 0.0
-    return BoxSet(
-        poses,
-        np.log(sizes),
-        information,
-        var_t,
-        1.0 / information[:, 2, 2],
-        reach,
+    log_sizes, var_t, var_r, distance = _box_arrays(boxes, poses, information, xy_cov)
+    return BoxSet(poses, log_sizes, information, var_t, var_r, _reach(distance))
+
+
+def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSet]:
+    """:func:`box_set` of every agent (ego first): boxes[a] (K_a, 7) validated, with the
+    poses and information of ``inputs`` (:func:`~roco_env.policies.landmarks.prepare_inputs`),
+    derived in one pass over all agents' boxes (per-agent calls cost more in overhead;
+    every value depends on its own box only). The centres' covariances are the xy blocks
+    of ``inputs.all_covariance``, which RoCo computes anyway (the information has no
+    xy-yaw terms, so they are the inverses of the information's xy blocks; LAPACK gives
+    the same values, tested)."""
+    arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
+                         inputs.all_covariance[:, :2, :2])
+    cuts = inputs.offsets[1:-1]
+    parts = zip(*(np.split(values, cuts) for values in arrays), strict=True)
+    return [
+        BoxSet(inputs.poses[a], log_sizes, inputs.information[a], var_t, var_r, _reach(distance))
+        for a, (log_sizes, var_t, var_r, distance) in enumerate(parts)
+    ]
+
+
+def _reach(distance: np.ndarray) -> float:
+    """The largest box distance (m; 0 without boxes): the radius of the observed disk."""
+    return float(distance.max()) if distance.size else 0.0
+
+
+@lru_cache(maxsize=16)
+def _vote_terms(p: EvidenceParams) -> tuple:
+    """The vote settings of ``p`` (read-only: shared by every call with ``p``): rotation
+    search half-width and 0.25 deg cell (rad), its bin count and pair radius (m); the
+    translation grid's pair radius (m), search half-width (m), cell (m) and cells per
+    axis; 2 size_sigma^2 (0 = sizes not used); the heading std weighing the translation
+    votes (3 deg, in rad); the peaks' suppression radius (cells^2)."""
+    half, cell = np.deg2rad(p.search_yaw_deg), np.deg2rad(0.25)
+    return (
+        half, cell, int(np.ceil(2 * half / cell)), float(p.search_radius + 2.0),
+        float(p.search_radius * np.sqrt(2.0)), float(p.search_radius), float(p.vote_bin),
+        int(np.ceil(2 * p.search_radius / p.vote_bin)),
+        2.0 * p.size_sigma**2 if p.use_size else 0.0, np.deg2rad(3.0),
+        (1.25 / p.vote_bin) ** 2,  # lattice pitches (2.5 m) stay apart
     )
-
-
-def _map(pose: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Poses (K, 3) moved by the SE(2) pose (3,) (heading not wrapped: only its
-    differences modulo pi are used)."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    out = np.empty_like(poses)
-    out[:, 0] = c * poses[:, 0] - s * poses[:, 1] + pose[0]
-    out[:, 1] = s * poses[:, 0] + c * poses[:, 1] + pose[1]
-    out[:, 2] = poses[:, 2] + pose[2]
-    return out
-
-
-def _half_turn(angle: np.ndarray) -> np.ndarray:
-    """Angle difference modulo pi, in [-pi/2, pi/2) (detected headings may be flipped)."""
-    return np.mod(angle + np.pi / 2, np.pi) - np.pi / 2
-
-
-def _pairs(ego: BoxSet, mapped: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(ego index, collaborator index) of every pair of centres at most ``radius`` m apart,
-    the collaborator's boxes already mapped into the ego frame (mapped (K1, 3))."""
-    return close_pairs(ego.poses[:, :2], mapped[:, :2], float(radius))
-
-
-def _size_chi2(ego: BoxSet, collab: BoxSet, i: np.ndarray, j: np.ndarray, p: EvidenceParams):
-    """chi2 (P,) of the log-size differences of pairs (both boxes noisy: variance 2 sigma^2)."""
-    diff = ego.log_sizes[i] - collab.log_sizes[j]
-    return (diff * diff).sum(axis=1) / (2.0 * p.size_sigma**2)
-
-
-def _vote_peak(values: np.ndarray, weight: np.ndarray, half: float, cell: float) -> float:
-    """Centre of the strongest (5-cell smoothed) bin of a weighted 1D vote over [-half, half]."""
-    bins = int(np.ceil(2 * half / cell))
-    votes = np.bincount(
-        np.minimum(((values + half) / cell).astype(np.int64), bins - 1), weight, bins
-    )
-    smooth = np.convolve(votes, np.ones(5), mode="same")
-    return -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
 
 
 def generate_hypotheses(
     ego: BoxSet, collab: BoxSet, reported: np.ndarray, p: EvidenceParams
 ) -> np.ndarray:
     """Initial poses (H, 3) of the strongest votes (module docstring, step 1); the first
-    row is the vote maximum; empty (0, 3) when no box pair lies within the search."""
-    # Rotation: heading differences (modulo pi) of nearby pairs, 0.25 deg cells.
-    half = np.deg2rad(p.search_yaw_deg)
-    mapped = _map(reported, collab.poses)
-    i, j = _pairs(ego, mapped, p.search_radius + 2.0)
-    if i.size == 0:
+    row is the vote maximum; empty (0, 3) when no box pair lies within the search.
+
+    The rotation is the strongest (5-cell smoothed) bin of the heading-difference votes;
+    the translation votes are smoothed by a 3x3 box sum (a true offset splits its votes
+    over neighbouring cells); peaks are taken in decreasing vote order, above
+    ``vote_floor`` of the strongest, away from the earlier ones. The votes and the peak
+    scan are compiled loops (:mod:`roco_env.policies.hypothesis_kernels`)."""
+    half, cell, bins, rotation_radius, radius, search, vote_bin, n, size_den, yaw_sigma, \
+        suppress = _vote_terms(p)
+    votes, n_pairs = rotation_votes(
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, reported, rotation_radius,
+        size_den, half, cell, bins,
+    )
+    if n_pairs == 0:
         return np.zeros((0, 3))
-    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    use = np.abs(dyaw) <= half
-    rotation = _vote_peak(dyaw[use], size_weight[use], half, np.deg2rad(0.25))
+    smooth = np.convolve(votes, np.ones(5), mode="same")
+    rotation = -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
     rotated = reported + np.array([0.0, 0.0, rotation])
-    # Translation: centre offsets on a grid of vote_bin cells, headings weighing each pair.
-    mapped = _map(rotated, collab.poses)
-    i, j = _pairs(ego, mapped, p.search_radius * np.sqrt(2.0))
-    size_weight = np.exp(-0.5 * _size_chi2(ego, collab, i, j, p)) if p.use_size else np.ones(i.size)
-    dx = ego.poses[i, 0] - mapped[j, 0]
-    dy = ego.poses[i, 1] - mapped[j, 1]
-    dyaw = _half_turn(ego.poses[i, 2] - mapped[j, 2])
-    use = (np.abs(dx) <= p.search_radius) & (np.abs(dy) <= p.search_radius)
-    weight = (size_weight * np.exp(-0.5 * (dyaw / np.deg2rad(3.0)) ** 2))[use]
-    n = int(np.ceil(2 * p.search_radius / p.vote_bin))
-    ix = np.minimum(((dx[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
-    iy = np.minimum(((dy[use] + p.search_radius) / p.vote_bin).astype(np.int64), n - 1)
-    grid = np.bincount(ix * n + iy, weight, n * n).reshape(n, n)
-    # 3x3 box sum: a true offset splits its votes over neighbouring cells.
-    padded = np.zeros((n + 2, n + 2))  # np.pad(grid, 1) without its per-call overhead
-    padded[1:-1, 1:-1] = grid
-    smooth = sum(padded[a : a + n, b : b + n] for a in range(3) for b in range(3))
-    peaks: list[tuple[int, int]] = []
-    suppress = (1.25 / p.vote_bin) ** 2  # cells; lattice pitches (2.5 m) stay apart
-    floor = max(p.vote_floor * smooth.max(), 0.0)
-    for flat in np.argsort(-smooth, axis=None):
-        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= floor:
-            break
-        a, b = divmod(int(flat), n)
-        if all((a - c) ** 2 + (b - d) ** 2 > suppress for c, d in peaks):
-            peaks.append((a, b))
-    if not peaks:
-        return np.zeros((0, 3))
-    offsets = (np.array(peaks, dtype=float) + 0.5) * p.vote_bin - p.search_radius
-    out = np.tile(rotated, (offsets.shape[0], 1))
-    out[:, :2] += offsets
-    return out
-
-
-def refine_hypothesis(
-    ego: BoxSet,
-    collab: BoxSet,
-    initial: np.ndarray,
-    p: EvidenceParams,
-    kernel: str | None,
-    kernel_delta: float,
-    min_matches: int,
-) -> np.ndarray | None:
-    """Up to two rounds of nearest matching within ``refine_gate`` and a robust pose solve
-    (the second only when the matches changed); None when fewer than ``min_matches``
-    boxes match. One compiled pass (:func:`~roco_env.policies.pose_kernels.refine_pose`)."""
-    pose, ok = refine_pose(
-        np.asarray(initial, dtype=float).reshape(3),
-        ego.poses,
-        collab.poses,
-        collab.information,
-        float(p.refine_gate),
-        KERNEL_CODES[kernel],
-        float(kernel_delta),
-        int(min_matches),
-        _REFINE_ITERATIONS,
-        _REFINE_TOLERANCE,
-        _MIN_DIAG,
+    grid = translation_votes(
+        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated, radius, search,
+        vote_bin, n, size_den, yaw_sigma,
     )
-    return pose if ok else None
+    return vote_peaks(grid, np.argsort(-grid, axis=None), int(p.max_hypotheses),
+                      float(p.vote_floor), suppress, rotated, vote_bin, search)
 
 
-def _best_gains(
-    ego: BoxSet, collab: BoxSet, pose: np.ndarray, p: EvidenceParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per box, the largest gain ``outlier_chi2 - chi2 > 0`` of its pairs under ``pose``
-    (0 for a box no pair explains): (collaborator boxes (K1,), ego boxes (K0,)); chi2
-    from position, heading modulo pi and (when used) log sizes, both boxes' variances and
-    the pose slack (:func:`~roco_env.policies.matching_kernels.best_pair_gains`)."""
-    return best_pair_gains(
-        ego.poses,
-        ego.log_sizes,
-        ego.var_t,
-        ego.var_r,
-        _map(pose, collab.poses),
-        collab.log_sizes,
-        collab.var_t,
-        collab.var_r,
-        p.pose_slack_t**2,
-        np.deg2rad(p.pose_slack_r_deg) ** 2,
-        2.0 * p.size_sigma**2 if p.use_size else 0.0,
-        float(p.outlier_chi2),
-    )
+def refine_terms(
+    p: EvidenceParams, kernel: str | None, kernel_delta: float, min_matches: int
+) -> tuple:
+    """The refinement's settings as :func:`~roco_env.policies.pose_kernels.refine_pose`
+    takes them (module docstring, step 2): (gate m, kernel code, kernel delta, min_matches,
+    LM iteration cap, relative-decrease stop, minimum damping diagonal). Up to two rounds
+    of nearest matching within ``refine_gate`` and a robust pose solve (the second only
+    when the matches changed); a start matching fewer than ``min_matches`` boxes refines
+    to nothing."""
+    return (float(p.refine_gate), KERNEL_CODES[kernel], float(kernel_delta), int(min_matches),
+            _REFINE_ITERATIONS, _REFINE_TOLERANCE, _MIN_DIAG)
+
+
+def evidence_terms(p: EvidenceParams) -> tuple:
+    """The evidence settings as :func:`~roco_env.policies.hypothesis_kernels.hypothesis_scores`
+    takes them: (pose slack variances m^2 and rad^2, 2 size_sigma^2 (0 = sizes not used),
+    outlier_chi2, free_space_penalty, use_free_space, use_mutual_detection)."""
+    return (float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2),
+            2.0 * p.size_sigma**2 if p.use_size else 0.0, float(p.outlier_chi2),
+            float(p.free_space_penalty), bool(p.use_free_space), bool(p.use_mutual_detection))
 
 
 def score_hypotheses(
     ego: BoxSet, collab: BoxSet, poses: np.ndarray, p: EvidenceParams
 ) -> np.ndarray:
     """Evidence (H,) of each hypothesis pose (H, 3), in chi2 units (module docstring, step 3;
-    priors not included)."""
-    # Only boxes inside the other agent's observed disk under *every* hypothesis count:
-    # otherwise a hypothesis that pulls more boxes into the overlap scores higher.
-    forward_set = np.ones(collab.poses.shape[0], dtype=bool)
-    backward_set = np.ones(ego.poses.shape[0], dtype=bool)
-    for pose in poses:
-        mapped = _map(pose, collab.poses)
-        forward_set &= np.hypot(mapped[:, 0], mapped[:, 1]) <= ego.range
-        backward_set &= np.hypot(*(ego.poses[:, :2] - pose[:2]).T) <= collab.range
-    scores = np.zeros(poses.shape[0])
-    for h, pose in enumerate(poses):
-        forward, backward = _best_gains(ego, collab, pose, p)
-        scores[h] = float(forward[forward_set].sum())
-        if p.use_free_space:
-            scores[h] += float(backward[backward_set].sum())
-            unexplained = backward_set & (backward == 0)
-            scores[h] -= p.free_space_penalty * float(np.count_nonzero(unexplained))
-        if p.use_mutual_detection:
-            scores[h] += _mutual_detection(ego, collab, pose, backward == 0, forward == 0, p)
-    return scores
+    priors not included), in one compiled pass
+    (:func:`~roco_env.policies.hypothesis_kernels.hypothesis_scores`).
 
-
-def _mutual_detection(
-    ego: BoxSet,
-    collab: BoxSet,
-    pose: np.ndarray,
-    ego_unexplained: np.ndarray,
-    collab_unexplained: np.ndarray,
-    p: EvidenceParams,
-) -> float:
-    """Gain of the two direct detections the hypothesis predicts: an ego box where it puts
-    the collaborator's vehicle (pose ``pose``, heading modulo pi) that no collaborator box
-    explains (nobody detects itself), and a collaborator box where it puts the ego."""
-    total = 0.0
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    inverse = np.array([-c * pose[0] - s * pose[1], s * pose[0] - c * pose[1], -pose[2]])
-    slack_t, slack_r = p.pose_slack_t**2, np.deg2rad(p.pose_slack_r_deg) ** 2
-    for boxes, target, unexplained in (
-        (ego, pose, ego_unexplained),
-        (collab, inverse, collab_unexplained),
-    ):
-        if boxes.poses.shape[0] == 0:
-            continue
-        d = boxes.poses[:, :2] - target[:2]
-        dyaw = _half_turn(boxes.poses[:, 2] - target[2])
-        chi2 = (d * d).sum(axis=1) / (boxes.var_t + slack_t) + dyaw * dyaw / (boxes.var_r + slack_r)
-        gains = np.where(unexplained, np.maximum(p.outlier_chi2 - chi2, 0.0), 0.0)
-        total += float(gains.max())
-    return total
-
-
-def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(translation m, |yaw| rad) between two poses (3,)."""
-    # Scalar math: the same hypot and floor-modulo wrap as np.hypot / geometry.wrap_angle.
-    yaw = (float(a[2]) - float(b[2]) + math.pi) % (2.0 * math.pi) - math.pi
-    return math.hypot(a[0] - b[0], a[1] - b[1]), abs(yaw)
+    Only boxes inside the other agent's observed disk under *every* hypothesis count
+    (otherwise a hypothesis that pulls more boxes into the overlap scores higher). Per
+    box, the best pair's gain ``outlier_chi2 - chi2 > 0`` (chi2 from position, heading
+    modulo pi and, when used, log sizes, with both boxes' variances and the pose slack:
+    :func:`~roco_env.policies.hypothesis_kernels.best_pair_gains`); the direct detections
+    count an ego box where the hypothesis puts the collaborator's vehicle that no
+    collaborator box explains (nobody detects itself), and a collaborator box where it
+    puts the ego.
+    """
+    return hypothesis_scores(
+        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
+        collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
+        np.ascontiguousarray(poses, dtype=float), *evidence_terms(p),
+    )

@@ -59,6 +59,13 @@ class AlignmentInputs:
     def n_collaborators(self) -> int:
         return self.reported.shape[0]
 
+    @functools.cached_property
+    def all_covariance(self) -> np.ndarray:
+        """Covariance (B, 3, 3) of every box pose (box frame), the inverse of
+        ``all_information`` matrix by matrix; computed once per inputs (RoCo and the
+        hypothesis evidence both use it)."""
+        return np.linalg.inv(self.all_information)
+
 
 @dataclass(frozen=True)
 class UncertaintyParams:

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, gated_pairs
+from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, scored_pairs
 
 __all__ = [
     "MatchingParams",
@@ -140,8 +140,10 @@ class StarGraphMatcher:
         )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = pose_features(boxes_own) if box_features is None else box_features
-        self._cached_key: tuple | None = None
-        self._cached_edge = np.zeros(0)
+        radius = params.neighbor_radius
+        self._radius2 = -1.0 if radius is None else float(radius) ** 2
+        # S_edge of the last candidate pairs and initial matches (reused while they stay).
+        self._cache = (_EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0))
 
     def match(
         self, pose: np.ndarray, tau2: float | None = None
@@ -159,40 +161,22 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        cand_p, cand_q, dis, leaves, partner = gated_pairs(
-            self._land_xy, np.ascontiguousarray(centres, dtype=float), float(tau2)
-        )
-        if cand_p.size == 0:
-            return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
         p = self.params
-        score = p.lam * np.exp(-dis) if p.use_distance_similarity else 0.0
-        if p.use_edge_similarity:
-            score = score + self._edge_similarity(cand_p, cand_q, leaves, partner)
-        return _assign(cand_p, cand_q, score, p.similarity_threshold)
-
-    def _edge_similarity(
-        self, cand_p: np.ndarray, cand_q: np.ndarray, leaves: np.ndarray, partner: np.ndarray
-    ) -> np.ndarray:
-        """S_edge (C,) of the candidate pairs given the initial matches n = A(m) (leaves m
-        (H,), partner n (H,)), reused when the pairs and the initial matches are those of
-        the previous call."""
-        key = (
-            cand_p.size,
-            leaves.size,
-            np.concatenate([cand_p, cand_q, leaves, partner]).tobytes(),
+        assigned, land, box, score, cand_p, cand_q, cand_score, self._cache = scored_pairs(
+            self._land_xy,
+            np.ascontiguousarray(centres, dtype=float),
+            float(tau2),
+            float(p.lam) if p.use_distance_similarity else 0.0,
+            p.use_edge_similarity,
+            self._land_features,
+            self._box_features,
+            self._radius2,
+            float(p.similarity_threshold),
+            self._cache,
         )
-        if key != self._cached_key:
-            self._cached_edge = _edge_similarity_from_features(
-                self._land_features,
-                self._box_features,
-                cand_p,
-                cand_q,
-                leaves,
-                partner,
-                self.params.neighbor_radius,
-            )
-            self._cached_key = key
-        return self._cached_edge
+        if assigned:
+            return land, box, score
+        return _assign(cand_p, cand_q, cand_score, p.similarity_threshold)
 
 
 def match_star_graphs(

@@ -1,5 +1,5 @@
 """Compiled (numba) loops of RoCo's matching (the gate search, the edge similarity, the
-assignment's index compaction) and of the hypothesis evidence's box pairing.
+assignment's index compaction, the new landmarks of an accepted collaborator).
 
 :func:`~roco_env.policies.matching._edge_similarity_from_features` scores every
 candidate pair against every matched leaf; with the star graphs' neighbour radius most
@@ -15,7 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["best_pair_gains", "close_pairs", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs"]
+__all__ = ["compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs", "placed_landmarks",
+           "scored_pairs"]
 
 
 @njit(cache=True)
@@ -100,42 +101,55 @@ def gated_pairs(land_xy, centres, tau2):
     Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
     (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
     (lowest index among equal distances) is within the gate, with that box. A pair whose
-    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured.
+    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured; the
+    boxes are sorted by x once, so each landmark scans only its window in x.
     """
     n_land, n_box = land_xy.shape[0], centres.shape[0]
     reach = tau2 * (1.0 + 1e-12)
-    count = 0
-    for p in range(n_land):
-        for q in range(n_box):
-            dx = land_xy[p, 0] - centres[q, 0]
-            dy = land_xy[p, 1] - centres[q, 1]
-            if abs(dx) > reach or abs(dy) > reach:
-                continue
-            if math.sqrt(dx * dx + dy * dy) <= tau2:
-                count += 1
-    cand_p = np.empty(count, dtype=np.int64)
-    cand_q = np.empty(count, dtype=np.int64)
-    dis = np.empty(count)
+    window = tau2 * (1.0 + 1e-6)  # holds every box within reach in x
+    by_x = np.argsort(centres[:, 0])
+    sorted_x = centres[by_x, 0]
+    cand_p = np.empty(max(4 * n_land, 16), dtype=np.int64)
+    cand_q = np.empty_like(cand_p)
+    dis = np.empty(cand_p.size)
     leaves = np.empty(n_land, dtype=np.int64)
     partner = np.empty(n_land, dtype=np.int64)
+    row_q = np.empty(n_box, dtype=np.int64)
+    row_d = np.empty(n_box)
     k = h = 0
     for p in range(n_land):
-        best, best_q = math.inf, -1
-        for q in range(n_box):
-            dx = land_xy[p, 0] - centres[q, 0]
-            dy = land_xy[p, 1] - centres[q, 1]
+        lx, ly = land_xy[p, 0], land_xy[p, 1]
+        best, best_q, size = math.inf, -1, 0
+        for w in range(np.searchsorted(sorted_x, lx - window), n_box):
+            if sorted_x[w] > lx + window:
+                break
+            q = by_x[w]
+            dx = lx - centres[q, 0]
+            dy = ly - centres[q, 1]
             if abs(dx) > reach or abs(dy) > reach:
                 continue  # beyond the gate: neither a pair nor a nearest box within it
             d = math.sqrt(dx * dx + dy * dy)
-            if d <= tau2:
-                cand_p[k], cand_q[k], dis[k] = p, q, d
-                k += 1
-            if d < best:
+            if d <= tau2:  # the row's pairs, kept in increasing box order
+                slot = size
+                while slot and row_q[slot - 1] > q:
+                    row_q[slot], row_d[slot] = row_q[slot - 1], row_d[slot - 1]
+                    slot -= 1
+                row_q[slot], row_d[slot] = q, d
+                size += 1
+            if d < best or (d == best and q < best_q):
                 best, best_q = d, q
+        if k + size > cand_p.size:
+            grown = max(2 * cand_p.size, k + size)
+            cand_p = np.concatenate((cand_p, np.empty(grown - cand_p.size, dtype=np.int64)))
+            cand_q = np.concatenate((cand_q, np.empty(grown - cand_q.size, dtype=np.int64)))
+            dis = np.concatenate((dis, np.empty(grown - dis.size)))
+        for r in range(size):
+            cand_p[k], cand_q[k], dis[k] = p, row_q[r], row_d[r]
+            k += 1
         if best <= tau2:
             leaves[h], partner[h] = p, best_q
             h += 1
-    return cand_p, cand_q, dis, leaves[:h], partner[:h]
+    return cand_p[:k].copy(), cand_q[:k].copy(), dis[:k].copy(), leaves[:h], partner[:h]
 
 
 @njit(cache=True)
@@ -178,58 +192,64 @@ def compact_pairs(cand_p, cand_q):
 
 
 @njit(cache=True)
-def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_log_sizes,
-                    col_var_t, col_var_r, slack_t, slack_r, size_denominator, outlier_chi2):
-    """Per box, the largest gain ``outlier_chi2 - chi2`` of its pairs with the other set's
-    boxes (0 without a pair that gains): (collaborator boxes (K1,), ego boxes (K0,)).
-
-    chi2 of ego box i and collaborator box j (mapped (K1, 3) into the ego frame):
-    |t_i - t_j|^2 / (var_t_i + var_t_j + slack_t) + half-turn yaw difference^2 /
-    (var_r_i + var_r_j + slack_r) + (size_denominator > 0) |log size difference|^2 /
-    size_denominator, as ``hypotheses._pair_gains`` computes it; every pair is visited
-    (no radius: a pair beyond it cannot gain)."""
-    n_ego, n_col = ego_poses.shape[0], mapped.shape[0]
-    forward = np.zeros(n_col)
-    backward = np.zeros(n_ego)
-    half = math.pi / 2
-    for i in range(n_ego):
-        for j in range(n_col):
-            dx = ego_poses[i, 0] - mapped[j, 0]
-            dy = ego_poses[i, 1] - mapped[j, 1]
-            chi2 = (dx * dx + dy * dy) / (ego_var_t[i] + col_var_t[j] + slack_t)
-            if chi2 >= outlier_chi2:
-                continue  # the other terms are >= 0: no gain
-            dyaw = (ego_poses[i, 2] - mapped[j, 2] + half) % math.pi - half
-            chi2 += dyaw * dyaw / (ego_var_r[i] + col_var_r[j] + slack_r)
-            if size_denominator > 0.0:
-                d0 = ego_log_sizes[i, 0] - col_log_sizes[j, 0]
-                d1 = ego_log_sizes[i, 1] - col_log_sizes[j, 1]
-                d2 = ego_log_sizes[i, 2] - col_log_sizes[j, 2]
-                chi2 += (d0 * d0 + d1 * d1 + d2 * d2) / size_denominator
-            gain = outlier_chi2 - chi2
-            if gain > 0.0:
-                forward[j] = max(forward[j], gain)
-                backward[i] = max(backward[i], gain)
-    return forward, backward
+def placed_landmarks(pose, own, boxes):
+    """The agent's boxes ``own[boxes]`` (own (K, 3) in its frame, boxes (B,) indices) placed
+    in the ego frame by its pose (3,) as ``geometry.se2_compose(pose, own[boxes])`` does
+    (yaw wrapped to (-pi, pi]), with their pose features (5, B) (``matching.pose_features``:
+    x, y, x^2 + y^2, cos(yaw), sin(yaw))."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    poses = np.empty((boxes.size, 3))
+    features = np.empty((5, boxes.size))
+    for k in range(boxes.size):
+        bx, by, byaw = own[boxes[k], 0], own[boxes[k], 1], own[boxes[k], 2]
+        x = pose[0] + c * bx - s * by
+        y = pose[1] + s * bx + c * by
+        yaw = (pose[2] + byaw + math.pi) % (2.0 * math.pi) - math.pi
+        if yaw <= -math.pi:
+            yaw += 2.0 * math.pi
+        poses[k, 0], poses[k, 1], poses[k, 2] = x, y, yaw
+        features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
+        features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
+    return poses, features
 
 
 @njit(cache=True)
-def close_pairs(a_xy, b_xy, radius):
-    """(index into a (P,), index into b (P,)) of every pair of centres a_xy (A, 2),
-    b_xy (B, 2) at most ``radius`` apart (distance sqrt(dx^2 + dy^2)), in row-major order."""
-    count = 0
-    for i in range(a_xy.shape[0]):
-        for j in range(b_xy.shape[0]):
-            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
-            if math.sqrt(dx * dx + dy * dy) <= radius:
-                count += 1
-    first = np.empty(count, dtype=np.int64)
-    second = np.empty(count, dtype=np.int64)
-    k = 0
-    for i in range(a_xy.shape[0]):
-        for j in range(b_xy.shape[0]):
-            dx, dy = a_xy[i, 0] - b_xy[j, 0], a_xy[i, 1] - b_xy[j, 1]
-            if math.sqrt(dx * dx + dy * dy) <= radius:
-                first[k], second[k] = i, j
-                k += 1
-    return first, second
+def scored_pairs(land_xy, centres, tau2, lam, use_edge, land_features, box_features, radius2,
+                 tau1, cached):
+    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    (:func:`gated_pairs`) scored S = lam * S_dis (lam = 0: no distance term) + S_edge
+    (with ``use_edge``, :func:`edge_similarity`; reused from ``cached`` = (cand_p, cand_q,
+    leaves, partner, S_edge) of an earlier call when the pairs and the initial matches
+    are the same), and the assignment's shortcut: when every landmark and every box has a
+    single candidate and every score is > 0, the pairs with S >= tau1 are the assignment.
+
+    Returns (assigned?, landmark (P,), box (P,), S (P,) of the assignment when the
+    shortcut applies (else empty), then the candidates (cand_p, cand_q, S) for the full
+    assignment, and the new cache (cand_p, cand_q, leaves, partner, S_edge)).
+    """
+    cand_p, cand_q, dis, leaves, partner = gated_pairs(land_xy, centres, tau2)
+    score = np.empty(cand_p.size)
+    for k in range(cand_p.size):
+        score[k] = lam * math.exp(-dis[k])
+    edge = cached[4]
+    if use_edge:
+        old_p, old_q, old_leaves, old_partner = cached[0], cached[1], cached[2], cached[3]
+        same = old_p.size == cand_p.size and old_leaves.size == leaves.size
+        for k in range(cand_p.size if same else 0):
+            same = same and old_p[k] == cand_p[k] and old_q[k] == cand_q[k]
+        for k in range(leaves.size if same else 0):
+            same = same and old_leaves[k] == leaves[k] and old_partner[k] == partner[k]
+        if not same:
+            edge = edge_similarity(land_features, box_features, cand_p, cand_q, leaves, partner,
+                                   radius2)
+        for k in range(cand_p.size):
+            score[k] = score[k] + edge[k]
+    single = compact_pairs(cand_p, cand_q)[4]
+    for k in range(cand_p.size):
+        single = single and score[k] > 0
+    kept = np.zeros(cand_p.size, dtype=np.bool_)
+    if single:
+        for k in range(cand_p.size):
+            kept[k] = score[k] >= tau1
+    return (single, cand_p[kept], cand_q[kept], score[kept], cand_p, cand_q, score,
+            (cand_p, cand_q, leaves, partner, edge))

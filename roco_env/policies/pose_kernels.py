@@ -20,8 +20,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "rotate_information",
-           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
+__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "refine_starts",
+           "rotate_information", "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -556,8 +556,8 @@ def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, m
 @njit(cache=True)
 def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, min_matches,
                 max_iterations, tolerance, min_diag):
-    """Up to two rounds of nearest-centre matching and a robust single-vertex solve
-    (``hypotheses.refine_hypothesis``).
+    """Up to two rounds of nearest-centre matching and a robust single-vertex solve (the
+    refinement of roco_antialias's hypotheses, :func:`refine_starts`).
 
     Each round maps the agent's boxes own_poses (K, 3) (its frame) into the landmarks'
     frame with the current pose (initial (3,) first), pairs every box with its nearest
@@ -567,12 +567,24 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
     changed. Returns (pose (3,), True), or (initial, False) when fewer than
     ``min_matches`` boxes match in a round.
     """
+    by_x = np.argsort(land_poses[:, 0])
+    return _refine_sorted(initial, land_poses, by_x, land_poses[by_x, 0], own_poses, own_info,
+                          gate, kernel, delta, min_matches, max_iterations, tolerance, min_diag)
+
+
+@njit(cache=True)
+def _refine_sorted(initial, land_poses, by_x, sorted_x, own_poses, own_info, gate, kernel,
+                   delta, min_matches, max_iterations, tolerance, min_diag):
+    """:func:`refine_pose` with the landmarks' order by x (by_x (L,)) and their sorted x
+    (L,) given: only landmarks within the gate in x (with a margin far above rounding) can
+    be nearer than the gate; ties go to the lowest index, as in a scan."""
     pose = initial.copy()
     n_own, n_land = own_poses.shape[0], land_poses.shape[0]
     if min(n_own, n_land) < min_matches:
         return pose, False
     previous = np.full(n_own, -2, dtype=np.int64)
     nearest = np.empty(n_own, dtype=np.int64)
+    reach = gate * (1.0 + 1e-6)
     for _ in range(2):
         c, s = math.cos(pose[2]), math.sin(pose[2])
         count = 0
@@ -580,9 +592,12 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
             x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
             y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
             best, best_p = gate, -1
-            for p in range(n_land):
+            for k in range(np.searchsorted(sorted_x, x - reach), n_land):
+                if sorted_x[k] > x + reach:
+                    break
+                p = by_x[k]
                 d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
-                if d < best:
+                if d < best or (d == best and 0 <= p < best_p):
                     best, best_p = d, p
             nearest[q] = best_p
             count += best_p >= 0
@@ -600,6 +615,54 @@ def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, m
                           np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
                           kernel, delta, _no_prior(), max_iterations, tolerance, min_diag)[0]
     return pose, True
+
+
+@njit(cache=True)
+def _close(a, b, tolerance):
+    """Poses (3,) within ``tolerance`` m and ``tolerance`` deg of each other (translation
+    by the C library's hypot, as np.hypot; the yaw difference wrapped to [-pi, pi))."""
+    yaw = (a[2] - b[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return math.hypot(a[0] - b[0], a[1] - b[1]) <= tolerance and (
+        math.degrees(abs(yaw)) <= tolerance
+    )
+
+
+@njit(cache=True)
+def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, kernel, delta,
+                  min_matches, max_iterations, tolerance, min_diag):
+    """The refined hypotheses (R, 3) of one collaborator (``roco_env.policies.antialias``,
+    step 1): the vote peaks (H, 3), then each seed (S, 3) (the reported pose, a track's
+    prediction) unless within 0.5 m / 0.5 deg of a peak (it would refine to the same
+    pose), refined in turn by :func:`refine_pose` (arguments as there); a start matching
+    too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier result, adds none."""
+    n_peaks = peaks.shape[0]
+    starts = np.empty((n_peaks + seeds.shape[0], 3))
+    starts[:n_peaks] = peaks
+    n_starts = n_peaks
+    for k in range(seeds.shape[0]):
+        near = False
+        for h in range(n_peaks):
+            near = near or _close(seeds[k], peaks[h], 0.5)
+        if not near:
+            starts[n_starts] = seeds[k]
+            n_starts += 1
+    by_x = np.argsort(land_poses[:, 0])
+    sorted_x = land_poses[by_x, 0]
+    refined = np.empty((n_starts, 3))
+    count = 0
+    for k in range(n_starts):
+        pose, ok = _refine_sorted(starts[k], land_poses, by_x, sorted_x, own_poses, own_info,
+                                  gate, kernel, delta, min_matches, max_iterations, tolerance,
+                                  min_diag)
+        if not ok:
+            continue
+        duplicate = False
+        for other in range(count):
+            duplicate = duplicate or _close(pose, refined[other], 0.3)
+        if not duplicate:
+            refined[count] = pose
+            count += 1
+    return refined[:count].copy()
 
 
 @njit(cache=True)

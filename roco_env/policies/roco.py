@@ -62,7 +62,6 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.geometry import se2_compose
 from roco_env.policies.adapter import ArrayAlignmentPolicy
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
@@ -75,14 +74,14 @@ from roco_env.policies.landmarks import (
     prior_information,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
-from roco_env.policies.pose_kernels import KERNEL_CODES, wald_statistic
+from roco_env.policies.matching_kernels import placed_landmarks
+from roco_env.policies.pose_kernels import KERNEL_CODES, solve_pose_edges, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
     PoseGraphResult,
     edge_chi2,
     optimize,
-    optimize_pose,
     robust_kernel,
 )
 
@@ -284,20 +283,21 @@ def _optimise_round(
         att.solver += solution.iterations
         return
     att.landmarks = world.poses[att.match_land]
-    result = optimize_pose(
+    # optimize_pose's compiled solver, called directly (the inputs are already checked).
+    att.pose, att.chi2, _, _, iterations, _ = solve_pose_edges(
         att.pose,
         att.landmarks,
         own,
         inputs.information[agent][att.match_box],
-        prior=inputs.reported[agent - 1],
-        prior_information=_prior_info(p),
-        kernel=p.robust_kernel,
-        kernel_delta=p.kernel_delta,
-        max_iterations=p.max_solver_iterations,
-        tolerance=_ROUND_TOLERANCE,
+        inputs.reported[agent - 1],
+        _prior_info(p),
+        KERNEL_CODES[p.robust_kernel],
+        float(p.kernel_delta),
+        int(p.max_solver_iterations),
+        _ROUND_TOLERANCE,
+        _MIN_DIAG,
     )
-    att.pose, att.chi2 = result.pose, result.chi2
-    att.solver += result.iterations
+    att.solver += iterations
 
 
 def _attempt(
@@ -421,9 +421,9 @@ def _commit(
     unmatched[att.match_box] = False
     new_boxes = np.nonzero(unmatched)[0]
     new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    new_poses = se2_compose(att.pose, own[new_boxes])
+    new_poses, new_features = placed_landmarks(att.pose, own, new_boxes)
     world.poses = np.concatenate([world.poses, new_poses])
-    world.features = np.concatenate([world.features, pose_features(new_poses)], axis=1)
+    world.features = np.concatenate([world.features, new_features], axis=1)
     world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
     world.obs_agent = np.concatenate(
         [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
@@ -489,7 +489,7 @@ def roco_solve(
         )
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
-    covariance = np.split(np.linalg.inv(inputs.all_information), inputs.offsets[1:-1])
+    covariance = np.split(inputs.all_covariance, inputs.offsets[1:-1])
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
