@@ -452,3 +452,24 @@ def test_axial_headings_of_one_object_agree_between_ego_and_collaborator(scenari
             env.step({a: np.zeros((env.config.max_collaborators, 3))
                       for a in env.possible_agents})
     assert agree > 30 and flipped <= 0.03 * (agree + flipped)
+
+
+def test_assessment_reports_fusion_inside_and_beyond_the_detector_grid(tmp_path):
+    """The learned assessment on a one-step episode: every setting, the region split of
+    both fusions, and the sha256 of the weights it was given."""
+    import json
+
+    from roco_env.training.assessment import main as assessment
+
+    weights = tmp_path / "copy.pt"
+    weights.write_bytes(shipped_weights_path().read_bytes())
+    assert assessment(["--seeds", "1", "--steps", "1", "--out", str(tmp_path),
+                       "--weights", str(weights)]) == 0
+    result = json.loads((tmp_path / "assessment.json").read_text())
+    assert result["weights_sha256"] == SHIPPED_SHA256 and "--weights" in result["command"]
+    for fusion in ("late", "intermediate"):
+        values = result[f"{fusion}_learned_true_poses"]
+        for region in ("inside_grid", "beyond_grid"):
+            assert 0.0 <= values[f"{region}_ap50"] <= 1.0
+        assert values["inside_grid_ap50"] >= values["beyond_grid_ap50"]
+    assert "beyond AP@0.7" in (tmp_path / "assessment.md").read_text()

@@ -1,6 +1,6 @@
 """Quality of the learned detector in the environment, on held-out seeds.
 
-    python -m roco_env.training.assessment --seeds 4 --steps 10 --out DIR
+    python -m roco_env.training.assessment --seeds 4 --steps 10 --out DIR [--weights FILE]
 
 Measured on ``urban_intersection`` episodes (env seeds 0..seeds-1; training and
 validation scenes use other generators), every agent an ego, identity policy:
@@ -8,11 +8,16 @@ validation scenes use other generators), every agent an ego, identity policy:
 * **single agent** (``max_collaborators=0``, no pose noise): AP@0.3/0.5/0.7 of the
   learned detector and of the parametric ``realistic`` preset on the same frames
   (the traffic does not depend on the detector);
-* **fusion with true poses**: late vs intermediate fusion of the learned detector;
+* **fusion with true poses**: late vs intermediate fusion of the learned detector, also
+  split by where the objects' centres lie: inside the ego's own detector grid, or beyond it, where
+  only collaborators see them (there the intermediate boxes come from warped maps
+  alone); the split matches each ego's fused boxes against its ground-truth boxes in the
+  step info, within each region;
 * **uncertainty calibration**: for every own detection labelled with a true object,
   the share of centre (x, y, agent frame) and yaw (modulo pi) errors within 1 and 2
   of the predicted sigmas (ideal for a Gaussian: 68% and 95%).
 
+Weights: the shipped file, or ``--weights FILE`` (e.g. a ``train-detector`` output).
 Writes ``assessment.json`` and ``assessment.md`` to DIR.
 """
 
@@ -30,16 +35,19 @@ from roco_env.env import CollabPerceptionEnv
 from roco_env.evaluation import info_frame_stats
 from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.metrics import APAccumulator
-from roco_env.sensing.learned.model import sha256_of, shipped_weights_path
+from roco_env.sensing.features import BevGrid
+from roco_env.sensing.learned.model import load_checkpoint, sha256_of, shipped_weights_path
 
 SCENARIO = "urban_intersection"
 
 
 def _episode_ap(seeds: int, steps: int, calibration: list | None = None,
-                **overrides) -> dict[str, float]:
+                grid: BevGrid | None = None, **overrides) -> dict[str, float]:
     """Pooled AP over all egos (and over the CAV egos alone), steps and seeds of episodes
-    with zero corrections."""
+    with zero corrections; with ``grid`` (the detector's, ego frame) also the AP inside it
+    and beyond it."""
     acc, cav_acc = APAccumulator(), APAccumulator()
+    regions = {"inside_grid": APAccumulator(), "beyond_grid": APAccumulator()}
     for seed in range(seeds):
         env = CollabPerceptionEnv(SCENARIO, max_cycles=steps, sigma_t=0.0, sigma_r=0.0,
                                   **overrides)
@@ -54,8 +62,25 @@ def _episode_ap(seeds: int, steps: int, calibration: list | None = None,
                 acc.add_stats(stats)
                 if agent.startswith("cav"):
                     cav_acc.add_stats(stats)
-    return {**{f"ap{round(t * 100)}": v for t, v in acc.ap().items()},
-            **{f"cav_ap{round(t * 100)}": v for t, v in cav_acc.ap().items()}}
+                if grid is not None:
+                    _add_by_region(regions, info, grid)
+    out = {**{f"ap{round(t * 100)}": v for t, v in acc.ap().items()},
+           **{f"cav_ap{round(t * 100)}": v for t, v in cav_acc.ap().items()}}
+    if grid is not None:
+        out.update({f"{name}_ap{round(t * 100)}": v for name, region in regions.items()
+                    for t, v in region.ap().items()})
+    return out
+
+
+def _add_by_region(regions: dict[str, APAccumulator], info: dict, grid: BevGrid) -> None:
+    """Match an ego's fused boxes to its ground truth (both from the step info, ego frame)
+    inside ``grid`` and beyond it, each region on its own."""
+    boxes = np.asarray(info["fused_boxes"])[np.asarray(info["fused_mask"], dtype=bool)]
+    scores = np.asarray(info["fused_scores"])[np.asarray(info["fused_mask"], dtype=bool)]
+    gt = np.asarray(info["gt_boxes"])[np.asarray(info["gt_mask"], dtype=bool)]
+    pred_in, gt_in = _centre_inside(boxes, grid), _centre_inside(gt, grid)
+    regions["inside_grid"].add_frame(boxes[pred_in], scores[pred_in], gt[gt_in])
+    regions["beyond_grid"].add_frame(boxes[~pred_in], scores[~pred_in], gt[~gt_in])
 
 
 def _normalised_errors(env: CollabPerceptionEnv) -> np.ndarray:
@@ -77,15 +102,24 @@ def _normalised_errors(env: CollabPerceptionEnv) -> np.ndarray:
     return np.concatenate([np.zeros((0, 3)), *rows])
 
 
-def assess(seeds: int, steps: int) -> dict:
-    """The measurements of the module docstring."""
+def _centre_inside(boxes: np.ndarray, grid: BevGrid) -> np.ndarray:
+    """(N,) bool: box centre inside the grid's extent."""
+    return ((boxes[:, 0] >= grid.x_range[0]) & (boxes[:, 0] <= grid.x_range[1])
+            & (boxes[:, 1] >= grid.y_range[0]) & (boxes[:, 1] <= grid.y_range[1]))
+
+
+def assess(seeds: int, steps: int, weights: Path | None = None) -> dict:
+    """The measurements of the module docstring (weights: None for the shipped file)."""
     calibration: list[np.ndarray] = []
+    learned = {"detector": "learned",
+               **({} if weights is None else {"detector.params": {"weights": str(weights)}})}
+    grid = load_checkpoint(weights or shipped_weights_path()).grid
     out = {
-        "single_learned": _episode_ap(seeds, steps, calibration, detector="learned",
+        "single_learned": _episode_ap(seeds, steps, calibration, **learned,
                                       max_collaborators=0),
         "single_realistic": _episode_ap(seeds, steps, detector="realistic", max_collaborators=0),
-        "late_learned_true_poses": _episode_ap(seeds, steps, detector="learned"),
-        "intermediate_learned_true_poses": _episode_ap(seeds, steps, detector="learned",
+        "late_learned_true_poses": _episode_ap(seeds, steps, grid=grid, **learned),
+        "intermediate_learned_true_poses": _episode_ap(seeds, steps, grid=grid, **learned,
                                                        fusion="intermediate"),
         "late_realistic_true_poses": _episode_ap(seeds, steps, detector="realistic"),
     }
@@ -98,7 +132,7 @@ def assess(seeds: int, steps: int) -> dict:
 
 def _markdown(result: dict, command: str) -> str:
     lines = [f"# Learned detector on {SCENARIO} (held-out seeds)", "", f"Command: `{command}`", "",
-             f"Weights: the shipped file, sha256 `{result['weights_sha256']}`.", "",
+             f"Weights: sha256 `{result['weights_sha256']}`.", "",
              "All egos (4 CAVs + the RSU, whose 100 m range exceeds the learned detector's "
              "+-70.4 m grid) and the CAV egos alone:", "",
              "| setting | AP@0.3 | AP@0.5 | AP@0.7 | CAVs AP@0.3 | CAVs AP@0.5 | CAVs AP@0.7 |",
@@ -107,6 +141,14 @@ def _markdown(result: dict, command: str) -> str:
         if key.startswith(("single", "late", "intermediate")):
             lines.append("| " + " | ".join([key] + [f"{value[k]:.3f}" for k in (
                 "ap30", "ap50", "ap70", "cav_ap30", "cav_ap50", "cav_ap70")]) + " |")
+    lines += ["", "Fusion with true poses by where the objects lie: inside the ego's own "
+              "detector grid, or beyond it (seen by collaborators only):", "",
+              "| setting | inside AP@0.5 | inside AP@0.7 | beyond AP@0.5 | beyond AP@0.7 |",
+              "|---|---|---|---|---|"]
+    for key in ("late_learned_true_poses", "intermediate_learned_true_poses"):
+        lines.append("| " + " | ".join([key] + [f"{result[key][k]:.3f}" for k in (
+            "inside_grid_ap50", "inside_grid_ap70", "beyond_grid_ap50", "beyond_grid_ap70")])
+            + " |")
     cal = result["calibration"]
     lines += ["", f"Uncertainty calibration over {cal['n']} labelled own detections "
               "(share of |error| within k predicted sigmas; Gaussian ideal 0.68 / 0.95):", "",
@@ -122,12 +164,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--weights", type=Path, help="weights file (default: the shipped one)")
     args = parser.parse_args(argv)
-    result = assess(args.seeds, args.steps)
+    result = assess(args.seeds, args.steps, args.weights)
     command = "python -m roco_env.training.assessment " + shlex.join(
         argv if argv is not None else sys.argv[1:])
     args.out.mkdir(parents=True, exist_ok=True)
-    result = {"weights_sha256": sha256_of(shipped_weights_path()), **result}
+    result = {"weights_sha256": sha256_of(args.weights or shipped_weights_path()), **result}
     (args.out / "assessment.json").write_text(json.dumps({"command": command, **result},
                                                          indent=2) + "\n")
     (args.out / "assessment.md").write_text(_markdown(result, command))
