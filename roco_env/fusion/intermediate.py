@@ -42,10 +42,7 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
     grid of ``grid``'s cells containing it (:func:`fusion_canvas`).
     """
     canvas = canvas or grid
-    pads = _placement(grid, canvas)
-    poses = _checked_poses(egos, collaborators, poses)
-    own = F.pad(features[list(egos)], pads)
-    rows = [j for c in collaborators for j in c]
+    own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
     if not rows:
         return own
     warped = warp_bev(features[rows], np.concatenate(poses), grid, canvas)
@@ -68,10 +65,7 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     are zero-padded onto it, the collaborators' maps warped straight onto it.
     """
     canvas = canvas or grid
-    pads = _placement(grid, canvas)
-    poses = _checked_poses(egos, collaborators, poses)
-    own = F.pad(features[list(egos)], pads)
-    rows = [j for c in collaborators for j in c]
+    own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
     if not rows:
         return own
     # Each map is warped onto a window of canvas columns covering its footprint (at most
@@ -92,6 +86,18 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
                       np.asarray(owner), first, window.W)
         return own
     return _max_warped(own, features[rows], owner, first, shifted, grid, window)
+
+
+def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
+                   collaborators: Sequence[Sequence[int]], poses: Sequence[np.ndarray],
+                   grid: BevGrid, canvas: BevGrid
+                   ) -> tuple[torch.Tensor, list[int], list[np.ndarray]]:
+    """The egos' own maps zero-padded onto ``canvas`` (E, C, H, W), the rows of all their
+    collaborators' maps in order, and the checked poses (the common start of both fusions)."""
+    pads = _placement(grid, canvas)
+    poses = _checked_poses(egos, collaborators, poses)
+    rows = [j for c in collaborators for j in c]
+    return F.pad(features[list(egos)], pads), rows, poses
 
 
 def _max_warped(own: torch.Tensor, maps: torch.Tensor, owner: Sequence[int], first: np.ndarray,
