@@ -218,6 +218,12 @@ def test_warp_augmentation_moves_maps_and_their_targets_alike():
                                fgrid.y_range[0] + (t.row.numpy() + 0.5) * 1.6])
     source = np.array([se2_apply(se2_inverse(moved.warps[k]), c)
                        for k, c in zip(t.sample.numpy(), centres, strict=True)])
+    # Every moved target comes from the map (boxes off it have no features to move)...
+    margin = 1.6 * np.sqrt(2.0)  # a target cell's centre is within a cell of the box's
+    assert np.all(np.abs(source[:, 0]) < 25.6 + margin)
+    assert np.all(np.abs(source[:, 1]) < 12.8 + margin)
+    # ...and the warped heatmap peaks on it (away from the edges, where the warp blends
+    # in the zero padding).
     inside = ((np.abs(source[:, 0]) < 25.6 - 1.6) & (np.abs(source[:, 1]) < 12.8 - 1.6))
     values = heat[t.sample, t.row, t.col].numpy()[inside]
     assert inside.sum() >= 10 and np.mean(values > 0.25) > 0.9
@@ -241,10 +247,16 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
     for option in (f"--init={first}", "--freeze-encoder", "--warp-augment=0.5",
                    "--fused-x-range -100.0 100.0", "--fused-y-range -40.0 40.0"):
         assert option in meta["command"]
+    assert f"sha256 `{sha256_of(first)}`" in (tmp_path / "two" / "report.md").read_text()
     capsys.readouterr()
-    assert main(["train-detector", "--out", str(tmp_path / "three"), *tiny,
-                 "--freeze-encoder"]) == 2
-    assert "needs init" in capsys.readouterr().err
+    for bad, message in ((["--freeze-encoder"], "--freeze-encoder needs --init FILE"),
+                         (["--warp-augment=2"], "--warp-augment must be a share in [0, 1]"),
+                         (["--fused-x-range", "5", "-5"], "--fused-x-range LOW HIGH needs"),
+                         (["--init", str(first), "--widths", "4", "8", "4"],
+                          "were trained with widths (4, 8, 8)")):
+        out = tmp_path / "three"
+        assert main(["train-detector", "--out", str(out), *tiny, *bad]) == 2
+        assert message in capsys.readouterr().err and not out.exists()
 
 
 def test_fine_tuning_inputs_are_checked(tmp_path):
@@ -473,3 +485,7 @@ def test_assessment_reports_fusion_inside_and_beyond_the_detector_grid(tmp_path)
             assert 0.0 <= values[f"{region}_ap50"] <= 1.0
         assert values["inside_grid_ap50"] >= values["beyond_grid_ap50"]
     assert "beyond AP@0.7" in (tmp_path / "assessment.md").read_text()
+    # A whole-cell shift moves the map exactly: the decoded boxes move with it.
+    whole, half = result["warp_consistency"]["whole cells"], result["warp_consistency"]["half turn"]
+    assert whole["n"] > 20 and whole["p90_x"] < 1e-4 and whole["p90_y"] < 1e-4
+    assert half["n"] > 20 and np.isfinite(half["median_y"])

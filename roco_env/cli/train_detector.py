@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 from pathlib import Path
@@ -42,20 +43,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="pose noise of the fused loss, rotation std in degrees (default "
                    "%(default)s)")
     p.add_argument("--fused-x-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
-                   help="ego-frame x extent (m) the fused loss decodes, e.g. the evaluation "
-                   "range -140.8 140.8 (default: the detector grid's)")
+                   help="ego-frame x extent (m) the fused loss decodes: the detector grid grown "
+                   "to cover it in whole feature cells, e.g. the evaluation range -140.8 140.8 "
+                   "(default: the detector grid)")
     p.add_argument("--fused-y-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
-                   help="ego-frame y extent (m) the fused loss decodes (default: the detector "
-                   "grid's)")
-    p.add_argument("--init", type=Path,
-                   help="weights file to start from (default: random initialisation)")
+                   help="the same along y (default: the detector grid)")
+    p.add_argument("--init", type=Path, metavar="FILE",
+                   help="weights file to start from; its widths must be --widths (default: "
+                   "random initialisation; --lr applies as given)")
     p.add_argument("--freeze-encoder", action="store_true",
                    help="train the trunk and heads only (needs --init): a fine-tuning stage "
                    "that keeps every encoder map as it was")
-    p.add_argument("--warp-augment", type=float, default=d.warp_augment,
-                   help="share of single-agent maps decoded after a random rigid warp (any "
-                   "heading, sub-cell shift), so the heads learn to decode resampled maps as "
-                   "fused ones are (default %(default)s)")
+    p.add_argument("--warp-augment", type=float, default=d.warp_augment, metavar="P",
+                   help="share in [0, 1] of single-agent maps decoded after a random rigid "
+                   "warp (any heading, a shift of up to one feature cell), so the network "
+                   "learns maps that survive the warp of fusion (default %(default)s)")
     p.add_argument("--threads", type=int, default=d.threads,
                    help="torch CPU threads (default %(default)s)")
     p.add_argument("--workers", type=int, default=d.workers,
@@ -67,29 +69,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from roco_env.sensing.learned.model import (
-        SHIPPED_WEIGHTS,
-        load_checkpoint,
-        save_checkpoint,
-        sha256_of,
-    )
+    from roco_env.sensing.learned.model import SHIPPED_WEIGHTS, save_checkpoint, sha256_of
     from roco_env.training.report import write_report
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.training.train import TrainConfig, init_checkpoint, train
 
+    _check_options(args)
     config = TrainConfig(
         widths=tuple(args.widths), train_scenes=args.train_scenes, val_scenes=args.val_scenes,
         scenarios=tuple(args.scenarios), steps=args.steps, scenes_per_step=args.scenes_per_step,
         lr=args.lr, pose_sigma_t=args.pose_sigma_t, pose_sigma_r=args.pose_sigma_r,
         fused_x_range=_pair(args.fused_x_range), fused_y_range=_pair(args.fused_y_range),
         init=None if args.init is None else str(args.init),
-        train_encoder=not args.freeze_encoder, warp_augment=args.warp_augment, seed=args.seed, threads=args.threads,
-        workers=args.workers, device=args.device)
+        train_encoder=not args.freeze_encoder, warp_augment=args.warp_augment,
+        seed=args.seed, threads=args.threads, workers=args.workers, device=args.device)
     command = "roco-env train-detector " + shlex.join(_argv_of(args))
-    init = {}
-    if args.init is not None:
-        load_checkpoint(args.init)  # ValueError naming a missing, corrupt or foreign file
-        # Hashed before the run: the output may overwrite the file it starts from.
-        init = {"init_sha256": sha256_of(args.init)}
+    # Checked (and hashed: the output may overwrite it) before any output or scene exists.
+    init_sha256 = None if init_checkpoint(config) is None else sha256_of(args.init)
+    init = {} if init_sha256 is None else {"init_sha256": init_sha256}
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(config, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr))
     weights = args.out / SHIPPED_WEIGHTS
@@ -97,11 +93,25 @@ def _run(args: argparse.Namespace) -> int:
                     {"command": command, "seed": config.seed, **init,
                      "train_config": result.summary()["config"],
                      "validation": result.validation})
-    write_report(result, args.out, command, sha256_of(weights))
+    write_report(result, args.out, command, sha256_of(weights), init_sha256)
     print(f"wrote {weights} and the report in {args.out}")
     for key, value in result.validation.items():
         print(f"  {key}: {value:.3f}")
     return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """ValueError naming the option for a bad combination or value of the new options."""
+    if args.freeze_encoder and args.init is None:
+        raise ValueError("--freeze-encoder needs --init FILE, the weights to fine-tune")
+    if not 0.0 <= args.warp_augment <= 1.0:  # also false for nan
+        raise ValueError(f"--warp-augment must be a share in [0, 1]; got {args.warp_augment}")
+    for option, values in (("--fused-x-range", args.fused_x_range),
+                           ("--fused-y-range", args.fused_y_range)):
+        if values is not None and not (all(map(math.isfinite, values))
+                                       and values[0] < values[1]):
+            raise ValueError(f"{option} LOW HIGH needs finite LOW < HIGH (m); got "
+                             f"{' '.join(map(str, values))}")
 
 
 def _pair(values: list[float] | None) -> tuple[float, float] | None:

@@ -21,8 +21,10 @@ def _smooth(values: list[float], window: int) -> np.ndarray:
     return (cumsum[idx] - cumsum[lo]) / (idx - lo)
 
 
-def write_report(result: TrainResult, out: Path, command: str, weights_sha256: str) -> None:
-    """loss_curves.png, report.json and report.md in ``out``."""
+def write_report(result: TrainResult, out: Path, command: str, weights_sha256: str,
+                 init_sha256: str | None = None) -> None:
+    """loss_curves.png, report.json and report.md in ``out``; init_sha256: of the weights
+    file a fine-tuning run started from."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -42,11 +44,19 @@ def write_report(result: TrainResult, out: Path, command: str, weights_sha256: s
     fig.tight_layout()
     fig.savefig(out / "loss_curves.png", dpi=90)
     plt.close(fig)
-    summary = {"command": command, "weights_sha256": weights_sha256, **result.summary()}
+    init = {} if init_sha256 is None else {"init_sha256": init_sha256}
+    summary = {"command": command, "weights_sha256": weights_sha256, **init,
+               **result.summary()}
     (out / "report.json").write_text(json.dumps(summary, indent=2) + "\n")
     val = result.validation
     rows = "\n".join(f"| {k} | {v:.3f} |" for k, v in val.items())
     cfg = result.config
+    start = ("random initialisation" if cfg.init is None else
+             f"`{cfg.init}` (sha256 `{init_sha256}`), "
+             + ("encoder frozen" if not cfg.train_encoder else "whole network trained"))
+    fused = ("the detector grid" if cfg.fused_x_range is None and cfg.fused_y_range is None
+             else f"a canvas of x {list(cfg.fused_canvas.x_range)} m, "
+             f"y {list(cfg.fused_canvas.y_range)} m (fused validation AP decoded on it too)")
     (out / "report.md").write_text(
         "# Learned BEV detector: training report\n\n"
         f"Command: `{command}`\n\n"
@@ -55,6 +65,8 @@ def write_report(result: TrainResult, out: Path, command: str, weights_sha256: s
         f"{cfg.steps} steps of {cfg.scenes_per_step} scenes; fused-loss pose noise "
         f"{cfg.pose_sigma_t} m / {cfg.pose_sigma_r} deg; "
         f"{summary['parameters']} parameters; {result.seconds:.0f} s.\n\n"
+        f"Started from {start}; fused loss decoded on {fused}; warp augmentation "
+        f"{cfg.warp_augment}.\n\n"
         f"Weights sha256: `{weights_sha256}`\n\n"
         f"Validation ({cfg.val_scenes} held-out scenes of {', '.join(cfg.val_scenarios)}, "
         "the environment's ground truth and AP protocol):\n\n"

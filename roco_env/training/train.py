@@ -6,8 +6,9 @@ encodes all their agents in one batch and sums two losses:
 
 * **single-agent**: each agent's map decoded against its own targets; with
   ``warp_augment`` > 0 that share of the maps is first warped by a random rigid
-  motion (any heading, a sub-cell shift) and decoded against its boxes moved alike,
-  so the heads learn to read a resampled, rotated map as the fused ones are;
+  motion (any heading, a shift of up to one feature cell) and decoded against its
+  boxes on the map moved alike, so the network learns maps that can be read after a
+  resampling and a rotation, as the fused ones are;
 * **fused**: for every agent as an ego, its collaborators' maps warped into its
   frame with the relative poses (true, or perturbed by N(0, ``pose_sigma_t``) m
   per axis and N(0, ``pose_sigma_r``) deg when training for pose noise), fused
@@ -48,7 +49,7 @@ from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
 from roco_env.geometry import se2_compose, transform_boxes, wrap_angle
 from roco_env.metrics import APAccumulator
 from roco_env.sensing.features import BevGrid, warp_bev
-from roco_env.sensing.learned.model import build_network, load_checkpoint
+from roco_env.sensing.learned.model import Checkpoint, build_network, load_checkpoint
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import Targets, build_targets, decode, feature_grid
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
@@ -61,7 +62,8 @@ from roco_env.training.data import (
     make_scenes,
 )
 
-__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "mirror_rasters", "set_determinism"]
+__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_checkpoint", "mirror_rasters",
+           "set_determinism"]
 
 # Loss weights: heatmap, offset, size, yaw, uncertainty NLL.
 _WEIGHTS = {"heatmap": 1.0, "offset": 1.0, "size": 1.0, "yaw": 1.0, "nll": 0.2}
@@ -314,7 +316,9 @@ class _Batches(torch.utils.data.Dataset):
             offset += r.shape[0]
         warped, warps = self._warps(rng, len(singles))
         for k, pose in zip(warped, warps, strict=True):
-            singles[k] = transform_boxes(singles[k], pose)
+            # Only boxes on the map have features to move: a box off the grid (which
+            # build_targets drops unwarped) must not land on the warp's zero padding.
+            singles[k] = transform_boxes(singles[k][_centres_on(singles[k], self.fgrid)], pose)
         return _Batch(torch.cat(rasters), build_targets(singles, self.fgrid), warped, warps,
                       egos, collabs, poses,
                       build_targets(groups, self.canvas) if egos else None)
@@ -330,6 +334,13 @@ class _Batches(torch.utils.data.Dataset):
         warps = np.column_stack([rng.uniform(-cell, cell, (rows.size, 2)),
                                  rng.uniform(-np.pi, np.pi, rows.size)])
         return rows, warps
+
+
+def _centres_on(boxes: np.ndarray, grid: BevGrid) -> np.ndarray:
+    """(K,) bool: box centre on ``grid`` (the cells :func:`build_targets` keeps)."""
+    col = np.floor((boxes[:, 0] - grid.x_range[0]) / grid.resolution)
+    row = np.floor((boxes[:, 1] - grid.y_range[0]) / grid.resolution)
+    return (col >= 0) & (col < grid.W) & (row >= 0) & (row < grid.H)
 
 
 def _as_is(batch: _Batch) -> _Batch:
@@ -430,11 +441,11 @@ def _warped(features: torch.Tensor, batch: _Batch, fgrid: BevGrid) -> torch.Tens
     return maps
 
 
-def _initial_network(config: TrainConfig) -> BevDetectorNet:
-    """A randomly initialised network, or the one of ``config.init``, whose shape, grid and
-    scan noise must be the config's (ValueError naming the mismatch)."""
+def init_checkpoint(config: TrainConfig) -> Checkpoint | None:
+    """The weights file ``config.init`` (None without one), checked before any work: its
+    network widths, grid and scan noise must be the run's (ValueError naming the mismatch)."""
     if config.init is None:
-        return BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths)))
+        return None
     checkpoint = load_checkpoint(config.init)
     for name, theirs, ours in (("widths", tuple(checkpoint.net.widths), tuple(config.widths)),
                                ("grid", checkpoint.grid, config.grid),
@@ -442,6 +453,14 @@ def _initial_network(config: TrainConfig) -> BevDetectorNet:
         if theirs != ours:
             raise ValueError(f"init weights {config.init} were trained with {name} {theirs}; "
                              f"this run's {name} is {ours}")
+    return checkpoint
+
+
+def _initial_network(config: TrainConfig) -> BevDetectorNet:
+    """A randomly initialised network, or the one of ``config.init`` (:func:`init_checkpoint`)."""
+    checkpoint = init_checkpoint(config)
+    if checkpoint is None:
+        return BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths)))
     return build_network(checkpoint, config.init)
 
 
