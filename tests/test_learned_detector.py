@@ -315,10 +315,13 @@ def _payload(tmp_path, **changes):
 def test_bad_weights_files_raise_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         LearnedDetector(tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match="is not a file"):
+        LearnedDetector(tmp_path)
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"not a checkpoint" * 10)
-    with pytest.raises(ValueError, match="is corrupt"):
+    with pytest.raises(ValueError, match="is corrupt") as error:
         LearnedDetector(corrupt)
+    assert "weights_only" not in str(error.value)
     with pytest.raises(ValueError, match=r"raster channels \['a', 'b', 'c'\] \(3\)"):
         LearnedDetector(_payload(tmp_path, channels=["a", "b", "c"]))
     with pytest.raises(ValueError, match="expects 3 input channels"):

@@ -88,13 +88,18 @@ def save_checkpoint(path: str | Path, net: BevDetectorNet, grid: BevGrid, noise:
 def load_checkpoint(path: str | Path) -> Checkpoint:
     """Read and check a weights file; ValueError naming the problem when it is unusable."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"learned detector weights file {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"learned detector weights file {path} is not a file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a damaged or foreign file
+        # Only the type: torch's message suggests weights_only=False, which is never safe
+        # for a file a user hands over.
         raise ValueError(f"learned detector weights file {path} is corrupt or not a weights "
-                         f"file written by 'roco-env train-detector' ({exc})") from exc
+                         f"file written by 'roco-env train-detector' "
+                         f"({type(exc).__name__})") from exc
     if not isinstance(payload, dict) or payload.get("format") != "roco-env-bev-detector/1":
         raise ValueError(f"learned detector weights file {path} is not a roco-env BEV detector "
                          "checkpoint (missing format 'roco-env-bev-detector/1')")
