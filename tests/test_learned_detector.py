@@ -249,9 +249,10 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
         assert option in meta["command"]
     assert f"sha256 `{sha256_of(first)}`" in (tmp_path / "two" / "report.md").read_text()
     capsys.readouterr()
-    for bad, message in ((["--freeze-encoder"], "--freeze-encoder needs --init FILE"),
-                         (["--warp-augment=2"], "--warp-augment must be a share in [0, 1]"),
-                         (["--fused-x-range", "5", "-5"], "--fused-x-range LOW HIGH needs"),
+    for bad, message in ((["--freeze-encoder"], "(a frozen encoder, --freeze-encoder) needs "
+                                                "init, the weights file to start from (--init"),
+                         (["--warp-augment=2"], "must be a share in [0, 1] (--warp-augment)"),
+                         (["--fused-x-range", "5", "-5"], "low < high, in m (--fused-x-range"),
                          (["--init", str(first), "--widths", "4", "8", "4"],
                           "were trained with widths (4, 8, 8)")):
         out = tmp_path / "three"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import shlex
 import sys
 from pathlib import Path
@@ -73,7 +72,6 @@ def _run(args: argparse.Namespace) -> int:
     from roco_env.training.report import write_report
     from roco_env.training.train import TrainConfig, init_checkpoint, train
 
-    _check_options(args)
     config = TrainConfig(
         widths=tuple(args.widths), train_scenes=args.train_scenes, val_scenes=args.val_scenes,
         scenarios=tuple(args.scenarios), steps=args.steps, scenes_per_step=args.scenes_per_step,
@@ -98,20 +96,6 @@ def _run(args: argparse.Namespace) -> int:
     for key, value in result.validation.items():
         print(f"  {key}: {value:.3f}")
     return 0
-
-
-def _check_options(args: argparse.Namespace) -> None:
-    """ValueError naming the option for a bad combination or value of the new options."""
-    if args.freeze_encoder and args.init is None:
-        raise ValueError("--freeze-encoder needs --init FILE, the weights to fine-tune")
-    if not 0.0 <= args.warp_augment <= 1.0:  # also false for nan
-        raise ValueError(f"--warp-augment must be a share in [0, 1]; got {args.warp_augment}")
-    for option, values in (("--fused-x-range", args.fused_x_range),
-                           ("--fused-y-range", args.fused_y_range)):
-        if values is not None and not (all(map(math.isfinite, values))
-                                       and values[0] < values[1]):
-            raise ValueError(f"{option} LOW HIGH needs finite LOW < HIGH (m); got "
-                             f"{' '.join(map(str, values))}")
 
 
 def _pair(values: list[float] | None) -> tuple[float, float] | None:

@@ -94,7 +94,8 @@ def _add_by_region(regions: dict[str, APAccumulator], info: dict, grid: BevGrid)
     boxes = np.asarray(info["fused_boxes"])[np.asarray(info["fused_mask"], dtype=bool)]
     scores = np.asarray(info["fused_scores"])[np.asarray(info["fused_mask"], dtype=bool)]
     gt = np.asarray(info["gt_boxes"])[np.asarray(info["gt_mask"], dtype=bool)]
-    pred_in, gt_in = _centre_inside(boxes, grid), _centre_inside(gt, grid)
+    pred_in = grid.cell_index(boxes[:, 0], boxes[:, 1])[0] >= 0
+    gt_in = grid.cell_index(gt[:, 0], gt[:, 1])[0] >= 0
     regions["inside_grid"].add_frame(boxes[pred_in], scores[pred_in], gt[gt_in])
     regions["beyond_grid"].add_frame(boxes[~pred_in], scores[~pred_in], gt[~gt_in])
 
@@ -116,12 +117,6 @@ def _normalised_errors(env: CollabPerceptionEnv) -> np.ndarray:
                                - np.pi / 2])
         rows.append(np.abs(err) / det.uncertainty[ok])
     return np.concatenate([np.zeros((0, 3)), *rows])
-
-
-def _centre_inside(boxes: np.ndarray, grid: BevGrid) -> np.ndarray:
-    """(N,) bool: box centre inside the grid's extent."""
-    return ((boxes[:, 0] >= grid.x_range[0]) & (boxes[:, 0] <= grid.x_range[1])
-            & (boxes[:, 1] >= grid.y_range[0]) & (boxes[:, 1] <= grid.y_range[1]))
 
 
 def assess(seeds: int, steps: int, weights: Path | None = None) -> dict:

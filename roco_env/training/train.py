@@ -125,13 +125,15 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and not (len(value) == 2 and all(map(math.isfinite, value))
                                           and value[0] < value[1]):
+                option = "--" + name.replace("_", "-")
                 raise ValueError(f"{name} must be None or two finite numbers (low, high) with "
-                                 f"low < high, in m; got {value!r}")
+                                 f"low < high, in m ({option} LOW HIGH); got {value!r}")
         if not (isinstance(self.warp_augment, int | float) and 0.0 <= self.warp_augment <= 1.0):
-            raise ValueError(f"warp_augment must be a share in [0, 1]; got {self.warp_augment!r}")
+            raise ValueError(f"warp_augment must be a share in [0, 1] (--warp-augment); got "
+                             f"{self.warp_augment!r}")
         if not self.train_encoder and self.init is None:
-            raise ValueError("train_encoder=False (a frozen encoder) needs init, the weights "
-                             "file to start from")
+            raise ValueError("train_encoder=False (a frozen encoder, --freeze-encoder) needs "
+                             "init, the weights file to start from (--init FILE)")
 
     @property
     def grid(self) -> BevGrid:
@@ -318,7 +320,8 @@ class _Batches(torch.utils.data.Dataset):
         for k, pose in zip(warped, warps, strict=True):
             # Only boxes on the map have features to move: a box off the grid (which
             # build_targets drops unwarped) must not land on the warp's zero padding.
-            singles[k] = transform_boxes(singles[k][_centres_on(singles[k], self.fgrid)], pose)
+            on_map = self.fgrid.cell_index(singles[k][:, 0], singles[k][:, 1])[0] >= 0
+            singles[k] = transform_boxes(singles[k][on_map], pose)
         return _Batch(torch.cat(rasters), build_targets(singles, self.fgrid), warped, warps,
                       egos, collabs, poses,
                       build_targets(groups, self.canvas) if egos else None)
@@ -334,13 +337,6 @@ class _Batches(torch.utils.data.Dataset):
         warps = np.column_stack([rng.uniform(-cell, cell, (rows.size, 2)),
                                  rng.uniform(-np.pi, np.pi, rows.size)])
         return rows, warps
-
-
-def _centres_on(boxes: np.ndarray, grid: BevGrid) -> np.ndarray:
-    """(K,) bool: box centre on ``grid`` (the cells :func:`build_targets` keeps)."""
-    col = np.floor((boxes[:, 0] - grid.x_range[0]) / grid.resolution)
-    row = np.floor((boxes[:, 1] - grid.y_range[0]) / grid.resolution)
-    return (col >= 0) & (col < grid.W) & (row >= 0) & (row < grid.H)
 
 
 def _as_is(batch: _Batch) -> _Batch:
