@@ -70,8 +70,9 @@ class PerceptionFrame:
     views: per agent, what its observation holds; footprints: per agent, its
     own vehicle's box (7,) in its true sensor frame (what late fusion keeps
     clear of collaborators' boxes), None for an RSU; encoder_maps: with the
-    learned detector, every agent's encoder map (A, C, h, w) torch tensor (what
-    intermediate fusion warps and decodes), else None.
+    learned detector, every agent's encoder map on one feature grid
+    (:class:`~roco_env.sensing.learned.model.EncoderMaps`: what intermediate fusion
+    warps and decodes), else None.
     """
 
     state: WorldState
@@ -98,8 +99,9 @@ class Pipeline:
             + [f"rsu_{i}" for i in range(config.agents.rsus)]
         )
         self.noise = make_pose_noise(config.noise, self.agent_ids, config.traffic.dt)
-        self.detector = make_detector(config.detector)
         evaluation = config.evaluation
+        self.detector = make_detector(config.detector,
+                                      (tuple(evaluation.x_range), tuple(evaluation.y_range)))
         self.grid = (
             sensing.BevGrid(tuple(evaluation.x_range), tuple(evaluation.y_range),
                             config.features.resolution)

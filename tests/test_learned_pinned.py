@@ -98,7 +98,7 @@ def _outputs(weights: Path) -> dict:
             "scans": [[_fingerprint(s.x), _fingerprint(s.y), _fingerprint(s.z),
                        _fingerprint(s.obj)] for s in scans],
             "rasters": [_fingerprint(r) for r in rasters],
-            "features": _fingerprint(features.numpy()),
+            "features": _fingerprint(features.maps.numpy()),
             "boxes": [_rounded(d.boxes) for d in detections],
             "scores": [_rounded(d.scores) for d in detections],
             "uncertainty": [_rounded(d.uncertainty) for d in detections],

@@ -17,7 +17,6 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
 from roco_env.fusion.warp_kernels import warp_max_into
@@ -94,10 +93,18 @@ def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
                    ) -> tuple[torch.Tensor, list[int], list[np.ndarray]]:
     """The egos' own maps zero-padded onto ``canvas`` (E, C, H, W), the rows of all their
     collaborators' maps in order, and the checked poses (the common start of both fusions)."""
-    pads = _placement(grid, canvas)
+    left, _, bottom, _ = _placement(grid, canvas)
     poses = _checked_poses(egos, collaborators, poses)
     rows = [j for c in collaborators for j in c]
-    return F.pad(features[list(egos)], pads), rows, poses
+    # Zero padding by a copy into a zeroed canvas of the maps' memory format (torch.pad would
+    # return channels-last maps as contiguous ones, and their copy back costs as much again).
+    layout = (torch.channels_last if features.dim() == 4 and not features.is_contiguous()
+              and features.is_contiguous(memory_format=torch.channels_last)
+              else torch.contiguous_format)
+    own = torch.empty((len(egos), features.shape[1], canvas.H, canvas.W), dtype=features.dtype,
+                      device=features.device, memory_format=layout).zero_()
+    own[:, :, bottom:bottom + grid.H, left:left + grid.W] = features[list(egos)]
+    return own, rows, poses
 
 
 def _max_warped(own: torch.Tensor, maps: torch.Tensor, owner: Sequence[int], first: np.ndarray,
@@ -191,24 +198,25 @@ def _placement(grid: BevGrid, canvas: BevGrid) -> tuple[int, int, int, int]:
     return pads  # type: ignore[return-value]
 
 
-def intermediate_fusion(detector, features: torch.Tensor, state: WorldState,
+def intermediate_fusion(detector, encoder_maps, state: WorldState,
                         egos: Sequence[int], collaborators: Sequence[Sequence[int]],
                         poses: Sequence[np.ndarray], x_range: Sequence[float],
                         y_range: Sequence[float]) -> list[FusedDetections]:
     """Decoded boxes of every ego's fused map, in its true frame (scores descending).
 
-    detector: a :class:`roco_env.sensing.learned.LearnedDetector`; features (A, C, h, w):
-    every agent's encoder map of this step; egos, collaborators (agent indices) and
+    detector: a :class:`roco_env.sensing.learned.LearnedDetector`; encoder_maps: its
+    :class:`~roco_env.sensing.learned.model.EncoderMaps` of this step (every agent's map on
+    one feature grid); egos, collaborators (agent indices) and
     poses (the corrected T_{j->i}) as in :func:`fuse_maps`. The maps are fused on a
-    canvas covering the detector grid and the ego-frame range ``x_range`` x ``y_range``
+    canvas covering that grid and the ego-frame range ``x_range`` x ``y_range``
     (m; the evaluation range), so a collaborator's view beyond the ego's own sensor grid
     is decoded too (the heads are convolutional). Every box's source is the ego
     (:data:`EGO_SOURCE`): it comes from the ego's fused map.
     """
-    canvas, _ = fusion_canvas(detector.feature_grid, x_range, y_range)
+    grid = encoder_maps.grid
+    canvas, _ = fusion_canvas(grid, x_range, y_range)
     with torch.inference_mode():
-        fused = fuse_on_canvas(features, egos, collaborators, poses, detector.feature_grid,
-                               canvas)
+        fused = fuse_on_canvas(encoder_maps.maps, egos, collaborators, poses, grid, canvas)
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]

@@ -26,6 +26,7 @@ Draw order per agent is fixed, so the same generator state gives the same output
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -192,17 +193,20 @@ class Detector:
         return AgentDetections(boxes, unc, scores, np.full(n, -1, dtype=np.int64))
 
 
-def make_detector(config: DetectorConfig) -> Detector:
+def make_detector(config: DetectorConfig,
+                  region: tuple[Sequence[float], Sequence[float]] | None = None) -> Detector:
     """Build the detector of ``config.preset`` with ``config.params`` overriding it.
 
     ``learned`` builds :class:`roco_env.sensing.learned.LearnedDetector` (loads torch
-    and the weights; params: weights, device, score_threshold, threads).
+    and the weights; params: weights, device, score_threshold, threads), reading each
+    agent's sensor range within ``region`` ((x_range, y_range), m, agent frame: the
+    evaluation range; None: the grid it was trained on).
     Raises ValueError naming the preset or parameter and the allowed values.
     """
     if config.preset == "learned":
         from roco_env.sensing.learned import make_learned_detector
 
-        return make_learned_detector(config.params)
+        return make_learned_detector(config.params, region)
     if config.preset not in PRESETS:
         raise ValueError(
             f"unknown detector preset {config.preset!r}; choose one of {sorted(PRESETS)}"

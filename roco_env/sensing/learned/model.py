@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -39,8 +41,8 @@ from roco_env.sensing.lidar import (
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
-__all__ = ["SHIPPED_WEIGHTS", "LearnedDetector", "load_checkpoint", "make_learned_detector",
-           "save_checkpoint", "shipped_weights_path", "sha256_of"]
+__all__ = ["SHIPPED_WEIGHTS", "EncoderMaps", "LearnedDetector", "load_checkpoint",
+           "make_learned_detector", "save_checkpoint", "shipped_weights_path", "sha256_of"]
 
 SHIPPED_WEIGHTS = "bev_detector.pt"
 # A decoded box is labelled with the true object whose centre is nearest, within this
@@ -138,14 +140,48 @@ def build_network(checkpoint: Checkpoint, path: str | Path) -> BevDetectorNet:
     return net.eval()
 
 
+@dataclass(frozen=True)
+class EncoderMaps:
+    """Every agent's encoder map of a step, (A, C, h, w), on one feature ``grid`` (each map
+    in its own agent's true sensor frame; zero beyond the agent's own raster)."""
+
+    maps: torch.Tensor
+    grid: BevGrid
+
+
+def covering_grid(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[float],
+                  stride: int = 2) -> BevGrid:
+    """``grid`` (a raster of the detector) grown by the same whole number of feature cells
+    (``stride`` raster cells) on both sides of each axis until it covers ``x_range`` x
+    ``y_range`` (m, agent frame); never shrunk. Growing symmetrically by feature cells keeps
+    the cell counts multiples of 4, as the encoder needs."""
+    step = grid.resolution * stride
+
+    def cells(low: float, high: float, covered: Sequence[float]) -> int:
+        need = max(low - covered[0], covered[1] - high, 0.0)
+        return math.ceil(need / step - 1e-6)
+
+    kx = cells(*grid.x_range, x_range)
+    ky = cells(*grid.y_range, y_range)
+    return BevGrid((grid.x_range[0] - kx * step, grid.x_range[1] + kx * step),
+                   (grid.y_range[0] - ky * step, grid.y_range[1] + ky * step), grid.resolution)
+
+
 class LearnedDetector:
-    """Boxes, scores and uncertainties of every agent from the network, one batch per step.
+    """Boxes, scores and uncertainties of every agent from the network, batched per step.
 
     weights: a weights file (default: the shipped one); device: ``"cpu"`` or
     ``"cuda"``; score_threshold: minimum heatmap score of a decoded box; threads:
     torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
     when the detector is built. The values are checked against
     :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
+    region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
+    that is scored (the scenario's evaluation range). With it, an agent's raster is the
+    trained grid grown to cover the agent's sensor range within the region
+    (:meth:`raster_grid`): the network is convolutional, so an RSU whose LiDAR reaches
+    100 m detects out to 100 m with weights trained on a 70.4 m grid, as OpenCOOD-style
+    models read their dataset's whole perception range. Without it every raster is the
+    trained grid. Agents with the same raster go through the network in one batch.
     The default 1 thread is the fastest for this small network on a batch of a few
     agents: more threads gain little on an idle CPU and lose several times over on a
     busy one (measured in ``docs/perception.md``).
@@ -158,7 +194,8 @@ class LearnedDetector:
     axial_headings = True
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
-                 score_threshold: float = SCORE_THRESHOLD, threads: int = 1) -> None:
+                 score_threshold: float = SCORE_THRESHOLD, threads: int = 1,
+                 region: tuple[Sequence[float], Sequence[float]] | None = None) -> None:
         params = _checked({"weights": None if weights is None else str(weights),
                            "device": device, "score_threshold": score_threshold,
                            "threads": threads})
@@ -174,10 +211,23 @@ class LearnedDetector:
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
         self.noise = self.checkpoint.noise
         self.score_threshold = params.score_threshold
+        self.region = None if region is None else (tuple(region[0]), tuple(region[1]))
+
+    def raster_grid(self, sensor_range: float) -> BevGrid:
+        """The raster of an agent whose sensor reaches ``sensor_range`` m: the trained grid
+        (:attr:`grid`), grown to cover the square of that half-width clipped to
+        :attr:`region` (:func:`covering_grid`); the trained grid without a region."""
+        if self.region is None:
+            return self.grid
+        (x0, x1), (y0, y1) = self.region
+        r = float(sensor_range)
+        return covering_grid(self.grid, (max(-r, x0), min(r, x1)), (max(-r, y0), min(r, y1)),
+                             self.checkpoint.net.stride)
 
     def rasters(self, state: WorldState, visibility: Visibility,
                 rng: np.random.Generator) -> torch.Tensor:
-        """Every agent's LiDAR raster (A, C, H, W), scans drawn from ``rng``."""
+        """Every agent's LiDAR raster (A, C, H, W) on the trained grid, scans drawn from
+        ``rng``."""
         scans = sample_scans(state, visibility, self.noise, rng)
         return torch.from_numpy(lidar_rasters(scans, visibility.ray_ranges, self.grid))
 
@@ -204,15 +254,33 @@ class LearnedDetector:
                       np.asarray(grounds, dtype=float), self.score_threshold)
 
     def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
-                 ) -> tuple[list[AgentDetections], torch.Tensor]:
-        """Per agent its detections (true sensor frame), and all encoder maps (A, C, h, w)."""
+                 ) -> tuple[list[AgentDetections], EncoderMaps]:
+        """Per agent its detections (true sensor frame), and all encoder maps, each agent read
+        on its :meth:`raster_grid`; the maps are zero-padded onto the widest of them."""
+        grids = [self.raster_grid(r) for r in np.asarray(state.sensor_ranges).reshape(-1)]
+        widest = max(grids, key=lambda g: (g.W, g.H), default=self.grid)
+        wide = feature_grid(widest, self.checkpoint.net.stride)
         if state.num_agents == 0:
-            return [], torch.zeros((0, self.checkpoint.net.widths[2], self.feature_grid.H,
-                                    self.feature_grid.W))
-        features = self.encode(self.rasters(state, visibility, rng))
+            return [], EncoderMaps(torch.zeros((0, self.checkpoint.net.widths[2], wide.H,
+                                                wide.W)), wide)
+        scans = sample_scans(state, visibility, self.noise, rng)
         grounds = ground_references(state)
-        decoded = self.decode(features, grounds)
-        return [self._labelled(state, a, d) for a, d in enumerate(decoded)], features
+        groups: dict[BevGrid, list[int]] = {}
+        for agent, grid in enumerate(grids):
+            groups.setdefault(grid, []).append(agent)
+        decoded: list[Decoded | None] = [None] * state.num_agents
+        parts = []
+        for grid, rows in groups.items():
+            raster = lidar_rasters([scans[a] for a in rows], visibility.ray_ranges[rows], grid)
+            features = self.encode(torch.from_numpy(raster))
+            fgrid = feature_grid(grid, self.checkpoint.net.stride)
+            for agent, boxes in zip(rows, self.decode(features, grounds[rows], fgrid),
+                                    strict=True):
+                decoded[agent] = boxes
+            parts.append((rows, features, fgrid))
+        maps = parts[0][1] if len(parts) == 1 else _zero_padded(parts, wide, state.num_agents)
+        return ([self._labelled(state, a, d) for a, d in enumerate(decoded)],
+                EncoderMaps(maps, wide))
 
     def detect(self, state: WorldState, visibility: Visibility,
                rng: np.random.Generator) -> list[AgentDetections]:
@@ -222,6 +290,22 @@ class LearnedDetector:
     def _labelled(self, state: WorldState, agent: int, decoded: Decoded) -> AgentDetections:
         return AgentDetections(decoded.boxes, decoded.uncertainty, decoded.scores,
                                label_boxes(state, agent, decoded.boxes))
+
+
+@torch.inference_mode()
+def _zero_padded(parts: list[tuple[list[int], torch.Tensor, BevGrid]], grid: BevGrid,
+                 n_agents: int) -> torch.Tensor:
+    """Maps (n_agents, C, H, W) on ``grid`` from groups (agent rows, their maps, the maps'
+    feature grid, centred inside ``grid`` on its cells), zero where a map does not reach."""
+    first = parts[0][1]
+    maps = torch.empty((n_agents, first.shape[1], grid.H, grid.W), dtype=first.dtype,
+                       device=first.device, memory_format=torch.channels_last).zero_()
+    for rows, features, fgrid in parts:
+        left = round((fgrid.x_range[0] - grid.x_range[0]) / grid.resolution)
+        bottom = round((fgrid.y_range[0] - grid.y_range[0]) / grid.resolution)
+        for agent, features_of_agent in zip(rows, features, strict=True):
+            maps[agent, :, bottom:bottom + fgrid.H, left:left + fgrid.W] = features_of_agent
+    return maps
 
 
 def label_boxes(state: WorldState, agent: int, boxes: np.ndarray) -> np.ndarray:
@@ -243,11 +327,14 @@ def label_boxes(state: WorldState, agent: int, boxes: np.ndarray) -> np.ndarray:
     return ids
 
 
-def make_learned_detector(params: dict[str, Any] | None) -> LearnedDetector:
+def make_learned_detector(params: dict[str, Any] | None,
+                          region: tuple[Sequence[float], Sequence[float]] | None = None
+                          ) -> LearnedDetector:
     """The learned detector from scenario ``detector.params`` (the fields of
-    :class:`~roco_env.scenario.LearnedDetectorParams`); ValueError naming an unknown key or
+    :class:`~roco_env.scenario.LearnedDetectorParams`) reading each agent's sensor range
+    within ``region`` (see :class:`LearnedDetector`); ValueError naming an unknown key or
     a bad value."""
-    return LearnedDetector(**dataclasses.asdict(_checked(dict(params or {}))))
+    return LearnedDetector(**dataclasses.asdict(_checked(dict(params or {}))), region=region)
 
 
 def _checked(params: dict[str, Any]) -> LearnedDetectorParams:
