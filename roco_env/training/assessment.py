@@ -9,8 +9,8 @@ validation scenes use other generators), every agent an ego, identity policy:
   learned detector and of the parametric ``realistic`` preset on the same frames
   (the traffic does not depend on the detector);
 * **fusion with true poses**: late vs intermediate fusion of the learned detector, also
-  split by where the objects' centres lie: inside the ego's own detector grid, or beyond
-  it, where only collaborators' maps can place them (there the intermediate boxes come
+  split by where the objects' centres lie: inside the trained detector grid (a 70 m CAV's
+  own raster), or beyond it, where only collaborators' maps can place them (there the intermediate boxes come
   from warped maps alone); the split matches each ego's fused boxes against its ground-truth boxes in the
   step info, within each region;
 * **warp consistency**: a map decoded after a warp onto the fusion canvas against the
@@ -183,16 +183,17 @@ def warp_consistency(detector: LearnedDetector, n_scenes: int = 3) -> dict[str, 
 def _markdown(result: dict, command: str) -> str:
     lines = [f"# Learned detector on {SCENARIO} (held-out seeds)", "", f"Command: `{command}`", "",
              f"Weights: sha256 `{result['weights_sha256']}`.", "",
-             "All egos (4 CAVs + the RSU, whose 100 m range exceeds the learned detector's "
-             "grid) and the CAV egos alone:", "",
+             "All egos (4 CAVs with 70 m LiDARs + the RSU, whose raster covers its 100 m) "
+             "and the CAV egos alone:", "",
              "| setting | AP@0.3 | AP@0.5 | AP@0.7 | CAVs AP@0.3 | CAVs AP@0.5 | CAVs AP@0.7 |",
              "|---|---|---|---|---|---|---|"]
     for key, value in result.items():
         if key.startswith(("single", "late", "intermediate")):
             lines.append("| " + " | ".join([key] + [f"{value[k]:.3f}" for k in (
                 "ap30", "ap50", "ap70", "cav_ap30", "cav_ap50", "cav_ap70")]) + " |")
-    lines += ["", "Fusion with true poses by where the objects lie: inside the ego's own "
-              "detector grid, or beyond it (where only collaborators' maps can place them):",
+    lines += ["", "Fusion with true poses by where the objects lie: inside the trained "
+              "detector grid (a CAV's own raster), or beyond it (where only collaborators' maps "
+              "can place them):",
               "",
               "| setting | inside AP@0.5 | inside AP@0.7 | beyond AP@0.5 | beyond AP@0.7 |",
               "|---|---|---|---|---|"]
