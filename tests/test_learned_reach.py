@@ -57,6 +57,13 @@ def test_raster_of_an_agent_covers_its_sensor_range_within_the_region():
     assert reach.raster_grid(250.0).x_range == pytest.approx(URBAN_RANGE[0])
 
 
+@pytest.mark.parametrize("region", [((-10.0, 10.0),), ((5.0, -5.0), (-40.0, 40.0)),
+                                    ((-10.0, float("nan")), (-40.0, 40.0)), "everywhere"])
+def test_a_bad_region_is_a_clear_error(region):
+    with pytest.raises(ValueError, match="learned detector region"):
+        LearnedDetector(region=region)
+
+
 def test_agents_with_a_longer_range_detect_farther_and_the_others_are_unchanged(
         roundabout_state):
     state, visibility = roundabout_state

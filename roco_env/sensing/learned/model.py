@@ -211,7 +211,7 @@ class LearnedDetector:
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
         self.noise = self.checkpoint.noise
         self.score_threshold = params.score_threshold
-        self.region = None if region is None else (tuple(region[0]), tuple(region[1]))
+        self.region = None if region is None else _checked_region(region)
 
     def raster_grid(self, sensor_range: float) -> BevGrid:
         """The raster of an agent whose sensor reaches ``sensor_range`` m: the trained grid
@@ -290,6 +290,20 @@ class LearnedDetector:
     def _labelled(self, state: WorldState, agent: int, decoded: Decoded) -> AgentDetections:
         return AgentDetections(decoded.boxes, decoded.uncertainty, decoded.scores,
                                label_boxes(state, agent, decoded.boxes))
+
+
+def _checked_region(region) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``region`` as ((x_min, x_max), (y_min, y_max)) floats; ValueError unless each is a
+    finite pair with min < max."""
+    try:
+        (x0, x1), (y0, y1) = ((float(lo), float(hi)) for lo, hi in region)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"learned detector region must be ((x_min, x_max), (y_min, y_max)) in "
+                         f"m; got {region!r}") from exc
+    if not all(map(math.isfinite, (x0, x1, y0, y1))) or x0 >= x1 or y0 >= y1:
+        raise ValueError(f"learned detector region must hold finite (min, max) pairs with "
+                         f"min < max; got {region!r}")
+    return (x0, x1), (y0, y1)
 
 
 @torch.inference_mode()
