@@ -42,7 +42,7 @@ from roco_env.policies.hypothesis_kernels import (
     translation_votes,
     vote_peaks,
 )
-from roco_env.policies.landmarks import AlignmentInputs, require_positive
+from roco_env.policies.landmarks import AlignmentInputs, require_positive, split_rows
 from roco_env.policies.pose_kernels import KERNEL_CODES
 from roco_env.policies.posegraph import _MIN_DIAG
 
@@ -162,8 +162,7 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     the same values, tested)."""
     arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
                          inputs.all_covariance[:, :2, :2])
-    cuts = inputs.offsets[1:-1]
-    parts = zip(*(np.split(values, cuts) for values in arrays), strict=True)
+    parts = zip(*(split_rows(values, inputs.offsets) for values in arrays), strict=True)
     return [
         BoxSet(inputs.poses[a], log_sizes, inputs.information[a], var_t, var_r, _reach(distance))
         for a, (log_sizes, var_t, var_r, distance) in enumerate(parts)

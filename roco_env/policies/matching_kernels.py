@@ -15,8 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs", "placed_landmarks",
-           "scored_pairs"]
+__all__ = ["committed_map", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs",
+           "placed_landmarks", "scored_pairs"]
 
 
 @njit(cache=True)
@@ -211,6 +211,41 @@ def placed_landmarks(pose, own, boxes):
         features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
         features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
     return poses, features
+
+
+@njit(cache=True)
+def committed_map(pose, own, covariance, match_land, match_box, agent, land_poses,
+                  land_features, land_covariance, obs_agent, obs_box, obs_land):
+    """RoCo's map after accepting a collaborator (``roco._commit``), in one pass: its boxes
+    own (K, 3) (its frame; covariance (K, 3, 3)) matched as match_box (P,) to the landmarks
+    match_land (P,) become observations, the unmatched ones (in increasing box order) new
+    landmarks placed by its pose (3,) (:func:`placed_landmarks`). Returns the landmark
+    poses (M', 3), features (5, M'), covariances (M', 3, 3) and the observations'
+    agent, box and landmark ids (O',): the inputs with the new rows appended, as
+    ``np.concatenate`` gives them (agent: the collaborator's index)."""
+    unmatched = np.ones(own.shape[0], dtype=np.bool_)
+    for k in range(match_box.size):
+        unmatched[match_box[k]] = False
+    new_boxes = np.nonzero(unmatched)[0]
+    n_land, n_new, n_obs = land_poses.shape[0], new_boxes.size, obs_agent.size
+    new_poses, new_features = placed_landmarks(pose, own, new_boxes)
+    poses = np.concatenate((land_poses, new_poses))
+    features = np.empty((5, n_land + n_new))
+    features[:, :n_land] = land_features
+    features[:, n_land:] = new_features
+    land_cov = np.empty((n_land + n_new, 3, 3))
+    land_cov[:n_land] = land_covariance
+    for k in range(n_new):
+        land_cov[n_land + k] = covariance[new_boxes[k]]
+    size = n_obs + own.shape[0]
+    agents, boxes, lands = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64)
+    agents[:n_obs], boxes[:n_obs], lands[:n_obs] = obs_agent, obs_box, obs_land
+    agents[n_obs:] = agent
+    for k in range(match_box.size):
+        boxes[n_obs + k], lands[n_obs + k] = match_box[k], match_land[k]
+    for k in range(n_new):
+        boxes[n_obs + match_box.size + k], lands[n_obs + match_box.size + k] = new_boxes[k], n_land + k
+    return poses, features, land_cov, agents, boxes, lands
 
 
 @njit(cache=True)

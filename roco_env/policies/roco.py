@@ -72,9 +72,10 @@ from roco_env.policies.landmarks import (
     params_from_kwargs,
     prepare_inputs,
     prior_information,
+    split_rows,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
-from roco_env.policies.matching_kernels import placed_landmarks
+from roco_env.policies.matching_kernels import committed_map
 from roco_env.policies.pose_kernels import KERNEL_CODES, solve_pose_edges, wald_statistic
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
@@ -179,9 +180,9 @@ class _Map:
         self.poses = ego_poses.copy()
         self.features = pose_features(self.poses)  # kept in step with poses for matching
         # Every agent's boxes' features in its own frame (fixed), computed in one pass.
-        self.box_features = np.split(
-            pose_features(inputs.all_poses), inputs.offsets[1:-1], axis=1
-        )
+        self.box_features = [
+            features.T for features in split_rows(pose_features(inputs.all_poses).T, inputs.offsets)
+        ]
         self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
@@ -416,20 +417,13 @@ def _commit(
     if att.joint is not None:
         _store_joint(world, att.joint)
     world.agent_poses[agent] = att.pose
-    own = inputs.poses[agent]
-    unmatched = np.ones(own.shape[0], dtype=bool)
-    unmatched[att.match_box] = False
-    new_boxes = np.nonzero(unmatched)[0]
-    new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    new_poses, new_features = placed_landmarks(att.pose, own, new_boxes)
-    world.poses = np.concatenate([world.poses, new_poses])
-    world.features = np.concatenate([world.features, new_features], axis=1)
-    world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
-    world.obs_agent = np.concatenate(
-        [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
+    # Matched boxes become observations, the others new landmarks (one compiled pass).
+    (world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
+     world.obs_land) = committed_map(
+        att.pose, inputs.poses[agent], covariance, att.match_land, att.match_box, agent,
+        world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
+        world.obs_land,
     )
-    world.obs_box = np.concatenate([world.obs_box, att.match_box, new_boxes])
-    world.obs_land = np.concatenate([world.obs_land, att.match_land, new_ids])
 
 
 def checked_params(cls: type, kwargs: dict, method: str):
@@ -489,7 +483,7 @@ def roco_solve(
         )
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
-    covariance = np.split(inputs.all_covariance, inputs.offsets[1:-1])
+    covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
