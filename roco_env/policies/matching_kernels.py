@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["committed_map", "compact_pairs", "edge_similarity", "edge_similarity_sums", "gated_pairs",
-           "placed_landmarks", "scored_pairs"]
+           "placed_centres", "placed_landmarks", "scored_pairs"]
 
 
 @njit(cache=True)
@@ -211,6 +211,21 @@ def placed_landmarks(pose, own, boxes):
         features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
         features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
     return poses, features
+
+
+@njit(cache=True)
+def placed_centres(pose, own):
+    """The centres (K, 2) of the boxes own (K, 3) (the agent's frame) in the ego frame
+    under its pose (3,) (x m, y m, yaw rad): ``R(yaw) t + (x, y)``, each coordinate as
+    ``t_x * cos + t_y * (-sin)`` (y: ``t_x * sin + t_y * cos``) plus the offset. (numpy's
+    ``own[:, :2] @ R^T`` goes through BLAS, whose kernels may fuse the multiply-adds:
+    the same values to the last bit or two.)"""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    centres = np.empty((own.shape[0], 2))
+    for k in range(own.shape[0]):
+        centres[k, 0] = own[k, 0] * c + own[k, 1] * -s + pose[0]
+        centres[k, 1] = own[k, 0] * s + own[k, 1] * c + pose[1]
+    return centres
 
 
 @njit(cache=True)

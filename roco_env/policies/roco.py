@@ -85,6 +85,7 @@ from roco_env.policies.posegraph import (
     optimize,
     robust_kernel,
 )
+from roco_env.policies.roco_kernels import attempt_rounds
 
 __all__ = [
     "NOT_SIGNIFICANT",
@@ -305,12 +306,46 @@ def _attempt(
     inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
-    starting from the pose estimate ``start`` (3,)."""
+    starting from the pose estimate ``start`` (3,): in one compiled call
+    (:func:`~roco_env.policies.roco_kernels.attempt_rounds`) unless the rounds solve the
+    whole graph or a matching needs the full assignment (:func:`_attempt_loop`)."""
+    pose = np.array(start, dtype=float)
+    if p.joint_every_round:
+        return _attempt_loop(inputs, world, agent, p, pose)
+    done, pose, land, box, solved, chi2, landmarks, outer, solver = attempt_rounds(
+        pose,
+        inputs.poses[agent],
+        inputs.information[agent],
+        world.poses,
+        world.features,
+        world.box_features[agent],
+        inputs.reported[agent - 1],
+        _prior_info(p),
+        float(p.tau2),
+        -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
+        *p.kernel_terms(),
+        int(p.min_matches),
+        int(p.max_outer_iterations) if p.iterate else 1,
+        KERNEL_CODES[p.robust_kernel],
+        float(p.kernel_delta),
+        int(p.max_solver_iterations),
+        _ROUND_TOLERANCE,
+        _MIN_DIAG,
+    )
+    if not done:
+        return _attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
+    return _Attempt(pose, land, box, solved, chi2, landmarks, None, outer, solver)
+
+
+def _attempt_loop(
+    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
+) -> _Attempt:
+    """:func:`_attempt` round by round in Python (any matching, joint solves per round)."""
     matcher = StarGraphMatcher(
         world.poses, inputs.poses[agent], p, world.features, world.box_features[agent]
     )
     empty = np.zeros(0, dtype=np.int64)
-    att = _Attempt(np.array(start, dtype=float), empty, empty)
+    att = _Attempt(start, empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
     for _ in range(rounds):
         land, box, _ = matcher.match(att.pose)
