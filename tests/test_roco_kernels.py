@@ -30,33 +30,40 @@ def _scenes():
     yield make_scene(lot, agents[:2], [pose_error(1.3, 0.2, 0.0)], sensor_range=30.0)
 
 
-def _attempts(scene, p):
-    """(compiled, Python loop) attempts of every collaborator, in RoCo's order, the map
-    growing with each accepted one as in roco_solve."""
+def _attempts(scene, p, monkeypatch):
+    """(compiled, Python loop, whether the compiled one handed over to the loop, its
+    arguments) attempts of every collaborator, in RoCo's order, the map growing with each
+    accepted one as in roco_solve."""
+    handovers = []
+    python_loop = roco._attempt_loop
+    monkeypatch.setattr(roco, "_attempt_loop", lambda *a: handovers.append(a) or python_loop(*a))
     inputs = prepare_inputs(*scene.args(), p)
     covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = roco._Map(inputs, covariance[0])
     for agent in range(1, inputs.n_collaborators + 1):
         start = inputs.reported[agent - 1]
-        compiled = roco._attempt(inputs, world, agent, p, start)
-        loop = roco._attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
-        yield compiled, loop
+        handovers.clear()
+        compiled = roco._attempt(inputs, world, agent, p, start, covariance)
+        handed_over = bool(handovers)
+        loop = python_loop(inputs, world, agent, p, np.array(start, dtype=float))
+        yield compiled, loop, handed_over, (inputs, world, agent, covariance)
         if not roco._rejection(inputs, world, agent, loop, p, covariance):
             roco._commit(inputs, world, agent, loop, covariance[agent])
 
 
 PARAMS = [RoCoParams(), RoCoParams(iterate=False), RoCoParams(coarse_tau2=None),
+          RoCoParams(significance=None), RoCoParams(inlier_chi2=0.5),
           RoCoParams(robust_kernel="huber"), RoCoParams(robust_kernel=None),
           RoCoParams(use_edge_similarity=False), RoCoParams(use_distance_similarity=False),
           RoCoParams(neighbor_radius=None), RoCoParams(tau2=1.0, min_matches=5)]
 
 
 @pytest.mark.parametrize("p", PARAMS, ids=range(len(PARAMS)))
-def test_compiled_rounds_are_the_python_loop(p):
+def test_compiled_rounds_are_the_python_loop(p, monkeypatch):
     fields = ("pose", "match_land", "match_box", "solved", "chi2", "landmarks", "outer", "solver")
-    compared = 0
+    compared = tested = 0
     for scene in _scenes():
-        for compiled, loop in _attempts(scene, p):
+        for compiled, loop, handed_over, args in _attempts(scene, p, monkeypatch):
             for name in fields:
                 got, expected = getattr(compiled, name), getattr(loop, name)
                 if expected is None:  # no solve: the loop leaves chi2 / landmarks unset
@@ -65,18 +72,24 @@ def test_compiled_rounds_are_the_python_loop(p):
                 assert np.asarray(got).dtype == np.asarray(expected).dtype, name
                 np.testing.assert_array_equal(got, expected, err_msg=name)
             compared += loop.solved
-    assert compared >= 10
+            # The significance statistic, computed by the compiled rounds when the test runs.
+            inliers = loop.solved and np.count_nonzero(loop.chi2 <= p.inlier_chi2) >= p.min_matches
+            if inliers and p.significance and not handed_over:
+                assert compiled.statistic == roco._correction_statistic(*args[:3], loop, p, args[3])
+                tested += 1
+            else:
+                assert compiled.statistic is None
+    assert compared >= 10 and (tested >= 5 or not p.significance)
 
 
 def test_rounds_needing_the_full_assignment_run_the_python_loop(monkeypatch):
     """The tie-heavy lot needs Kuhn-Munkres: the compiled rounds hand over to the loop."""
     scene = list(_scenes())[-1]
-    calls = []
-    loop = roco._attempt_loop
-    monkeypatch.setattr(roco, "_attempt_loop", lambda *a: calls.append(a) or loop(*a))
-    for compiled, expected in _attempts(scene, RoCoParams()):
+    handed_over = []
+    for compiled, expected, handover, _ in _attempts(scene, RoCoParams(), monkeypatch):
         np.testing.assert_array_equal(compiled.pose, expected.pose)
-    assert len(calls) == 2  # the test's own call and _attempt's hand-over (one collaborator)
+        handed_over.append(handover)
+    assert handed_over == [True]
 
 
 def test_placed_centres_are_numpys_placement_to_rounding():

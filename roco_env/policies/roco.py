@@ -206,7 +206,8 @@ class _Attempt:
 
     pose: current estimate; match_land/match_box: matched landmark ids and box indices;
     chi2 (P,) and landmarks (P, 3): its matched edges at the estimate; joint: the joint
-    solve (result, agent ids, shared landmark ids) when rounds solve the whole graph.
+    solve (result, agent ids, shared landmark ids) when rounds solve the whole graph;
+    statistic: the significance test's, when the compiled rounds computed it.
     """
 
     pose: np.ndarray
@@ -218,6 +219,7 @@ class _Attempt:
     joint: tuple[PoseGraphResult, np.ndarray, np.ndarray] | None = None
     outer: int = 0
     solver: int = 0
+    statistic: float | None = None
 
 
 @lru_cache(maxsize=16)
@@ -303,21 +305,29 @@ def _optimise_round(
 
 
 def _attempt(
-    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
+    inputs: AlignmentInputs,
+    world: _Map,
+    agent: int,
+    p: RoCoParams,
+    start: np.ndarray,
+    covariance: list[np.ndarray],
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
-    starting from the pose estimate ``start`` (3,): in one compiled call
-    (:func:`~roco_env.policies.roco_kernels.attempt_rounds`) unless the rounds solve the
+    starting from the pose estimate ``start`` (3,), covariance: every agent's box
+    covariances: in one compiled call (:func:`~roco_env.policies.roco_kernels.attempt_rounds`,
+    which also computes the significance test's statistic) unless the rounds solve the
     whole graph or a matching needs the full assignment (:func:`_attempt_loop`)."""
     pose = np.array(start, dtype=float)
     if p.joint_every_round:
         return _attempt_loop(inputs, world, agent, p, pose)
-    done, pose, land, box, solved, chi2, landmarks, outer, solver = attempt_rounds(
+    done, pose, land, box, solved, chi2, landmarks, outer, solver, statistic = attempt_rounds(
         pose,
         inputs.poses[agent],
         inputs.information[agent],
+        covariance[agent],
         world.poses,
         world.features,
+        world.covariance,
         world.box_features[agent],
         inputs.reported[agent - 1],
         _prior_info(p),
@@ -331,10 +341,13 @@ def _attempt(
         int(p.max_solver_iterations),
         _ROUND_TOLERANCE,
         _MIN_DIAG,
+        float(p.inlier_chi2),
+        _FIT_TOLERANCE if p.significance else 0.0,
     )
     if not done:
         return _attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
-    return _Attempt(pose, land, box, solved, chi2, landmarks, None, outer, solver)
+    statistic = None if np.isnan(statistic) else float(statistic)
+    return _Attempt(pose, land, box, solved, chi2, landmarks, None, outer, solver, statistic)
 
 
 def _attempt_loop(
@@ -385,7 +398,10 @@ def _correction_statistic(
     kernel, and ``d = fitted - reported`` is weighed by the inverse of its sandwich
     covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
     IRLS weights at the fit); chi-square with 3 dof when the reported pose is right.
-    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`)."""
+    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`),
+    unless the compiled rounds already did."""
+    if att.statistic is not None:
+        return att.statistic
     own = inputs.poses[agent][att.match_box]
     return float(
         wald_statistic(
@@ -532,7 +548,7 @@ def roco_solve(
         if not has_boxes[agent]:
             reasons[agent - 1] = "no boxes"
             continue
-        att = _attempt(inputs, world, agent, p, start[agent - 1])
+        att = _attempt(inputs, world, agent, p, start[agent - 1], covariance)
         outer, solver = outer + att.outer, solver + att.solver
         reasons[agent - 1] = _rejection(inputs, world, agent, att, p, covariance)
         if not reasons[agent - 1]:

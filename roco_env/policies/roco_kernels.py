@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from roco_env.policies.matching_kernels import placed_centres, scored_pairs
-from roco_env.policies.pose_kernels import solve_pose_edges
+from roco_env.policies.pose_kernels import solve_pose_edges, wald_statistic
 
 __all__ = ["attempt_rounds"]
 
@@ -36,23 +36,30 @@ def _matches(pose, own_poses, land_xy, tau2, lam, use_edge, land_features, box_f
 
 
 @njit(cache=True)
-def attempt_rounds(start, own_poses, own_info, land_poses, land_features, box_features,
-                   prior_z, prior_info, tau2, coarse_tau2, lam, use_edge, radius2, tau1,
-                   min_matches, rounds, kernel, delta, max_iterations, tolerance, min_diag):
+def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_features, land_cov,
+                   box_features, prior_z, prior_info, tau2, coarse_tau2, lam, use_edge, radius2,
+                   tau1, min_matches, rounds, kernel, delta, max_iterations, tolerance, min_diag,
+                   inlier_chi2, fit_tolerance):
     """RoCo's match-optimise rounds for one collaborator (``roco._attempt`` with per-round
     single-vertex solves).
 
-    start (3,): first pose estimate T_{j->i}; own_poses (K, 3) / own_info (K, 3, 3): its
-    boxes (its frame) and their information; land_poses (L, 3): the map's landmarks (ego
-    frame); land_features (5, L) / box_features (5, K): their pose features; prior_z (3,)
-    / prior_info (3, 3): the prior edge (reported pose). Matching settings as
+    start (3,): first pose estimate T_{j->i}; own_poses (K, 3) / own_info (K, 3, 3) /
+    own_cov (K, 3, 3): its boxes (its frame), their information and covariance;
+    land_poses (L, 3) / land_cov (L, 3, 3): the map's landmarks (ego frame) and their
+    covariance; land_features (5, L) / box_features (5, K): the pose features; prior_z
+    (3,) / prior_info (3, 3): the prior edge (reported pose). Matching settings as
     ``StarGraphMatcher`` (tau2, coarse_tau2 m, coarse_tau2 <= 0: no coarse gate; lam = 0:
     no distance term); at most ``rounds`` rounds; solver settings as
     :func:`~roco_env.policies.pose_kernels.solve_pose_edges`.
 
+    When the rounds end solved with at least ``min_matches`` edges of chi2 <=
+    ``inlier_chi2`` and ``fit_tolerance`` > 0, also the significance test's statistic
+    (``roco._correction_statistic``: :func:`~roco_env.policies.pose_kernels.wald_statistic`
+    with the covariance of box minus landmark, LM stop ``fit_tolerance``); else nan.
+
     Returns (done, pose (3,), landmark ids (P,), box ids (P,), solved, chi2 (P,),
-    landmarks (P, 3), rounds run, solver iterations); done = False when a round's matching
-    needs the full assignment (the rest is then meaningless).
+    landmarks (P, 3), rounds run, solver iterations, statistic); done = False when a
+    round's matching needs the full assignment (the rest is then meaningless).
     """
     empty = np.zeros(0, dtype=np.int64)
     cache = (empty, empty.copy(), empty.copy(), empty.copy(), np.zeros(0))
@@ -69,7 +76,8 @@ def attempt_rounds(start, own_poses, own_info, land_poses, land_features, box_fe
                                                 use_edge, land_features, box_features, radius2,
                                                 tau1, cache)
         if not single:
-            return False, pose, match_land, match_box, solved, chi2, landmarks, outer, solver
+            return (False, pose, match_land, match_box, solved, chi2, landmarks, outer, solver,
+                    np.nan)
         if outer and _same(land, match_land) and _same(box, match_box):
             break
         outer += 1
@@ -83,7 +91,13 @@ def attempt_rounds(start, own_poses, own_info, land_poses, land_features, box_fe
             kernel, delta, max_iterations, tolerance, min_diag,
         )
         solver += iterations
-    return True, pose, match_land, match_box, solved, chi2, landmarks, outer, solver
+    statistic = np.nan
+    if solved and fit_tolerance > 0 and np.count_nonzero(chi2 <= inlier_chi2) >= min_matches:
+        statistic = wald_statistic(
+            pose, landmarks, own_poses[match_box], own_cov[match_box] + land_cov[match_land],
+            prior_z, kernel, delta, max_iterations, fit_tolerance, min_diag,
+        )
+    return True, pose, match_land, match_box, solved, chi2, landmarks, outer, solver, statistic
 
 
 @njit(cache=True)
