@@ -412,12 +412,16 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
                     al[a, 2] * h_ll_inv[m, 2, j]
                 )
         for a in range(k):
+            # Y H_al^T is symmetric: one triangle, mirrored (row a's factors held in locals:
+            # the writes into ``damped`` would otherwise reload them).
             r = seen[a]
-            for b in range(a, k):  # Y H_al^T is symmetric: one triangle, mirrored
-                update = y[a, 0] * al[b, 0] + y[a, 1] * al[b, 1] + y[a, 2] * al[b, 2]
-                damped[r, seen[b]] -= update
-                if b != a:
-                    damped[seen[b], r] -= update
+            ya0, ya1, ya2 = y[a, 0], y[a, 1], y[a, 2]
+            damped[r, r] -= ya0 * al[a, 0] + ya1 * al[a, 1] + ya2 * al[a, 2]
+            for b in range(a + 1, k):
+                c = seen[b]
+                update = ya0 * al[b, 0] + ya1 * al[b, 1] + ya2 * al[b, 2]
+                damped[r, c] -= update
+                damped[c, r] -= update
             rhs[r] += y[a, 0] * g_l[m, 0] + y[a, 1] * g_l[m, 1] + y[a, 2] * g_l[m, 2]
     d_a = np.zeros(n_a)
     if free.size:
