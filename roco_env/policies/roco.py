@@ -230,6 +230,30 @@ def _prior_info(p: RoCoParams) -> np.ndarray:
     return info
 
 
+@lru_cache(maxsize=16)
+def _round_terms(p: RoCoParams) -> tuple:
+    """The settings of ``p`` as :func:`~roco_env.policies.roco_kernels.attempt_rounds` takes
+    them after the reported pose, computed once per parameter set: the prior edges'
+    information, the gates (m; coarse -1 = none), the matching's kernel terms, min_matches,
+    the round cap, the solver's settings, inlier_chi2 and the significance fit's stop
+    (0 = no significance test)."""
+    return (
+        _prior_info(p),
+        float(p.tau2),
+        -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
+        *p.kernel_terms(),
+        int(p.min_matches),
+        int(p.max_outer_iterations) if p.iterate else 1,
+        KERNEL_CODES[p.robust_kernel],
+        float(p.kernel_delta),
+        int(p.max_solver_iterations),
+        _ROUND_TOLERANCE,
+        _MIN_DIAG,
+        float(p.inlier_chi2),
+        _FIT_TOLERANCE if p.significance else 0.0,
+    )
+
+
 def _joint_solve(
     inputs: AlignmentInputs,
     world: _Map,
@@ -330,19 +354,7 @@ def _attempt(
         world.covariance,
         world.box_features[agent],
         inputs.reported[agent - 1],
-        _prior_info(p),
-        float(p.tau2),
-        -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
-        *p.kernel_terms(),
-        int(p.min_matches),
-        int(p.max_outer_iterations) if p.iterate else 1,
-        KERNEL_CODES[p.robust_kernel],
-        float(p.kernel_delta),
-        int(p.max_solver_iterations),
-        _ROUND_TOLERANCE,
-        _MIN_DIAG,
-        float(p.inlier_chi2),
-        _FIT_TOLERANCE if p.significance else 0.0,
+        *_round_terms(p),
     )
     if not done:
         return _attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
