@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from roco_env.policies.hypothesis_kernels import close_pairs
-from roco_env.policies.matching_kernels import compact_pairs
+from roco_env.policies.pose_kernels import compact_pairs
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -43,7 +43,7 @@ def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():
 
 
 def test_gated_pairs_match_the_dense_definition():
-    from roco_env.policies.matching_kernels import gated_pairs
+    from roco_env.policies.pose_kernels import gated_pairs
 
     rng = np.random.default_rng(23)
     for tau2 in (1.0, 3.0, 6.0):
@@ -134,7 +134,7 @@ def test_scored_pairs_match_the_array_path(terms):
         _edge_similarity_from_features,
         pose_features,
     )
-    from roco_env.policies.matching_kernels import gated_pairs, scored_pairs
+    from roco_env.policies.pose_kernels import gated_pairs, scored_pairs
 
     use_distance, use_edge = terms
     p = MatchingParams(use_distance_similarity=use_distance, use_edge_similarity=use_edge,
@@ -190,7 +190,7 @@ def test_gated_pairs_keep_ties_and_the_gate_edge_of_the_dense_scan():
     """Lattice centres (equal x, distances exactly at the gate, equidistant boxes) and
     repeated boxes: the windowed scan keeps the dense definition's pairs and nearest boxes
     (the lowest index among equal distances)."""
-    from roco_env.policies.matching_kernels import gated_pairs
+    from roco_env.policies.pose_kernels import gated_pairs
 
     rng = np.random.default_rng(24)
     lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)

@@ -1,4 +1,4 @@
-"""RoCo's compiled matching rounds (roco_kernels.attempt_rounds) against the Python loop
+"""RoCo's compiled matching rounds (pose_kernels.attempt_rounds) against the Python loop
 they replace (roco._attempt_loop), and the compiled box placement against numpy's."""
 
 import numpy as np
@@ -12,7 +12,7 @@ from roco_env.policies.constructed_scenes import (
     pose_error,
 )
 from roco_env.policies.landmarks import prepare_inputs, split_rows
-from roco_env.policies.matching_kernels import placed_centres
+from roco_env.policies.pose_kernels import placed_centres
 from roco_env.policies.roco import RoCoParams
 
 

@@ -24,7 +24,7 @@ frame with the current pose estimate):
    remaining terms' maximum (:attr:`MatchingParams.similarity_threshold`).
 
 The gate search and the (candidate pair x matched leaf) sums of S_edge are compiled
-loops (:mod:`roco_env.policies.matching_kernels`). :class:`StarGraphMatcher` serves the
+loops (:mod:`roco_env.policies.pose_kernels`). :class:`StarGraphMatcher` serves the
 re-matching rounds of one collaborator against one landmark set: per-box
 features are computed once, and S_edge is reused while the candidate pairs and
 the initial matches stay the same (it does not depend on the pose otherwise).
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import (
+from roco_env.policies.pose_kernels import (
     compact_pairs,
     edge_similarity,
     placed_centres,
@@ -97,7 +97,7 @@ class MatchingParams:
         return self.tau1 * remaining / (1.0 + self.lam)
 
     def kernel_terms(self) -> tuple[float, bool, float, float]:
-        """The settings as :func:`~roco_env.policies.matching_kernels.scored_pairs` takes
+        """The settings as :func:`~roco_env.policies.pose_kernels.scored_pairs` takes
         them: weight of S_dis (0 = not used), use of S_edge, squared star-graph radius
         (m^2; -1 = no radius) and the bar on S (:attr:`similarity_threshold`)."""
         radius = self.neighbor_radius
@@ -267,7 +267,7 @@ def _edge_similarity_from_features(
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
     candidate feature and a leaf feature: (C, 11) and (11, H) factors, built and summed per
-    usable (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity`
+    usable (pair, leaf) in :func:`~roco_env.policies.pose_kernels.edge_similarity`
     (pairs outside either star, ``neighbor_radius``, are skipped; None = no radius).
     """
     radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2

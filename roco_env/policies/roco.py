@@ -76,7 +76,12 @@ from roco_env.policies.landmarks import (
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
 from roco_env.policies.matching_kernels import committed_map
-from roco_env.policies.pose_kernels import KERNEL_CODES, solve_pose_edges, wald_statistic
+from roco_env.policies.pose_kernels import (
+    KERNEL_CODES,
+    attempt_rounds,
+    solve_pose_edges,
+    wald_statistic,
+)
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
@@ -85,7 +90,6 @@ from roco_env.policies.posegraph import (
     optimize,
     robust_kernel,
 )
-from roco_env.policies.roco_kernels import attempt_rounds
 
 __all__ = [
     "NOT_SIGNIFICANT",
@@ -232,7 +236,7 @@ def _prior_info(p: RoCoParams) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _round_terms(p: RoCoParams) -> tuple:
-    """The settings of ``p`` as :func:`~roco_env.policies.roco_kernels.attempt_rounds` takes
+    """The settings of ``p`` as :func:`~roco_env.policies.pose_kernels.attempt_rounds` takes
     them after the reported pose, computed once per parameter set: the prior edges'
     information, the gates (m; coarse -1 = none), the matching's kernel terms, min_matches,
     the round cap, the solver's settings, inlier_chi2 and the significance fit's stop
@@ -338,7 +342,7 @@ def _attempt(
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
     starting from the pose estimate ``start`` (3,), covariance: every agent's box
-    covariances: in one compiled call (:func:`~roco_env.policies.roco_kernels.attempt_rounds`,
+    covariances: in one compiled call (:func:`~roco_env.policies.pose_kernels.attempt_rounds`,
     which also computes the significance test's statistic) unless the rounds solve the
     whole graph or a matching needs the full assignment (:func:`_attempt_loop`)."""
     pose = np.array(start, dtype=float)
