@@ -325,9 +325,9 @@ def test_box_sets_in_one_pass_are_the_per_agent_sets():
 
     for scene in _scenes():
         boxes = [scene.ego_boxes, *scene.collab_boxes]
-        boxes[-1] = boxes[-1][:0]  # an agent without boxes
         unc = [scene.ego_unc, *scene.collab_unc]
-        unc[-1] = unc[-1][:0]
+        for agent in {1, len(boxes) - 1}:  # agents without boxes, between others and last
+            boxes[agent], unc[agent] = boxes[agent][:0], unc[agent][:0]
         inputs = prepare_inputs(boxes[0], unc[0], boxes[1:], unc[1:], scene.reported,
                                 UncertaintyParams())
         expected = [box_set(b, inputs.poses[a], inputs.information[a]) for a, b in enumerate(boxes)]

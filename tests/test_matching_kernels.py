@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from roco_env.policies.hypothesis_kernels import close_pairs
-from roco_env.policies.matching_kernels import compact_pairs
+from roco_env.policies.pose_kernels import compact_pairs
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -43,7 +43,7 @@ def test_close_pairs_are_the_k_d_tree_pairs_in_row_major_order():
 
 
 def test_gated_pairs_match_the_dense_definition():
-    from roco_env.policies.matching_kernels import gated_pairs
+    from roco_env.policies.pose_kernels import gated_pairs
 
     rng = np.random.default_rng(23)
     for tau2 in (1.0, 3.0, 6.0):
@@ -79,6 +79,51 @@ def test_placed_landmarks_are_se2_compose_and_pose_features():
         np.testing.assert_array_equal(features, pose_features(expected))
 
 
+def numpy_committed_map(pose, own, covariance, match_land, match_box, agent, land_poses,
+                        land_features, land_covariance, obs_agent, obs_box, obs_land):
+    """The array path of RoCo's commit that ``committed_map`` replaces."""
+    from roco_env.geometry import se2_compose
+    from roco_env.policies.matching import pose_features
+
+    unmatched = np.ones(own.shape[0], dtype=bool)
+    unmatched[match_box] = False
+    new_boxes = np.nonzero(unmatched)[0]
+    new_ids = np.arange(land_poses.shape[0], land_poses.shape[0] + new_boxes.size)
+    new_poses = se2_compose(pose, own[new_boxes])
+    return (
+        np.concatenate([land_poses, new_poses]),
+        np.concatenate([land_features, pose_features(new_poses)], axis=1),
+        np.concatenate([land_covariance, covariance[new_boxes]]),
+        np.concatenate([obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]),
+        np.concatenate([obs_box, match_box, new_boxes]),
+        np.concatenate([obs_land, match_land, new_ids]),
+    )
+
+
+def test_committed_map_is_the_array_path():
+    from roco_env.policies.matching import pose_features
+    from roco_env.policies.matching_kernels import committed_map
+
+    rng = np.random.default_rng(31)
+    for _ in range(30):
+        n_land, n_own, n_obs = (int(v) for v in rng.integers(0, 40, 3))
+        land = np.column_stack([rng.uniform(-50, 50, (n_land, 2)), rng.uniform(-3, 3, n_land)])
+        own = np.column_stack([rng.uniform(-50, 50, (n_own, 2)), rng.uniform(-3, 3, n_own)])
+        covariance = rng.normal(size=(n_own, 3, 3))
+        n_match = int(rng.integers(0, min(n_land, n_own) + 1))
+        match_land = np.sort(rng.choice(n_land, n_match, replace=False))
+        match_box = rng.choice(n_own, n_match, replace=False)  # any order, as the assignment's
+        args = (
+            np.array([*rng.normal(0, 10, 2), rng.uniform(-np.pi, np.pi)]), own, covariance,
+            match_land, match_box, int(rng.integers(1, 9)), land, pose_features(land),
+            rng.normal(size=(n_land, 3, 3)), rng.integers(0, 9, n_obs), rng.integers(0, 40, n_obs),
+            rng.integers(0, max(n_land, 1), n_obs),
+        )
+        for got, expected in zip(committed_map(*args), numpy_committed_map(*args), strict=True):
+            assert got.dtype == expected.dtype
+            np.testing.assert_array_equal(got, expected)
+
+
 @pytest.mark.parametrize("terms", [(True, True), (True, False), (False, True)])
 def test_scored_pairs_match_the_array_path(terms):
     """Gate, S = lam S_dis + S_edge (all boxes leaves; cached S_edge reused) and the
@@ -89,7 +134,7 @@ def test_scored_pairs_match_the_array_path(terms):
         _edge_similarity_from_features,
         pose_features,
     )
-    from roco_env.policies.matching_kernels import gated_pairs, scored_pairs
+    from roco_env.policies.pose_kernels import gated_pairs, scored_pairs
 
     use_distance, use_edge = terms
     p = MatchingParams(use_distance_similarity=use_distance, use_edge_similarity=use_edge,
@@ -145,7 +190,7 @@ def test_gated_pairs_keep_ties_and_the_gate_edge_of_the_dense_scan():
     """Lattice centres (equal x, distances exactly at the gate, equidistant boxes) and
     repeated boxes: the windowed scan keeps the dense definition's pairs and nearest boxes
     (the lowest index among equal distances)."""
-    from roco_env.policies.matching_kernels import gated_pairs
+    from roco_env.policies.pose_kernels import gated_pairs
 
     rng = np.random.default_rng(24)
     lattice = np.stack(np.meshgrid(np.arange(-6.0, 7.0), np.arange(-6.0, 7.0)), -1).reshape(-1, 2)

@@ -42,7 +42,7 @@ from roco_env.policies.hypothesis_kernels import (
     translation_votes,
     vote_peaks,
 )
-from roco_env.policies.landmarks import AlignmentInputs, require_positive
+from roco_env.policies.landmarks import AlignmentInputs, require_positive, split_rows
 from roco_env.policies.pose_kernels import KERNEL_CODES
 from roco_env.policies.posegraph import _MIN_DIAG
 
@@ -57,6 +57,10 @@ __all__ = [
     "score_hypotheses",
 ]
 
+
+# The 5-cell box filter of the rotation votes (read-only).
+_SMOOTHING = np.ones(5)
+_SMOOTHING.flags.writeable = False
 
 # LM cap and relative-decrease stop of a refinement solve (they only steer the hypothesis).
 _REFINE_ITERATIONS, _REFINE_TOLERANCE = 50, 1e-4
@@ -162,11 +166,17 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     the same values, tested)."""
     arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
                          inputs.all_covariance[:, :2, :2])
-    cuts = inputs.offsets[1:-1]
-    parts = zip(*(np.split(values, cuts) for values in arrays), strict=True)
+    log_sizes, var_t, var_r, distance = (split_rows(values, inputs.offsets) for values in arrays)
+    # Every agent's reach in one reduction (0 without boxes; the empty ones are skipped,
+    # so each start's segment ends where the next agent with boxes begins).
+    starts, stops = inputs.offsets[:-1], inputs.offsets[1:]
+    reach = np.zeros(starts.size)
+    if arrays[3].size:
+        reach[stops > starts] = np.maximum.reduceat(arrays[3], starts[stops > starts])
     return [
-        BoxSet(inputs.poses[a], log_sizes, inputs.information[a], var_t, var_r, _reach(distance))
-        for a, (log_sizes, var_t, var_r, distance) in enumerate(parts)
+        BoxSet(inputs.poses[a], log_sizes[a], inputs.information[a], var_t[a], var_r[a],
+               float(reach[a]))
+        for a in range(starts.size)
     ]
 
 
@@ -211,8 +221,9 @@ def generate_hypotheses(
     )
     if n_pairs == 0:
         return np.zeros((0, 3))
-    smooth = np.convolve(votes, np.ones(5), mode="same")
-    rotation = -half + (int(np.argmax(smooth)) + 0.5) * cell if smooth.max() > 0 else 0.0
+    smooth = np.convolve(votes, _SMOOTHING, mode="same")
+    peak = int(np.argmax(smooth))  # the first maximum: smooth[peak] is smooth.max()
+    rotation = -half + (peak + 0.5) * cell if smooth[peak] > 0 else 0.0
     rotated = reported + np.array([0.0, 0.0, rotation])
     grid = translation_votes(
         ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated, radius, search,

@@ -24,7 +24,7 @@ frame with the current pose estimate):
    remaining terms' maximum (:attr:`MatchingParams.similarity_threshold`).
 
 The gate search and the (candidate pair x matched leaf) sums of S_edge are compiled
-loops (:mod:`roco_env.policies.matching_kernels`). :class:`StarGraphMatcher` serves the
+loops (:mod:`roco_env.policies.pose_kernels`). :class:`StarGraphMatcher` serves the
 re-matching rounds of one collaborator against one landmark set: per-box
 features are computed once, and S_edge is reused while the candidate pairs and
 the initial matches stay the same (it does not depend on the pose otherwise).
@@ -37,7 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.policies.matching_kernels import compact_pairs, edge_similarity, scored_pairs
+from roco_env.policies.pose_kernels import (
+    compact_pairs,
+    edge_similarity,
+    placed_centres,
+    scored_pairs,
+)
 
 __all__ = [
     "MatchingParams",
@@ -91,6 +96,18 @@ class MatchingParams:
         remaining = float(self.use_edge_similarity) + self.lam * float(self.use_distance_similarity)
         return self.tau1 * remaining / (1.0 + self.lam)
 
+    def kernel_terms(self) -> tuple[float, bool, float, float]:
+        """The settings as :func:`~roco_env.policies.pose_kernels.scored_pairs` takes
+        them: weight of S_dis (0 = not used), use of S_edge, squared star-graph radius
+        (m^2; -1 = no radius) and the bar on S (:attr:`similarity_threshold`)."""
+        radius = self.neighbor_radius
+        return (
+            float(self.lam) if self.use_distance_similarity else 0.0,
+            bool(self.use_edge_similarity),
+            -1.0 if radius is None else float(radius) ** 2,
+            float(self.similarity_threshold),
+        )
+
 
 def edge_consistency(rel_a: np.ndarray, rel_b: np.ndarray) -> np.ndarray:
     """exp(-||T_a T_b^{-1} - I||_F) for relative poses (..., 3) (closed form).
@@ -140,8 +157,7 @@ class StarGraphMatcher:
         )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = pose_features(boxes_own) if box_features is None else box_features
-        radius = params.neighbor_radius
-        self._radius2 = -1.0 if radius is None else float(radius) ** 2
+        self._terms = params.kernel_terms()
         # S_edge of the last candidate pairs and initial matches (reused while they stay).
         self._cache = (_EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0))
 
@@ -151,8 +167,7 @@ class StarGraphMatcher:
         """Match under the pose estimate ``pose`` (3,) with gate ``tau2`` (m; default
         ``params.tau2``). Returns (landmark index (P,), box index (P,), similarity S (P,)),
         sorted by landmark index."""
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        xy = self.boxes_own[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
+        xy = placed_centres(np.asarray(pose, dtype=float), self.boxes_own)
         return self.match_centres(xy, self.params.tau2 if tau2 is None else tau2)
 
     def match_centres(
@@ -161,22 +176,22 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        p = self.params
+        lam, use_edge, radius2, tau1 = self._terms
         assigned, land, box, score, cand_p, cand_q, cand_score, self._cache = scored_pairs(
             self._land_xy,
             np.ascontiguousarray(centres, dtype=float),
             float(tau2),
-            float(p.lam) if p.use_distance_similarity else 0.0,
-            p.use_edge_similarity,
+            lam,
+            use_edge,
             self._land_features,
             self._box_features,
-            self._radius2,
-            float(p.similarity_threshold),
+            radius2,
+            tau1,
             self._cache,
         )
         if assigned:
             return land, box, score
-        return _assign(cand_p, cand_q, cand_score, p.similarity_threshold)
+        return _assign(cand_p, cand_q, cand_score, tau1)
 
 
 def match_star_graphs(
@@ -252,7 +267,7 @@ def _edge_similarity_from_features(
     - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
     frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
     candidate feature and a leaf feature: (C, 11) and (11, H) factors, built and summed per
-    usable (pair, leaf) in :func:`~roco_env.policies.matching_kernels.edge_similarity`
+    usable (pair, leaf) in :func:`~roco_env.policies.pose_kernels.edge_similarity`
     (pairs outside either star, ``neighbor_radius``, are skipped; None = no radius).
     """
     radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2

@@ -9,6 +9,18 @@ problem (:func:`solve_pose`) and of the joint graph with its Schur complement
 (tests/test_pose_kernels.py compares them with that numpy path; the recorded numpy-path
 results of tests/test_roco_reference.py still hold).
 
+RoCo's matching runs here too: the gate search (:func:`gated_pairs`), the edge similarity
+(:func:`edge_similarity`; :func:`~roco_env.policies.matching._edge_similarity_from_features`
+scores every candidate pair against every matched leaf; with the star graphs' neighbour
+radius most (pair, leaf) combinations are not leaves of both stars, so one loop that skips
+them costs a fraction of the dense (C x H) array passes, results agreeing to rounding),
+the assignment's index compaction and shortcut (:func:`scored_pairs`;
+tests/test_matching_kernels.py), and a collaborator's whole match-optimise loop
+(:func:`attempt_rounds`; tests/test_roco_kernels.py compares it with the Python loop of
+``roco._attempt_loop``). They share this module with the solver because a compiled
+function calls only functions of its own module (numba's on-disk cache notices edits to
+a function's own file only).
+
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
 """
@@ -20,8 +32,10 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "damped_step", "evaluate_edges", "normal_sums", "refine_pose", "refine_starts",
-           "rotate_information", "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
+__all__ = ["KERNEL_CODES", "attempt_rounds", "compact_pairs", "damped_step", "edge_similarity",
+           "edge_similarity_sums", "evaluate_edges", "gated_pairs", "normal_sums", "placed_centres",
+           "refine_pose", "refine_starts", "rotate_information", "scored_pairs", "solve_graph",
+           "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -412,12 +426,16 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
                     al[a, 2] * h_ll_inv[m, 2, j]
                 )
         for a in range(k):
+            # Y H_al^T is symmetric: one triangle, mirrored (row a's factors held in locals:
+            # the writes into ``damped`` would otherwise reload them).
             r = seen[a]
-            for b in range(a, k):  # Y H_al^T is symmetric: one triangle, mirrored
-                update = y[a, 0] * al[b, 0] + y[a, 1] * al[b, 1] + y[a, 2] * al[b, 2]
-                damped[r, seen[b]] -= update
-                if b != a:
-                    damped[seen[b], r] -= update
+            ya0, ya1, ya2 = y[a, 0], y[a, 1], y[a, 2]
+            damped[r, r] -= ya0 * al[a, 0] + ya1 * al[a, 1] + ya2 * al[a, 2]
+            for b in range(a + 1, k):
+                c = seen[b]
+                update = ya0 * al[b, 0] + ya1 * al[b, 1] + ya2 * al[b, 2]
+                damped[r, c] -= update
+                damped[c, r] -= update
             rhs[r] += y[a, 0] * g_l[m, 0] + y[a, 1] * g_l[m, 1] + y[a, 2] * g_l[m, 2]
     d_a = np.zeros(n_a)
     if free.size:
@@ -713,3 +731,323 @@ def solve_pose_edges(initial, landmarks, measurement, information, prior_z, prio
                               np.ascontiguousarray(measurement[:, 2]))
     return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta,
                       prior_terms(prior_z, prior_info), max_iterations, tolerance, min_diag)
+
+
+@njit(cache=True)
+def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2):
+    """S_edge (C,): mean over usable leaves h of exp(-sqrt(max(cand[c] . leaf[:, h], 0))).
+
+    cand (C, 11) / leaf (11, H): the bilinear factors of ||T_pm T_qn^{-1} - I||_F^2;
+    a leaf is usable for candidate c when it is neither p nor q's partner, and (radius2
+    >= 0) both centre offsets are within the radius: centres (C, 4) = (p_x, p_y, q_x,
+    q_y) and leaf rows 11-14 of ``leaf`` hold (m_x, m_y, n_x, n_y). 0 without a usable leaf.
+    """
+    n_cand, n_leaf = cand.shape[0], leaf.shape[1]
+    out = np.empty(n_cand)
+    for c in range(n_cand):
+        total = 0.0
+        count = 0
+        for h in range(n_leaf):
+            if leaves[h] == cand_p[c] or partner[h] == cand_q[c]:
+                continue
+            if radius2 >= 0.0:
+                dx, dy = centres[c, 0] - leaf[11, h], centres[c, 1] - leaf[12, h]
+                if dx * dx + dy * dy > radius2:
+                    continue
+                dx, dy = centres[c, 2] - leaf[13, h], centres[c, 3] - leaf[14, h]
+                if dx * dx + dy * dy > radius2:
+                    continue
+            norm2 = 0.0
+            for i in range(11):
+                norm2 += cand[c, i] * leaf[i, h]
+            total += math.exp(-math.sqrt(max(norm2, 0.0)))
+            count += 1
+        out[c] = total / max(count, 1)
+    return out
+
+
+@njit(cache=True)
+def edge_similarity(land, box, cand_p, cand_q, leaves, partner, radius2):
+    """S_edge (C,) of the candidate pairs (cand_p landmark, cand_q box) given the initial
+    matches (leaves (H,) landmarks m, partner (H,) their boxes n = A(m)), from the pose
+    features (5, L) / (5, K) (x, y, x^2 + y^2, cos yaw, sin yaw) of the landmarks and the
+    boxes: the (C, 11) candidate and (11, H) leaf factors of
+    ``matching._edge_similarity_from_features`` (the same arithmetic element by element),
+    summed by :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+    n_cand, h = cand_p.size, leaves.size
+    cand = np.empty((n_cand, 11))
+    centres = np.empty((n_cand, 4))
+    for c in range(n_cand):
+        p, q = cand_p[c], cand_q[c]
+        px, py, p2, pc, ps = land[0, p], land[1, p], land[2, p], land[3, p], land[4, p]
+        qx, qy, q2, qc, qs = box[0, q], box[1, q], box[2, q], box[3, q], box[4, q]
+        cand[c, 0] = 1.0
+        cand[c, 1] = pc * qc + ps * qs  # cos(v)
+        cand[c, 2] = ps * qc - pc * qs  # sin(v)
+        cand[c, 3], cand[c, 4], cand[c, 5] = px, py, p2
+        cand[c, 6], cand[c, 7], cand[c, 8] = qx, qy, q2
+        cand[c, 9] = px * qx + py * qy
+        cand[c, 10] = py * qx - px * qy
+        centres[c, 0], centres[c, 1], centres[c, 2], centres[c, 3] = px, py, qx, qy
+    leaf = np.zeros((15, h))  # rows 11-14: leaf centres for the radius test
+    for k in range(h):
+        m, n = leaves[k], partner[k]
+        mx, my, m2, mc, ms = land[0, m], land[1, m], land[2, m], land[3, m], land[4, m]
+        nx, ny, n2, nc, ns = box[0, n], box[1, n], box[2, n], box[3, n], box[4, n]
+        cu, su = mc * nc + ms * ns, ms * nc - mc * ns  # cos, sin of u = yaw_m - yaw_n
+        rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny  # R(u) t_n
+        rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su  # R(u)^T t_m
+        leaf[0, k] = 4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y)
+        leaf[1, k], leaf[2, k] = -4.0 * cu, -4.0 * su
+        leaf[3, k], leaf[4, k] = 2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my)
+        leaf[6, k], leaf[7, k] = 2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny)
+        leaf[5, k] = leaf[8, k] = 1.0
+        leaf[9, k], leaf[10, k] = -2.0 * cu, -2.0 * su
+        leaf[11, k], leaf[12, k], leaf[13, k], leaf[14, k] = mx, my, nx, ny
+    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
+
+
+@njit(cache=True)
+def gated_pairs(land_xy, centres, tau2):
+    """Candidate pairs of the gate and the initial matches, without (L x K) temporaries.
+
+    land_xy (L, 2), centres (K, 2) in the ego frame; distance = sqrt(dx^2 + dy^2).
+    Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
+    (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
+    (lowest index among equal distances) is within the gate, with that box. A pair whose
+    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured; the
+    boxes are sorted by x once, so each landmark scans only its window in x.
+    """
+    n_land, n_box = land_xy.shape[0], centres.shape[0]
+    reach = tau2 * (1.0 + 1e-12)
+    window = tau2 * (1.0 + 1e-6)  # holds every box within reach in x
+    by_x = np.argsort(centres[:, 0])
+    sorted_x = centres[by_x, 0]
+    cand_p = np.empty(max(4 * n_land, 16), dtype=np.int64)
+    cand_q = np.empty_like(cand_p)
+    dis = np.empty(cand_p.size)
+    leaves = np.empty(n_land, dtype=np.int64)
+    partner = np.empty(n_land, dtype=np.int64)
+    row_q = np.empty(n_box, dtype=np.int64)
+    row_d = np.empty(n_box)
+    k = h = 0
+    for p in range(n_land):
+        lx, ly = land_xy[p, 0], land_xy[p, 1]
+        best, best_q, size = math.inf, -1, 0
+        for w in range(np.searchsorted(sorted_x, lx - window), n_box):
+            if sorted_x[w] > lx + window:
+                break
+            q = by_x[w]
+            dx = lx - centres[q, 0]
+            dy = ly - centres[q, 1]
+            if abs(dx) > reach or abs(dy) > reach:
+                continue  # beyond the gate: neither a pair nor a nearest box within it
+            d = math.sqrt(dx * dx + dy * dy)
+            if d <= tau2:  # the row's pairs, kept in increasing box order
+                slot = size
+                while slot and row_q[slot - 1] > q:
+                    row_q[slot], row_d[slot] = row_q[slot - 1], row_d[slot - 1]
+                    slot -= 1
+                row_q[slot], row_d[slot] = q, d
+                size += 1
+            if d < best or (d == best and q < best_q):
+                best, best_q = d, q
+        if k + size > cand_p.size:
+            grown = max(2 * cand_p.size, k + size)
+            cand_p = np.concatenate((cand_p, np.empty(grown - cand_p.size, dtype=np.int64)))
+            cand_q = np.concatenate((cand_q, np.empty(grown - cand_q.size, dtype=np.int64)))
+            dis = np.concatenate((dis, np.empty(grown - dis.size)))
+        for r in range(size):
+            cand_p[k], cand_q[k], dis[k] = p, row_q[r], row_d[r]
+            k += 1
+        if best <= tau2:
+            leaves[h], partner[h] = p, best_q
+            h += 1
+    return cand_p[:k].copy(), cand_q[:k].copy(), dis[:k].copy(), leaves[:h], partner[:h]
+
+
+@njit(cache=True)
+def _compact_axis(index):
+    """The distinct values of ``index`` (C,) (non-negative), sorted, the position of each
+    entry's value among them (C,), and whether every value occurs once."""
+    size = 0
+    for k in range(index.size):
+        size = max(size, index[k] + 1)
+    count = np.zeros(size, dtype=np.int64)
+    for k in range(index.size):
+        count[index[k]] += 1
+    single = True
+    position = np.empty(size, dtype=np.int64)
+    n_used = 0
+    for i in range(size):
+        position[i] = n_used
+        if count[i]:
+            n_used += 1
+            single = single and count[i] == 1
+    used = np.empty(n_used, dtype=np.int64)
+    for i in range(size):
+        if count[i]:
+            used[position[i]] = i
+    inverse = np.empty(index.size, dtype=np.int64)
+    for k in range(index.size):
+        inverse[k] = position[index[k]]
+    return used, inverse, single
+
+
+@njit(cache=True)
+def compact_pairs(cand_p, cand_q):
+    """The rows and columns the candidate pairs (C,) use (non-negative indices), as
+    ``np.unique`` with ``return_inverse`` gives them: (rows (R,) sorted, row index of each
+    pair (C,), cols (Q,) sorted, column index of each pair (C,)), and whether every row
+    and every column has a single pair."""
+    rows, row_idx, single_rows = _compact_axis(cand_p)
+    cols, col_idx, single_cols = _compact_axis(cand_q)
+    return rows, row_idx, cols, col_idx, single_rows and single_cols
+
+
+@njit(cache=True)
+def placed_centres(pose, own):
+    """The centres (K, 2) of the boxes own (K, 3) (the agent's frame) in the ego frame
+    under its pose (3,) (x m, y m, yaw rad): ``R(yaw) t + (x, y)``, each coordinate as
+    ``t_x * cos + t_y * (-sin)`` (y: ``t_x * sin + t_y * cos``) plus the offset. (numpy's
+    ``own[:, :2] @ R^T`` goes through BLAS, whose kernels may fuse the multiply-adds:
+    the same values to the last bit or two.)"""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    centres = np.empty((own.shape[0], 2))
+    for k in range(own.shape[0]):
+        centres[k, 0] = own[k, 0] * c + own[k, 1] * -s + pose[0]
+        centres[k, 1] = own[k, 0] * s + own[k, 1] * c + pose[1]
+    return centres
+
+
+@njit(cache=True)
+def scored_pairs(land_xy, centres, tau2, lam, use_edge, land_features, box_features, radius2,
+                 tau1, cached):
+    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    (:func:`gated_pairs`) scored S = lam * S_dis (lam = 0: no distance term) + S_edge
+    (with ``use_edge``, :func:`edge_similarity`; reused from ``cached`` = (cand_p, cand_q,
+    leaves, partner, S_edge) of an earlier call when the pairs and the initial matches
+    are the same), and the assignment's shortcut: when every landmark and every box has a
+    single candidate and every score is > 0, the pairs with S >= tau1 are the assignment.
+
+    Returns (assigned?, landmark (P,), box (P,), S (P,) of the assignment when the
+    shortcut applies (else empty), then the candidates (cand_p, cand_q, S) for the full
+    assignment, and the new cache (cand_p, cand_q, leaves, partner, S_edge)).
+    """
+    cand_p, cand_q, dis, leaves, partner = gated_pairs(land_xy, centres, tau2)
+    score = np.empty(cand_p.size)
+    for k in range(cand_p.size):
+        score[k] = lam * math.exp(-dis[k])
+    edge = cached[4]
+    if use_edge:
+        old_p, old_q, old_leaves, old_partner = cached[0], cached[1], cached[2], cached[3]
+        same = old_p.size == cand_p.size and old_leaves.size == leaves.size
+        for k in range(cand_p.size if same else 0):
+            same = same and old_p[k] == cand_p[k] and old_q[k] == cand_q[k]
+        for k in range(leaves.size if same else 0):
+            same = same and old_leaves[k] == leaves[k] and old_partner[k] == partner[k]
+        if not same:
+            edge = edge_similarity(land_features, box_features, cand_p, cand_q, leaves, partner,
+                                   radius2)
+        for k in range(cand_p.size):
+            score[k] = score[k] + edge[k]
+    single = compact_pairs(cand_p, cand_q)[4]
+    for k in range(cand_p.size):
+        single = single and score[k] > 0
+    kept = np.zeros(cand_p.size, dtype=np.bool_)
+    if single:
+        for k in range(cand_p.size):
+            kept[k] = score[k] >= tau1
+    return (single, cand_p[kept], cand_q[kept], score[kept], cand_p, cand_q, score,
+            (cand_p, cand_q, leaves, partner, edge))
+
+
+@njit(cache=True)
+def _matches(pose, own_poses, land_xy, tau2, lam, use_edge, land_features, box_features,
+             radius2, tau1, cache):
+    """One ``StarGraphMatcher.match`` under ``pose`` (3,) with gate ``tau2`` (m) when the
+    assignment's shortcut applies: (shortcut applied?, landmark (P,), box (P,), new cache);
+    no landmarks or no boxes: no matches, the cache kept."""
+    if land_xy.shape[0] == 0 or own_poses.shape[0] == 0:
+        return True, cache[0][:0].copy(), cache[0][:0].copy(), cache
+    single, land, box, _, _, _, _, cache = scored_pairs(
+        land_xy, placed_centres(pose, own_poses), tau2, lam, use_edge, land_features,
+        box_features, radius2, tau1, cache,
+    )
+    return single, land, box, cache
+
+
+@njit(cache=True)
+def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_features, land_cov,
+                   box_features, prior_z, prior_info, tau2, coarse_tau2, lam, use_edge, radius2,
+                   tau1, min_matches, rounds, kernel, delta, max_iterations, tolerance, min_diag,
+                   inlier_chi2, fit_tolerance):
+    """RoCo's match-optimise rounds for one collaborator (``roco._attempt`` with per-round
+    single-vertex solves).
+
+    start (3,): first pose estimate T_{j->i}; own_poses (K, 3) / own_info (K, 3, 3) /
+    own_cov (K, 3, 3): its boxes (its frame), their information and covariance;
+    land_poses (L, 3) / land_cov (L, 3, 3): the map's landmarks (ego frame) and their
+    covariance; land_features (5, L) / box_features (5, K): the pose features; prior_z
+    (3,) / prior_info (3, 3): the prior edge (reported pose). Matching settings as
+    ``StarGraphMatcher`` (tau2, coarse_tau2 m, coarse_tau2 <= 0: no coarse gate; lam = 0:
+    no distance term); at most ``rounds`` rounds; solver settings as
+    :func:`solve_pose_edges`.
+
+    When the rounds end solved with at least ``min_matches`` edges of chi2 <=
+    ``inlier_chi2`` and ``fit_tolerance`` > 0, also the significance test's statistic
+    (``roco._correction_statistic``: :func:`wald_statistic`
+    with the covariance of box minus landmark, LM stop ``fit_tolerance``); else nan.
+
+    Returns (done, pose (3,), landmark ids (P,), box ids (P,), solved, chi2 (P,),
+    landmarks (P, 3), rounds run, solver iterations, statistic); done = False when a
+    round's matching needs the full assignment (the rest is then meaningless).
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    cache = (empty, empty.copy(), empty.copy(), empty.copy(), np.zeros(0))
+    land_xy = np.ascontiguousarray(land_poses[:, :2])
+    pose = start.copy()
+    match_land, match_box = empty.copy(), empty.copy()
+    chi2, landmarks = np.zeros(0), np.zeros((0, 3))
+    solved, outer, solver = False, 0, 0
+    for _ in range(rounds):
+        single, land, box, cache = _matches(pose, own_poses, land_xy, tau2, lam, use_edge,
+                                            land_features, box_features, radius2, tau1, cache)
+        if single and outer == 0 and land.size < min_matches and coarse_tau2 > 0:
+            single, land, box, cache = _matches(pose, own_poses, land_xy, coarse_tau2, lam,
+                                                use_edge, land_features, box_features, radius2,
+                                                tau1, cache)
+        if not single:
+            return (False, pose, match_land, match_box, solved, chi2, landmarks, outer, solver,
+                    np.nan)
+        if outer and _same(land, match_land) and _same(box, match_box):
+            break
+        outer += 1
+        match_land, match_box = land, box
+        solved = land.size >= min_matches
+        if not solved:
+            break
+        landmarks = land_poses[match_land]
+        pose, chi2, _, _, iterations, _ = solve_pose_edges(
+            pose, landmarks, own_poses[match_box], own_info[match_box], prior_z, prior_info,
+            kernel, delta, max_iterations, tolerance, min_diag,
+        )
+        solver += iterations
+    statistic = np.nan
+    if solved and fit_tolerance > 0 and np.count_nonzero(chi2 <= inlier_chi2) >= min_matches:
+        statistic = wald_statistic(
+            pose, landmarks, own_poses[match_box], own_cov[match_box] + land_cov[match_land],
+            prior_z, kernel, delta, max_iterations, fit_tolerance, min_diag,
+        )
+    return True, pose, match_land, match_box, solved, chi2, landmarks, outer, solver, statistic
+
+
+@njit(cache=True)
+def _same(a, b):
+    """``np.array_equal`` of two 1-d integer arrays."""
+    if a.size != b.size:
+        return False
+    for k in range(a.size):
+        if a[k] != b[k]:
+            return False
+    return True

@@ -72,10 +72,16 @@ from roco_env.policies.landmarks import (
     params_from_kwargs,
     prepare_inputs,
     prior_information,
+    split_rows,
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
-from roco_env.policies.matching_kernels import placed_landmarks
-from roco_env.policies.pose_kernels import KERNEL_CODES, solve_pose_edges, wald_statistic
+from roco_env.policies.matching_kernels import committed_map
+from roco_env.policies.pose_kernels import (
+    KERNEL_CODES,
+    attempt_rounds,
+    solve_pose_edges,
+    wald_statistic,
+)
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
@@ -179,9 +185,9 @@ class _Map:
         self.poses = ego_poses.copy()
         self.features = pose_features(self.poses)  # kept in step with poses for matching
         # Every agent's boxes' features in its own frame (fixed), computed in one pass.
-        self.box_features = np.split(
-            pose_features(inputs.all_poses), inputs.offsets[1:-1], axis=1
-        )
+        self.box_features = [
+            features.T for features in split_rows(pose_features(inputs.all_poses).T, inputs.offsets)
+        ]
         self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
         self.obs_agent = np.zeros(count, dtype=np.int64)
@@ -204,7 +210,8 @@ class _Attempt:
 
     pose: current estimate; match_land/match_box: matched landmark ids and box indices;
     chi2 (P,) and landmarks (P, 3): its matched edges at the estimate; joint: the joint
-    solve (result, agent ids, shared landmark ids) when rounds solve the whole graph.
+    solve (result, agent ids, shared landmark ids) when rounds solve the whole graph;
+    statistic: the significance test's, when the compiled rounds computed it.
     """
 
     pose: np.ndarray
@@ -216,6 +223,7 @@ class _Attempt:
     joint: tuple[PoseGraphResult, np.ndarray, np.ndarray] | None = None
     outer: int = 0
     solver: int = 0
+    statistic: float | None = None
 
 
 @lru_cache(maxsize=16)
@@ -224,6 +232,30 @@ def _prior_info(p: RoCoParams) -> np.ndarray:
     info = prior_information(p.prior_sigma_t, np.deg2rad(p.prior_sigma_r_deg))
     info.flags.writeable = False
     return info
+
+
+@lru_cache(maxsize=16)
+def _round_terms(p: RoCoParams) -> tuple:
+    """The settings of ``p`` as :func:`~roco_env.policies.pose_kernels.attempt_rounds` takes
+    them after the reported pose, computed once per parameter set: the prior edges'
+    information, the gates (m; coarse -1 = none), the matching's kernel terms, min_matches,
+    the round cap, the solver's settings, inlier_chi2 and the significance fit's stop
+    (0 = no significance test)."""
+    return (
+        _prior_info(p),
+        float(p.tau2),
+        -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
+        *p.kernel_terms(),
+        int(p.min_matches),
+        int(p.max_outer_iterations) if p.iterate else 1,
+        KERNEL_CODES[p.robust_kernel],
+        float(p.kernel_delta),
+        int(p.max_solver_iterations),
+        _ROUND_TOLERANCE,
+        _MIN_DIAG,
+        float(p.inlier_chi2),
+        _FIT_TOLERANCE if p.significance else 0.0,
+    )
 
 
 def _joint_solve(
@@ -301,15 +333,48 @@ def _optimise_round(
 
 
 def _attempt(
-    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
+    inputs: AlignmentInputs,
+    world: _Map,
+    agent: int,
+    p: RoCoParams,
+    start: np.ndarray,
+    covariance: list[np.ndarray],
 ) -> _Attempt:
     """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
-    starting from the pose estimate ``start`` (3,)."""
+    starting from the pose estimate ``start`` (3,), covariance: every agent's box
+    covariances: in one compiled call (:func:`~roco_env.policies.pose_kernels.attempt_rounds`,
+    which also computes the significance test's statistic) unless the rounds solve the
+    whole graph or a matching needs the full assignment (:func:`_attempt_loop`)."""
+    pose = np.array(start, dtype=float)
+    if p.joint_every_round:
+        return _attempt_loop(inputs, world, agent, p, pose)
+    done, pose, land, box, solved, chi2, landmarks, outer, solver, statistic = attempt_rounds(
+        pose,
+        inputs.poses[agent],
+        inputs.information[agent],
+        covariance[agent],
+        world.poses,
+        world.features,
+        world.covariance,
+        world.box_features[agent],
+        inputs.reported[agent - 1],
+        *_round_terms(p),
+    )
+    if not done:
+        return _attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
+    statistic = None if np.isnan(statistic) else float(statistic)
+    return _Attempt(pose, land, box, solved, chi2, landmarks, None, outer, solver, statistic)
+
+
+def _attempt_loop(
+    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
+) -> _Attempt:
+    """:func:`_attempt` round by round in Python (any matching, joint solves per round)."""
     matcher = StarGraphMatcher(
         world.poses, inputs.poses[agent], p, world.features, world.box_features[agent]
     )
     empty = np.zeros(0, dtype=np.int64)
-    att = _Attempt(np.array(start, dtype=float), empty, empty)
+    att = _Attempt(start, empty, empty)
     rounds = p.max_outer_iterations if p.iterate else 1
     for _ in range(rounds):
         land, box, _ = matcher.match(att.pose)
@@ -349,7 +414,10 @@ def _correction_statistic(
     kernel, and ``d = fitted - reported`` is weighed by the inverse of its sandwich
     covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
     IRLS weights at the fit); chi-square with 3 dof when the reported pose is right.
-    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`)."""
+    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`),
+    unless the compiled rounds already did."""
+    if att.statistic is not None:
+        return att.statistic
     own = inputs.poses[agent][att.match_box]
     return float(
         wald_statistic(
@@ -416,20 +484,13 @@ def _commit(
     if att.joint is not None:
         _store_joint(world, att.joint)
     world.agent_poses[agent] = att.pose
-    own = inputs.poses[agent]
-    unmatched = np.ones(own.shape[0], dtype=bool)
-    unmatched[att.match_box] = False
-    new_boxes = np.nonzero(unmatched)[0]
-    new_ids = np.arange(world.poses.shape[0], world.poses.shape[0] + new_boxes.size)
-    new_poses, new_features = placed_landmarks(att.pose, own, new_boxes)
-    world.poses = np.concatenate([world.poses, new_poses])
-    world.features = np.concatenate([world.features, new_features], axis=1)
-    world.covariance = np.concatenate([world.covariance, covariance[new_boxes]])
-    world.obs_agent = np.concatenate(
-        [world.obs_agent, np.full(own.shape[0], agent, dtype=np.int64)]
+    # Matched boxes become observations, the others new landmarks (one compiled pass).
+    (world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
+     world.obs_land) = committed_map(
+        att.pose, inputs.poses[agent], covariance, att.match_land, att.match_box, agent,
+        world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
+        world.obs_land,
     )
-    world.obs_box = np.concatenate([world.obs_box, att.match_box, new_boxes])
-    world.obs_land = np.concatenate([world.obs_land, att.match_land, new_ids])
 
 
 def checked_params(cls: type, kwargs: dict, method: str):
@@ -489,7 +550,7 @@ def roco_solve(
         )
     # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
     # np.linalg.inv does for any subset).
-    covariance = np.split(inputs.all_covariance, inputs.offsets[1:-1])
+    covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
@@ -503,7 +564,7 @@ def roco_solve(
         if not has_boxes[agent]:
             reasons[agent - 1] = "no boxes"
             continue
-        att = _attempt(inputs, world, agent, p, start[agent - 1])
+        att = _attempt(inputs, world, agent, p, start[agent - 1], covariance)
         outer, solver = outer + att.outer, solver + att.solver
         reasons[agent - 1] = _rejection(inputs, world, agent, att, p, covariance)
         if not reasons[agent - 1]:
