@@ -1,4 +1,5 @@
-"""Runs from an installed wheel, outside the checkout: the scenario library ships and steps.
+"""Runs from an installed wheel, outside the checkout: the scenario library and the learned
+detector's weights ship, and step.
 
 Called by ``make wheel-check`` with the fresh environment's python, from a folder
 that holds no roco_env source, so every import below comes from the wheel.
@@ -31,4 +32,16 @@ for name in names:
     mean_ap = float(np.mean([rewards[a] for a in rewards]))
     print(f"wheel: {name}: {len(env.possible_agents)} agents, {steps} steps, "
           f"last mean AP@0.7 {mean_ap:.3f}")
+from roco_env.sensing.learned import shipped_weights_path  # noqa: E402 (needs torch)
+
+for fusion in ("gated", "max"):
+    if not shipped_weights_path(fusion).is_file():
+        sys.exit(f"the wheel lacks the shipped {fusion} weights {shipped_weights_path(fusion)}")
+env = roco_env.parallel_env("urban_intersection", max_cycles=1, detector="learned",
+                            fusion="intermediate")
+env.reset(seed=0)
+_, rewards, _, _, _ = env.step({a: np.zeros(env.action_space(a).shape, dtype=np.float32)
+                                for a in env.agents})
+print(f"wheel: learned detector, gated intermediate fusion: mean AP@0.7 "
+      f"{float(np.mean(list(rewards.values()))):.3f}")
 print(f"wheel check passed: {len(names)} scenarios shipped, imported from {package}")

@@ -177,6 +177,9 @@ class LearnedDetectorParams:
                                    doc="decoded boxes below this score are dropped")
     threads: int = _spec(1, low=1, high=256,
                          doc="torch CPU threads, set process-wide when the detector is built")
+    gate: bool | None = _spec(None, doc="intermediate fusion through the weights' learned "
+                              "fusion gate: None = when they hold one, true = they must, false "
+                              "= the plain maximum")
 
 
 # detector.preset -> the dataclass declaring its detector.params.

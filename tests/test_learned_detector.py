@@ -30,9 +30,11 @@ from roco_env.sensing.learned.targets import _max_3x3, build_targets, decode, fe
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
 from roco_env.training.data import VALIDATION_SEED_BASE, make_scenes
 
-# sha256 of roco_env/sensing/learned/weights/bev_detector.pt, the output of
-# the training command recorded in its report.md (roco_env/sensing/learned/weights).
-SHIPPED_SHA256 = "2efae2afeab11702f9c125c67aca443ee38763d0e34ecb1b735cbddfbf6d947c"
+# sha256 of the shipped weights (roco_env/sensing/learned/weights/: the detector alone, "max",
+# and gated/: the same detector with its fusion gate, the default), each the output of the
+# training command recorded in the report.md beside it.
+SHIPPED_SHA256 = {"max": "2efae2afeab11702f9c125c67aca443ee38763d0e34ecb1b735cbddfbf6d947c",
+                  "gated": "eefb5fcdfa3bc64885e1367396164f119f854252204ca9fef19dda1589864f00"}
 
 GRID = BevGrid((-70.4, 70.4), (-40.0, 40.0), 0.8)
 FGRID = feature_grid(GRID, 2)
@@ -105,13 +107,28 @@ def test_targets_decode_back_to_the_boxes():
     np.testing.assert_allclose(out.boxes[order], expect, atol=1e-5)
 
 
-def test_shipped_weights_match_their_checksum_and_load(detector):
-    path = shipped_weights_path()
+@pytest.mark.parametrize("fusion", ["gated", "max"])
+def test_shipped_weights_match_their_checksum_and_load(detector, fusion):
+    path = shipped_weights_path(fusion)
     assert path.stat().st_size <= 5 * 2**20
-    assert sha256_of(path) == SHIPPED_SHA256
+    assert sha256_of(path) == SHIPPED_SHA256[fusion]
     checkpoint = load_checkpoint(path)
     assert checkpoint.grid == GRID and "train-detector" in checkpoint.meta["command"]
-    assert detector.grid == GRID
+    assert checkpoint.net.fusion == fusion
+    assert detector.grid == GRID and detector.gate is not None  # the default: gated
+
+
+def test_the_shipped_gate_was_trained_on_the_shipped_detector_left_unchanged():
+    gated, plain = load_checkpoint(shipped_weights_path()), load_checkpoint(
+        shipped_weights_path("max"))
+    assert gated.meta["init_sha256"] == SHIPPED_SHA256["max"]
+    assert "--freeze-detector" in gated.meta["command"]
+    assert set(gated.state_dict) - set(plain.state_dict) == {
+        f"gate.body.{k}.{p}" for k in (0, 2) for p in ("weight", "bias")}
+    for name, value in plain.state_dict.items():
+        assert torch.equal(gated.state_dict[name], value), name
+    with pytest.raises(ValueError, match="shipped weights exist for fusion"):
+        shipped_weights_path("attention")
 
 
 def test_a_shifted_map_decodes_to_shifted_boxes(detector, scene):
@@ -482,7 +499,7 @@ def test_assessment_reports_fusion_inside_and_beyond_the_detector_grid(tmp_path)
     assert assessment(["--seeds", "1", "--steps", "1", "--out", str(tmp_path),
                        "--weights", str(weights)]) == 0
     result = json.loads((tmp_path / "assessment.json").read_text())
-    assert result["weights_sha256"] == SHIPPED_SHA256 and "--weights" in result["command"]
+    assert result["weights_sha256"] == SHIPPED_SHA256["gated"] and "--weights" in result["command"]
     for fusion in ("late", "intermediate"):
         values = result[f"{fusion}_learned_true_poses"]
         for region in ("inside_grid", "beyond_grid"):

@@ -53,6 +53,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--freeze-encoder", action="store_true",
                    help="train the trunk and heads only (needs --init): a fine-tuning stage "
                    "that keeps every encoder map as it was")
+    p.add_argument("--fusion", choices=("max", "gated"), default=d.fusion,
+                   help="intermediate fusion of the fused loss and of the weights: the maximum, "
+                   "or the maximum after a learned per-cell gate on each collaborator's map "
+                   "(default %(default)s)")
+    p.add_argument("--freeze-detector", action="store_true",
+                   help="train the fusion gate only (needs --init and --fusion gated): every "
+                   "detection of the start weights stays as it was")
     p.add_argument("--warp-augment", type=float, default=d.warp_augment, metavar="P",
                    help="share in [0, 1] of single-agent maps decoded after a random rigid "
                    "warp (any heading, a shift of up to one feature cell), so the network "
@@ -68,7 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from roco_env.sensing.learned.model import SHIPPED_WEIGHTS, save_checkpoint, sha256_of
+    from roco_env.sensing.learned.model import WEIGHTS_FILE, save_checkpoint, sha256_of
     from roco_env.training.report import write_report
     from roco_env.training.train import TrainConfig, init_checkpoint, train
 
@@ -78,7 +85,8 @@ def _run(args: argparse.Namespace) -> int:
         lr=args.lr, pose_sigma_t=args.pose_sigma_t, pose_sigma_r=args.pose_sigma_r,
         fused_x_range=_pair(args.fused_x_range), fused_y_range=_pair(args.fused_y_range),
         init=None if args.init is None else str(args.init),
-        train_encoder=not args.freeze_encoder, warp_augment=args.warp_augment,
+        train_encoder=not args.freeze_encoder, fusion=args.fusion,
+        train_detector=not args.freeze_detector, warp_augment=args.warp_augment,
         seed=args.seed, threads=args.threads, workers=args.workers, device=args.device)
     command = "roco-env train-detector " + shlex.join(_argv_of(args))
     # Checked (and hashed: the output may overwrite it) before any output or scene exists.
@@ -86,7 +94,7 @@ def _run(args: argparse.Namespace) -> int:
     init = {} if init_sha256 is None else {"init_sha256": init_sha256}
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(config, progress=not args.quiet, log=lambda m: print(m, file=sys.stderr))
-    weights = args.out / SHIPPED_WEIGHTS
+    weights = args.out / WEIGHTS_FILE
     save_checkpoint(weights, result.net.cpu(), config.grid, config.noise,
                     {"command": command, "seed": config.seed, **init,
                      "train_config": result.summary()["config"],
@@ -110,6 +118,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
                   else []),
                 *([f"--init={args.init}"] if args.init else []),
                 *(["--freeze-encoder"] if args.freeze_encoder else []),
+                *([f"--fusion={args.fusion}"] if args.fusion != "max" else []),
+                *(["--freeze-detector"] if args.freeze_detector else []),
                 *([f"--warp-augment={args.warp_augment}"] if args.warp_augment else [])]
     return [f"--out={args.out}", f"--seed={args.seed}", f"--steps={args.steps}",
             f"--train-scenes={args.train_scenes}", f"--val-scenes={args.val_scenes}",

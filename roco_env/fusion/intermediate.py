@@ -4,7 +4,9 @@ Each collaborator's map (C, h, w), in its own true sensor frame on the shared
 feature grid, is resampled into the ego frame with the *corrected* relative
 pose T_{j->i} (bilinear, zero padding, via :func:`roco_env.sensing.warp_bev`)
 and fused with the ego's map by an element-wise maximum (the maps are
-non-negative, so the zero padding outside a collaborator's view adds nothing).
+non-negative, so the zero padding outside a collaborator's view adds nothing); a
+network with a learned gate (:class:`~roco_env.sensing.learned.network.FusionGate`)
+first weighs each warped map, cell by cell, against the ego's own map.
 :func:`intermediate_fusion` then decodes the fused maps with the learned
 detector's heads: a wrong pose misaligns the maps before decoding, so it
 shows up in the boxes and their AP. Needs torch (imported on demand by the env).
@@ -17,6 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+from torch import nn
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
 from roco_env.fusion.warp_kernels import warp_max_into
@@ -31,20 +34,24 @@ __all__ = ["fuse_features", "fuse_maps", "fuse_on_canvas", "fusion_canvas",
 
 def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
               poses: Sequence[np.ndarray], grid: BevGrid,
-              canvas: BevGrid | None = None) -> torch.Tensor:
+              canvas: BevGrid | None = None, gate: nn.Module | None = None) -> torch.Tensor:
     """Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp;
     differentiable (the training path; :func:`fuse_on_canvas` is the run-time one).
 
     features (N, C, h, w) on ``grid``, one per agent; egos: rows of the egos;
     collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
     T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas: a
-    grid of ``grid``'s cells containing it (:func:`fusion_canvas`).
+    grid of ``grid``'s cells containing it (:func:`fusion_canvas`); gate: a
+    :class:`~roco_env.sensing.learned.network.FusionGate` weighing every warped map
+    against its ego's own map before the maximum (None: the plain maximum).
     """
     canvas = canvas or grid
     own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
     if not rows:
         return own
     warped = warp_bev(features[rows], np.concatenate(poses), grid, canvas)
+    if gate is not None:
+        warped = warped * gate(own[[e for e, c in enumerate(collaborators) for _ in c]], warped)
     per_ego = torch.split(warped, [len(c) for c in collaborators])
     return torch.stack([torch.maximum(mine, theirs.amax(dim=0)) if theirs.shape[0] else mine
                         for mine, theirs in zip(own, per_ego, strict=True)])
@@ -52,7 +59,8 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
 
 def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
                    collaborators: Sequence[Sequence[int]], poses: Sequence[np.ndarray],
-                   grid: BevGrid, canvas: BevGrid | None = None) -> torch.Tensor:
+                   grid: BevGrid, canvas: BevGrid | None = None,
+                   gate: nn.Module | None = None) -> torch.Tensor:
     """:func:`fuse_maps` at run time (no autograd: writes in place), on ``canvas``.
 
     Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp.
@@ -61,7 +69,8 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     collaborators[e]: rows of ego e's collaborators; poses[e] (n_e, 3): the
     T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas:
     a grid of ``grid``'s cells containing it (:func:`fusion_canvas`): the egos' own maps
-    are zero-padded onto it, the collaborators' maps warped straight onto it.
+    are zero-padded onto it, the collaborators' maps warped straight onto it; gate: as
+    in :func:`fuse_maps`.
     """
     canvas = canvas or grid
     own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
@@ -75,16 +84,23 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     shifted = all_poses.copy()
     shifted[:, 0] -= first * canvas.resolution
     owner = [e for e, c in enumerate(collaborators) for _ in c]
-    if features.device.type == "cpu" and features.dtype == torch.float32:
-        # One compiled pass (roco_env.fusion.warp_kernels) on channels-last maps.
-        own = own.contiguous(memory_format=torch.channels_last)
-        warp_max_into(own.permute(0, 2, 3, 1).numpy(),
-                      features.contiguous(memory_format=torch.channels_last)
-                      .permute(0, 2, 3, 1).numpy(),
-                      affine_theta(shifted, grid, window), np.asarray(rows),
+    if not (features.device.type == "cpu" and features.dtype == torch.float32):
+        return _max_into(own, warp_bev(features[rows], shifted, grid, window), owner, first,
+                         gate)
+    # Compiled passes (roco_env.fusion.warp_kernels) on channels-last maps: without a gate,
+    # warp and max straight into the egos' maps; with one, warp into zeroed windows first
+    # (the maps are non-negative, so the maximum with zero is the warped value).
+    own = own.contiguous(memory_format=torch.channels_last)
+    sources = features.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).numpy()
+    theta = affine_theta(shifted, grid, window)
+    if gate is None:
+        warp_max_into(own.permute(0, 2, 3, 1).numpy(), sources, theta, np.asarray(rows),
                       np.asarray(owner), first, window.W)
         return own
-    return _max_warped(own, features[rows], owner, first, shifted, grid, window)
+    windows = np.zeros((len(rows), window.H, window.W, features.shape[1]), dtype=np.float32)
+    warp_max_into(windows, sources, theta, np.asarray(rows), np.arange(len(rows)),
+                  np.zeros(len(rows), dtype=np.int64), window.W)
+    return _max_into(own, torch.from_numpy(windows).permute(0, 3, 1, 2), owner, first, gate)
 
 
 def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
@@ -107,14 +123,18 @@ def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
     return own, rows, poses
 
 
-def _max_warped(own: torch.Tensor, maps: torch.Tensor, owner: Sequence[int], first: np.ndarray,
-                poses: np.ndarray, grid: BevGrid, window: BevGrid) -> torch.Tensor:
-    """``own`` with every map k (on ``grid``) warped by poses[k] onto ``window`` (canvas
-    columns first[k] onwards) max-ed into own[owner[k]], in place: the torch path of
-    :func:`fuse_on_canvas` (any device and dtype), one ``grid_sample`` for all maps."""
-    warped = warp_bev(maps, poses, grid, window)
+def _max_into(own: torch.Tensor, warped: torch.Tensor, owner: Sequence[int], first: np.ndarray,
+              gate: nn.Module | None) -> torch.Tensor:
+    """``own`` with every warped window map k (K, C, H, w) max-ed into own[owner[k]] at
+    canvas columns first[k] .. first[k] + w, in place, each weighed first by ``gate``
+    against its ego's own map on its window (read before any collaborator is max-ed in)."""
+    width = warped.shape[-1]
+    if gate is not None:
+        mine = torch.stack([own[e, :, :, start:start + width]
+                            for e, start in zip(owner, first.tolist(), strict=True)])
+        warped = warped * gate(mine, warped)
     for k, (e, start) in enumerate(zip(owner, first.tolist(), strict=True)):
-        cols = own[e, :, :, start:start + window.W]
+        cols = own[e, :, :, start:start + width]
         torch.maximum(cols, warped[k], out=cols)
     return own
 
@@ -210,13 +230,15 @@ def intermediate_fusion(detector, encoder_maps, state: WorldState,
     poses (the corrected T_{j->i}) as in :func:`fuse_maps`. The maps are fused on a
     canvas covering that grid and the ego-frame range ``x_range`` x ``y_range``
     (m; the evaluation range), so a collaborator's view beyond the ego's own sensor grid
-    is decoded too (the heads are convolutional). Every box's source is the ego
+    is decoded too (the heads are convolutional); the detector's fusion gate, if its
+    weights hold one, weighs the warped maps. Every box's source is the ego
     (:data:`EGO_SOURCE`): it comes from the ego's fused map.
     """
     grid = encoder_maps.grid
     canvas, _ = fusion_canvas(grid, x_range, y_range)
     with torch.inference_mode():
-        fused = fuse_on_canvas(encoder_maps.maps, egos, collaborators, poses, grid, canvas)
+        fused = fuse_on_canvas(encoder_maps.maps, egos, collaborators, poses, grid, canvas,
+                               detector.gate)
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]

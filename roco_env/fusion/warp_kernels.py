@@ -7,7 +7,9 @@ the ego's map. ``grid_sample`` writes channel-planar maps (N, C, H, W) whatever 
 input's layout, so with channels-last maps (what the detector's convolutions use) the
 warp, the change of layout and the maximum were three passes over every warped cell.
 This loop does all three in one pass, reading each source cell's channels contiguously
-(and skipping the cells whose four neighbours all lie outside the source map). Source
+(and skipping the cells whose four neighbours all lie outside the source map); with a
+learned fusion gate it warps into zeroed windows instead (the maps are non-negative, so
+the maximum with zero is the warped value) and the gate and maximum follow in torch. Source
 positions and bilinear weights are computed in float64, the weighted sums in float32 as
 ``grid_sample`` does; ``grid_sample`` computes the positions in float32, so the warped
 values differ from its by up to about 5e-6 of their magnitude (2e-5 on the shipped

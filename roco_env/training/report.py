@@ -53,7 +53,8 @@ def write_report(result: TrainResult, out: Path, command: str, weights_sha256: s
     cfg = result.config
     start = ("random initialisation" if cfg.init is None else
              f"`{cfg.init}` (sha256 `{init_sha256}`), "
-             + ("encoder frozen" if not cfg.train_encoder else "whole network trained"))
+             + ("detector frozen, only the fusion gate trained" if not cfg.train_detector
+                else "encoder frozen" if not cfg.train_encoder else "whole network trained"))
     fused = ("the detector grid" if cfg.fused_x_range is None and cfg.fused_y_range is None
              else f"a canvas of x {list(cfg.fused_canvas.x_range)} m, "
              f"y {list(cfg.fused_canvas.y_range)} m (fused validation AP decoded on it too)")
@@ -65,8 +66,8 @@ def write_report(result: TrainResult, out: Path, command: str, weights_sha256: s
         f"{cfg.steps} steps of {cfg.scenes_per_step} scenes; fused-loss pose noise "
         f"{cfg.pose_sigma_t} m / {cfg.pose_sigma_r} deg; "
         f"{summary['parameters']} parameters; {result.seconds:.0f} s.\n\n"
-        f"Started from {start}; fused loss decoded on {fused}; warp augmentation "
-        f"{cfg.warp_augment}.\n\n"
+        f"Started from {start}; fusion {cfg.fusion}; fused loss decoded on {fused}; warp "
+        f"augmentation {cfg.warp_augment}.\n\n"
         f"Weights sha256: `{weights_sha256}`\n\n"
         f"Validation ({cfg.val_scenes} held-out scenes of {', '.join(cfg.val_scenarios)}, "
         "the environment's ground truth and AP protocol):\n\n"

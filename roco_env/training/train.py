@@ -12,7 +12,8 @@ encodes all their agents in one batch and sums two losses:
 * **fused**: for every agent as an ego, its collaborators' maps warped into its
   frame with the relative poses (true, or perturbed by N(0, ``pose_sigma_t``) m
   per axis and N(0, ``pose_sigma_r``) deg when training for pose noise), fused
-  by element-wise max with its own, decoded against the collaboration's targets,
+  by element-wise max with its own (after a learned per-cell weight on each
+  collaborator's map with ``fusion="gated"``), decoded against the collaboration's targets,
   on the detector grid or on a larger canvas (``fused_x_range`` x ``fused_y_range``,
   the env's evaluation range), where a collaborator's view beyond the ego's grid is
   decoded as the env decodes it.
@@ -20,7 +21,8 @@ encodes all their agents in one batch and sums two losses:
 A run starts from random weights or from a weights file (``init``); with
 ``train_encoder=False`` the encoder is frozen (eval mode, no gradients) and only the
 trunk and heads learn: a fine-tuning stage that leaves every agent's encoder map as
-it was.
+it was; with ``train_detector=False`` (``fusion="gated"``) the whole detector is frozen
+and only the fusion gate learns, from the fused loss alone.
 
 Loss per decoded map set: CenterNet focal loss on the heatmap; at object
 centre cells L1 on the offset and log size, L1 on (sin, cos) of the yaw up to
@@ -50,7 +52,7 @@ from roco_env.geometry import se2_compose, transform_boxes, wrap_angle
 from roco_env.metrics import APAccumulator
 from roco_env.sensing.features import BevGrid, warp_bev
 from roco_env.sensing.learned.model import Checkpoint, build_network, load_checkpoint
-from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
+from roco_env.sensing.learned.network import FUSIONS, BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import Targets, build_targets, decode, feature_grid
 from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
 from roco_env.training.data import (
@@ -79,6 +81,9 @@ class TrainConfig:
     noise of the fused loss; fused_x_range / fused_y_range: the ego-frame extent (m) the
     fused loss decodes (None: the detector grid's); init: weights file to start from
     (None: random); train_encoder: False freezes the encoder (needs ``init``);
+    fusion: the fusion of the fused loss and of the weights (``"max"`` or ``"gated"``,
+    :data:`~roco_env.sensing.learned.network.FUSIONS`); train_detector: False freezes
+    every part but the fusion gate (needs ``init`` and ``fusion="gated"``);
     warp_augment: share of single-agent maps decoded after a random warp; seed;
     threads: torch CPU threads; workers: processes that generate the scenes and prepare
     the batches (0: the training process; the run does not depend on it); device.
@@ -101,6 +106,8 @@ class TrainConfig:
     fused_y_range: tuple[float, float] | None = None
     init: str | None = None
     train_encoder: bool = True
+    fusion: str = "max"
+    train_detector: bool = True
     warp_augment: float = 0.0
     seed: int = 0
     threads: int = 2
@@ -134,6 +141,17 @@ class TrainConfig:
         if not self.train_encoder and self.init is None:
             raise ValueError("train_encoder=False (a frozen encoder, --freeze-encoder) needs "
                              "init, the weights file to start from (--init FILE)")
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS} (--fusion); got {self.fusion!r}")
+        if not self.train_detector and (self.init is None or self.fusion != "gated"):
+            raise ValueError("train_detector=False (a frozen detector, --freeze-detector) "
+                             "trains the fusion gate alone: it needs init, the weights file "
+                             "to start from (--init FILE), and fusion='gated' (--fusion gated)")
+
+    @property
+    def trains_encoder(self) -> bool:
+        """Whether the encoder learns (not with a frozen encoder or detector)."""
+        return self.train_encoder and self.train_detector
 
     @property
     def grid(self) -> BevGrid:
@@ -375,7 +393,7 @@ def _train(config: TrainConfig, progress: bool,
     scenes = make_scenes(config.scenarios, config.train_scenes, TRAIN_SEED_BASE + config.seed,
                          grid, config.noise, progress, config.workers)
     net = _initial_network(config).to(device)
-    _train_mode(net, config.train_encoder)
+    _train_mode(net, config)
     trainable = [p for p in net.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(trainable, lr=config.lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, config.lr, total_steps=config.steps,
@@ -387,14 +405,14 @@ def _train(config: TrainConfig, progress: bool,
         prefetch_factor=4 if config.workers else None)
     bar = tqdm(loader, desc="train-detector", disable=not progress, mininterval=5.0)
     for step, batch in enumerate(bar):
-        with torch.set_grad_enabled(config.train_encoder):
+        with torch.set_grad_enabled(config.trains_encoder):
             features = net.encode(batch.rasters.to(device))
         single = detection_loss(net.decode(_warped(features, batch, fgrid)), batch.single,
                                 fgrid.resolution)
         loss_single = sum(_WEIGHTS[k] * v for k, v in single.items())
         if batch.fused is not None:
             fused_maps = fuse_maps(features, batch.egos, batch.collaborators, batch.poses, fgrid,
-                                   canvas)
+                                   canvas, net.gate)
             fused = detection_loss(net.decode(fused_maps), batch.fused, fgrid.resolution)
             loss_fused = sum(_WEIGHTS[k] * v for k, v in fused.items())
         else:
@@ -439,7 +457,9 @@ def _warped(features: torch.Tensor, batch: _Batch, fgrid: BevGrid) -> torch.Tens
 
 def init_checkpoint(config: TrainConfig) -> Checkpoint | None:
     """The weights file ``config.init`` (None without one), checked before any work: its
-    network widths, grid and scan noise must be the run's (ValueError naming the mismatch)."""
+    network widths, grid and scan noise must be the run's, and a file with a fusion gate
+    needs ``fusion="gated"`` (ValueError naming the mismatch); a gate-less file may start
+    a gated run (the gate starts fresh)."""
     if config.init is None:
         return None
     checkpoint = load_checkpoint(config.init)
@@ -449,23 +469,31 @@ def init_checkpoint(config: TrainConfig) -> Checkpoint | None:
         if theirs != ours:
             raise ValueError(f"init weights {config.init} were trained with {name} {theirs}; "
                              f"this run's {name} is {ours}")
+    if checkpoint.net.fusion == "gated" and config.fusion != "gated":
+        raise ValueError(f"init weights {config.init} hold a fusion gate; this run's fusion is "
+                         f"{config.fusion!r}: use --fusion gated")
     return checkpoint
 
 
 def _initial_network(config: TrainConfig) -> BevDetectorNet:
-    """A randomly initialised network, or the one of ``config.init`` (:func:`init_checkpoint`)."""
+    """A randomly initialised network, or the one of ``config.init`` (:func:`init_checkpoint`),
+    with a fresh fusion gate when the run adds one."""
+    net = BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths), config.fusion))
     checkpoint = init_checkpoint(config)
-    if checkpoint is None:
-        return BevDetectorNet(NetConfig(len(LIDAR_CHANNELS), tuple(config.widths)))
-    return build_network(checkpoint, config.init)
+    if checkpoint is not None:
+        started = build_network(checkpoint, config.init)
+        net.load_state_dict({**net.state_dict(), **started.state_dict()})
+    return net
 
 
-def _train_mode(net: BevDetectorNet, train_encoder: bool) -> None:
-    """Training mode; a frozen encoder stays in eval mode (its batch norms keep their
-    statistics) and gets no gradients."""
+def _train_mode(net: BevDetectorNet, config: TrainConfig) -> None:
+    """Training mode; frozen parts (the encoder, or the whole detector) stay in eval mode
+    (their batch norms keep their statistics) and get no gradients."""
     net.train()
-    for module in net.encoder_modules():
-        module.train(train_encoder).requires_grad_(train_encoder)
+    frozen = (net.detector_modules() if not config.train_detector
+              else () if config.train_encoder else net.encoder_modules())
+    for module in frozen:
+        module.train(False).requires_grad_(False)
 
 
 @torch.no_grad()
@@ -503,7 +531,7 @@ def evaluate(net: BevDetectorNet, scenes: list[Scene], fgrid: BevGrid,
                                          rng.normal(0.0, np.deg2rad(pose_noise[1]), n)])
                 poses.append(se2_compose(noise, scene.relative[a]).reshape(-1, 3))
             fused = fuse_maps(features, egos, [list(scene.collaborators[a]) for a in egos],
-                               poses, fgrid, canvas)
+                               poses, fgrid, canvas, net.gate)
             for a, det in zip(egos, decode(net.decode(fused), canvas or fgrid,
                                            scene.grounds[egos]),
                               strict=True):

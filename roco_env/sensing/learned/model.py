@@ -41,18 +41,28 @@ from roco_env.sensing.lidar import (
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
-__all__ = ["SHIPPED_WEIGHTS", "EncoderMaps", "LearnedDetector", "load_checkpoint",
+__all__ = ["SHIPPED_WEIGHTS", "WEIGHTS_FILE", "EncoderMaps", "LearnedDetector", "load_checkpoint",
            "make_learned_detector", "save_checkpoint", "shipped_weights_path", "sha256_of"]
 
-SHIPPED_WEIGHTS = "bev_detector.pt"
+# The file name `roco-env train-detector` writes into its output folder.
+WEIGHTS_FILE = "bev_detector.pt"
+# The shipped weights by fusion, each a train-detector output folder under weights/ (with its
+# report): "gated", the default, is "max" (the detector alone) plus a learned fusion gate.
+SHIPPED_WEIGHTS = {"gated": f"gated/{WEIGHTS_FILE}", "max": WEIGHTS_FILE}
 # A decoded box is labelled with the true object whose centre is nearest, within this
 # distance (m): ground truth for the privileged info only, never used by the model.
 _LABEL_GATE = 2.0
 
 
-def shipped_weights_path() -> Path:
-    """Path of the weights shipped with the package."""
-    return Path(str(resources.files("roco_env.sensing.learned") / "weights" / SHIPPED_WEIGHTS))
+def shipped_weights_path(fusion: str = "gated") -> Path:
+    """Path of the shipped weights with the given intermediate fusion: ``"gated"`` (the
+    default weights: the detector and its learned fusion gate) or ``"max"`` (the detector
+    alone, fused by the plain maximum); ValueError for another name."""
+    if fusion not in SHIPPED_WEIGHTS:
+        raise ValueError(f"shipped weights exist for fusion {sorted(SHIPPED_WEIGHTS)}; "
+                         f"got {fusion!r}")
+    return Path(str(resources.files("roco_env.sensing.learned") / "weights"
+                    / SHIPPED_WEIGHTS[fusion]))
 
 
 def sha256_of(path: str | Path) -> str:
@@ -170,10 +180,11 @@ def covering_grid(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[flo
 class LearnedDetector:
     """Boxes, scores and uncertainties of every agent from the network, batched per step.
 
-    weights: a weights file (default: the shipped one); device: ``"cpu"`` or
-    ``"cuda"``; score_threshold: minimum heatmap score of a decoded box; threads:
-    torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
-    when the detector is built. The values are checked against
+    weights: a weights file (default: the shipped one with its fusion gate); device:
+    ``"cpu"`` or ``"cuda"``; score_threshold: minimum heatmap score of a decoded box;
+    threads: torch's intra-op CPU thread count, set (process-wide, ``torch.set_num_threads``)
+    when the detector is built; gate: intermediate fusion through the weights' learned
+    fusion gate (None: when they hold one; True: they must; False: the plain maximum). The values are checked against
     :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
     region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
     that is scored (the scenario's evaluation range). With it, an agent's raster is the
@@ -195,10 +206,11 @@ class LearnedDetector:
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
                  score_threshold: float = SCORE_THRESHOLD, threads: int = 1,
+                 gate: bool | None = None,
                  region: tuple[Sequence[float], Sequence[float]] | None = None) -> None:
         params = _checked({"weights": None if weights is None else str(weights),
                            "device": device, "score_threshold": score_threshold,
-                           "threads": threads})
+                           "threads": threads, "gate": gate})
         if params.device == "cuda" and not torch.cuda.is_available():
             raise ValueError("learned detector device='cuda' but torch sees no CUDA device")
         torch.set_num_threads(params.threads)
@@ -207,6 +219,12 @@ class LearnedDetector:
         self.net = build_network(self.checkpoint, path).for_inference().to(
             params.device, memory_format=torch.channels_last)
         self.device = torch.device(params.device)
+        if params.gate and self.net.gate is None:
+            raise ValueError(f"learned detector weights file {path} holds no fusion gate "
+                             "(detector.params.gate=true); train one with 'roco-env "
+                             "train-detector --fusion gated'")
+        #: The learned fusion gate intermediate fusion uses (None: the plain maximum).
+        self.gate = None if params.gate is False else self.net.gate
         self.grid = self.checkpoint.grid
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
         self.noise = self.checkpoint.noise

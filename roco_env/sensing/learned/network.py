@@ -15,6 +15,11 @@ the agent's own or a fused one, and return per feature cell:
 * ``yaw`` (2) sin and cos of the heading (up to the front/back ambiguity of a box);
 * ``log_sigma`` (3) log standard deviation of the centre error (x, y, m) and the
   yaw error (rad): the model's own uncertainty.
+
+With ``NetConfig.fusion == "gated"`` the network also holds a :class:`FusionGate`, the
+learned part of intermediate fusion (:mod:`roco_env.fusion.intermediate`): a weight per
+cell of each collaborator's warped map, so misplaced collaborator features can be
+discounted before the maximum.
 """
 
 from __future__ import annotations
@@ -28,12 +33,17 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from roco_env.sensing.lidar import LIDAR_CHANNELS
 
-__all__ = ["HEAD_CHANNELS", "NetConfig", "BevDetectorNet"]
+__all__ = ["FUSIONS", "HEAD_CHANNELS", "BevDetectorNet", "FusionGate", "NetConfig"]
 
 HEAD_CHANNELS = {"heatmap": 1, "offset": 2, "size": 3, "yaw": 2, "log_sigma": 3}
 
 # Initial heatmap bias: sigmoid(-2.19) = 0.1, the focal-loss prior of CenterNet.
 _HEATMAP_PRIOR = -2.19
+# Intermediate fusion of the maps: the element-wise maximum, or the maximum after a learned
+# per-cell weight on each collaborator's map (FusionGate).
+FUSIONS = ("max", "gated")
+# Initial gate logit: sigmoid(4) = 0.98, so an untrained gate fuses almost as the maximum.
+_GATE_OPEN = 4.0
 
 
 @dataclass(frozen=True)
@@ -41,24 +51,32 @@ class NetConfig:
     """Network shape: input channels and the widths (channels) of its stages.
 
     in_channels: raster channels; widths: (stage-1 width at stride 2, stage-2
-    width at stride 4, feature width C of the output map at stride 2).
+    width at stride 4, feature width C of the output map at stride 2); fusion: how
+    intermediate fusion combines maps (:data:`FUSIONS`; ``"gated"`` adds a
+    :class:`FusionGate`).
     """
 
     in_channels: int = len(LIDAR_CHANNELS)
     widths: tuple[int, int, int] = (32, 64, 48)
+    fusion: str = "max"
 
     def to_dict(self) -> dict:
-        return {"in_channels": self.in_channels, "widths": list(self.widths)}
+        return {"in_channels": self.in_channels, "widths": list(self.widths),
+                "fusion": self.fusion}
 
     @classmethod
     def from_dict(cls, data: dict) -> NetConfig:
-        return cls(int(data["in_channels"]), tuple(int(w) for w in data["widths"]))
+        """The config of :meth:`to_dict` (files written before the fusion gate: ``"max"``)."""
+        return cls(int(data["in_channels"]), tuple(int(w) for w in data["widths"]),
+                   str(data.get("fusion", "max")))
 
     def __post_init__(self) -> None:
         if not (isinstance(self.in_channels, int) and self.in_channels >= 1):
             raise ValueError(f"NetConfig.in_channels must be an int >= 1; got {self.in_channels}")
         if len(self.widths) != 3 or not all(isinstance(w, int) and w >= 1 for w in self.widths):
             raise ValueError(f"NetConfig.widths must be 3 ints >= 1; got {self.widths}")
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"NetConfig.fusion must be one of {FUSIONS}; got {self.fusion!r}")
 
     @property
     def stride(self) -> int:
@@ -73,6 +91,26 @@ def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
     kernel, pad = (3, 1) if stride == 1 else (2, 0)
     return nn.Sequential(nn.Conv2d(c_in, c_out, kernel, stride, pad, bias=False),
                          nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class FusionGate(nn.Module):
+    """A weight in (0, 1) per feature cell of a collaborator's map warped into the ego frame,
+    from that map and the ego's own map at the cell (two 1x1 convolutions on
+    [own, theirs, |own - theirs|]). Fusion keeps ``max(own, weight * theirs)``: a weight of 1
+    is max fusion (where an untrained gate starts), a low one drops collaborator features
+    that disagree with the ego's, such as a car a pose error has moved."""
+
+    def __init__(self, channels: int, hidden: int = 16) -> None:
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(3 * channels, hidden, 1), nn.ReLU(inplace=True),
+                                  nn.Conv2d(hidden, 1, 1))
+        with torch.no_grad():
+            self.body[2].weight.mul_(0.1)
+            self.body[2].bias.fill_(_GATE_OPEN)
+
+    def forward(self, own: torch.Tensor, theirs: torch.Tensor) -> torch.Tensor:
+        """Weights (N, 1, H, W) of maps ``theirs`` (N, C, H, W) beside ``own`` (N, C, H, W)."""
+        return torch.sigmoid(self.body(torch.cat([own, theirs, (own - theirs).abs()], dim=1)))
 
 
 class BevDetectorNet(nn.Module):
@@ -93,10 +131,15 @@ class BevDetectorNet(nn.Module):
         with torch.no_grad():
             self.heads.bias.zero_()
             self.heads.bias[0] = _HEATMAP_PRIOR
+        self.gate = FusionGate(c) if config.fusion == "gated" else None
 
     def encoder_modules(self) -> tuple[nn.Module, ...]:
         """The modules of :meth:`encode` (the rest, trunk and heads, is :meth:`decode`)."""
         return self.stage1, self.stage2, self.up, self.merge
+
+    def detector_modules(self) -> tuple[nn.Module, ...]:
+        """Every module but the fusion gate: the single-agent detector."""
+        return (*self.encoder_modules(), self.trunk, self.heads)
 
     def encode(self, raster: torch.Tensor) -> torch.Tensor:
         """(N, C_in, H, W) -> non-negative features (N, C, H/2, W/2); H, W must be even."""
