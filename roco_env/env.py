@@ -122,7 +122,8 @@ class CollabPerceptionEnv(ParallelEnv):
     (moved with the corrected poses) and suppresses duplicates (rotated NMS).
     ``fusion="intermediate"`` (needs ``detector="learned"``) warps the collaborators'
     encoder maps into the ego frame with the corrected poses, max-fuses them with the
-    ego's on a canvas covering the evaluation range and decodes the fused map
+    ego's (through the weights' learned fusion gate, if they hold one) on a canvas
+    covering the evaluation range and decodes the fused map
     (:mod:`roco_env.fusion.intermediate`); AP and reward then come from those decoded
     boxes (the ego's own footprint kept clear the same way). docs/perception.md.
 

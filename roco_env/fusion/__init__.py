@@ -2,7 +2,7 @@
 
 ``late_fusion`` merges boxes (the default; ``merge_many`` and ``suppress``
 merge and NMS many egos at once); ``roco_env.fusion.intermediate``
-warps and max-fuses BEV feature maps (imported on demand: it needs torch).
+warps, gates and max-fuses BEV feature maps (imported on demand: it needs torch).
 """
 
 from roco_env.fusion.late import (

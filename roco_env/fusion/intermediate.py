@@ -129,10 +129,11 @@ def _max_into(own: torch.Tensor, warped: torch.Tensor, owner: Sequence[int], fir
     canvas columns first[k] .. first[k] + w, in place, each weighed first by ``gate``
     against its ego's own map on its window (read before any collaborator is max-ed in)."""
     width = warped.shape[-1]
-    if gate is not None:
-        mine = torch.stack([own[e, :, :, start:start + width]
+    if gate is not None:  # the windows stacked channels-last, as the maps are
+        cells = own.permute(0, 2, 3, 1)
+        mine = torch.stack([cells[e, :, start:start + width]
                             for e, start in zip(owner, first.tolist(), strict=True)])
-        warped = warped * gate(mine, warped)
+        warped = warped * gate(mine.permute(0, 3, 1, 2), warped)
     for k, (e, start) in enumerate(zip(owner, first.tolist(), strict=True)):
         cols = own[e, :, :, start:start + width]
         torch.maximum(cols, warped[k], out=cols)
