@@ -105,3 +105,21 @@ def fake_cell(cell: Cell) -> dict:
                "ap70": float(0.7 - cell.noise / 2 + 0.01 * cell.seed)}
     samples = {"before": errors.tolist(), "after": (errors / 10).tolist()}
     return ok_record(cell, metrics, samples, 0.0)
+
+
+def tiny_detector_start(tmp_path: Path):
+    """A tiny gate-less detector (widths 4 / 8 / 8, 51.2 m x 25.6 m grid) saved as a start
+    file, and the TrainConfig settings of a quick run from it (torch loaded on call).
+    Returns (network, file, settings)."""
+    from roco_env.sensing import BevGrid
+    from roco_env.sensing.learned import BevDetectorNet, NetConfig, save_checkpoint
+    from roco_env.sensing.lidar import ScanNoise
+
+    grid = BevGrid((-25.6, 25.6), (-12.8, 12.8), 0.8)
+    start = tmp_path / "start.pt"
+    net = BevDetectorNet(NetConfig(widths=(4, 8, 8)))
+    save_checkpoint(start, net, grid, ScanNoise(), {})
+    settings = dict(x_range=grid.x_range, y_range=grid.y_range, widths=(4, 8, 8),
+                    train_scenes=2, val_scenes=1, scenarios=("urban_intersection",),
+                    threads=1, init=str(start))
+    return net, start, settings

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_detector_start
 
 from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
 from roco_env.sensing import BevGrid
@@ -96,15 +97,9 @@ def test_training_the_gate_alone_changes_only_the_gate(tmp_path):
     statistics) is the file's, the fresh gate (its output bias starts at 4) moved."""
     from roco_env.training.train import TrainConfig, train
 
-    grid = BevGrid((-25.6, 25.6), (-12.8, 12.8), 0.8)
-    start = tmp_path / "start.pt"
-    net = BevDetectorNet(NetConfig(widths=(4, 8, 8)))
-    save_checkpoint(start, net, grid, ScanNoise(), {})
-    config = TrainConfig(x_range=grid.x_range, y_range=grid.y_range, widths=(4, 8, 8),
-                         train_scenes=2, val_scenes=1, steps=8, lr=3e-2,
-                         scenarios=("urban_intersection",), threads=1, init=str(start),
-                         fusion="gated", train_detector=False, pose_sigma_t=0.8,
-                         pose_sigma_r=0.8)
+    net, _, settings = tiny_detector_start(tmp_path)
+    config = TrainConfig(**settings, steps=8, lr=3e-2, fusion="gated", train_detector=False,
+                         pose_sigma_t=0.8, pose_sigma_r=0.8)
     result = train(config, progress=False)
     before, after = net.state_dict(), result.net.state_dict()
     assert set(after) - set(before) == {f"gate.body.{k}.{p}" for k in (0, 2)

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_detector_start
 
 import roco_env
 from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
@@ -190,15 +191,9 @@ def test_fine_tuning_with_a_frozen_encoder_changes_only_the_trunk_and_heads(tmp_
     file's, the trunk and heads moved, the loss fell."""
     from roco_env.training.train import TrainConfig, train
 
-    grid = BevGrid((-25.6, 25.6), (-12.8, 12.8), 0.8)
-    start = tmp_path / "start.pt"
-    net = BevDetectorNet(NetConfig(widths=(4, 8, 8)))
-    save_checkpoint(start, net, grid, ScanNoise(), {})
-    config = TrainConfig(x_range=grid.x_range, y_range=grid.y_range, widths=(4, 8, 8),
-                         train_scenes=2, val_scenes=1, steps=16, lr=1e-2,
-                         scenarios=("urban_intersection",), threads=1, init=str(start),
-                         train_encoder=False, fused_x_range=(-40.0, 40.0),
-                         fused_y_range=(-16.0, 16.0))
+    net, _, settings = tiny_detector_start(tmp_path)
+    config = TrainConfig(**settings, steps=16, lr=1e-2, train_encoder=False,
+                         fused_x_range=(-40.0, 40.0), fused_y_range=(-16.0, 16.0))
     assert (config.fused_canvas.W, config.fused_canvas.H) == (50, 20)
     result = train(config, progress=False)
     total = result.history["total"]

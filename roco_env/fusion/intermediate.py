@@ -24,6 +24,7 @@ from torch import nn
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
 from roco_env.fusion.warp_kernels import warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
+from roco_env.sensing.features import zero_padded
 from roco_env.sensing.grid import affine_theta
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState
@@ -109,18 +110,9 @@ def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
                    ) -> tuple[torch.Tensor, list[int], list[np.ndarray]]:
     """The egos' own maps zero-padded onto ``canvas`` (E, C, H, W), the rows of all their
     collaborators' maps in order, and the checked poses (the common start of both fusions)."""
-    left, _, bottom, _ = _placement(grid, canvas)
+    own = zero_padded(features[list(egos)], grid, canvas)
     poses = _checked_poses(egos, collaborators, poses)
-    rows = [j for c in collaborators for j in c]
-    # Zero padding by a copy into a zeroed canvas of the maps' memory format (torch.pad would
-    # return channels-last maps as contiguous ones, and their copy back costs as much again).
-    layout = (torch.channels_last if features.dim() == 4 and not features.is_contiguous()
-              and features.is_contiguous(memory_format=torch.channels_last)
-              else torch.contiguous_format)
-    own = torch.empty((len(egos), features.shape[1], canvas.H, canvas.W), dtype=features.dtype,
-                      device=features.device, memory_format=layout).zero_()
-    own[:, :, bottom:bottom + grid.H, left:left + grid.W] = features[list(egos)]
-    return own, rows, poses
+    return own, [j for c in collaborators for j in c], poses
 
 
 def _max_into(own: torch.Tensor, warped: torch.Tensor, owner: Sequence[int], first: np.ndarray,
@@ -203,20 +195,6 @@ def fusion_canvas(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[flo
     canvas = BevGrid((grid.x_range[0] - pads[0] * res, grid.x_range[1] + pads[1] * res),
                      (grid.y_range[0] - pads[2] * res, grid.y_range[1] + pads[3] * res), res)
     return canvas, pads
-
-
-def _placement(grid: BevGrid, canvas: BevGrid) -> tuple[int, int, int, int]:
-    """Whole cells (left, right, bottom, top) that ``canvas`` adds around ``grid``;
-    ValueError unless the canvas contains the grid on the same cells."""
-    res = grid.resolution
-    edges = ((grid.x_range[0] - canvas.x_range[0]), (canvas.x_range[1] - grid.x_range[1]),
-             (grid.y_range[0] - canvas.y_range[0]), (canvas.y_range[1] - grid.y_range[1]))
-    pads = tuple(round(e / res) for e in edges)
-    if canvas.resolution != res or min(pads) < 0 or any(
-            abs(e - p * res) > 1e-6 for e, p in zip(edges, pads, strict=True)):
-        raise ValueError(f"fusion canvas {canvas} must contain the feature grid {grid} on its "
-                         "cells (same cell size, whole-cell margins)")
-    return pads  # type: ignore[return-value]
 
 
 def intermediate_fusion(detector, encoder_maps, state: WorldState,

@@ -166,7 +166,7 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     the same values, tested)."""
     arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
                          inputs.all_covariance[:, :2, :2])
-    log_sizes, var_t, var_r, distance = (split_rows(values, inputs.offsets) for values in arrays)
+    log_sizes, var_t, var_r = (split_rows(values, inputs.offsets) for values in arrays[:3])
     # Every agent's reach in one reduction (0 without boxes; the empty ones are skipped,
     # so each start's segment ends where the next agent with boxes begins).
     starts, stops = inputs.offsets[:-1], inputs.offsets[1:]

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from roco_env.sensing.grid import BevGrid, affine_theta, cell_polar
 from roco_env.sensing.visibility import Visibility
 
-__all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev"]
+__all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev", "zero_padded"]
 
 CHANNELS = ("log_returns", "max_height", "observed")
 
@@ -84,3 +84,27 @@ def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  #
     warped = F.grid_sample(batch, sample_at, mode="bilinear", padding_mode="zeros",
                            align_corners=False)
     return warped[0] if single else warped
+
+
+def zero_padded(maps: torch.Tensor, grid: BevGrid, target: BevGrid) -> torch.Tensor:
+    """Maps (N, C, H, W) on ``grid`` placed on ``target``, a grid of the same cells that
+    contains it, zero elsewhere (exact: a map holds nothing beyond its grid), in the maps'
+    memory format (torch's pad returns channels-last maps as contiguous ones, and their
+    copy back costs as much again). ValueError unless ``target`` contains ``grid`` on its
+    cells."""
+    res = grid.resolution
+    edges = ((grid.x_range[0] - target.x_range[0]), (target.x_range[1] - grid.x_range[1]),
+             (grid.y_range[0] - target.y_range[0]), (target.y_range[1] - grid.y_range[1]))
+    pads = tuple(round(e / res) for e in edges)
+    if target.resolution != res or min(pads) < 0 or any(
+            abs(e - p * res) > 1e-6 for e, p in zip(edges, pads, strict=True)):
+        raise ValueError(f"grid {target} must contain the feature grid {grid} on its cells "
+                         "(same cell size, whole-cell margins)")
+    layout = (torch.channels_last if maps.dim() == 4 and not maps.is_contiguous()
+              and maps.is_contiguous(memory_format=torch.channels_last)
+              else torch.contiguous_format)
+    out = torch.empty((maps.shape[0], maps.shape[1], target.H, target.W), dtype=maps.dtype,
+                      device=maps.device, memory_format=layout).zero_()
+    left, bottom = pads[0], pads[2]
+    out[:, :, bottom:bottom + grid.H, left:left + grid.W] = maps
+    return out

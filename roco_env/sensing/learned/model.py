@@ -28,7 +28,7 @@ from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.scenario import LearnedDetectorParams
 from roco_env.schema import build
 from roco_env.sensing.detector import AgentDetections
-from roco_env.sensing.features import BevGrid
+from roco_env.sensing.features import BevGrid, zero_padded
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import SCORE_THRESHOLD, Decoded, decode, feature_grid
 from roco_env.sensing.lidar import (
@@ -296,7 +296,7 @@ class LearnedDetector:
                                     strict=True):
                 decoded[agent] = boxes
             parts.append((rows, features, fgrid))
-        maps = parts[0][1] if len(parts) == 1 else _zero_padded(parts, wide, state.num_agents)
+        maps = parts[0][1] if len(parts) == 1 else _on_one_grid(parts, wide, state.num_agents)
         return ([self._labelled(state, a, d) for a, d in enumerate(decoded)],
                 EncoderMaps(maps, wide))
 
@@ -325,18 +325,17 @@ def _checked_region(region) -> tuple[tuple[float, float], tuple[float, float]]:
 
 
 @torch.inference_mode()
-def _zero_padded(parts: list[tuple[list[int], torch.Tensor, BevGrid]], grid: BevGrid,
+def _on_one_grid(parts: list[tuple[list[int], torch.Tensor, BevGrid]], grid: BevGrid,
                  n_agents: int) -> torch.Tensor:
-    """Maps (n_agents, C, H, W) on ``grid`` from groups (agent rows, their maps, the maps'
-    feature grid, centred inside ``grid`` on its cells), zero where a map does not reach."""
+    """Maps (n_agents, C, H, W), channels-last, on ``grid`` from groups (agent rows, their
+    maps, the maps' feature grid, inside ``grid`` on its cells), zero where a map does not
+    reach (:func:`~roco_env.sensing.features.zero_padded`)."""
     first = parts[0][1]
     maps = torch.empty((n_agents, first.shape[1], grid.H, grid.W), dtype=first.dtype,
-                       device=first.device, memory_format=torch.channels_last).zero_()
+                       device=first.device, memory_format=torch.channels_last)
     for rows, features, fgrid in parts:
-        left = round((fgrid.x_range[0] - grid.x_range[0]) / grid.resolution)
-        bottom = round((fgrid.y_range[0] - grid.y_range[0]) / grid.resolution)
-        for agent, features_of_agent in zip(rows, features, strict=True):
-            maps[agent, :, bottom:bottom + fgrid.H, left:left + fgrid.W] = features_of_agent
+        for agent, padded in zip(rows, zero_padded(features, fgrid, grid), strict=True):
+            maps[agent] = padded
     return maps
 
 
