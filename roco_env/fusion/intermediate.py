@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
-from roco_env.fusion.warp_kernels import warp_max_into
+from roco_env.fusion.warp_kernels import warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.features import zero_padded
 from roco_env.sensing.grid import affine_theta
@@ -88,20 +88,18 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     if not (features.device.type == "cpu" and features.dtype == torch.float32):
         return _max_into(own, warp_bev(features[rows], shifted, grid, window), owner, first,
                          gate)
-    # Compiled passes (roco_env.fusion.warp_kernels) on channels-last maps: without a gate,
-    # warp and max straight into the egos' maps; with one, warp into zeroed windows first
-    # (the maps are non-negative, so the maximum with zero is the warped value).
+    # Compiled pass (roco_env.fusion.warp_kernels) on channels-last maps: warp, gate and
+    # max straight into the egos' maps (the gate reads a copy of them from before).
     own = own.contiguous(memory_format=torch.channels_last)
+    cells = own.permute(0, 2, 3, 1).numpy()
     sources = features.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).numpy()
-    theta = affine_theta(shifted, grid, window)
+    warp = (sources, affine_theta(shifted, grid, window), np.asarray(rows), np.asarray(owner),
+            first, window.W)
     if gate is None:
-        warp_max_into(own.permute(0, 2, 3, 1).numpy(), sources, theta, np.asarray(rows),
-                      np.asarray(owner), first, window.W)
-        return own
-    windows = np.zeros((len(rows), window.H, window.W, features.shape[1]), dtype=np.float32)
-    warp_max_into(windows, sources, theta, np.asarray(rows), np.arange(len(rows)),
-                  np.zeros(len(rows), dtype=np.int64), window.W)
-    return _max_into(own, torch.from_numpy(windows).permute(0, 3, 1, 2), owner, first, gate)
+        warp_max_into(cells, *warp)
+    else:
+        warp_gate_max_into(cells, cells.copy(), *warp, *gate.cell_weights())
+    return own
 
 
 def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
@@ -121,11 +119,10 @@ def _max_into(own: torch.Tensor, warped: torch.Tensor, owner: Sequence[int], fir
     canvas columns first[k] .. first[k] + w, in place, each weighed first by ``gate``
     against its ego's own map on its window (read before any collaborator is max-ed in)."""
     width = warped.shape[-1]
-    if gate is not None:  # the windows stacked channels-last, as the maps are
-        cells = own.permute(0, 2, 3, 1)
-        mine = torch.stack([cells[e, :, start:start + width]
+    if gate is not None:
+        mine = torch.stack([own[e, :, :, start:start + width]
                             for e, start in zip(owner, first.tolist(), strict=True)])
-        warped = warped * gate(mine.permute(0, 3, 1, 2), warped)
+        warped = warped * gate(mine, warped)
     for k, (e, start) in enumerate(zip(owner, first.tolist(), strict=True)):
         cols = own[e, :, :, start:start + width]
         torch.maximum(cols, warped[k], out=cols)

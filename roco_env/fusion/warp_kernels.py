@@ -7,13 +7,16 @@ the ego's map. ``grid_sample`` writes channel-planar maps (N, C, H, W) whatever 
 input's layout, so with channels-last maps (what the detector's convolutions use) the
 warp, the change of layout and the maximum were three passes over every warped cell.
 This loop does all three in one pass, reading each source cell's channels contiguously
-(and skipping the cells whose four neighbours all lie outside the source map); with a
-learned fusion gate it warps into zeroed windows instead (the maps are non-negative, so
-the maximum with zero is the warped value) and the gate and maximum follow in torch. Source
-positions and bilinear weights are computed in float64, the weighted sums in float32 as
-``grid_sample`` does; ``grid_sample`` computes the positions in float32, so the warped
-values differ from its by up to about 5e-6 of their magnitude (2e-5 on the shipped
-detector's maps, which reach about 9; tested against the torch path, ``fuse_maps``).
+(and skipping the cells whose four neighbours all lie outside the source map). With a
+learned fusion gate (:class:`~roco_env.sensing.learned.network.FusionGate`) the same pass
+also weighs each warped cell by the gate's two-layer perceptron on [own, theirs,
+|own - theirs|] before the maximum: only on the cells a warped map reaches (elsewhere it
+adds zero whatever its weight), with no window maps written and read back. Source
+positions and bilinear weights are computed in float64, the weighted sums and the gate
+in float32 as torch does; ``grid_sample`` computes the positions in float32, so the
+warped values differ from its by up to about 5e-6 of their magnitude (2e-5 on the
+shipped detector's maps, which reach about 9; tested against the torch path,
+``fuse_maps``).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["warp_max_into"]
+__all__ = ["warp_gate_max_into", "warp_max_into"]
 
 
 @njit(cache=True)
@@ -36,12 +39,36 @@ def warp_max_into(canvas, features, theta, rows, owner, first, width):  # pragma
     of the canvas (all H rows) to normalised source coordinates; map k is source
     ``rows[k]``, maxed into canvas ``owner[k]`` at columns first[k] .. first[k] + width.
     """
+    no_vector = np.zeros(0, dtype=np.float32)
+    _fuse(canvas, canvas, features, theta, rows, owner, first, width,
+          np.zeros((0, 0), dtype=np.float32), no_vector, no_vector, 0.0, False)
+
+
+@njit(cache=True)
+def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width,
+                       w_in, b_in, w_out, b_out):  # pragma: no cover
+    """:func:`warp_max_into` with every warped cell weighed by a fusion gate first.
+
+    own (E, H, Wc, C) float32: the egos' maps before any maximum (what the gate reads;
+    not ``canvas``, which is written); the gate's weight of warped cell v beside own cell
+    o is sigmoid(b_out + w_out . relu(b_in + [o, v, |o - v|] @ w_in)), with
+    w_in (3 C, hidden), b_in (hidden,), w_out (hidden,) float32 and b_out a float.
+    """
+    _fuse(canvas, own, features, theta, rows, owner, first, width,
+          w_in, b_in, w_out, b_out, True)
+
+
+@njit(cache=True)
+def _fuse(canvas, own, features, theta, rows, owner, first, width,
+          w_in, b_in, w_out, b_out, gated):  # pragma: no cover
     out_h = canvas.shape[1]
     h, w, n_ch = features.shape[1], features.shape[2], features.shape[3]
-    acc = np.empty(n_ch, dtype=np.float32)
+    value = np.empty(n_ch, dtype=np.float32)
+    hidden = np.empty(b_in.shape[0], dtype=np.float32)
     for k in range(theta.shape[0]):
         src = features[rows[k]]
         dst = canvas[owner[k]]
+        mine = own[owner[k]]
         t = theta[k]
         # Source position in cells (cell centres at integer + 0.5, align_corners=False) of
         # output cell (i, j): normalised x_n = (2 j + 1) / width - 1, y_n = (2 i + 1) / out_h - 1,
@@ -54,39 +81,80 @@ def warp_max_into(canvas, features, theta, rows, owner, first, width):  # pragma
             x_row = x_c + x_i * (i + 0.5)
             y_row = y_c + y_i * (i + 0.5)
             for j in range(width):
-                x = x_row + x_j * (j + 0.5)
-                y = y_row + y_j * (j + 0.5)
-                x0, y0 = math.floor(x), math.floor(y)
-                if x0 < -1.0 or x0 >= w or y0 < -1.0 or y0 >= h:
+                if not _bilinear(src, x_row + x_j * (j + 0.5), y_row + y_j * (j + 0.5), value):
                     continue  # all four neighbours outside the source map: adds zero
-                fx, fy = x - x0, y - y0
-                ix, iy = int(x0), int(y0)
-                out = dst[i, first[k] + j]
-                if 0 <= ix < w - 1 and 0 <= iy < h - 1:  # all four neighbours inside
-                    w00 = np.float32((1.0 - fy) * (1.0 - fx))
-                    w01 = np.float32((1.0 - fy) * fx)
-                    w10 = np.float32(fy * (1.0 - fx))
-                    w11 = np.float32(fy * fx)
-                    s0, s1 = src[iy], src[iy + 1]
+                col = first[k] + j
+                out = dst[i, col]
+                if gated:
+                    if _nowhere_above(value, mine[i, col]):
+                        continue  # weight <= 1: the maximum keeps the ego's cell, whatever it is
+                    weight = _gate(mine[i, col], value, w_in, b_in, w_out, b_out, hidden)
                     for ch in range(n_ch):
-                        value = (w00 * s0[ix, ch] + w01 * s0[ix + 1, ch]
-                                 + w10 * s1[ix, ch] + w11 * s1[ix + 1, ch])
-                        if value > out[ch]:
-                            out[ch] = value
-                    continue
-                acc[:] = 0.0
-                for dy in range(2):
-                    yy = iy + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    wy = fy if dy else 1.0 - fy
-                    for dx in range(2):
-                        xx = ix + dx
-                        if xx < 0 or xx >= w:
-                            continue
-                        weight = np.float32(wy * (fx if dx else 1.0 - fx))
-                        for ch in range(n_ch):
-                            acc[ch] += weight * src[yy, xx, ch]
+                        value[ch] *= weight
                 for ch in range(n_ch):
-                    if acc[ch] > out[ch]:
-                        out[ch] = acc[ch]
+                    if value[ch] > out[ch]:
+                        out[ch] = value[ch]
+
+
+@njit(cache=True)
+def _nowhere_above(value, mine):  # pragma: no cover
+    """Whether value[ch] <= mine[ch] for every channel."""
+    for ch in range(value.shape[0]):
+        if value[ch] > mine[ch]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _bilinear(src, x, y, value):  # pragma: no cover
+    """Bilinear sample of src (h, w, C) at (x, y) (cells, centres at integers) into value
+    (C,), zero outside; False (value untouched) when all four neighbours lie outside."""
+    h, w, n_ch = src.shape
+    x0, y0 = math.floor(x), math.floor(y)
+    if x0 < -1.0 or x0 >= w or y0 < -1.0 or y0 >= h:
+        return False
+    fx, fy = x - x0, y - y0
+    ix, iy = int(x0), int(y0)
+    if 0 <= ix < w - 1 and 0 <= iy < h - 1:  # all four neighbours inside
+        w00 = np.float32((1.0 - fy) * (1.0 - fx))
+        w01 = np.float32((1.0 - fy) * fx)
+        w10 = np.float32(fy * (1.0 - fx))
+        w11 = np.float32(fy * fx)
+        s0, s1 = src[iy], src[iy + 1]
+        for ch in range(n_ch):
+            value[ch] = (w00 * s0[ix, ch] + w01 * s0[ix + 1, ch]
+                         + w10 * s1[ix, ch] + w11 * s1[ix + 1, ch])
+        return True
+    value[:] = 0.0
+    for dy in range(2):
+        yy = iy + dy
+        if yy < 0 or yy >= h:
+            continue
+        wy = fy if dy else 1.0 - fy
+        for dx in range(2):
+            xx = ix + dx
+            if xx < 0 or xx >= w:
+                continue
+            weight = np.float32(wy * (fx if dx else 1.0 - fx))
+            for ch in range(n_ch):
+                value[ch] += weight * src[yy, xx, ch]
+    return True
+
+
+@njit(cache=True)
+def _gate(mine, theirs, w_in, b_in, w_out, b_out, hidden):  # pragma: no cover
+    """The fusion gate's weight (float32) of cell ``theirs`` (C,) beside ``mine`` (C,);
+    hidden (H,) is scratch. The inner loops run over the hidden units, contiguous in w_in."""
+    n_ch, n_hidden = mine.shape[0], hidden.shape[0]
+    hidden[:] = b_in
+    for ch in range(n_ch):
+        a, b = mine[ch], theirs[ch]
+        d = abs(a - b)
+        w_a, w_b, w_d = w_in[ch], w_in[n_ch + ch], w_in[2 * n_ch + ch]
+        for u in range(n_hidden):
+            hidden[u] += a * w_a[u] + b * w_b[u] + d * w_d[u]
+    logit = np.float32(b_out)
+    for u in range(n_hidden):
+        if hidden[u] > 0.0:
+            logit += hidden[u] * w_out[u]
+    return np.float32(1.0 / (1.0 + math.exp(-logit)))

@@ -27,6 +27,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
@@ -112,8 +113,10 @@ class FusionGate(nn.Module):
         """Weights (N, 1, H, W) of maps ``theirs`` (N, C, H, W) beside ``own`` (N, C, H, W).
 
         The 1x1 convolutions run as matrix products over the cells, the first split by its
-        three inputs and accumulated (no concatenation): on channels-last maps, the run
-        time's, the cells are views, and this is about 3x faster than the convolutions."""
+        three inputs and accumulated (no concatenation): on channels-last maps the cells
+        are views, and this is about 3x faster than the convolutions. (Fusion at run time
+        on the CPU evaluates the same gate cell by cell in its compiled pass, from
+        :meth:`cell_weights`.)"""
         first, last = self.body[0], self.body[2]
         n, c, h, w = own.shape
         weight = first.weight.flatten(1)  # (hidden, 3C)
@@ -124,6 +127,18 @@ class FusionGate(nn.Module):
         hidden = torch.addmm(hidden, (mine - yours).abs(), weight[:, 2 * c:].t()).relu_()
         logit = torch.addmm(last.bias, hidden, last.weight.flatten(1).t())
         return logit.sigmoid_().reshape(n, h, w, 1).permute(0, 3, 1, 2)
+
+    def cell_weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The gate as per-cell arrays (float32, for the compiled fusion pass): w_in
+        (3 C, hidden) (rows: own, theirs, |own - theirs| channels), b_in (hidden,),
+        w_out (hidden,) and b_out; the weight is sigmoid(b_out + w_out . relu(b_in + x @ w_in))."""
+        first, last = self.body[0], self.body[2]
+
+        def as_array(tensor: torch.Tensor) -> np.ndarray:
+            return np.ascontiguousarray(tensor.detach().cpu().numpy(), dtype=np.float32)
+
+        return (as_array(first.weight.flatten(1).t()), as_array(first.bias),
+                as_array(last.weight.flatten()), float(last.bias.detach()))
 
 
 class BevDetectorNet(nn.Module):
