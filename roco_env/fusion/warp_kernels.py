@@ -61,6 +61,7 @@ def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width,
 @njit(cache=True)
 def _fuse(canvas, own, features, theta, rows, owner, first, width,
           w_in, b_in, w_out, b_out, gated):  # pragma: no cover
+    """The loop of both kernels (their arguments); ``gated`` turns the gate on."""
     out_h = canvas.shape[1]
     h, w, n_ch = features.shape[1], features.shape[2], features.shape[3]
     value = np.empty(n_ch, dtype=np.float32)
