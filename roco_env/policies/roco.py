@@ -36,8 +36,9 @@ matching; restricting them to one vertex makes a frame ~3x cheaper).
 Do-no-harm rule: a collaborator's correction is applied (and its boxes enter the
 map) only when (a) at least ``min_matches`` of its boxes are matched, (b) at
 least ``min_matches`` of those edges are inliers at the optimum
-(``e^T Omega e <= inlier_chi2``) and (c) the evidence says the reported pose is
-wrong beyond the estimation noise (significance test). For (c) the collaborator's
+(``e^T Omega e <= inlier_chi2``, Omega the rounds' edge information, step 3) and (c)
+the evidence says the reported pose is wrong beyond the estimation noise (significance
+test). For (c) the collaborator's
 pose is re-fitted to its matched edges alone (no prior edge, robust kernel as used),
 each edge with the information of the *difference* of the two boxes,
 ``(Sigma_box + Sigma_landmark)^-1`` (a landmark's covariance is that of the box that
