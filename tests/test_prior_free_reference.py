@@ -25,9 +25,14 @@ from roco_env.policies.v2i_calib import v2i_calib_align
 
 REFERENCE = Path(__file__).parent / "data" / "prior_free_reference.json"
 
+# The RoCo passes of roco_fallback as recorded: the matching rounds weighing each edge by
+# its box's information alone (the default now weighs box minus landmark; the rounds are
+# checked against the Python loop in tests/test_roco_kernels.py).
+RECORDED_ROCO = {"round_information": "box"}
+
 # roco_fallback without the second RoCo pass for slots RoCo itself moved far (the
 # behaviour before refine_beyond_m / refine_beyond_deg existed)
-UNREFINED = {"refine_beyond_m": None, "refine_beyond_deg": None}
+UNREFINED = {**RECORDED_ROCO, "refine_beyond_m": None, "refine_beyond_deg": None}
 
 # label -> (aligner, params)
 CONFIGS = {
@@ -44,7 +49,7 @@ CONFIGS = {
     "roco_fallback_unrefined": (roco_fallback_align, UNREFINED),
     "roco_fallback_v2i_calib": (roco_fallback_align, {**UNREFINED, "fallback": "v2i_calib"}),
     "roco_fallback_freealign": (roco_fallback_align, {**UNREFINED, "fallback": "freealign"}),
-    "roco_fallback": (roco_fallback_align, {}),
+    "roco_fallback": (roco_fallback_align, RECORDED_ROCO),
 }
 
 # ("bench", seed, agents, objects, error m/deg) or ("parking", seed, translation m)

@@ -1,5 +1,7 @@
 """RoCo as published: recovery, crowded matching vs CoAlign, ablation switches, do-no-harm."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
@@ -224,6 +226,38 @@ def test_significance_test_keeps_clean_poses_and_corrects_real_offsets():
         assert err[0] < 0.2 and err[1] < 0.3  # from ~0.3 m / 0.3 deg to the noise floor
 
 
+def uneven_scene(seed, error):
+    """Twelve cars seen by an ego whose headings are poor and say so (yaw noise 0.08 rad,
+    sigma 0.1 rad: an RSU's diagonal view of the crossing) and by a collaborator that sees
+    them along its axes (noise 0.003 rad, sigma 0.004 rad), centres as calibrated_scene's."""
+    rng = np.random.default_rng(seed)
+    objects = random_objects(rng, 12, 30.0, min_gap=8.0)
+    scene = make_scene(objects, PAIR, [error], sigma=(0.12, 0.12, 0.004),
+                       noise=(0.1, 0.1, 0.003), rng=rng)
+    ego_boxes, ego_unc = scene.ego_boxes.copy(), scene.ego_unc.copy()
+    ego_boxes[:, 6] += rng.normal(0.0, 0.08, ego_boxes.shape[0])
+    ego_unc[:, 2] = 0.1
+    return dataclasses.replace(scene, ego_boxes=ego_boxes, ego_unc=ego_unc)
+
+
+def test_round_edges_carry_the_landmarks_uncertainty():
+    """A collaborator's box against a landmark held fixed at the ego's box differs by both
+    boxes' errors. Weighed by the collaborator's yaw sigma alone, the ego's 5-degree heading
+    errors make most true matches outliers and the inlier test keeps a 0.4 m / 0.4 deg
+    error; weighed by the difference's covariance they correct it. Clean poses stay kept."""
+    for seed in range(10):
+        scene = uneven_scene(seed, pose_error(0.4, 0.4, 1.0))
+        result = roco_align(*scene.args())
+        assert result.applied.all() and result.reason == ""
+        err = errors(result, scene)[0]
+        assert err[0] < 0.15 and err[1] < 0.2
+    box_rule = [roco_align(*uneven_scene(seed, pose_error(0.4, 0.4, 1.0)).args(),
+                           round_information="box") for seed in range(10)]
+    assert sum("inlier matches < min_matches" in r.reason for r in box_rule) >= 6
+    for seed in range(20):
+        assert not roco_align(*uneven_scene(seed, np.zeros(3)).args()).applied.any()
+
+
 def test_collaborator_linked_only_through_another_is_retried():
     rng = np.random.default_rng(2)
     near = random_objects(rng, 8, 15.0)
@@ -331,6 +365,7 @@ def test_bad_parameters_raise():
         {"min_matches": 0},
         {"significance": 1.0},
         {"significance": -0.5},
+        {"round_information": "landmark"},
         {"use_edge_similarity": False, "use_distance_similarity": False},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):

@@ -55,7 +55,8 @@ PARAMS = [RoCoParams(), RoCoParams(iterate=False), RoCoParams(coarse_tau2=None),
           RoCoParams(significance=None), RoCoParams(inlier_chi2=0.5),
           RoCoParams(robust_kernel="huber"), RoCoParams(robust_kernel=None),
           RoCoParams(use_edge_similarity=False), RoCoParams(use_distance_similarity=False),
-          RoCoParams(neighbor_radius=None), RoCoParams(tau2=1.0, min_matches=5)]
+          RoCoParams(neighbor_radius=None), RoCoParams(tau2=1.0, min_matches=5),
+          RoCoParams(round_information="box")]
 
 
 @pytest.mark.parametrize("p", PARAMS, ids=range(len(PARAMS)))

@@ -33,9 +33,9 @@ import numpy as np
 from numba import njit
 
 __all__ = ["KERNEL_CODES", "attempt_rounds", "compact_pairs", "damped_step", "edge_similarity",
-           "edge_similarity_sums", "evaluate_edges", "gated_pairs", "normal_sums", "placed_centres",
-           "refine_pose", "refine_starts", "rotate_information", "scored_pairs", "solve_graph",
-           "solve_pose", "solve_pose_edges", "wald_statistic"]
+           "edge_similarity_sums", "evaluate_edges", "gated_pairs", "inverse_covariances",
+           "normal_sums", "placed_centres", "refine_pose", "refine_starts", "rotate_information",
+           "scored_pairs", "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -537,6 +537,16 @@ def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, 
 
 
 @njit(cache=True)
+def inverse_covariances(covariance):
+    """Information (E, 3, 3): the inverse of each covariance (E, 3, 3) (symmetric positive
+    definite), matrix by matrix (:func:`_inverse3`)."""
+    info = np.empty(covariance.shape)
+    for k in range(covariance.shape[0]):
+        _inverse3(covariance[k], info[k])
+    return info
+
+
+@njit(cache=True)
 def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, max_iterations,
                    tolerance, min_diag):
     """Robust Wald statistic of a correction (RoCo's significance test).
@@ -548,11 +558,7 @@ def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, m
     wrapped) is weighed by the sandwich ``A^-1 B A^-1``, A = sum w J^T Omega J,
     B = sum w^2 J^T Omega J with w the IRLS weights at the fit: returns ``d^T A B^-1 A d``.
     """
-    n = own.shape[0]
-    info = np.empty((n, 3, 3))
-    for k in range(n):
-        _inverse3(covariance[k], info[k])
-    info = rotate_information(info, np.ascontiguousarray(own[:, 2]))
+    info = rotate_information(inverse_covariances(covariance), np.ascontiguousarray(own[:, 2]))
     land_xy = np.ascontiguousarray(landmarks[:, :2])
     t_z = np.ascontiguousarray(own[:, :2])
     angle = landmarks[:, 2] - own[:, 2]
@@ -981,7 +987,7 @@ def _matches(pose, own_poses, land_xy, tau2, lam, use_edge, land_features, box_f
 def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_features, land_cov,
                    box_features, prior_z, prior_info, tau2, coarse_tau2, lam, use_edge, radius2,
                    tau1, min_matches, rounds, kernel, delta, max_iterations, tolerance, min_diag,
-                   inlier_chi2, fit_tolerance):
+                   inlier_chi2, fit_tolerance, difference):
     """RoCo's match-optimise rounds for one collaborator (``roco._attempt`` with per-round
     single-vertex solves).
 
@@ -992,7 +998,9 @@ def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_feature
     (3,) / prior_info (3, 3): the prior edge (reported pose). Matching settings as
     ``StarGraphMatcher`` (tau2, coarse_tau2 m, coarse_tau2 <= 0: no coarse gate; lam = 0:
     no distance term); at most ``rounds`` rounds; solver settings as
-    :func:`solve_pose_edges`.
+    :func:`solve_pose_edges`. difference: each round's edges carry the information of box
+    minus landmark, ``(own_cov + land_cov)^-1`` (the landmark held fixed has the error of
+    the box that created it); else the box's own_info alone.
 
     When the rounds end solved with at least ``min_matches`` edges of chi2 <=
     ``inlier_chi2`` and ``fit_tolerance`` > 0, also the significance test's statistic
@@ -1028,8 +1036,12 @@ def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_feature
         if not solved:
             break
         landmarks = land_poses[match_land]
+        if difference:
+            edge_info = inverse_covariances(own_cov[match_box] + land_cov[match_land])
+        else:
+            edge_info = own_info[match_box]
         pose, chi2, _, _, iterations, _ = solve_pose_edges(
-            pose, landmarks, own_poses[match_box], own_info[match_box], prior_z, prior_info,
+            pose, landmarks, own_poses[match_box], edge_info, prior_z, prior_info,
             kernel, delta, max_iterations, tolerance, min_diag,
         )
         solver += iterations

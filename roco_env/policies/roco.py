@@ -17,7 +17,14 @@ against a growing landmark set that starts with the ego's boxes:
    ``prior_sigma_r_deg``; Levenberg-Marquardt capped at ``max_solver_iterations``;
    ego fixed) restricted to this agent's vertex against the current map, or, with
    ``joint_every_round=True``, the whole graph (every accepted agent and every
-   landmark seen by >= 2 agents);
+   landmark seen by >= 2 agents). Restricted to one vertex, the landmarks are held
+   fixed at the boxes that created them, so an edge's residual carries both boxes'
+   errors: its information is ``(Sigma_box + Sigma_landmark)^-1``
+   (``round_information="difference"``, the default; ``"box"``: the box's alone, as the
+   joint graph weighs it, where landmarks are free). With the box's alone, a landmark
+   from a box far less certain than the collaborator's (an RSU's diagonal view of a car
+   whose heading a CAV sees along its axis: yaw sigma 0.1 against 0.004 rad) makes a
+   true match an outlier for the kernel and the inlier test;
 4. re-match with the updated pose; repeat 2-3 until the matching stops changing
    (at most ``max_outer_iterations`` rounds; one round when ``iterate=False``).
 
@@ -29,8 +36,9 @@ matching; restricting them to one vertex makes a frame ~3x cheaper).
 Do-no-harm rule: a collaborator's correction is applied (and its boxes enter the
 map) only when (a) at least ``min_matches`` of its boxes are matched, (b) at
 least ``min_matches`` of those edges are inliers at the optimum
-(``e^T Omega e <= inlier_chi2``) and (c) the evidence says the reported pose is
-wrong beyond the estimation noise (significance test). For (c) the collaborator's
+(``e^T Omega e <= inlier_chi2``, Omega the rounds' edge information, step 3) and (c)
+the evidence says the reported pose is wrong beyond the estimation noise (significance
+test). For (c) the collaborator's
 pose is re-fitted to its matched edges alone (no prior edge, robust kernel as used),
 each edge with the information of the *difference* of the two boxes,
 ``(Sigma_box + Sigma_landmark)^-1`` (a landmark's covariance is that of the box that
@@ -79,6 +87,7 @@ from roco_env.policies.matching_kernels import committed_map
 from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
     attempt_rounds,
+    inverse_covariances,
     solve_pose_edges,
     wald_statistic,
 )
@@ -93,6 +102,7 @@ from roco_env.policies.posegraph import (
 
 __all__ = [
     "NOT_SIGNIFICANT",
+    "ROUND_INFORMATION",
     "RoCoParams",
     "RoCoPolicy",
     "checked_params",
@@ -103,6 +113,9 @@ __all__ = [
 # Start of the reason for a prior kept by the significance test: the matched evidence is
 # consistent with the reported pose (a checked prior, unlike "no boxes" or too few matches).
 NOT_SIGNIFICANT = "correction not significant"
+
+# RoCoParams.round_information: the edge information of the matching rounds' solves.
+ROUND_INFORMATION = ("difference", "box")
 
 # Relative cost decrease that ends a per-round single-vertex solve: those solves only
 # steer the matching (the final joint solve uses the solver's default, 1e-6).
@@ -123,6 +136,9 @@ class RoCoParams(MatchingParams, UncertaintyParams):
     error with Cauchy, 0.2 m with Huber, 0.3 m without a kernel).
     prior_sigma_t (m) / prior_sigma_r_deg (deg): std of the reported relative poses.
     min_matches, inlier_chi2: the do-no-harm rule (module docstring).
+    round_information: the information of an edge in the single-vertex rounds (and so of
+    the kernel's weights and the inlier test): "difference" = ``(Sigma_box +
+    Sigma_landmark)^-1``, "box" = the box's own (module docstring, step 3).
     significance: confidence of the do-no-harm significance test (module docstring), in
     (0, 1); a correction is applied when its Wald statistic exceeds
     chi2.ppf(significance, 3). None or 0 = no test (the pre-test rule: any cost
@@ -148,6 +164,7 @@ class RoCoParams(MatchingParams, UncertaintyParams):
     joint_every_round: bool = False
     coarse_tau2: float | None = 6.0
     significance: float | None = 0.99
+    round_information: str = "difference"
 
     def __post_init__(self) -> None:
         MatchingParams.__post_init__(self)
@@ -164,6 +181,9 @@ class RoCoParams(MatchingParams, UncertaintyParams):
             raise ValueError(
                 f"significance must be None or in [0, 1) (0 = off); got {self.significance}"
             )
+        if self.round_information not in ROUND_INFORMATION:
+            raise ValueError(f"round_information must be one of {ROUND_INFORMATION}; got "
+                             f"{self.round_information!r}")
         if self.coarse_tau2 is not None and not self.coarse_tau2 > self.tau2:
             raise ValueError(f"coarse_tau2 must be None or > tau2; got {self.coarse_tau2}")
         for name in ("max_outer_iterations", "min_matches", "max_solver_iterations"):
@@ -240,7 +260,8 @@ def _round_terms(p: RoCoParams) -> tuple:
     them after the reported pose, computed once per parameter set: the prior edges'
     information, the gates (m; coarse -1 = none), the matching's kernel terms, min_matches,
     the round cap, the solver's settings, inlier_chi2 and the significance fit's stop
-    (0 = no significance test)."""
+    (0 = no significance test), and whether the rounds' edges carry the information of box
+    minus landmark (``round_information``)."""
     return (
         _prior_info(p),
         float(p.tau2),
@@ -255,6 +276,7 @@ def _round_terms(p: RoCoParams) -> tuple:
         _MIN_DIAG,
         float(p.inlier_chi2),
         _FIT_TOLERANCE if p.significance else 0.0,
+        p.round_information == "difference",
     )
 
 
@@ -315,12 +337,17 @@ def _optimise_round(
         att.solver += solution.iterations
         return
     att.landmarks = world.poses[att.match_land]
+    if p.round_information == "difference":
+        box_covariance = inputs.all_covariance[inputs.offsets[agent] + att.match_box]
+        information = inverse_covariances(box_covariance + world.covariance[att.match_land])
+    else:
+        information = inputs.information[agent][att.match_box]
     # optimize_pose's compiled solver, called directly (the inputs are already checked).
     att.pose, att.chi2, _, _, iterations, _ = solve_pose_edges(
         att.pose,
         att.landmarks,
         own,
-        inputs.information[agent][att.match_box],
+        information,
         inputs.reported[agent - 1],
         _prior_info(p),
         KERNEL_CODES[p.robust_kernel],
