@@ -79,8 +79,13 @@ class ObservationView:
         reasons = [""] * n
         for compact, text in enumerate(result.slot_reasons):
             reasons[self.slots[compact]] = text
+        statistics = ()
+        if result.slot_statistics:
+            full = np.full(n, np.nan)
+            full[self.slots] = result.slot_statistics
+            statistics = tuple(full.tolist())
         return replace(result, corrected=corrected, applied=applied, matched_pairs=pairs,
-                       slot_reasons=tuple(reasons))
+                       slot_reasons=tuple(reasons), slot_statistics=statistics)
 
 
 def _field(observation: dict, key: str) -> np.ndarray:

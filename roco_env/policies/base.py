@@ -33,6 +33,9 @@ class AlignmentResult:
     reason: short text on why a prior was kept (empty when applied).
     slot_reasons: per collaborator slot, why its prior was kept ("" where applied or
         where the aligner does not say); ``reason`` is their readable summary.
+    slot_statistics: per collaborator slot, the statistic of the aligner's do-no-harm
+        significance test (chi-square with 3 dof when the reported pose is right; NaN
+        where it was not computed); empty for an aligner without such a test.
     """
 
     corrected: np.ndarray
@@ -43,6 +46,7 @@ class AlignmentResult:
     solver_iterations: int = 0
     reason: str = ""
     slot_reasons: tuple[str, ...] = ()
+    slot_statistics: tuple[float, ...] = ()
 
 
 def reported_relative_poses(observation: dict) -> np.ndarray:

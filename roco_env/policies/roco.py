@@ -70,7 +70,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.policies.adapter import ArrayAlignmentPolicy
+from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     AlignmentInputs,
@@ -91,6 +91,7 @@ from roco_env.policies.pose_kernels import (
     solve_pose_edges,
     wald_statistic,
 )
+from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
@@ -469,22 +470,25 @@ def _rejection(
     att: _Attempt,
     p: RoCoParams,
     covariance: list[np.ndarray],
-) -> str:
-    """Why the do-no-harm rule rejects the attempt ("" when it is accepted)."""
+    waived: bool = False,
+) -> tuple[str, float]:
+    """Why the do-no-harm rule rejects the attempt ("" when it is accepted) and the
+    significance test's statistic (NaN when not computed). ``waived``: the statistic is
+    computed but does not decide (:mod:`roco_env.policies.pooled`)."""
     if not att.solved:
-        return f"{att.match_land.size} matches < min_matches={p.min_matches}"
+        return f"{att.match_land.size} matches < min_matches={p.min_matches}", np.nan
     inliers = int(np.count_nonzero(att.chi2 <= p.inlier_chi2))
     if inliers < p.min_matches:
-        return f"{inliers} inlier matches < min_matches={p.min_matches}"
+        return f"{inliers} inlier matches < min_matches={p.min_matches}", np.nan
     if p.significance:
         statistic = _correction_statistic(inputs, world, agent, att, p, covariance)
         threshold = _significance_threshold(p.significance)
-        if not statistic > threshold:
+        if not (statistic > threshold or waived):
             return (
                 f"{NOT_SIGNIFICANT}: Wald {statistic:.2f} <= {threshold:.2f} "
                 f"(chi2 3 dof, significance={p.significance})"
-            )
-        return ""
+            ), statistic
+        return "", statistic
     own = inputs.poses[agent][att.match_box]
     info = inputs.information[agent][att.match_box]
     reported = inputs.reported[agent - 1]
@@ -492,8 +496,8 @@ def _rejection(
     cost_optimised = robust_kernel(att.chi2, p.robust_kernel, p.kernel_delta)[0].sum()
     cost_reported = robust_kernel(chi2_reported, p.robust_kernel, p.kernel_delta)[0].sum()
     if not cost_optimised < cost_reported:
-        return "optimised pose does not explain the boxes better than the reported one"
-    return ""
+        return "optimised pose does not explain the boxes better than the reported one", np.nan
+    return "", np.nan
 
 
 def _store_joint(world: _Map, joint: tuple[PoseGraphResult, np.ndarray, np.ndarray]) -> None:
@@ -544,6 +548,7 @@ def roco_align(
     reported: np.ndarray,
     *,
     initial: np.ndarray | None = None,
+    waived: Sequence[int] = (),
     **params,
 ) -> AlignmentResult:
     """Correct the collaborators' relative poses with RoCo.
@@ -552,12 +557,19 @@ def roco_align(
     collab_unc[j] (K_j, 3) in collaborator j's own frame (uncertainty = sigma_x m,
     sigma_y m, sigma_yaw rad, agent frame); reported (N, 3) reported T_{j->i}.
     initial (N, 3): where the matching rounds start (default: the reported poses; the
-    prior edges and the do-no-harm test always use the reported ones).
+    prior edges and the do-no-harm test always use the reported ones). waived:
+    collaborators (indices into collab_boxes) whose significance test is computed but
+    does not decide, because their reported poses are known to carry errors
+    (:mod:`roco_env.policies.pooled`; :class:`RoCoPolicy` decides it over the frames).
     params: fields of :class:`RoCoParams`. Returns corrected T_{j->i} and diagnostics.
     """
     p = checked_params(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
-    return roco_solve(inputs, p, initial)
+    waived = frozenset(int(j) for j in waived)
+    if not waived <= set(range(inputs.n_collaborators)):
+        raise ValueError(f"waived must hold collaborator indices in [0, "
+                         f"{inputs.n_collaborators}); got {sorted(waived)}")
+    return roco_solve(inputs, p, initial, waived=waived)
 
 
 def roco_solve(
@@ -565,10 +577,12 @@ def roco_solve(
     p: RoCoParams,
     initial: np.ndarray | None = None,
     excluded: frozenset[int] = frozenset(),
+    waived: frozenset[int] = frozenset(),
 ) -> AlignmentResult:
     """:func:`roco_align` on validated inputs (:func:`~roco_env.policies.landmarks.prepare_inputs`)
     and checked parameters. Collaborator slots in ``excluded`` are treated as if they sent
-    no boxes (reason "no boxes"; their reported poses are kept)."""
+    no boxes (reason "no boxes"; their reported poses are kept); in ``waived`` the
+    significance test does not decide (:func:`roco_align`)."""
     start = inputs.reported if initial is None else np.asarray(initial, dtype=float)
     if start.shape != inputs.reported.shape or not np.all(np.isfinite(start)):
         raise ValueError(
@@ -581,6 +595,7 @@ def roco_solve(
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
     reasons = {j: "" for j in range(n)}
+    statistics = np.full(n, np.nan)
     outer = solver = 0
     has_boxes = [inputs.poses[a].shape[0] > 0 and a - 1 not in excluded for a in range(n + 1)]
     queue = list(range(1, n + 1))
@@ -593,7 +608,8 @@ def roco_solve(
             continue
         att = _attempt(inputs, world, agent, p, start[agent - 1], covariance)
         outer, solver = outer + att.outer, solver + att.solver
-        reasons[agent - 1] = _rejection(inputs, world, agent, att, p, covariance)
+        reasons[agent - 1], statistics[agent - 1] = _rejection(
+            inputs, world, agent, att, p, covariance, agent - 1 in waived)
         if not reasons[agent - 1]:
             _commit(inputs, world, agent, att, covariance[agent])
             accepted_since_joint = True
@@ -622,11 +638,50 @@ def roco_solve(
         solver_iterations=solver,
         reason="; ".join(f"slot {j}: {r}" for j, r in reasons.items() if r),
         slot_reasons=tuple(reasons[j] for j in range(n)),
+        slot_statistics=tuple(statistics.tolist()),
     )
 
 
 class RoCoPolicy(ArrayAlignmentPolicy):
-    """RoCo as an env policy: ``RoCoPolicy(**params)(obs, info=None) -> action (N, 3)``."""
+    """RoCo as an env policy: ``RoCoPolicy(**params)(obs, info=None) -> action (N, 3)``.
 
-    def __init__(self, **params) -> None:
+    pooled_significance: None (default: every frame's significance test decides alone)
+    or the confidence, in (0, 1), of the pooled test over each collaborator's last
+    frames (:mod:`roco_env.policies.pooled`): once it shows that collaborator's reported
+    poses carry errors, its frame-by-frame test no longer keeps them. The policy then
+    keeps a history per ego and collaborator (``info["agent"]``,
+    ``info["collaborators"]``; by slot without infos): call :meth:`reset` between
+    episodes. Needs the significance test (``significance`` not None or 0).
+    """
+
+    def __init__(self, pooled_significance: float | None = None, **params) -> None:
         super().__init__(roco_align, checked_params(RoCoParams, params, "roco"), params)
+        self.pooled = None
+        if pooled_significance is not None:
+            if not self.params.significance:
+                raise ValueError("pooled_significance needs RoCo's significance test; got "
+                                 f"significance={self.params.significance}")
+            self.pooled = PooledSignificance(pooled_significance)
+            self.keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+
+    def reset(self) -> None:
+        """Forget the pooled test's history (call between episodes)."""
+        super().reset()
+        if self.pooled is not None:
+            self.pooled.reset()
+
+    def align_view(
+        self, view: ObservationView, observation: dict, info: dict | None
+    ) -> AlignmentResult:
+        """:func:`roco_align`, the significance test waived for the collaborators the pooled
+        test finds wrong; their statistics extend the history."""
+        if self.pooled is None:
+            return super().align_view(view, observation, info)
+        names = (info or {}).get("collaborators")
+        ego = (info or {}).get("agent")
+        keys = [(ego, names[s] if names is not None and s < len(names) else int(s))
+                for s in view.slots]
+        waived = [j for j, key in enumerate(keys) if self.pooled.waived(key)]
+        result = roco_align(*view.arrays, waived=waived, **self._kwargs)
+        self.pooled.record(keys, result.slot_statistics)
+        return result

@@ -37,6 +37,7 @@ ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "ro
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 LEARNED_INTERMEDIATE = {"detector": "learned", "fusion": "intermediate"}
 PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_fallback", "oracle")
+POOLED_POLICIES = ("coalign", "roco", "roco:pooled_significance=0.9999")
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 # The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
@@ -142,6 +143,13 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                "The same with late fusion of the same learned detector",
                ("v2xset_like", "dair_like"), PAPER_NOISE, BUILTIN, seeds=2, steps=20,
                overrides={**PROTOCOL, "detector": "learned"}),
+    Experiment("pooled_significance_late",
+               "RoCo's significance test pooled over a collaborator's frames, late fusion",
+               ("v2xset_like", "dair_like"), PAPER_NOISE, POOLED_POLICIES),
+    Experiment("pooled_significance_intermediate",
+               "The same with learned intermediate fusion",
+               ("v2xset_like", "dair_like"), PAPER_NOISE, POOLED_POLICIES, seeds=2, steps=20,
+               overrides={**PROTOCOL, **LEARNED_INTERMEDIATE}),
     Experiment("late_knob_nms", "Knob: late-fusion NMS at BEV IoU 0.3 instead of 0.15",
                ("dair_like",), (0.0, 0.4, 0.8), BUILTIN[:3],
                overrides={**PROTOCOL, "fusion.nms_iou": 0.3}),
