@@ -237,6 +237,7 @@ class CollabPerceptionEnv(ParallelEnv):
     def reset(self, seed: int | None = None,
               options: dict | None = None) -> tuple[dict[str, dict], dict[str, dict]]:
         """Start an episode. ``options`` is accepted for API compatibility and unused."""
+        check_seed(seed)
         if seed is not None or self._seeds is None:
             self._seeds = np.random.default_rng(seed)
         (episode_rng,) = self._seeds.spawn(1)
@@ -402,6 +403,14 @@ class CollabPerceptionEnv(ParallelEnv):
             fused = suppress(merged, self.config.fusion.nms_iou,
                              [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
+
+
+def check_seed(seed: Any) -> None:
+    """ValueError naming the seed unless it is None or an integer >= 0 (what ``reset`` takes)."""
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be None or an integer >= 0; got {seed!r}")
 
 
 def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:

@@ -40,6 +40,7 @@ def test_list_shows_scenarios_and_policies(capsys):
     (["compare", "--policies", "oracle:gain=2"], ["policy spec 'oracle:gain=2'"]),
     (["run", "--policy", "magic"], ["unknown policy 'magic'"]),
     (["run", "--scenario", "atlantis"], ["unknown scenario 'atlantis'"]),
+    (["run", "--seed", "-1"], ["seed must be None or an integer >= 0; got -1"]),
     (["render", "--gif", "x.png"], ["--gif must name a .gif file"]),
     (["render"], ["give --out DIR"]),
 ])
@@ -47,9 +48,10 @@ def test_bad_options_exit_2_naming_the_problem(argv, fragments, capsys, tmp_path
     with pytest.raises(SystemExit) as exit_info:
         raise SystemExit(main([*argv, *(["--out", str(tmp_path)] if argv[0] == "compare" else [])]))
     assert exit_info.value.code == 2
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
     for fragment in fragments:
-        assert fragment in err
+        assert fragment in captured.err
+    assert captured.out == ""  # refused before any episode output
     assert not (tmp_path / "results.jsonl").exists()
 
 

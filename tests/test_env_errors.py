@@ -94,6 +94,13 @@ def test_bad_constructor_arguments():
         roco_env.parallel_env(**FAST, fusion="intermediate", detector="ideal", features=True)
 
 
+@pytest.mark.parametrize("seed", [-1, 1.5, "0", True])
+def test_bad_reset_seed_names_the_argument(env, seed):
+    with pytest.raises(ValueError, match=f"seed must be None or an integer >= 0; got {seed!r}"):
+        env.reset(seed=seed)
+    env.reset(seed=np.int64(3))  # numpy integers are seeds too
+
+
 def test_oracle_without_info(env):
     obs, infos = env.reset(seed=0)
     oracle = make_policy("oracle")

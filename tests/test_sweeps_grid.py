@@ -67,6 +67,8 @@ def test_grid_deduplicates_and_validates_shapes():
         build_grid(["a"], [0.0], ["identity"], [0], 0)
     with pytest.raises(ValueError, match="noise"):
         build_grid(["a"], [-0.1], ["identity"], [0], 3)
+    with pytest.raises(ValueError, match="seed must be None or an integer >= 0; got -1"):
+        build_grid(["a"], [0.0], ["identity"], [-1], 3)
     with pytest.raises(ValueError, match="policies must not be empty"):
         build_grid(["a"], [0.0], [], [0], 3)
     with pytest.raises(ValueError, match="'sigma_t' is set by the grid"):
