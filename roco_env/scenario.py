@@ -280,7 +280,12 @@ def list_scenarios() -> list[str]:
 
 def scenario_path(name_or_path: str | os.PathLike) -> Path:
     """Resolve a scenario name (``urban_intersection``) or a YAML path to a file."""
+    if not isinstance(name_or_path, (str, os.PathLike)):
+        raise ScenarioError("scenario must be a name from roco_env.list_scenarios() or a .yaml "
+                            f"path; got {name_or_path!r} ({type(name_or_path).__name__})")
     candidate = Path(name_or_path)
+    if candidate.is_dir():
+        raise ScenarioError(f"{candidate} is a folder, not a scenario .yaml file")
     if candidate.suffix in (".yaml", ".yml") or candidate.exists():
         if not candidate.is_file():
             raise ScenarioError(f"scenario file {candidate} does not exist")
