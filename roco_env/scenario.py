@@ -390,11 +390,11 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
     for name in ("x_range", "y_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
-    config.noise.params = _given(build(NOISE_PARAMS[config.noise.model], config.noise.params,
-                                       where, "noise.params."), config.noise.params)
-    config.detector.params = _given(build(DETECTOR_PARAMS[config.detector.preset],
-                                          config.detector.params, where, "detector.params."),
-                                    config.detector.params)
+    config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,
+                                         config.noise.params, where, "noise.params.")
+    config.detector.params = _choice_params(DETECTOR_PARAMS, "detector.preset",
+                                            config.detector.preset, config.detector.params,
+                                            where, "detector.params.")
     if config.fusion.method == "intermediate" and config.detector.preset != "learned":
         raise ScenarioError(
             f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
@@ -402,6 +402,21 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
             f"detector.preset={config.detector.preset!r}"
         )
     return config
+
+
+def _choice_params(table: Mapping[str, type], field: str, choice: str, given: Any, where: str,
+                   prefix: str) -> dict:
+    """The checked parameters ``given`` for ``choice`` (a noise model, a detector preset), its
+    parameter dataclass in ``table``; a key that belongs to another choice says which."""
+    names = {name: [f.name for f in dataclasses.fields(cls)] for name, cls in table.items()}
+    unknown = sorted(set(given) - set(names[choice]), key=str) if isinstance(given, Mapping) else []
+    owners = [name for name, keys in names.items() if unknown and unknown[0] in keys]
+    if owners:
+        allowed = (f"allowed: {', '.join(prefix + key for key in names[choice])}"
+                   if names[choice] else "which takes no parameters")
+        raise ScenarioError(f"{where}: {prefix}{unknown[0]} is a parameter of {field} "
+                            f"{' / '.join(map(repr, owners))}, not of {choice!r} ({allowed})")
+    return _given(build(table[choice], given, where, prefix), given)
 
 
 def _given(params: Any, given: Mapping[str, Any]) -> dict:

@@ -83,7 +83,7 @@ def build(cls: type, data: Any, where: str, prefix: str = "") -> Any:
 
 
 def unknown_key_message(where: str, key: str, allowed: list[str]) -> str:
-    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed)}"
+    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed) or 'none (no keys here)'}"
 
 
 _EXPECTS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",

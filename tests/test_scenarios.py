@@ -70,6 +70,17 @@ def test_overrides_reach_traffic_fields():
         ("agents:\n  cavs: 99\n", ["agents.cavs", "out of range"]),
         ("traffic:\n  layout: merge\n", ["traffic.layout='merge'", "synthetic", "parking_lot"]),
         ("traffic: [1, 2\n", ["malformed YAML"]),
+        ("noise:\n  params: {rho: 0.5}\n",
+         ["noise.params.rho is a parameter of noise.model 'ar1'", "not of 'gaussian'",
+          "which takes no parameters"]),
+        ("noise:\n  model: bias\n  params: {rho: 0.5}\n",
+         ["noise.params.rho is a parameter of noise.model 'ar1'", "not of 'bias'"]),
+        ("noise:\n  params: {zzz: 1}\n", ["unknown key 'noise.params.zzz'; allowed: none"]),
+        ("noise:\n  model: ar1\n  params: {rh0: 0.5}\n", ["noise.params.rh0", "allowed: "
+                                                             "noise.params.rho"]),
+        ("detector:\n  params: {weights: my.pt}\n",
+         ["detector.params.weights is a parameter of detector.preset 'learned'",
+          "not of 'realistic'", "detector.params.sigma_xy"]),
     ],
 )
 def test_validation_errors_name_file_key_and_allowed(tmp_path, text, fragments):
