@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import sys
+
 import pytest
 from PIL import Image
 
@@ -145,3 +149,12 @@ def test_compare_recomputes_after_the_scenario_file_is_edited(capsys, tmp_path):
     captured = capsys.readouterr()
     assert "(1 run, 0 resumed, 1 recomputed as stale, 0 failed)" in captured.out
     assert "1 cell(s) recomputed" in captured.err
+
+
+def test_output_into_a_closed_pipe_ends_quietly(monkeypatch, capsys):
+    """`roco-env list | head -1`: the reader left; no 'error: Broken pipe' line, exit 128 + SIGPIPE."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    monkeypatch.setattr(sys, "stdout", os.fdopen(write_end, "w"))
+    assert main(["list"]) == 128 + signal.SIGPIPE
+    assert capsys.readouterr().err == ""
