@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import roco_env
 from roco_env.scenario import scenario_from_dict
 from roco_env.traffic import Frame, make_traffic_source
 
@@ -36,6 +37,9 @@ def test_frames_replay_in_order_and_hold_the_last():
 def test_frames_required_only_for_frames_source():
     with pytest.raises(ValueError, match="frames="):
         make_traffic_source(CONFIG)
+    with pytest.raises(ValueError, match=r"needs your frames: pass frames=\[Frame\(\.\.\.\), "
+                                         r"\.\.\.\] to roco_env\.parallel_env"):
+        roco_env.parallel_env(CONFIG)
     synthetic = scenario_from_dict({})
     with pytest.raises(ValueError, match="frames="):
         make_traffic_source(synthetic, frames=frames())
