@@ -158,3 +158,14 @@ def test_output_into_a_closed_pipe_ends_quietly(monkeypatch, capsys):
     monkeypatch.setattr(sys, "stdout", os.fdopen(write_end, "w"))
     assert main(["list"]) == 128 + signal.SIGPIPE
     assert capsys.readouterr().err == ""
+
+
+def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
+        monkeypatch, capsys, tmp_path):
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["train-detector", "--out", str(tmp_path / "det"), "--device", "cuda",
+                 "--steps", "1", "--train-scenes", "1", "--val-scenes", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "device='cuda' (--device cuda) but torch" in err and "sees no CUDA device" in err
+    assert "generating" not in err  # refused before the scenes were made
