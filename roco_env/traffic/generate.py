@@ -101,9 +101,12 @@ def stress_config(layout: str, density: float, cavs: int, rsus: int, seed: int,
     return scenario_from_dict(data, where="generated scenario")
 
 
+EXPORT_FRAMES = 10  # frames of the preview episode written to export_dir by default
+
+
 def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
              output: str | Path | None = None, export_dir: str | Path | None = None,
-             frames: int = 10, min_gap: float | None = None,
+             frames: int = EXPORT_FRAMES, min_gap: float | None = None,
              overwrite: bool = False) -> tuple[ScenarioConfig, Summary]:
     """Build, preview (seeded) and optionally write a stress scenario.
 
