@@ -169,3 +169,15 @@ def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
     err = capsys.readouterr().err
     assert "device='cuda' (--device cuda) but torch" in err and "sees no CUDA device" in err
     assert "generating" not in err  # refused before the scenes were made
+
+
+def test_run_says_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
+    from roco_env.traffic.generate import generate
+
+    generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
+    assert main(["run", "--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}",
+                 "--policy", "identity", "--steps", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "the episode ended after 2 of 5 steps: the scenario's frames ran out" in out
+    assert main(["run", "--policy", "identity", "--steps", "2", *TINY]) == 0
+    assert "the episode ended" not in capsys.readouterr().out
