@@ -70,6 +70,9 @@ def test_overrides_reach_traffic_fields():
         ("agents:\n  cavs: 99\n", ["agents.cavs", "out of range"]),
         ("traffic:\n  layout: merge\n", ["traffic.layout='merge'", "synthetic", "parking_lot"]),
         ("traffic: [1, 2\n", ["malformed YAML"]),
+        ("agents:\n  cavs: 3\nagents:\n  rsus: 2\n",
+         ["malformed YAML", "duplicate key 'agents' (first on line 1)", "line 3"]),
+        ("agents:\n  cavs: 3\n  cavs: 5\n", ["duplicate key 'cavs' (first on line 2)"]),
         ("noise:\n  params: {rho: 0.5}\n",
          ["noise.params.rho is a parameter of noise.model 'ar1'", "not of 'gaussian'",
           "which takes no parameters"]),
@@ -92,6 +95,12 @@ def test_validation_errors_name_file_key_and_allowed(tmp_path, text, fragments):
     assert str(path) in message
     for fragment in fragments:
         assert fragment in message
+
+
+def test_yaml_merge_keys_still_load():
+    from roco_env.schema import load_yaml
+
+    assert load_yaml("base: &b {x: 1, y: 2}\nm:\n  <<: *b\n  x: 3\n")["m"] == {"x": 3, "y": 2}
 
 
 def test_yaml_is_loaded_safely(tmp_path):
