@@ -350,8 +350,15 @@ def save_scenario(config: ScenarioConfig, path: str | os.PathLike) -> Path:
 def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> ScenarioConfig:
     """Return a copy of ``config`` with dotted-name or alias overrides applied and validated."""
     data = scenario_to_dict(config)
+    fields: dict[str, str] = {}  # override key -> the dotted field it sets
     for key, value in overrides.items():
         dotted = ALIASES.get(key, key)
+        for other, other_dotted in fields.items():
+            if f"{dotted}.".startswith(f"{other_dotted}.") \
+                    or f"{other_dotted}.".startswith(f"{dotted}."):
+                outer = min(dotted, other_dotted, key=len)
+                raise ScenarioError(f"override: {other!r} and {key!r} both set {outer}; give one")
+        fields[key] = dotted
         parts = dotted.split(".")
         node = data
         for depth, part in enumerate(parts[:-1]):

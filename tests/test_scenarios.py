@@ -1,5 +1,7 @@
 """Scenario library: every YAML validates and builds its traffic; errors name file/key/allowed."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -58,6 +60,18 @@ def test_overrides_reach_traffic_fields():
     assert config.traffic.density == 2.0 and config.traffic.speed_limit == 20.0
     with pytest.raises(ScenarioError, match="traffic.speed_limit"):
         load_scenario("highway_dense", **{"traffic.speed_limit": 500.0})
+
+
+@pytest.mark.parametrize("overrides, fragment", [
+    ({"cavs": 2, "agents.cavs": 3}, "'cavs' and 'agents.cavs' both set agents.cavs"),
+    ({"agents.cavs": 3, "cavs": 2}, "'agents.cavs' and 'cavs' both set agents.cavs"),
+    ({"detector.params.sigma_xy": 0.5, "detector.params": {"sigma_xy": 0.3}},
+     "'detector.params.sigma_xy' and 'detector.params' both set detector.params"),
+])
+def test_two_overrides_of_one_field_are_refused(overrides, fragment):
+    """Either would win silently depending on the order the keywords were written in."""
+    with pytest.raises(ScenarioError, match=re.escape(fragment) + "; give one"):
+        load_scenario("urban_intersection", **overrides)
 
 
 @pytest.mark.parametrize(

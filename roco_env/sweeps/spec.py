@@ -62,6 +62,9 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Scalar]:
     overrides: dict[str, Scalar] = {}
     for item in items:
         key, value = parse_assignment(item, "--set")
+        if key in overrides:
+            raise ValueError(f"--set {key} given twice ({format_scalar(overrides[key])}, then "
+                             f"{format_scalar(value)})")
         overrides[key] = value
     return overrides
 
