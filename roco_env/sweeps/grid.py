@@ -108,7 +108,8 @@ def build_grid(
     clash = sorted(set(extra) & set(GRID_OWNED_OVERRIDES))
     if clash:
         raise ValueError(
-            f"override {clash[0]!r} is set by the grid; use the noise/density lists instead"
+            f"override {clash[0]!r} is set by the grid; use the noise/density lists instead "
+            "(roco-env: --noise / --density)"
         )
     labels = [parse_policy_spec(p).label for p in policies]
     extra_items = tuple(sorted(extra.items()))
