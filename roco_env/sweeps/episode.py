@@ -27,6 +27,7 @@ import numpy as np
 import roco_env
 from roco_env.evaluation import filled_rpe_rows, info_frame_stats
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_precision_recall
+from roco_env.observation import check_action
 from roco_env.policies.base import AlignmentResult
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record, ok_record
@@ -136,8 +137,10 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 policy = policies[agent]
                 previous = getattr(policy, "last_result", None)
                 start = time.perf_counter()
-                action = np.asarray(policy(observations[agent], infos[agent]))
+                action = policy(observations[agent], infos[agent])
                 scorer.call_seconds.append(time.perf_counter() - start)
+                # the env's own check, before the scorer reads the action by slot
+                action = check_action(action, agent, env.config.max_collaborators)
                 result = getattr(policy, "last_result", None)
                 scorer.add_decision(observations[agent], infos[agent], action,
                                     None if result is previous else result)  # never a stale one

@@ -117,10 +117,13 @@ def validate_policy_spec(text: str) -> PolicySpec:
     """Parse and construct the policy once so bad parameters fail before a sweep starts."""
     spec = parse_policy_spec(text)
     try:
-        spec.build()
+        policy = spec.build()
     except TypeError as exc:  # unknown keyword argument of the policy's constructor
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
     except ValueError as exc:
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
+    if not callable(policy):
+        raise ValueError(f"policy spec {text!r}: {spec.name}() returned {policy!r}, not a "
+                         "policy(obs, info) -> action")
     return spec
 
