@@ -81,6 +81,14 @@ def test_env_runs_a_users_scene_with_ideal_detections():
     assert rewards["cav_0"] == 1.0  # ideal detector, clean poses: every box found exactly
 
 
+def test_frames_with_other_agent_counts_than_the_scenario_say_what_to_set():
+    env = roco_env.parallel_env("urban_intersection", frames=frames(),
+                                **{"traffic.source": "frames"})  # 4 CAVs + 1 RSU in its YAML
+    with pytest.raises(ValueError, match=r"imply \['cav_0', 'cav_1', 'cav_2', 'cav_3', 'rsu_0'\]; "
+                                         r"give the overrides cavs=1, rsus=1 to match"):
+        env.reset(seed=0)
+
+
 def test_users_frames_end_the_episode_at_the_last_frame():
     import roco_env
 
