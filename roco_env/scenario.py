@@ -419,10 +419,10 @@ def _choice_params(table: Mapping[str, type], field: str, choice: str, given: An
     unknown = sorted(set(given) - set(names[choice]), key=str) if isinstance(given, Mapping) else []
     owners = [name for name, keys in names.items() if unknown and unknown[0] in keys]
     if owners:
-        allowed = (f"allowed: {', '.join(prefix + key for key in names[choice])}"
-                   if names[choice] else "which takes no parameters")
-        raise ScenarioError(f"{where}: {prefix}{unknown[0]} is a parameter of {field} "
-                            f"{' / '.join(map(repr, owners))}, not of {choice!r} ({allowed})")
+        message = unknown_key_message(where, prefix + str(unknown[0]),
+                                      [prefix + key for key in names[choice]])
+        raise ScenarioError(f"{message}; {prefix}{unknown[0]} is a parameter of {field} "
+                            f"{' / '.join(map(repr, owners))}, not of {choice!r}")
     return _given(build(table[choice], given, where, prefix), given)
 
 
