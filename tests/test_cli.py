@@ -172,7 +172,7 @@ def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
     assert "generating" not in err  # refused before the scenes were made
 
 
-def test_run_says_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
+def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
     from roco_env.traffic.generate import generate
 
     generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
@@ -182,3 +182,13 @@ def test_run_says_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys
     assert "the episode ended after 2 of 5 steps: the scenario's frames ran out" in out
     assert main(["run", "--policy", "identity", "--steps", "2", *TINY]) == 0
     assert "the episode ended" not in capsys.readouterr().out
+    for name, steps in (("replay", "5"), ("synthetic", "2")):
+        scenario = ["--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}"] \
+            if name == "replay" else TINY
+        assert main(["compare", *scenario, "--policies", "identity", "--noise", "0",
+                     "--seeds", "1", "--steps", steps, "--no-plots", "--quiet",
+                     "--out", str(tmp_path / name)]) == 0
+    report = (tmp_path / "replay" / "report.md").read_text()
+    assert "Episodes of 5 steps;" in report
+    assert "Episodes that ran out of frames ended sooner: opv2v_replay after 2 of 5 steps." in report
+    assert "ran out of frames" not in (tmp_path / "synthetic" / "report.md").read_text()

@@ -52,6 +52,7 @@ class EpisodeScorer:
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
     call_seconds: list = field(default_factory=list)
+    steps: int = 0  # env steps played (fewer than asked when a replay's frames run out)
 
     def add_decision(self, observation: dict, info: dict, action: np.ndarray,
                      result: AlignmentResult | None) -> None:
@@ -97,6 +98,7 @@ class EpisodeScorer:
         metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
         metrics["pairs"] = int(after.shape[0])
+        metrics["steps"] = self.steps
         samples = {
             "before": np.round(before, SAMPLE_DECIMALS).tolist(),
             "after": np.round(after, SAMPLE_DECIMALS).tolist(),
@@ -147,6 +149,7 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 actions[agent] = action
             observations, _, _, _, infos = env.step(actions)
             step += 1
+            scorer.steps = step
             for info in infos.values():
                 scorer.add_outcome(info)
             if on_step is not None:
