@@ -135,13 +135,14 @@ class _Loader(yaml.SafeLoader):
             if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *anchor`; explicit keys win
                 continue
             key = self.construct_object(key_node, deep=deep)
-            if isinstance(key, Hashable) and key in first_line:
+            if not isinstance(key, Hashable):  # the base class says what is wrong with it
+                continue
+            if key in first_line:
                 raise yaml.constructor.ConstructorError(
                     "while constructing a mapping", node.start_mark,
                     f"found duplicate key {key!r} (first on line {first_line[key]})",
                     key_node.start_mark)
-            if isinstance(key, Hashable):
-                first_line[key] = key_node.start_mark.line + 1
+            first_line[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep=deep)
 
 
