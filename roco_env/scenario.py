@@ -35,6 +35,12 @@ SOURCE_LAYOUTS: dict[str, tuple[str, ...]] = {
     "highway_env": ("highway", "merge", "roundabout", "intersection"),
 }
 LAYOUTS: tuple[str, ...] = tuple(dict.fromkeys(sum(SOURCE_LAYOUTS.values(), ())))
+# The layouts whose traffic traffic.density sizes (a replay's vehicles come from its files;
+# highway-env's merge and roundabout are fixed scenes).
+DENSITY_LAYOUTS: dict[str, tuple[str, ...]] = {
+    "synthetic": SOURCE_LAYOUTS["synthetic"],
+    "highway_env": ("highway", "intersection"),
+}
 
 
 @dataclass
@@ -369,7 +375,17 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
         if parts[-1] not in node and parts[-2:-1] not in (["params"], ["per_agent"]):
             raise ScenarioError(unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
-    return _build_scenario(data, where="override")
+    config = _build_scenario(data, where="override")
+    traffic = config.traffic
+    if "traffic.density" in fields.values() \
+            and traffic.layout not in DENSITY_LAYOUTS.get(traffic.source, ()):
+        scene = f" with layout {traffic.layout!r}" if traffic.source in DENSITY_LAYOUTS else ""
+        raise ScenarioError(
+            f"override: traffic.density has no effect with traffic.source={traffic.source!r}"
+            f"{scene}; leave it out (it sizes the traffic of " + ", ".join(
+                f"{source!r} ({' | '.join(layouts)})" for source, layouts in DENSITY_LAYOUTS.items())
+            + ")")
+    return config
 
 
 def _build_scenario(data: dict, where: str) -> ScenarioConfig:

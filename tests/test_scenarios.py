@@ -74,6 +74,25 @@ def test_two_overrides_of_one_field_are_refused(overrides, fragment):
         load_scenario("urban_intersection", **overrides)
 
 
+@pytest.mark.parametrize("scenario, overrides, fragment", [
+    ("opv2v_replay", {"density": 2.0}, "traffic.source='opv2v'"),
+    ("urban_intersection", {"traffic.source": "frames", "traffic.density": 2.0},
+     "traffic.source='frames'"),
+    ("highway_env_merge", {"density": 2.0}, "traffic.source='highway_env' with layout 'merge'"),
+])
+def test_a_density_the_traffic_does_not_read_is_refused(scenario, overrides, fragment):
+    """A crowding sweep over it would report identical scenes under different densities."""
+    with pytest.raises(ScenarioError, match=re.escape(f"override: traffic.density has no effect "
+                                                      f"with {fragment}")):
+        load_scenario(scenario, **overrides)
+
+
+def test_a_density_the_traffic_reads_is_taken():
+    assert load_scenario("highway_env_merge", density=2.0,
+                         **{"traffic.layout": "highway"}).traffic.density == 2.0
+    assert load_scenario("parking_lot", density=0.5).traffic.density == 0.5
+
+
 @pytest.mark.parametrize(
     "text, fragments",
     [
