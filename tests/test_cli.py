@@ -45,6 +45,7 @@ def test_list_shows_scenarios_and_policies(capsys):
     (["run", "--policy", "magic"], ["unknown policy 'magic'"]),
     (["run", "--scenario", "atlantis"], ["unknown scenario 'atlantis'"]),
     (["run", "--set", "sigma_t=2"], ["'sigma_t' is set by the grid", "--noise / --density"]),
+    (["run", "--scenario", "opv2v_replay"], ["needs a dataset folder", "traffic.path"]),
     (["run", "--seed", "-1"], ["seed must be None or an integer >= 0; got -1"]),
     (["render", "--gif", "x.png"], ["--gif must name a .gif file"]),
     (["render"], ["give --out DIR"]),
