@@ -331,12 +331,18 @@ def scenario_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> Scenar
     {"cavs": 3}}``); a missing key keeps its default. Raises :class:`ScenarioError`
     naming ``where``, the key and the allowed values, as :func:`load_scenario` does.
     """
+    if not isinstance(data, Mapping):
+        raise ScenarioError(f"{where}: a scenario mapping needs the YAML keys (traffic, agents, "
+                            f"...); got {type(data).__name__} ({data!r})")
     return _build_scenario(dict(data), where=where)
 
 
 def scenario_to_dict(config: ScenarioConfig) -> dict:
     """Plain nested dict of a config, every field included; ``scenario_from_dict`` of it
     (or the YAML :func:`save_scenario` writes) gives the same config back."""
+    if not isinstance(config, ScenarioConfig):
+        raise ScenarioError("a ScenarioConfig is needed (load_scenario(name) or "
+                            f"scenario_from_dict(mapping)); got {type(config).__name__}")
     return dataclasses.asdict(config)
 
 

@@ -44,6 +44,17 @@ def test_a_folder_is_not_a_scenario_file(tmp_path):
         load_scenario(tmp_path)
 
 
+def test_the_helpers_name_what_they_need(tmp_path):
+    with pytest.raises(ScenarioError, match=r"a ScenarioConfig is needed \(load_scenario\(name\) "
+                                            r"or scenario_from_dict\(mapping\)\); got dict"):
+        save_scenario(SMALL, tmp_path / "mine.yaml")
+    with pytest.raises(ScenarioError, match="got str"):
+        scenario_to_dict("urban_intersection")
+    with pytest.raises(ScenarioError, match=r"<dict>: a scenario mapping needs the YAML keys "
+                                            r"\(traffic, agents, \.\.\.\); got str"):
+        scenario_from_dict("urban_intersection")
+
+
 def test_save_scenario_round_trips(tmp_path):
     config = load_scenario("parking_lot", sigma_t=0.7, **{"noise.params.rho": 0.5},
                            noise_model="ar1")
