@@ -352,10 +352,17 @@ def save_scenario(config: ScenarioConfig, path: str | os.PathLike) -> Path:
     The file loads back equal with :func:`load_scenario` and can be passed to
     ``roco_env.parallel_env`` or ``roco-env compare --scenario``.
     """
+    path = scenario_file_name(path, "save_scenario")
+    path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
+    return path
+
+
+def scenario_file_name(path: str | os.PathLike, who: str) -> Path:
+    """``path`` as a Path if it names a scenario file (.yaml or .yml), else a ScenarioError
+    naming ``who`` (the caller about to write it): the library lists only such files."""
     path = Path(path)
     if path.suffix not in (".yaml", ".yml"):
-        raise ScenarioError(f"save_scenario: {path} must end in .yaml or .yml")
-    path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
+        raise ScenarioError(f"{who}: {path} must end in .yaml or .yml")
     return path
 
 

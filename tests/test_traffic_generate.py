@@ -94,3 +94,12 @@ def test_export_options_without_an_export_are_refused(tmp_path, capsys, extra, o
                  "-o", str(out), *extra]) == 2
     assert f"{option} only applies with --export-opv2v DIR" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_the_scenario_output_must_be_a_yaml_file(tmp_path, capsys):
+    """list_scenarios and ROCO_ENV_SCENARIOS only see .yaml files; refused before any output."""
+    out, export = tmp_path / "my.txt", tmp_path / "opv2v"
+    assert main(["scenario", "generate", "--layout", "traffic_jam", "--density", "12",
+                 "-o", str(out), "--export-opv2v", str(export)]) == 2
+    assert "scenario output: " in capsys.readouterr().err
+    assert not out.exists() and not export.exists()
