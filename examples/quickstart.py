@@ -19,7 +19,8 @@ from roco_env.policies import make_policy
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="crowded_intersection")
-    parser.add_argument("--policy", default="roco", help="identity | oracle | coalign | roco")
+    parser.add_argument("--policy", default="roco",
+                        help="a policy name (`roco-env list policies`; default roco)")
     parser.add_argument("--noise", type=float, default=0.4, help="sigma_t (m) = sigma_r (deg)")
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="3 steps, 2 CAVs")

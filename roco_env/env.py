@@ -43,7 +43,13 @@ from roco_env.observation import (
     privileged_truth,
 )
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
-from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario, scenario_from_dict
+from roco_env.scenario import (
+    ScenarioConfig,
+    ScenarioError,
+    apply_overrides,
+    load_scenario,
+    scenario_from_dict,
+)
 
 RENDER_MODES = ("rgb_array", "human")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
@@ -180,8 +186,12 @@ class CollabPerceptionEnv(ParallelEnv):
             scenario = scenario_from_dict(scenario)
         if isinstance(scenario, ScenarioConfig):
             config = apply_overrides(scenario, overrides)
-        else:
+        elif isinstance(scenario, (str, os.PathLike)):
             config = load_scenario(scenario, **overrides)
+        else:
+            raise ScenarioError(
+                "scenario must be a name from roco_env.list_scenarios(), a .yaml path, a mapping "
+                f"of its keys or a ScenarioConfig; got {scenario!r} ({type(scenario).__name__})")
         if config.agents.cavs + config.agents.rsus < 1:
             raise ValueError("agents.cavs + agents.rsus must be >= 1: an env needs at least one "
                              "agent (cavs=0, rsus=0 describes traffic only)")
@@ -237,6 +247,7 @@ class CollabPerceptionEnv(ParallelEnv):
     def reset(self, seed: int | None = None,
               options: dict | None = None) -> tuple[dict[str, dict], dict[str, dict]]:
         """Start an episode. ``options`` is accepted for API compatibility and unused."""
+        check_seed(seed)
         if seed is not None or self._seeds is None:
             self._seeds = np.random.default_rng(seed)
         (episode_rng,) = self._seeds.spawn(1)
@@ -402,6 +413,14 @@ class CollabPerceptionEnv(ParallelEnv):
             fused = suppress(merged, self.config.fusion.nms_iou,
                              [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
+
+
+def check_seed(seed: Any) -> None:
+    """ValueError naming the seed unless it is None or an integer >= 0 (what ``reset`` takes)."""
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be None or an integer >= 0; got {seed!r}")
 
 
 def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:

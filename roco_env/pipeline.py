@@ -123,10 +123,12 @@ class Pipeline:
         with self.clock.measure("traffic"):
             state = self.traffic.reset(traffic_rng)
         if state.agent_ids != self.agent_ids:
+            cavs = sum(a.startswith("cav_") for a in state.agent_ids)
             raise ValueError(
                 f"the traffic source produced agents {list(state.agent_ids)} but the scenario's "
                 f"agents.cavs={self.config.agents.cavs} and agents.rsus={self.config.agents.rsus} "
-                f"imply {list(self.agent_ids)}"
+                f"imply {list(self.agent_ids)}; give the overrides cavs={cavs}, "
+                f"rsus={len(state.agent_ids) - cavs} to match"
             )
         self.noise.reset(noise_rng)
         return self._observe(state)

@@ -35,6 +35,12 @@ SOURCE_LAYOUTS: dict[str, tuple[str, ...]] = {
     "highway_env": ("highway", "merge", "roundabout", "intersection"),
 }
 LAYOUTS: tuple[str, ...] = tuple(dict.fromkeys(sum(SOURCE_LAYOUTS.values(), ())))
+# The layouts whose traffic traffic.density sizes (a replay's vehicles come from its files;
+# highway-env's merge and roundabout are fixed scenes).
+DENSITY_LAYOUTS: dict[str, tuple[str, ...]] = {
+    "synthetic": SOURCE_LAYOUTS["synthetic"],
+    "highway_env": ("highway", "intersection"),
+}
 
 
 @dataclass
@@ -280,7 +286,12 @@ def list_scenarios() -> list[str]:
 
 def scenario_path(name_or_path: str | os.PathLike) -> Path:
     """Resolve a scenario name (``urban_intersection``) or a YAML path to a file."""
+    if not isinstance(name_or_path, (str, os.PathLike)):
+        raise ScenarioError("scenario must be a name from roco_env.list_scenarios() or a .yaml "
+                            f"path; got {name_or_path!r} ({type(name_or_path).__name__})")
     candidate = Path(name_or_path)
+    if candidate.is_dir():
+        raise ScenarioError(f"{candidate} is a folder, not a scenario .yaml file")
     if candidate.suffix in (".yaml", ".yml") or candidate.exists():
         if not candidate.is_file():
             raise ScenarioError(f"scenario file {candidate} does not exist")
@@ -320,12 +331,18 @@ def scenario_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> Scenar
     {"cavs": 3}}``); a missing key keeps its default. Raises :class:`ScenarioError`
     naming ``where``, the key and the allowed values, as :func:`load_scenario` does.
     """
+    if not isinstance(data, Mapping):
+        raise ScenarioError(f"{where}: a scenario mapping needs the YAML keys (traffic, agents, "
+                            f"...); got {type(data).__name__} ({data!r})")
     return _build_scenario(dict(data), where=where)
 
 
 def scenario_to_dict(config: ScenarioConfig) -> dict:
     """Plain nested dict of a config, every field included; ``scenario_from_dict`` of it
     (or the YAML :func:`save_scenario` writes) gives the same config back."""
+    if not isinstance(config, ScenarioConfig):
+        raise ScenarioError("a ScenarioConfig is needed (load_scenario(name) or "
+                            f"scenario_from_dict(mapping)); got {type(config).__name__}")
     return dataclasses.asdict(config)
 
 
@@ -335,18 +352,32 @@ def save_scenario(config: ScenarioConfig, path: str | os.PathLike) -> Path:
     The file loads back equal with :func:`load_scenario` and can be passed to
     ``roco_env.parallel_env`` or ``roco-env compare --scenario``.
     """
+    path = scenario_file_name(path, "save_scenario")
+    path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
+    return path
+
+
+def scenario_file_name(path: str | os.PathLike, who: str) -> Path:
+    """``path`` as a Path if it names a scenario file (.yaml or .yml), else a ScenarioError
+    naming ``who`` (the caller about to write it): the library lists only such files."""
     path = Path(path)
     if path.suffix not in (".yaml", ".yml"):
-        raise ScenarioError(f"save_scenario: {path} must end in .yaml or .yml")
-    path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
+        raise ScenarioError(f"{who}: {path} must end in .yaml or .yml")
     return path
 
 
 def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> ScenarioConfig:
     """Return a copy of ``config`` with dotted-name or alias overrides applied and validated."""
     data = scenario_to_dict(config)
+    fields: dict[str, str] = {}  # override key -> the dotted field it sets
     for key, value in overrides.items():
         dotted = ALIASES.get(key, key)
+        for other, other_dotted in fields.items():
+            if f"{dotted}.".startswith(f"{other_dotted}.") \
+                    or f"{other_dotted}.".startswith(f"{dotted}."):
+                outer = min(dotted, other_dotted, key=len)
+                raise ScenarioError(f"override: {other!r} and {key!r} both set {outer}; give one")
+        fields[key] = dotted
         parts = dotted.split(".")
         node = data
         for depth, part in enumerate(parts[:-1]):
@@ -357,7 +388,17 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
         if parts[-1] not in node and parts[-2:-1] not in (["params"], ["per_agent"]):
             raise ScenarioError(unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
-    return _build_scenario(data, where="override")
+    config = _build_scenario(data, where="override")
+    traffic = config.traffic
+    if "traffic.density" in fields.values() \
+            and traffic.layout not in DENSITY_LAYOUTS.get(traffic.source, ()):
+        scene = f" with layout {traffic.layout!r}" if traffic.source in DENSITY_LAYOUTS else ""
+        raise ScenarioError(
+            f"override: traffic.density has no effect with traffic.source={traffic.source!r}"
+            f"{scene}; leave it out (it sizes the traffic of " + ", ".join(
+                f"{source!r} ({' | '.join(layouts)})" for source, layouts in DENSITY_LAYOUTS.items())
+            + ")")
+    return config
 
 
 def _build_scenario(data: dict, where: str) -> ScenarioConfig:
@@ -385,11 +426,11 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
     for name in ("x_range", "y_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
-    config.noise.params = _given(build(NOISE_PARAMS[config.noise.model], config.noise.params,
-                                       where, "noise.params."), config.noise.params)
-    config.detector.params = _given(build(DETECTOR_PARAMS[config.detector.preset],
-                                          config.detector.params, where, "detector.params."),
-                                    config.detector.params)
+    config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,
+                                         config.noise.params, where, "noise.params.")
+    config.detector.params = _choice_params(DETECTOR_PARAMS, "detector.preset",
+                                            config.detector.preset, config.detector.params,
+                                            where, "detector.params.")
     if config.fusion.method == "intermediate" and config.detector.preset != "learned":
         raise ScenarioError(
             f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
@@ -397,6 +438,21 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
             f"detector.preset={config.detector.preset!r}"
         )
     return config
+
+
+def _choice_params(table: Mapping[str, type], field: str, choice: str, given: Any, where: str,
+                   prefix: str) -> dict:
+    """The checked parameters ``given`` for ``choice`` (a noise model, a detector preset), its
+    parameter dataclass in ``table``; a key that belongs to another choice says which."""
+    names = {name: [f.name for f in dataclasses.fields(cls)] for name, cls in table.items()}
+    unknown = sorted(set(given) - set(names[choice]), key=str) if isinstance(given, Mapping) else []
+    owners = [name for name, keys in names.items() if unknown and unknown[0] in keys]
+    if owners:
+        message = unknown_key_message(where, prefix + str(unknown[0]),
+                                      [prefix + key for key in names[choice]])
+        raise ScenarioError(f"{message}; {prefix}{unknown[0]} is a parameter of {field} "
+                            f"{' / '.join(map(repr, owners))}, not of {choice!r}")
+    return _given(build(table[choice], given, where, prefix), given)
 
 
 def _given(params: Any, given: Mapping[str, Any]) -> dict:

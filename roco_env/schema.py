@@ -21,7 +21,7 @@ import math
 import re
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from typing import Any
 
 import numpy as np
@@ -83,7 +83,7 @@ def build(cls: type, data: Any, where: str, prefix: str = "") -> Any:
 
 
 def unknown_key_message(where: str, key: str, allowed: list[str]) -> str:
-    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed)}"
+    return f"{where}: unknown key {key!r}; allowed: {', '.join(allowed) or 'none (no keys here)'}"
 
 
 _EXPECTS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
@@ -126,7 +126,24 @@ def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key:
 
 class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader plus the YAML 1.2 exponent floats YAML 1.1 reads as strings
-    (``1e1``, ``2.5e0``: no dot or no exponent sign)."""
+    (``1e1``, ``2.5e0``: no dot or no exponent sign), refusing duplicate mapping keys
+    (YAML requires unique keys; PyYAML would keep the last one silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        first_line: dict = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *anchor`; explicit keys win
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, Hashable):  # the base class says what is wrong with it
+                continue
+            if key in first_line:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping", node.start_mark,
+                    f"found duplicate key {key!r} (first on line {first_line[key]})",
+                    key_node.start_mark)
+            first_line[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
 
 
 _Loader.add_implicit_resolver(

@@ -25,6 +25,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 
 from roco_env.env import CollabPerceptionEnv
+from roco_env.policies import make_policy
 from roco_env.policies.basic import IdentityPolicy
 from roco_env.scenario import ScenarioConfig
 
@@ -35,7 +36,8 @@ class EgoEnv(gymnasium.Env):
     env: an existing (unwrapped) parallel env, or None to build one from
     ``scenario``, ``max_cycles``, ``render_mode`` and ``overrides``; agent: the
     controlled agent (default: the first evaluated agent); others: the policy
-    ``policy(obs, info) -> action`` of every other agent (default identity).
+    ``policy(obs, info) -> action`` of every other agent, or a policy name for
+    :func:`roco_env.policies.make_policy` (``"roco"``; default identity).
     Observation, action, reward and info are that agent's (see roco_env.env).
     Infos have fixed shapes and no NaN (see roco_env.env), so Gymnasium's vector
     envs (``gymnasium.make_vec(..., vectorization_mode="sync" | "async")``) stack
@@ -45,7 +47,7 @@ class EgoEnv(gymnasium.Env):
     def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None, *,
                  env: CollabPerceptionEnv | None = None, agent: str | None = None,
-                 others: Callable | None = None, **overrides: Any) -> None:
+                 others: Callable | str | None = None, **overrides: Any) -> None:
         self.env = env if env is not None else CollabPerceptionEnv(
             scenario, max_cycles=max_cycles, render_mode=render_mode, **overrides)
         if not isinstance(self.env, CollabPerceptionEnv):
@@ -56,6 +58,11 @@ class EgoEnv(gymnasium.Env):
         if self.agent not in base.possible_agents:
             raise ValueError(f"agent must be one of {base.possible_agents}; got {self.agent!r}")
         base.render_ego = self.agent  # pictures show the controlled agent's fused view
+        if isinstance(others, str):
+            others = make_policy(others)
+        if others is not None and not callable(others):
+            raise ValueError("others must be a policy(obs, info) -> action or a policy name "
+                             f"(roco_env.policies.available_policies()); got {others!r}")
         self.others = others if others is not None else IdentityPolicy()
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import sys
+
 import pytest
 from PIL import Image
 
@@ -40,6 +44,9 @@ def test_list_shows_scenarios_and_policies(capsys):
     (["compare", "--policies", "oracle:gain=2"], ["policy spec 'oracle:gain=2'"]),
     (["run", "--policy", "magic"], ["unknown policy 'magic'"]),
     (["run", "--scenario", "atlantis"], ["unknown scenario 'atlantis'"]),
+    (["run", "--set", "sigma_t=2"], ["'sigma_t' is set by the grid", "--noise / --density"]),
+    (["run", "--scenario", "opv2v_replay"], ["needs a dataset folder", "traffic.path"]),
+    (["run", "--seed", "-1"], ["seed must be None or an integer >= 0; got -1"]),
     (["render", "--gif", "x.png"], ["--gif must name a .gif file"]),
     (["render"], ["give --out DIR"]),
 ])
@@ -47,9 +54,10 @@ def test_bad_options_exit_2_naming_the_problem(argv, fragments, capsys, tmp_path
     with pytest.raises(SystemExit) as exit_info:
         raise SystemExit(main([*argv, *(["--out", str(tmp_path)] if argv[0] == "compare" else [])]))
     assert exit_info.value.code == 2
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
     for fragment in fragments:
-        assert fragment in err
+        assert fragment in captured.err
+    assert captured.out == ""  # refused before any episode output
     assert not (tmp_path / "results.jsonl").exists()
 
 
@@ -143,3 +151,45 @@ def test_compare_recomputes_after_the_scenario_file_is_edited(capsys, tmp_path):
     captured = capsys.readouterr()
     assert "(1 run, 0 resumed, 1 recomputed as stale, 0 failed)" in captured.out
     assert "1 cell(s) recomputed" in captured.err
+
+
+def test_output_into_a_closed_pipe_ends_quietly(monkeypatch, capsys):
+    """`roco-env list | head -1`: the reader left; no 'error: Broken pipe' line, exit 128 + SIGPIPE."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    monkeypatch.setattr(sys, "stdout", os.fdopen(write_end, "w"))
+    assert main(["list"]) == 128 + signal.SIGPIPE
+    assert capsys.readouterr().err == ""
+
+
+def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
+        monkeypatch, capsys, tmp_path):
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["train-detector", "--out", str(tmp_path / "det"), "--device", "cuda",
+                 "--steps", "1", "--train-scenes", "1", "--val-scenes", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "device='cuda' (--device cuda) but torch" in err and "sees no CUDA device" in err
+    assert "generating" not in err  # refused before the scenes were made
+
+
+def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
+    from roco_env.traffic.generate import generate
+
+    generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
+    assert main(["run", "--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}",
+                 "--policy", "identity", "--steps", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "the episode ended after 2 of 5 steps: the scenario's frames ran out" in out
+    assert main(["run", "--policy", "identity", "--steps", "2", *TINY]) == 0
+    assert "the episode ended" not in capsys.readouterr().out
+    for name, steps in (("replay", "5"), ("synthetic", "2")):
+        scenario = ["--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}"] \
+            if name == "replay" else TINY
+        assert main(["compare", *scenario, "--policies", "identity", "--noise", "0",
+                     "--seeds", "1", "--steps", steps, "--no-plots", "--quiet",
+                     "--out", str(tmp_path / name)]) == 0
+    report = (tmp_path / "replay" / "report.md").read_text()
+    assert "Episodes of 5 steps;" in report
+    assert "Episodes that ran out of frames ended sooner: opv2v_replay after 2 of 5 steps." in report
+    assert "ran out of frames" not in (tmp_path / "synthetic" / "report.md").read_text()

@@ -219,7 +219,8 @@ def test_bring_your_own_frames():
                                   [t + 6.0, 5.0, 0.8, 4.5, 1.9, 1.6, 0.0],
                                   [t + 20.0, -5.0, 0.8, 4.5, 1.9, 1.6, 0.0]],
                     cav_object_ids=[0, 1]) for t in (0.0, 1.0, 2.0)]
-    env = roco_env.parallel_env(**FAST, frames=frames, max_cycles=2, cavs=2, rsus=0,
+    scene = {k: v for k, v in FAST.items() if k != "density"}  # the frames set the traffic
+    env = roco_env.parallel_env(**scene, frames=frames, max_cycles=2, cavs=2, rsus=0,
                                 detector="ideal", sigma_t=0.0, sigma_r=0.0,
                                 **{"traffic.source": "frames"})
     obs, infos = env.reset(seed=0)

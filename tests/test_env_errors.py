@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import roco_env
+from roco_env.evaluation import filled_rpe_rows
 from roco_env.policies import make_policy
 from roco_env.wrappers import EgoEnv
 
@@ -94,6 +95,13 @@ def test_bad_constructor_arguments():
         roco_env.parallel_env(**FAST, fusion="intermediate", detector="ideal", features=True)
 
 
+@pytest.mark.parametrize("seed", [-1, 1.5, "0", True])
+def test_bad_reset_seed_names_the_argument(env, seed):
+    with pytest.raises(ValueError, match=f"seed must be None or an integer >= 0; got {seed!r}"):
+        env.reset(seed=seed)
+    env.reset(seed=np.int64(3))  # numpy integers are seeds too
+
+
 def test_oracle_without_info(env):
     obs, infos = env.reset(seed=0)
     oracle = make_policy("oracle")
@@ -109,9 +117,23 @@ def test_oracle_without_info(env):
 def test_ego_env_bad_arguments():
     with pytest.raises(ValueError, match="agent must be one of"):
         EgoEnv(**FAST, agent="cav_8")
+    with pytest.raises(ValueError, match=r"others must be a policy\(obs, info\) -> action or a "
+                                         "policy name"):
+        EgoEnv(**FAST, others=3)
+    with pytest.raises(ValueError, match="unknown policy 'rocco'"):
+        EgoEnv(**FAST, others="rocco")
     ego = EgoEnv(**FAST)
     with pytest.raises(ValueError, match="before reset"):
         ego.step(np.zeros((5, 3)))
+
+
+def test_ego_env_others_by_policy_name():
+    ego = EgoEnv(**FAST, max_cycles=1, others="oracle")
+    ego.reset(seed=0)
+    ego.step(np.zeros((5, 3)))
+    others = [info for agent, info in ego._last[1].items() if agent != ego.agent]
+    assert others and all(np.allclose(filled_rpe_rows(i["rpe_after"]), 0, atol=1e-6)
+                          and filled_rpe_rows(i["rpe_before"]).max() > 0.01 for i in others)
 
 
 def test_render_without_mode_or_before_reset():

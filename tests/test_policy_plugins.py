@@ -17,6 +17,12 @@ PLUGIN = textwrap.dedent('''
         def policy(obs, info=None):
             return np.full((obs["collab_mask"].shape[0], 3), gain, dtype=np.float32)
         return policy
+
+    def make_short():  # forgets that the action has one row per collaborator *slot*
+        return lambda obs, info=None: np.zeros((2, 3))
+
+    def make_nothing():  # forgets to return the policy
+        pass
 ''')
 
 
@@ -131,3 +137,17 @@ def test_list_names_the_stateful_policies(capsys):
     lines = capsys.readouterr().out.splitlines()
     stateful = {line.split()[0] for line in lines if "stateful" in line}
     assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias"}
+
+
+def test_a_plugin_without_a_policy_is_refused_before_the_sweep(plugin):
+    with pytest.raises(ValueError, match=r"policy spec 'my_plugin_mod:make_nothing': "
+                                         r"my_plugin_mod:make_nothing\(\) returned None, not a "
+                                         r"policy\(obs, info\) -> action"):
+        validate_policy_spec("my_plugin_mod:make_nothing")
+
+
+def test_a_plugin_action_of_the_wrong_shape_names_the_shape(plugin, capsys):
+    assert main(["run", "--policy", "my_plugin_mod:make_short", "--steps", "1",
+                 "--set", "cavs=2", "--set", "rsus=1"]) == 2
+    assert ("action for agent 'cav_0' must have shape (5, 3) = (dx m, dy m, dyaw rad) per "
+            "collaborator slot; got (2, 3)") in capsys.readouterr().err

@@ -29,6 +29,32 @@ def test_a_bad_mapping_names_the_key():
         roco_env.parallel_env({"agents": {"cars": 2}})
 
 
+@pytest.mark.parametrize("scenario", [123, None, ["urban_intersection"]])
+def test_a_scenario_of_the_wrong_type_says_what_is_accepted(scenario):
+    with pytest.raises(ScenarioError, match=r"scenario must be a name from "
+                                            r"roco_env.list_scenarios\(\), a \.yaml path, a mapping"
+                                            r" of its keys or a ScenarioConfig; got"):
+        roco_env.parallel_env(scenario)
+    with pytest.raises(ScenarioError, match=r"scenario must be a name .* or a \.yaml path; got"):
+        load_scenario(scenario)
+
+
+def test_a_folder_is_not_a_scenario_file(tmp_path):
+    with pytest.raises(ScenarioError, match=r"is a folder, not a scenario \.yaml file"):
+        load_scenario(tmp_path)
+
+
+def test_the_helpers_name_what_they_need(tmp_path):
+    with pytest.raises(ScenarioError, match=r"a ScenarioConfig is needed \(load_scenario\(name\) "
+                                            r"or scenario_from_dict\(mapping\)\); got dict"):
+        save_scenario(SMALL, tmp_path / "mine.yaml")
+    with pytest.raises(ScenarioError, match="got str"):
+        scenario_to_dict("urban_intersection")
+    with pytest.raises(ScenarioError, match=r"<dict>: a scenario mapping needs the YAML keys "
+                                            r"\(traffic, agents, \.\.\.\); got str"):
+        scenario_from_dict("urban_intersection")
+
+
 def test_save_scenario_round_trips(tmp_path):
     config = load_scenario("parking_lot", sigma_t=0.7, **{"noise.params.rho": 0.5},
                            noise_model="ar1")

@@ -1,5 +1,7 @@
 """Scenario library: every YAML validates and builds its traffic; errors name file/key/allowed."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,37 @@ def test_overrides_reach_traffic_fields():
         load_scenario("highway_dense", **{"traffic.speed_limit": 500.0})
 
 
+@pytest.mark.parametrize("overrides, fragment", [
+    ({"cavs": 2, "agents.cavs": 3}, "'cavs' and 'agents.cavs' both set agents.cavs"),
+    ({"agents.cavs": 3, "cavs": 2}, "'agents.cavs' and 'cavs' both set agents.cavs"),
+    ({"detector.params.sigma_xy": 0.5, "detector.params": {"sigma_xy": 0.3}},
+     "'detector.params.sigma_xy' and 'detector.params' both set detector.params"),
+])
+def test_two_overrides_of_one_field_are_refused(overrides, fragment):
+    """Either would win silently depending on the order the keywords were written in."""
+    with pytest.raises(ScenarioError, match=re.escape(fragment) + "; give one"):
+        load_scenario("urban_intersection", **overrides)
+
+
+@pytest.mark.parametrize("scenario, overrides, fragment", [
+    ("opv2v_replay", {"density": 2.0}, "traffic.source='opv2v'"),
+    ("urban_intersection", {"traffic.source": "frames", "traffic.density": 2.0},
+     "traffic.source='frames'"),
+    ("highway_env_merge", {"density": 2.0}, "traffic.source='highway_env' with layout 'merge'"),
+])
+def test_a_density_the_traffic_does_not_read_is_refused(scenario, overrides, fragment):
+    """A crowding sweep over it would report identical scenes under different densities."""
+    with pytest.raises(ScenarioError, match=re.escape(f"override: traffic.density has no effect "
+                                                      f"with {fragment}")):
+        load_scenario(scenario, **overrides)
+
+
+def test_a_density_the_traffic_reads_is_taken():
+    assert load_scenario("highway_env_merge", density=2.0,
+                         **{"traffic.layout": "highway"}).traffic.density == 2.0
+    assert load_scenario("parking_lot", density=0.5).traffic.density == 0.5
+
+
 @pytest.mark.parametrize(
     "text, fragments",
     [
@@ -70,6 +103,22 @@ def test_overrides_reach_traffic_fields():
         ("agents:\n  cavs: 99\n", ["agents.cavs", "out of range"]),
         ("traffic:\n  layout: merge\n", ["traffic.layout='merge'", "synthetic", "parking_lot"]),
         ("traffic: [1, 2\n", ["malformed YAML"]),
+        ("agents:\n  cavs: 3\nagents:\n  rsus: 2\n",
+         ["malformed YAML", "duplicate key 'agents' (first on line 1)", "line 3"]),
+        ("agents:\n  cavs: 3\n  cavs: 5\n", ["duplicate key 'cavs' (first on line 2)"]),
+        ("noise:\n  params: {rho: 0.5}\n",
+         ["unknown key 'noise.params.rho'; allowed: none",
+          "noise.params.rho is a parameter of noise.model 'ar1', not of 'gaussian'"]),
+        ("noise:\n  model: bias\n  params: {rho: 0.5}\n",
+         ["noise.params.rho is a parameter of noise.model 'ar1'", "not of 'bias'"]),
+        ("noise:\n  params: {zzz: 1}\n", ["unknown key 'noise.params.zzz'; allowed: none"]),
+        ("noise:\n  model: ar1\n  params: {rh0: 0.5}\n", ["noise.params.rh0", "allowed: "
+                                                             "noise.params.rho"]),
+        ("detector:\n  params: {weights: my.pt}\n",
+         ["unknown key 'detector.params.weights'; allowed: detector.params.noisy",
+          "detector.params.sigma_xy",
+          "detector.params.weights is a parameter of detector.preset 'learned', not of "
+          "'realistic'"]),
     ],
 )
 def test_validation_errors_name_file_key_and_allowed(tmp_path, text, fragments):
@@ -81,6 +130,12 @@ def test_validation_errors_name_file_key_and_allowed(tmp_path, text, fragments):
     assert str(path) in message
     for fragment in fragments:
         assert fragment in message
+
+
+def test_yaml_merge_keys_still_load():
+    from roco_env.schema import load_yaml
+
+    assert load_yaml("base: &b {x: 1, y: 2}\nm:\n  <<: *b\n  x: 3\n")["m"] == {"x": 3, "y": 2}
 
 
 def test_yaml_is_loaded_safely(tmp_path):

@@ -36,6 +36,11 @@ def test_bad_policy_specs_name_the_problem(text, fragment):
         assert "identity" in str(info.value) and "roco" in str(info.value)
 
 
+def test_an_override_given_twice_is_refused():
+    with pytest.raises(ValueError, match=r"--set cavs given twice \(2, then 3\)"):
+        parse_overrides(["cavs=2", "cavs=3"])
+
+
 def test_overrides_parse_scalars():
     assert parse_overrides(["detector=ideal", "cavs=2", "traffic.min_gap=1.5"]) == {
         "detector": "ideal", "cavs": 2, "traffic.min_gap": 1.5}
@@ -67,6 +72,8 @@ def test_grid_deduplicates_and_validates_shapes():
         build_grid(["a"], [0.0], ["identity"], [0], 0)
     with pytest.raises(ValueError, match="noise"):
         build_grid(["a"], [-0.1], ["identity"], [0], 3)
+    with pytest.raises(ValueError, match="seed must be None or an integer >= 0; got -1"):
+        build_grid(["a"], [0.0], ["identity"], [-1], 3)
     with pytest.raises(ValueError, match="policies must not be empty"):
         build_grid(["a"], [0.0], [], [0], 3)
     with pytest.raises(ValueError, match="'sigma_t' is set by the grid"):

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import roco_env
 from roco_env.scenario import scenario_from_dict
 from roco_env.traffic import Frame, make_traffic_source
 
@@ -36,6 +37,9 @@ def test_frames_replay_in_order_and_hold_the_last():
 def test_frames_required_only_for_frames_source():
     with pytest.raises(ValueError, match="frames="):
         make_traffic_source(CONFIG)
+    with pytest.raises(ValueError, match=r"needs your frames: pass frames=\[Frame\(\.\.\.\), "
+                                         r"\.\.\.\] to roco_env\.parallel_env"):
+        roco_env.parallel_env(CONFIG)
     synthetic = scenario_from_dict({})
     with pytest.raises(ValueError, match="frames="):
         make_traffic_source(synthetic, frames=frames())
@@ -75,6 +79,14 @@ def test_env_runs_a_users_scene_with_ideal_detections():
     _, rewards, *_ = env.step({a: np.zeros(env.action_space(a).shape, np.float32)
                                for a in env.agents})
     assert rewards["cav_0"] == 1.0  # ideal detector, clean poses: every box found exactly
+
+
+def test_frames_with_other_agent_counts_than_the_scenario_say_what_to_set():
+    env = roco_env.parallel_env("urban_intersection", frames=frames(),
+                                **{"traffic.source": "frames"})  # 4 CAVs + 1 RSU in its YAML
+    with pytest.raises(ValueError, match=r"imply \['cav_0', 'cav_1', 'cav_2', 'cav_3', 'rsu_0'\]; "
+                                         r"give the overrides cavs=1, rsus=1 to match"):
+        env.reset(seed=0)
 
 
 def test_users_frames_end_the_episode_at_the_last_frame():

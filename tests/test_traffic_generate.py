@@ -84,3 +84,22 @@ def test_export_into_a_non_empty_folder_needs_overwrite(tmp_path, capsys):
     assert export_seed(5, "--overwrite") == 2  # never deletes what it did not write
     assert "not OPV2V agent folders" in capsys.readouterr().err
     assert (export / "notes.txt").exists()
+
+
+@pytest.mark.parametrize("extra, option", [(["--frames", "3"], "--frames"),
+                                           (["--overwrite"], "--overwrite")])
+def test_export_options_without_an_export_are_refused(tmp_path, capsys, extra, option):
+    out = tmp_path / "my.yaml"
+    assert main(["scenario", "generate", "--layout", "traffic_jam", "--density", "12",
+                 "-o", str(out), *extra]) == 2
+    assert f"{option} only applies with --export-opv2v DIR" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_scenario_output_must_be_a_yaml_file(tmp_path, capsys):
+    """list_scenarios and ROCO_ENV_SCENARIOS only see .yaml files; refused before any output."""
+    out, export = tmp_path / "my.txt", tmp_path / "opv2v"
+    assert main(["scenario", "generate", "--layout", "traffic_jam", "--density", "12",
+                 "-o", str(out), "--export-opv2v", str(export)]) == 2
+    assert "scenario output: " in capsys.readouterr().err
+    assert not out.exists() and not export.exists()

@@ -9,15 +9,18 @@ import pkgutil
 import roco_env.benchmarks as benchmarks_pkg
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("modules", nargs="*", help="benchmark modules to run (default: all)")
+def main(argv: list[str] | None = None) -> None:
+    available = sorted(m.name for m in pkgutil.iter_modules(benchmarks_pkg.__path__)
+                       if not m.name.startswith("_"))
+    parser = argparse.ArgumentParser(prog="python -m roco_env.benchmarks", description=__doc__)
+    parser.add_argument("modules", nargs="*", metavar="module",
+                        help=f"benchmark modules to run: {', '.join(available)} (default: all)")
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
-    args = parser.parse_args()
-    names = args.modules or sorted(
-        m.name for m in pkgutil.iter_modules(benchmarks_pkg.__path__) if not m.name.startswith("_")
-    )
-    for name in names:
+    args = parser.parse_args(argv)
+    unknown = [name for name in args.modules if name not in available]
+    if unknown:
+        parser.error(f"unknown benchmark module {unknown[0]!r}; available: {', '.join(available)}")
+    for name in args.modules or available:
         module = importlib.import_module(f"roco_env.benchmarks.{name}")
         print(f"== {name} ==", flush=True)
         for line in module.run(quick=args.quick):

@@ -99,7 +99,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="noise levels s (sigma_t = s m, sigma_r = s deg; default: "
                       f"{' '.join(map(str, DEFAULTS['noise']))})")
     grid.add_argument("--density", nargs="+", type=float, metavar="D",
-                      help="traffic densities (vehicles per 100 m of lane; default: scenario's)")
+                      help="traffic densities (vehicles per 100 m of lane, parking_lot: stall fill "
+                      "ratio 0..1; default: scenario's)")
     grid.add_argument("--seeds", type=int, metavar="N",
                       help=f"episodes per setting, seeds 0..N-1 (default: {DEFAULTS['seeds']})")
     grid.add_argument("--steps", type=int, metavar="T",

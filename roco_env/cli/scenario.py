@@ -25,7 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     gen.add_argument("-o", "--output", required=True, help="scenario YAML to write")
     gen.add_argument("--export-opv2v", metavar="DIR", default=None,
                      help="also write the preview episode as OPV2V label folders")
-    gen.add_argument("--frames", type=int, default=10, help="frames to export (default 10)")
+    gen.add_argument("--frames", type=int, default=None,
+                     help="frames to export with --export-opv2v (default 10)")
     gen.add_argument("--overwrite", action="store_true",
                      help="replace an earlier export in --export-opv2v DIR (a non-empty DIR "
                      "is refused otherwise)")
@@ -38,15 +39,21 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from roco_env.traffic.generate import generate
+    from roco_env.traffic.generate import EXPORT_FRAMES, generate
 
+    if args.export_opv2v is None:
+        for option, given in (("--frames", args.frames is not None),
+                              ("--overwrite", args.overwrite)):
+            if given:
+                raise ValueError(f"{option} only applies with --export-opv2v DIR")
+    frames = EXPORT_FRAMES if args.frames is None else args.frames
     config, summary = generate(args.layout, args.density, args.cavs, args.rsus, args.seed,
                                output=args.output, export_dir=args.export_opv2v,
-                               frames=args.frames, min_gap=args.min_gap,
+                               frames=frames, min_gap=args.min_gap,
                                overwrite=args.overwrite)
     print(f"wrote {args.output} ({config.name})")
     for line in summary.lines():
         print(line)
     if args.export_opv2v:
-        print(f"exported {args.frames} frames to {args.export_opv2v}")
+        print(f"exported {frames} frames to {args.export_opv2v}")
     return 0

@@ -5,7 +5,8 @@ overrides). Per setting: AP@0.3/0.5/0.7 = mean over seeds of each episode's
 dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2/@3 are
 computed on the pooled samples of all seeds (so the tail is not averaged away);
 matching precision/recall, the correction share and the time per policy call are
-means over seeds.
+means over seeds; ``steps_played`` is the fewest env steps a seed's episode played
+(below ``steps`` when a replay's frames ran out).
 """
 
 from __future__ import annotations
@@ -77,6 +78,8 @@ def summarize(records: Iterable[dict]) -> list[SummaryRow]:
             metrics.update(pose_error_summary(row.before, row.after))
             metrics.update({k: nanmean([_value(r["metrics"], k) for r in ok]) for k in MEAN_KEYS})
             metrics["time_per_call_ms"] = nanmean([_value(r, "time_per_call_ms") for r in ok])
+            # fewest env steps an episode played (records from before it was kept: the asked)
+            metrics["steps_played"] = min(int(r["metrics"].get("steps", steps)) for r in ok)
             row.metrics = metrics
         rows.append(row)
     return rows

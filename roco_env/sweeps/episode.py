@@ -27,6 +27,7 @@ import numpy as np
 import roco_env
 from roco_env.evaluation import filled_rpe_rows, info_frame_stats
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_precision_recall
+from roco_env.observation import check_action
 from roco_env.policies.base import AlignmentResult
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record, ok_record
@@ -51,6 +52,7 @@ class EpisodeScorer:
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
     call_seconds: list = field(default_factory=list)
+    steps: int = 0  # env steps played (fewer than asked when a replay's frames run out)
 
     def add_decision(self, observation: dict, info: dict, action: np.ndarray,
                      result: AlignmentResult | None) -> None:
@@ -96,6 +98,7 @@ class EpisodeScorer:
         metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
         metrics["pairs"] = int(after.shape[0])
+        metrics["steps"] = self.steps
         samples = {
             "before": np.round(before, SAMPLE_DECIMALS).tolist(),
             "after": np.round(after, SAMPLE_DECIMALS).tolist(),
@@ -136,14 +139,17 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 policy = policies[agent]
                 previous = getattr(policy, "last_result", None)
                 start = time.perf_counter()
-                action = np.asarray(policy(observations[agent], infos[agent]))
+                action = policy(observations[agent], infos[agent])
                 scorer.call_seconds.append(time.perf_counter() - start)
+                # the env's own check, before the scorer reads the action by slot
+                action = check_action(action, agent, env.config.max_collaborators)
                 result = getattr(policy, "last_result", None)
                 scorer.add_decision(observations[agent], infos[agent], action,
                                     None if result is previous else result)  # never a stale one
                 actions[agent] = action
             observations, _, _, _, infos = env.step(actions)
             step += 1
+            scorer.steps = step
             for info in infos.values():
                 scorer.add_outcome(info)
             if on_step is not None:

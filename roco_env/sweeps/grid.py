@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from roco_env.env import check_seed
 from roco_env.scenario import load_scenario
 from roco_env.sweeps.spec import Scalar, format_scalar, parse_policy_spec, validate_policy_spec
 
@@ -86,7 +87,8 @@ def build_grid(
     """All cells of the grid in a stable order (scenario, density, noise, policy, seed).
 
     Checks shapes and ranges that need no env (non-empty lists, steps >= 1, noise >= 0,
-    density >= 0, registered policy names); see :func:`validate_grid` for the full check.
+    density >= 0, seeds >= 0, registered policy names); see :func:`validate_grid` for the
+    full check.
     """
     for name, values in (("scenarios", scenarios), ("noises", noises), ("policies", policies),
                          ("seeds", seeds), ("densities", densities)):
@@ -100,11 +102,14 @@ def build_grid(
     for density in densities:
         if density is not None and not density >= 0:
             raise ValueError(f"densities must be >= 0; got {density}")
+    for seed in seeds:
+        check_seed(seed)
     extra = dict(overrides or {})
     clash = sorted(set(extra) & set(GRID_OWNED_OVERRIDES))
     if clash:
         raise ValueError(
-            f"override {clash[0]!r} is set by the grid; use the noise/density lists instead"
+            f"override {clash[0]!r} is set by the grid; use the noise/density lists instead "
+            "(roco-env: --noise / --density)"
         )
     labels = [parse_policy_spec(p).label for p in policies]
     extra_items = tuple(sorted(extra.items()))

@@ -24,7 +24,8 @@ def add_episode_options(parser: argparse.ArgumentParser, steps: int) -> None:
     parser.add_argument("--noise", type=float, default=0.4,
                         help="pose noise level s: sigma_t = s m, sigma_r = s deg (default: 0.4)")
     parser.add_argument("--density", type=float, default=None,
-                        help="traffic density (vehicles per 100 m of lane; default: scenario's)")
+                        help="traffic density (vehicles per 100 m of lane, parking_lot: stall fill "
+                        "ratio 0..1; default: scenario's)")
     parser.add_argument("--steps", type=int, default=steps,
                         help=f"episode length in env steps (default: {steps})")
     parser.add_argument("--seed", type=int, default=0, help="env reset seed (default: 0)")

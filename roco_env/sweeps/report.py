@@ -41,6 +41,17 @@ def _groups(rows: Sequence[SummaryRow], key) -> dict:
     return groups
 
 
+def _short_episodes(rows: Sequence[SummaryRow]) -> str:
+    """A sentence naming the settings whose episodes ended before their steps, or ''."""
+    short = sorted({(r.scenario, int(r.metrics["steps_played"]), r.steps) for r in rows
+                    if r.metrics.get("steps_played", r.steps) < r.steps})
+    if not short:
+        return ""
+    return (" Episodes that ran out of frames ended sooner: " + "; ".join(
+        f"{scenario} after {played} of {steps} steps" for scenario, played, steps in short)
+        + ".")
+
+
 def render_markdown(rows: Sequence[SummaryRow], failures: Sequence[dict],
                     title: str = "Policy comparison") -> str:
     """The whole report as Markdown text."""
@@ -51,7 +62,7 @@ def render_markdown(rows: Sequence[SummaryRow], failures: Sequence[dict],
         parts += [f"Episodes of {', '.join(map(str, steps))} steps; seeds per setting: "
                   f"{', '.join(map(str, seeds))}. AP = mean over seeds of each episode's dataset "
                   "AP (OpenCOOD protocol); RPE and success pool every collaborator slot of every "
-                  "step; noise s/s = sigma_t s m, sigma_r s deg.", ""]
+                  "step; noise s/s = sigma_t s m, sigma_r s deg." + _short_episodes(rows), ""]
     for (scenario, density), group in _groups(rows, lambda r: (r.scenario, r.density)).items():
         overrides = ", ".join(f"{k}={format_scalar(v)}" for k, v in group[0].overrides.items())
         extra = f"; {overrides}" if overrides else ""

@@ -62,6 +62,9 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Scalar]:
     overrides: dict[str, Scalar] = {}
     for item in items:
         key, value = parse_assignment(item, "--set")
+        if key in overrides:
+            raise ValueError(f"--set {key} given twice ({format_scalar(overrides[key])}, then "
+                             f"{format_scalar(value)})")
         overrides[key] = value
     return overrides
 
@@ -114,10 +117,13 @@ def validate_policy_spec(text: str) -> PolicySpec:
     """Parse and construct the policy once so bad parameters fail before a sweep starts."""
     spec = parse_policy_spec(text)
     try:
-        spec.build()
+        policy = spec.build()
     except TypeError as exc:  # unknown keyword argument of the policy's constructor
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
     except ValueError as exc:
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
+    if not callable(policy):
+        raise ValueError(f"policy spec {text!r}: {spec.name}() returned {policy!r}, not a "
+                         "policy(obs, info) -> action")
     return spec
 

@@ -67,8 +67,8 @@ def make_traffic_source(config: ScenarioConfig, frames: Sequence[Any] | None = N
     if source == "frames":
         if frames is None:
             raise ValueError(
-                "traffic.source='frames' needs the frames: call "
-                "make_traffic_source(config, frames=[Frame(...), ...])"
+                "traffic.source='frames' needs your frames: pass frames=[Frame(...), ...] to "
+                "roco_env.parallel_env / roco_env.env (or to make_traffic_source)"
             )
         from roco_env.traffic.frames import FramesSource
 

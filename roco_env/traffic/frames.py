@@ -6,8 +6,9 @@ Usage::
     from roco_env.traffic.frames import Frame
     frames = [Frame(object_ids=ids_t, object_boxes=boxes_t, cav_object_ids=[7, 12],
                     rsu_poses=[[0.0, 15.0, -1.57]]) for ids_t, boxes_t in my_data]
-    source = make_traffic_source(load_scenario("urban_intersection", **{"traffic.source": "frames"}),
-                                 frames=frames)
+    config = load_scenario("urban_intersection", cavs=2, rsus=1,  # agents as in the frames
+                           **{"traffic.source": "frames"})
+    source = make_traffic_source(config, frames=frames)
 
 Boxes are world-frame (x, y, z, l, w, h, yaw) in metres/radians
 (docs/conventions.md); the CAVs are objects named by id (their box gives the agent pose),

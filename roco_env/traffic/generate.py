@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import box_corners_bev
@@ -21,6 +20,8 @@ from roco_env.scenario import (
     SOURCE_LAYOUTS,
     ScenarioConfig,
     load_scenario,
+    save_scenario,
+    scenario_file_name,
     scenario_from_dict,
     scenario_to_dict,
 )
@@ -101,9 +102,12 @@ def stress_config(layout: str, density: float, cavs: int, rsus: int, seed: int,
     return scenario_from_dict(data, where="generated scenario")
 
 
+EXPORT_FRAMES = 10  # frames of the preview episode written to export_dir by default
+
+
 def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
              output: str | Path | None = None, export_dir: str | Path | None = None,
-             frames: int = 10, min_gap: float | None = None,
+             frames: int = EXPORT_FRAMES, min_gap: float | None = None,
              overwrite: bool = False) -> tuple[ScenarioConfig, Summary]:
     """Build, preview (seeded) and optionally write a stress scenario.
 
@@ -112,6 +116,7 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
     with ``overwrite``, see :func:`roco_env.traffic.export.export_opv2v`).
     """
     config = stress_config(layout, density, cavs, rsus, seed, min_gap)
+    path = None if output is None else scenario_file_name(output, "scenario output")
     if export_dir is not None:  # refuse before writing anything
         if frames < 1:
             raise ValueError(f"frames must be >= 1; got {frames}")
@@ -119,11 +124,9 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
     source = make_synthetic(config)
     states = [source.reset(np.random.default_rng(seed))]
     summary = summarize(states[0])
-    if output is not None:
-        path = Path(output)
+    if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(yaml.safe_dump(scenario_to_dict(config), sort_keys=False))
-        load_scenario(path)
+        load_scenario(save_scenario(config, path))
     if export_dir is not None:
         states += [source.step(config.traffic.dt) for _ in range(frames - 1)]
         export_opv2v(states, export_dir, overwrite=overwrite)

@@ -220,7 +220,8 @@ def _markdown(result: dict, command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m roco_env.training.assessment",
+                                     description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=4, help="env seeds 0..N-1 (default 4)")
     parser.add_argument("--steps", type=int, default=10, help="steps per episode (default 10)")
     parser.add_argument("--out", type=Path, required=True)

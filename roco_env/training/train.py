@@ -368,6 +368,9 @@ def train(config: TrainConfig, progress: bool = True,
     if config.workers and WORKER_CONTEXT not in multiprocessing.get_all_start_methods():
         raise ValueError(f"workers={config.workers} needs the {WORKER_CONTEXT!r} start method, "
                          "which this platform lacks; use workers=0")
+    if config.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device='cuda' (--device cuda) but torch {torch.__version__} sees no "
+                         "CUDA device; use device='cpu'")
     previous = (torch.are_deterministic_algorithms_enabled(),
                 torch.is_deterministic_algorithms_warn_only_enabled(), torch.get_num_threads(),
                 torch.backends.cudnn.benchmark)
