@@ -29,3 +29,11 @@ def test_bad_registration_and_unknown_names_are_named():
         register_policy("broken", "roco_env.policies.basic.IdentityPolicy")
     with pytest.raises(ValueError, match="unknown policy 'nope'"):
         make_policy("nope")
+
+
+def test_a_spec_string_and_unknown_parameters_are_explained():
+    with pytest.raises(ValueError, match=r"keyword arguments, make_policy\('roco', \.\.\.\)"):
+        make_policy("roco:tau2=2")
+    for name in ("identity", "oracle"):
+        with pytest.raises(ValueError, match=f"policy '{name}' takes no parameters"):
+            make_policy(name, tau2=2)

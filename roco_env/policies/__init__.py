@@ -101,6 +101,12 @@ def make_policy(name: str, **params: Any) -> Callable:
         target = registry[name]
     elif is_import_target(name):
         target = name
+    elif name.partition(":")[0] in registry:
+        base, _, settings = name.partition(":")
+        raise ValueError(f"unknown policy {name!r}: make_policy takes parameters as keyword "
+                         f"arguments, make_policy({base!r}, ...) for {settings!r}; the "
+                         "'NAME:KEY=VALUE' spec is the command line's "
+                         "(roco_env.sweeps.spec.parse_policy_spec reads it)")
     else:
         raise ValueError(f"unknown policy {name!r}; available: {', '.join(sorted(registry))} "
                          "or an import target 'my_pkg.module:make_policy'")

@@ -25,8 +25,16 @@ def _slots(observation: Mapping[str, Any]) -> int:
         ) from exc
 
 
+def _no_params(name: str, params: dict) -> None:
+    if params:
+        raise ValueError(f"policy {name!r} takes no parameters; got {sorted(params)}")
+
+
 class IdentityPolicy:
     """Keeps every reported relative pose: the all-zeros correction."""
+
+    def __init__(self, **params: Any) -> None:
+        _no_params("identity", params)
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None) -> np.ndarray:
         return np.zeros((_slots(observation), 3), dtype=np.float32)
@@ -40,6 +48,9 @@ class OraclePolicy:
     ``correction_action(reported, true)``. An upper bound for any alignment
     method; it cannot run without the env's info.
     """
+
+    def __init__(self, **params: Any) -> None:
+        _no_params("oracle", params)
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None) -> np.ndarray:
         privileged = info.get("privileged") if isinstance(info, Mapping) else None
