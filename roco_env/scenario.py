@@ -437,6 +437,13 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
             f"feature maps, so it needs detector.preset='learned' (detector='learned'); got "
             f"detector.preset={config.detector.preset!r}"
         )
+    gate = config.detector.params.get("gate") if config.detector.preset == "learned" else None
+    if gate is not None and config.fusion.method != "intermediate":
+        raise ScenarioError(
+            f"{where}: detector.params.gate={gate!r} chooses how intermediate fusion fuses the "
+            f"feature maps, so it needs fusion.method='intermediate'; got "
+            f"fusion.method={config.fusion.method!r} (leave the gate unset for late fusion)"
+        )
     return config
 
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 from conftest import tiny_detector_start
 
+import roco_env
 from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canvas
 from roco_env.sensing import BevGrid
 from roco_env.sensing.learned import BevDetectorNet, LearnedDetector, NetConfig, save_checkpoint
@@ -125,3 +126,10 @@ def test_gate_training_inputs_are_checked(tmp_path):
     with pytest.raises(ValueError, match="hold a fusion gate; this run's fusion is 'max'"):
         train(TrainConfig(init=str(start), train_scenes=1, val_scenes=0, steps=1),
               progress=False)
+
+
+@pytest.mark.parametrize("gate", [True, False])
+def test_a_gate_choice_without_intermediate_fusion_is_refused(gate):
+    with pytest.raises(ValueError, match="needs fusion.method='intermediate'"):
+        roco_env.parallel_env("v2x_crossroad", detector="learned",
+                              **{"detector.params.gate": gate})

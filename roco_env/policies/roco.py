@@ -84,6 +84,7 @@ from roco_env.policies.landmarks import (
 )
 from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
 from roco_env.policies.matching_kernels import committed_map
+from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
     attempt_rounds,
@@ -91,7 +92,6 @@ from roco_env.policies.pose_kernels import (
     solve_pose_edges,
     wald_statistic,
 )
-from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     ROBUST_KERNELS,
