@@ -15,7 +15,7 @@ LEVEL = 0.9999
 
 def test_the_pooled_test_waives_on_evidence_and_rarely_under_its_null():
     pooled = PooledSignificance(LEVEL, window=20, min_frames=3)
-    for frame in range(3):  # clearly wrong poses: waived from the third frame on
+    for _ in range(3):  # clearly wrong poses: waived once three frames are recorded
         assert not pooled.waived("wrong")
         pooled.record(["wrong", "untested"], [40.0, np.nan])
     assert pooled.waived("wrong") and not pooled.waived("untested")
