@@ -78,7 +78,7 @@ def test_failing_cells_are_recorded_and_the_rest_finish(tmp_path):
     assert "sigma_t" in status[bad_override.key]["error"]
     assert "Traceback" in status[bad_override.key]["traceback"]
     assert status[bad_policy.key]["status"] == "error"
-    assert status[bad_policy.key]["error"].startswith("TypeError: OraclePolicy")
+    assert status[bad_policy.key]["error"].startswith("ValueError: policy 'oracle' takes no ")
     assert all(status[c.key]["status"] == "ok" for c in good)
     assert all(status[c.key]["metrics"]["frames"] > 0 for c in good)
 
