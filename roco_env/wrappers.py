@@ -74,6 +74,9 @@ class EgoEnv(gymnasium.Env):
     def reset(self, *, seed: int | None = None,
               options: dict | None = None) -> tuple[dict, dict]:
         super().reset(seed=seed)
+        reset_others = getattr(self.others, "reset", None)
+        if callable(reset_others):  # a stateful policy starts each episode afresh
+            reset_others()
         observations, infos = self.env.reset(seed=seed, options=options)
         self._last = (observations, infos)
         return observations[self.agent], infos[self.agent]

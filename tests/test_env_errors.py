@@ -136,6 +136,23 @@ def test_ego_env_others_by_policy_name():
                           and filled_rpe_rows(i["rpe_before"]).max() > 0.01 for i in others)
 
 
+def test_ego_env_resets_a_stateful_others_policy_with_each_episode():
+    class Counting:
+        resets = 0
+
+        def __call__(self, observation, info=None):
+            return np.zeros((observation["collab_mask"].shape[0], 3), dtype=np.float32)
+
+        def reset(self):
+            self.resets += 1
+
+    others = Counting()
+    ego = EgoEnv(**FAST, max_cycles=1, others=others)
+    for seed in (0, 1):
+        ego.reset(seed=seed)
+    assert others.resets == 2
+
+
 def test_render_without_mode_or_before_reset():
     env = roco_env.parallel_env(**FAST)
     with pytest.warns(UserWarning, match="without a render_mode"):

@@ -133,3 +133,9 @@ def test_a_gate_choice_without_intermediate_fusion_is_refused(gate):
     with pytest.raises(ValueError, match="needs fusion.method='intermediate'"):
         roco_env.parallel_env("v2x_crossroad", detector="learned",
                               **{"detector.params.gate": gate})
+
+
+def test_a_gate_for_other_maps_is_refused():
+    features, poses = _maps_and_poses(channels=8)
+    with torch.no_grad(), pytest.raises(ValueError, match="reads 6 channels; the maps have 8"):
+        fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, gate=_gate(6))

@@ -366,6 +366,7 @@ def test_bad_parameters_raise():
         {"significance": 1.0},
         {"significance": -0.5},
         {"round_information": "landmark"},
+        {"round_information": "difference", "joint_every_round": True},
         {"use_edge_similarity": False, "use_distance_similarity": False},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):

@@ -6,7 +6,7 @@ from test_roco import calibrated_scene, errors
 
 import roco_env
 from roco_env.policies import make_policy
-from roco_env.policies.constructed_scenes import pose_error
+from roco_env.policies.constructed_scenes import pose_error, to_observation
 from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.roco import NOT_SIGNIFICANT, roco_align
 
@@ -91,7 +91,29 @@ def test_pooled_significance_is_checked_and_stateful_only_when_on():
     assert getattr(make_policy("roco"), "keeps_state", None) is None
     policy = make_policy("roco", pooled_significance=LEVEL)
     assert "collaborator" in policy.keeps_state
-    for bad in ({"pooled_significance": 1.5}, {"pooled_significance": LEVEL,
-                                                "significance": None}):
+    for bad in ({"pooled_significance": 1.5}, {"pooled_significance": 0},
+                {"pooled_significance": LEVEL, "significance": None}):
         with pytest.raises(ValueError, match="significance"):
             make_policy("roco", **bad)
+
+
+def _gapped_observation(error):
+    """A calibrated scene's one collaborator in the last of three slots (the first two empty)."""
+    scene = calibrated_scene(3, error)
+    observation = to_observation(scene, max_boxes=20, max_collaborators=3)
+    for key in [k for k in observation if k.startswith("collab_")]:
+        observation[key] = np.roll(observation[key], 2, axis=0)
+    return observation
+
+
+def test_statistics_reach_the_observation_slots_and_reset_forgets_the_history():
+    policy = make_policy("roco", pooled_significance=LEVEL)
+    info = {"agent": "cav_0", "collaborators": ["rsu_0", "cav_1", "cav_2"]}
+    observation = _gapped_observation(pose_error(0.3, 0.3, 1.0))
+    for _ in range(3):
+        policy(observation, info)
+    statistics = policy.last_result.slot_statistics
+    assert np.isnan(statistics[0]) and np.isnan(statistics[1]) and statistics[2] > 11.35
+    assert policy.pooled.waived(("cav_0", "cav_2"))
+    policy.reset()
+    assert not policy.pooled.waived(("cav_0", "cav_2"))

@@ -19,13 +19,13 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch import nn
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections
 from roco_env.fusion.warp_kernels import warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.features import zero_padded
 from roco_env.sensing.grid import affine_theta
+from roco_env.sensing.learned.network import FusionGate
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState
 
@@ -35,7 +35,7 @@ __all__ = ["fuse_features", "fuse_maps", "fuse_on_canvas", "fusion_canvas",
 
 def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequence[Sequence[int]],
               poses: Sequence[np.ndarray], grid: BevGrid,
-              canvas: BevGrid | None = None, gate: nn.Module | None = None) -> torch.Tensor:
+              canvas: BevGrid | None = None, gate: FusionGate | None = None) -> torch.Tensor:
     """Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp;
     differentiable (the training path; :func:`fuse_on_canvas` is the run-time one).
 
@@ -61,7 +61,7 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
 def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
                    collaborators: Sequence[Sequence[int]], poses: Sequence[np.ndarray],
                    grid: BevGrid, canvas: BevGrid | None = None,
-                   gate: nn.Module | None = None) -> torch.Tensor:
+                   gate: FusionGate | None = None) -> torch.Tensor:
     """:func:`fuse_maps` at run time (no autograd: writes in place), on ``canvas``.
 
     Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp.
@@ -98,7 +98,11 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     if gate is None:
         warp_max_into(cells, *warp)
     else:
-        warp_gate_max_into(cells, cells.copy(), *warp, *gate.cell_weights())
+        weights = gate.cell_weights()
+        if weights[0].shape[0] != 3 * features.shape[1]:  # the compiled pass trusts it
+            raise ValueError(f"the fusion gate reads {weights[0].shape[0] // 3} channels; the "
+                             f"maps have {features.shape[1]}")
+        warp_gate_max_into(cells, cells.copy(), *warp, *weights)
     return own
 
 
@@ -114,7 +118,7 @@ def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
 
 
 def _max_into(own: torch.Tensor, warped: torch.Tensor, owner: Sequence[int], first: np.ndarray,
-              gate: nn.Module | None) -> torch.Tensor:
+              gate: FusionGate | None) -> torch.Tensor:
     """``own`` with every warped window map k (K, C, H, w) max-ed into own[owner[k]] at
     canvas columns first[k] .. first[k] + w, in place, each weighed first by ``gate``
     against its ego's own map on its window (read before any collaborator is max-ed in)."""

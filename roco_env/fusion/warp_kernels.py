@@ -50,7 +50,8 @@ def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width,
     """:func:`warp_max_into` with every warped cell weighed by a fusion gate first.
 
     own (E, H, Wc, C) float32: the egos' maps before any maximum (what the gate reads;
-    not ``canvas``, which is written); the gate's weight of warped cell v beside own cell
+    not ``canvas``, which is written). Every map must be non-negative (the encoder's
+    maps are: ReLU), as the skipped cells assume. The gate's weight of warped cell v beside own cell
     o is sigmoid(b_out + w_out . relu(b_in + [o, v, |o - v|] @ w_in)), with
     w_in (3 C, hidden), b_in (hidden,), w_out (hidden,) float32 and b_out a float.
     """
@@ -88,7 +89,7 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width,
                 out = dst[i, col]
                 if gated:
                     if _nowhere_above(value, mine[i, col]):
-                        continue  # weight <= 1: the maximum keeps the ego's cell, whatever it is
+                        continue  # any gate weight (<= 1) leaves the maximum as it is
                     weight = _gate(mine[i, col], value, w_in, b_in, w_out, b_out, hidden)
                     for ch in range(n_ch):
                         value[ch] *= weight

@@ -151,6 +151,7 @@ def roco_fallback_align(
         solver_iterations=first.solver_iterations + second.solver_iterations,
         reason="; ".join([*reasons, *notes]),
         slot_reasons=tuple("" if j in use else r for j, r in enumerate(first.slot_reasons)),
+        slot_statistics=first.slot_statistics,
     )
 
 

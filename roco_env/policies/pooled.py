@@ -18,6 +18,7 @@ waived, so the decision follows the data if the errors go away.
 
 from __future__ import annotations
 
+import numbers
 from collections import deque
 from collections.abc import Hashable, Sequence
 
@@ -37,8 +38,9 @@ class PooledSignificance:
     """
 
     def __init__(self, level: float, window: int = 20, min_frames: int = 3) -> None:
-        if not (isinstance(level, float | int) and 0.0 < level < 1.0):
-            raise ValueError(f"pooled_significance must be in (0, 1); got {level!r}")
+        if isinstance(level, bool) or not isinstance(level, numbers.Real) or not 0 < level < 1:
+            raise ValueError("pooled_significance must be None (off) or in (0, 1); got "
+                             f"{level!r}")
         if not 1 <= min_frames <= window:
             raise ValueError(f"need 1 <= min_frames <= window; got {min_frames}, {window}")
         self.level, self.window, self.min_frames = float(level), window, min_frames

@@ -20,7 +20,7 @@ against a growing landmark set that starts with the ego's boxes:
    landmark seen by >= 2 agents). Restricted to one vertex, the landmarks are held
    fixed at the boxes that created them, so an edge's residual carries both boxes'
    errors: its information is ``(Sigma_box + Sigma_landmark)^-1``
-   (``round_information="difference"``, the default; ``"box"``: the box's alone, as the
+   (``round_information="difference"``, the default there; ``"box"``: the box's alone, as the
    joint graph weighs it, where landmarks are free). With the box's alone, a landmark
    from a box far less certain than the collaborator's (an RSU's diagonal view of a car
    whose heading a CAV sees along its axis: yaw sigma 0.1 against 0.004 rad) makes a
@@ -55,7 +55,7 @@ not significant". The test relies on *calibrated* box uncertainties (the realist
 detector's are: calibration = 1.0): over-confident boxes let noise-floor corrections
 through, under-confident ones hide real errors. ``significance=None`` (or 0) switches
 it off and restores the older rule (c'): the robust cost at the optimised pose is
-lower than at the reported one (which the optimum always satisfies). A rejected
+lower than at the reported one (which the optimum nearly always satisfies). A rejected
 collaborator keeps its reported pose (applied=False, with the reason) and its boxes
 stay out of the map; one that fails is retried once after the others, against the
 larger map.
@@ -139,7 +139,10 @@ class RoCoParams(MatchingParams, UncertaintyParams):
     min_matches, inlier_chi2: the do-no-harm rule (module docstring).
     round_information: the information of an edge in the single-vertex rounds (and so of
     the kernel's weights and the inlier test): "difference" = ``(Sigma_box +
-    Sigma_landmark)^-1``, "box" = the box's own (module docstring, step 3).
+    Sigma_landmark)^-1``, "box" = the box's own (module docstring, step 3); None (default):
+    "difference", or with joint_every_round "box" (the rounds then solve the whole graph,
+    where landmarks are free and every edge keeps its box's information, so "difference"
+    is a ValueError there).
     significance: confidence of the do-no-harm significance test (module docstring), in
     (0, 1); a correction is applied when its Wald statistic exceeds
     chi2.ppf(significance, 3). None or 0 = no test (the pre-test rule: any cost
@@ -165,7 +168,7 @@ class RoCoParams(MatchingParams, UncertaintyParams):
     joint_every_round: bool = False
     coarse_tau2: float | None = 6.0
     significance: float | None = 0.99
-    round_information: str = "difference"
+    round_information: str | None = None
 
     def __post_init__(self) -> None:
         MatchingParams.__post_init__(self)
@@ -182,9 +185,13 @@ class RoCoParams(MatchingParams, UncertaintyParams):
             raise ValueError(
                 f"significance must be None or in [0, 1) (0 = off); got {self.significance}"
             )
-        if self.round_information not in ROUND_INFORMATION:
-            raise ValueError(f"round_information must be one of {ROUND_INFORMATION}; got "
-                             f"{self.round_information!r}")
+        if self.round_information is not None and self.round_information not in ROUND_INFORMATION:
+            raise ValueError(f"round_information must be None or one of {ROUND_INFORMATION}; "
+                             f"got {self.round_information!r}")
+        if self.joint_every_round and self.round_information == "difference":
+            raise ValueError("round_information='difference' weighs single-vertex rounds; "
+                             "joint_every_round=True solves the whole graph, where each edge "
+                             "keeps its box's information: set round_information='box'")
         if self.coarse_tau2 is not None and not self.coarse_tau2 > self.tau2:
             raise ValueError(f"coarse_tau2 must be None or > tau2; got {self.coarse_tau2}")
         for name in ("max_outer_iterations", "min_matches", "max_solver_iterations"):
@@ -277,7 +284,7 @@ def _round_terms(p: RoCoParams) -> tuple:
         _MIN_DIAG,
         float(p.inlier_chi2),
         _FIT_TOLERANCE if p.significance else 0.0,
-        p.round_information == "difference",
+        p.round_information != "box",
     )
 
 
@@ -324,6 +331,18 @@ def _joint_solve(
     return solution, agent_ids, shared
 
 
+def _round_information(
+    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
+) -> np.ndarray:
+    """Information (P, 3, 3) of the collaborator's matched edges as its single-vertex rounds
+    weigh them (module docstring, step 3): ``(Sigma_box + Sigma_landmark)^-1``, or the box's
+    own with ``round_information="box"``."""
+    if p.round_information != "box":
+        box_covariance = inputs.all_covariance[inputs.offsets[agent] + att.match_box]
+        return inverse_covariances(box_covariance + world.covariance[att.match_land])
+    return inputs.information[agent][att.match_box]
+
+
 def _optimise_round(
     inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
 ) -> None:
@@ -338,17 +357,12 @@ def _optimise_round(
         att.solver += solution.iterations
         return
     att.landmarks = world.poses[att.match_land]
-    if p.round_information == "difference":
-        box_covariance = inputs.all_covariance[inputs.offsets[agent] + att.match_box]
-        information = inverse_covariances(box_covariance + world.covariance[att.match_land])
-    else:
-        information = inputs.information[agent][att.match_box]
     # optimize_pose's compiled solver, called directly (the inputs are already checked).
     att.pose, att.chi2, _, _, iterations, _ = solve_pose_edges(
         att.pose,
         att.landmarks,
         own,
-        information,
+        _round_information(inputs, world, agent, att, p),
         inputs.reported[agent - 1],
         _prior_info(p),
         KERNEL_CODES[p.robust_kernel],
@@ -490,7 +504,10 @@ def _rejection(
             ), statistic
         return "", statistic
     own = inputs.poses[agent][att.match_box]
-    info = inputs.information[agent][att.match_box]
+    # The reported pose's edges weighed as att.chi2's were: by the rounds' information, or
+    # by the box's own where the whole graph was solved (joint_every_round).
+    info = (inputs.information[agent][att.match_box] if p.joint_every_round
+            else _round_information(inputs, world, agent, att, p))
     reported = inputs.reported[agent - 1]
     chi2_reported = edge_chi2(np.broadcast_to(reported, own.shape), att.landmarks, own, info)
     cost_optimised = robust_kernel(att.chi2, p.robust_kernel, p.kernel_delta)[0].sum()
