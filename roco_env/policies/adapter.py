@@ -11,14 +11,14 @@ poses into the corrected ones (zeros for empty slots).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from roco_env.policies.base import AlignmentResult, correction_action
 
-__all__ = ["ArrayAlignmentPolicy", "ObservationView", "unpack_observation"]
+__all__ = ["ArrayAlignmentPolicy", "ObservationView", "collaborator_keys", "unpack_observation"]
 
 _KEYS = (
     "boxes",
@@ -86,6 +86,15 @@ class ObservationView:
             statistics = tuple(full.tolist())
         return replace(result, corrected=corrected, applied=applied, matched_pairs=pairs,
                        slot_reasons=tuple(reasons), slot_statistics=statistics)
+
+
+def collaborator_keys(info: dict | None, slots: Sequence[int]) -> list[tuple]:
+    """The key of each collaborator slot for state kept across steps: (ego id, collaborator
+    id) from ``info["agent"]`` and ``info["collaborators"]`` (so reordered slots keep their
+    state), the slot index in place of an id the info lacks."""
+    names = (info or {}).get("collaborators")
+    ego = (info or {}).get("agent")
+    return [(ego, names[s] if names is not None and s < len(names) else int(s)) for s in slots]
 
 
 def _field(observation: dict, key: str) -> np.ndarray:

@@ -70,7 +70,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
+from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView, collaborator_keys
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.landmarks import (
     AlignmentInputs,
@@ -198,6 +198,12 @@ class RoCoParams(MatchingParams, UncertaintyParams):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
 
+    @property
+    def difference_rounds(self) -> bool:
+        """Whether the rounds weigh an edge by box minus landmark: ``round_information``
+        resolved (None is "difference", or "box" with joint_every_round)."""
+        return self.round_information != "box" and not self.joint_every_round
+
 
 class _Map:
     """Landmarks (ego frame) with their observations, and the accepted agents' poses.
@@ -284,7 +290,7 @@ def _round_terms(p: RoCoParams) -> tuple:
         _MIN_DIAG,
         float(p.inlier_chi2),
         _FIT_TOLERANCE if p.significance else 0.0,
-        p.round_information != "box",
+        p.difference_rounds,
     )
 
 
@@ -334,10 +340,10 @@ def _joint_solve(
 def _round_information(
     inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
 ) -> np.ndarray:
-    """Information (P, 3, 3) of the collaborator's matched edges as its single-vertex rounds
-    weigh them (module docstring, step 3): ``(Sigma_box + Sigma_landmark)^-1``, or the box's
-    own with ``round_information="box"``."""
-    if p.round_information != "box":
+    """Information (P, 3, 3) of the collaborator's matched edges as its rounds weigh them
+    (module docstring, step 3): ``(Sigma_box + Sigma_landmark)^-1`` when
+    :attr:`RoCoParams.difference_rounds`, else the box's own."""
+    if p.difference_rounds:
         box_covariance = inputs.all_covariance[inputs.offsets[agent] + att.match_box]
         return inverse_covariances(box_covariance + world.covariance[att.match_land])
     return inputs.information[agent][att.match_box]
@@ -504,10 +510,7 @@ def _rejection(
             ), statistic
         return "", statistic
     own = inputs.poses[agent][att.match_box]
-    # The reported pose's edges weighed as att.chi2's were: by the rounds' information, or
-    # by the box's own where the whole graph was solved (joint_every_round).
-    info = (inputs.information[agent][att.match_box] if p.joint_every_round
-            else _round_information(inputs, world, agent, att, p))
+    info = _round_information(inputs, world, agent, att, p)  # as att.chi2's edges were
     reported = inputs.reported[agent - 1]
     chi2_reported = edge_chi2(np.broadcast_to(reported, own.shape), att.landmarks, own, info)
     cost_optimised = robust_kernel(att.chi2, p.robust_kernel, p.kernel_delta)[0].sum()
@@ -694,10 +697,7 @@ class RoCoPolicy(ArrayAlignmentPolicy):
         test finds wrong; their statistics extend the history."""
         if self.pooled is None:
             return super().align_view(view, observation, info)
-        names = (info or {}).get("collaborators")
-        ego = (info or {}).get("agent")
-        keys = [(ego, names[s] if names is not None and s < len(names) else int(s))
-                for s in view.slots]
+        keys = collaborator_keys(info, view.slots)
         waived = [j for j, key in enumerate(keys) if self.pooled.waived(key)]
         result = roco_align(*view.arrays, waived=waived, **self._kwargs)
         self.pooled.record(keys, result.slot_statistics)

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
+from roco_env.policies.adapter import collaborator_keys
+
 __all__ = ["TemporalSmoothing", "coalign_temporal", "roco_temporal"]
 
 
@@ -102,12 +104,9 @@ class TemporalSmoothing:
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         action = np.asarray(self.policy(observation, info), dtype=float).reshape(-1, 3)
         applied = self._applied(action)
-        filled = np.asarray(observation["collab_mask"]) > 0
-        names = (info or {}).get("collaborators")
-        ego = (info or {}).get("agent")
+        filled = np.nonzero(np.asarray(observation["collab_mask"]) > 0)[0]
         out = action.copy()
-        for slot in np.nonzero(filled)[0]:
-            key = (ego, names[slot] if names is not None and slot < len(names) else int(slot))
+        for slot, key in zip(filled, collaborator_keys(info, filled), strict=True):
             kf = self._filters.get(key)
             if applied[slot]:
                 if kf is None:

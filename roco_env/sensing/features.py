@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from roco_env.sensing.grid import BevGrid, affine_theta, cell_polar
 from roco_env.sensing.visibility import Visibility
 
-__all__ = ["CHANNELS", "BevGrid", "bev_features", "warp_bev", "zero_padded"]
+__all__ = ["CHANNELS", "BevGrid", "bev_features", "placement", "warp_bev", "zero_padded"]
 
 CHANNELS = ("log_returns", "max_height", "observed")
 
@@ -86,12 +86,9 @@ def warp_bev(features: torch.Tensor, T_src_to_dst: np.ndarray | torch.Tensor,  #
     return warped[0] if single else warped
 
 
-def zero_padded(maps: torch.Tensor, grid: BevGrid, target: BevGrid) -> torch.Tensor:
-    """Maps (N, C, H, W) on ``grid`` placed on ``target``, a grid of the same cells that
-    contains it, zero elsewhere (exact: a map holds nothing beyond its grid), in the maps'
-    memory format (torch's pad returns channels-last maps as contiguous ones, and their
-    copy back costs as much again). ValueError unless ``target`` contains ``grid`` on its
-    cells."""
+def placement(grid: BevGrid, target: BevGrid) -> tuple[slice, slice]:
+    """The (row, column) slices of ``target`` that ``grid`` covers, ``target`` being a grid
+    of the same cells that contains it; ValueError otherwise."""
     res = grid.resolution
     edges = ((grid.x_range[0] - target.x_range[0]), (target.x_range[1] - grid.x_range[1]),
              (grid.y_range[0] - target.y_range[0]), (target.y_range[1] - grid.y_range[1]))
@@ -100,11 +97,19 @@ def zero_padded(maps: torch.Tensor, grid: BevGrid, target: BevGrid) -> torch.Ten
             abs(e - p * res) > 1e-6 for e, p in zip(edges, pads, strict=True)):
         raise ValueError(f"grid {target} must contain the feature grid {grid} on its cells "
                          "(same cell size, whole-cell margins)")
+    left, bottom = pads[0], pads[2]
+    return slice(bottom, bottom + grid.H), slice(left, left + grid.W)
+
+
+def zero_padded(maps: torch.Tensor, grid: BevGrid, target: BevGrid) -> torch.Tensor:
+    """Maps (N, C, H, W) on ``grid`` placed on ``target`` (:func:`placement`), zero elsewhere
+    (exact: a map holds nothing beyond its grid), in the maps' memory format (torch's pad
+    returns channels-last maps as contiguous ones, and their copy back costs as much again)."""
+    rows, cols = placement(grid, target)
     layout = (torch.channels_last if maps.dim() == 4 and not maps.is_contiguous()
               and maps.is_contiguous(memory_format=torch.channels_last)
               else torch.contiguous_format)
     out = torch.empty((maps.shape[0], maps.shape[1], target.H, target.W), dtype=maps.dtype,
                       device=maps.device, memory_format=layout).zero_()
-    left, bottom = pads[0], pads[2]
-    out[:, :, bottom:bottom + grid.H, left:left + grid.W] = maps
+    out[:, :, rows, cols] = maps
     return out

@@ -28,7 +28,7 @@ from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.scenario import LearnedDetectorParams
 from roco_env.schema import build
 from roco_env.sensing.detector import AgentDetections
-from roco_env.sensing.features import BevGrid, zero_padded
+from roco_env.sensing.features import BevGrid, placement
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import SCORE_THRESHOLD, Decoded, decode, feature_grid
 from roco_env.sensing.lidar import (
@@ -328,14 +328,14 @@ def _checked_region(region) -> tuple[tuple[float, float], tuple[float, float]]:
 def _on_one_grid(parts: list[tuple[list[int], torch.Tensor, BevGrid]], grid: BevGrid,
                  n_agents: int) -> torch.Tensor:
     """Maps (n_agents, C, H, W), channels-last, on ``grid`` from groups (agent rows, their
-    maps, the maps' feature grid, inside ``grid`` on its cells), zero where a map does not
-    reach (:func:`~roco_env.sensing.features.zero_padded`)."""
+    maps, the maps' feature grid, inside ``grid`` on its cells,
+    :func:`~roco_env.sensing.features.placement`), zero where a map does not reach."""
     first = parts[0][1]
     maps = torch.empty((n_agents, first.shape[1], grid.H, grid.W), dtype=first.dtype,
-                       device=first.device, memory_format=torch.channels_last)
+                       device=first.device, memory_format=torch.channels_last).zero_()
     for rows, features, fgrid in parts:
-        for agent, padded in zip(rows, zero_padded(features, fgrid, grid), strict=True):
-            maps[agent] = padded
+        cells_y, cells_x = placement(fgrid, grid)
+        maps[rows, :, cells_y, cells_x] = features
     return maps
 
 
