@@ -34,8 +34,8 @@ from roco_env.training.data import VALIDATION_SEED_BASE, make_scenes
 # sha256 of the shipped weights (roco_env/sensing/learned/weights/: the detector alone, "max",
 # and gated/: the same detector with its fusion gate, the default), each the output of the
 # training command recorded in the report.md beside it.
-SHIPPED_SHA256 = {"max": "2efae2afeab11702f9c125c67aca443ee38763d0e34ecb1b735cbddfbf6d947c",
-                  "gated": "eefb5fcdfa3bc64885e1367396164f119f854252204ca9fef19dda1589864f00"}
+SHIPPED_SHA256 = {"max": "a1b7291bbbee908a173234878330e6bce96a7334ed582876f6c80bb237506a85",
+                  "gated": "8a4cf01b3b0a15c0ef627dc529a0563a899e892b3ed18732d8e61174a91e7bb4"}
 
 GRID = BevGrid((-70.4, 70.4), (-40.0, 40.0), 0.8)
 FGRID = feature_grid(GRID, 2)
