@@ -60,6 +60,30 @@ def test_the_run_time_gated_fusion_equals_the_training_path(dtype):
     assert (plain - training).abs().max() > 0.1  # and it changes the fused maps
 
 
+@pytest.mark.parametrize("gated", [False, True])
+def test_the_compiled_fusion_gives_the_same_maps_on_any_thread_count(gated):
+    """Bands of canvas rows in threads (the kernels release the GIL): every cell sees the
+    maps in the same order, so the maps are equal bit for bit, with more threads than rows
+    too."""
+    features, poses = _maps_and_poses()
+    canvas, _ = fusion_canvas(GRID, (-140.8, 140.8), (-40.0, 40.0))
+    gate = _gate(8) if gated else None
+    with torch.no_grad():
+        one = fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, canvas, gate)
+        for threads in (2, 3, canvas.H + 5):
+            many = fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, canvas, gate,
+                                  threads)
+            assert torch.equal(many, one), threads
+    assert one.abs().sum() > 0
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True, None])
+def test_the_fusion_thread_count_is_checked(threads):
+    features, poses = _maps_and_poses()
+    with pytest.raises(ValueError, match="threads must be an integer >= 1"):
+        fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, GRID, None, threads)
+
+
 @pytest.mark.parametrize("bias, expected", [(30.0, "max"), (-30.0, "own")])
 def test_an_open_gate_is_max_fusion_and_a_closed_one_keeps_the_egos_maps(bias, expected):
     features, poses = _maps_and_poses()

@@ -14,8 +14,10 @@ shows up in the boxes and their AP. Needs torch (imported on demand by the env).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -61,7 +63,7 @@ def fuse_maps(features: torch.Tensor, egos: Sequence[int], collaborators: Sequen
 def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
                    collaborators: Sequence[Sequence[int]], poses: Sequence[np.ndarray],
                    grid: BevGrid, canvas: BevGrid | None = None,
-                   gate: FusionGate | None = None) -> torch.Tensor:
+                   gate: FusionGate | None = None, threads: int = 1) -> torch.Tensor:
     """:func:`fuse_maps` at run time (no autograd: writes in place), on ``canvas``.
 
     Max-fused maps (E, C, H, W) on ``canvas`` (default ``grid``), all egos in one warp.
@@ -71,7 +73,8 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     T_{j->e} (x m, y m, yaw rad) its collaborators' maps are warped with; canvas:
     a grid of ``grid``'s cells containing it (:func:`fusion_canvas`): the egos' own maps
     are zero-padded onto it, the collaborators' maps warped straight onto it; gate: as
-    in :func:`fuse_maps`.
+    in :func:`fuse_maps`; threads: CPU threads of the compiled pass, each on a band of
+    canvas rows (the result does not depend on it).
     """
     canvas = canvas or grid
     own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
@@ -96,14 +99,37 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     warp = (sources, affine_theta(shifted, grid, window), np.asarray(rows), np.asarray(owner),
             first, window.W)
     if gate is None:
-        warp_max_into(cells, *warp)
+        def fuse_band(band: np.ndarray) -> None:
+            warp_max_into(cells, *warp, band)
     else:
         weights = gate.cell_weights()
         if weights[0].shape[0] != 3 * features.shape[1]:  # the compiled pass trusts it
             raise ValueError(f"the fusion gate reads {weights[0].shape[0] // 3} channels; the "
                              f"maps have {features.shape[1]}")
-        warp_gate_max_into(cells, cells.copy(), *warp, *weights)
+        before = cells.copy()
+
+        def fuse_band(band: np.ndarray) -> None:
+            warp_gate_max_into(cells, before, *warp, band, *weights)
+    bands = _row_bands(cells.shape[1], threads)
+    if len(bands) == 1:
+        fuse_band(bands[0])
+    else:  # the kernels release the GIL; the bands' rows are disjoint
+        list(_band_pool(len(bands)).map(fuse_band, bands))
     return own
+
+
+def _row_bands(rows: int, threads: int) -> list[np.ndarray]:
+    """``rows`` canvas rows split into at most ``threads`` contiguous (start, stop) bands."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1; got {threads!r}")
+    edges = np.linspace(0, rows, min(threads, rows) + 1).round().astype(np.int64)
+    return [edges[b:b + 2].copy() for b in range(len(edges) - 1)]
+
+
+@functools.cache
+def _band_pool(threads: int) -> ThreadPoolExecutor:
+    """One pool per thread count, kept for the process (threads idle between steps)."""
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="roco-fusion")
 
 
 def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],
@@ -218,7 +244,7 @@ def intermediate_fusion(detector, encoder_maps, state: WorldState,
     canvas, _ = fusion_canvas(grid, x_range, y_range)
     with torch.inference_mode():
         fused = fuse_on_canvas(encoder_maps.maps, egos, collaborators, poses, grid, canvas,
-                               detector.gate)
+                               detector.gate, detector.threads)
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]

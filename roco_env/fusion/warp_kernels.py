@@ -16,7 +16,10 @@ positions and bilinear weights are computed in float64, the weighted sums and th
 in float32 as torch does; ``grid_sample`` computes the positions in float32, so the
 warped values differ from its by up to about 5e-6 of their magnitude (2e-5 on the
 shipped detector's maps, which reach about 9; tested against the torch path,
-``fuse_maps``).
+``fuse_maps``). The kernels release the GIL and write only the canvas rows of their
+``band``, so :func:`~roco_env.fusion.intermediate.fuse_on_canvas` runs bands in
+threads; every cell sees the maps in the same order, so the result does not depend on
+the thread count.
 """
 
 from __future__ import annotations
@@ -29,23 +32,25 @@ from numba import njit
 __all__ = ["warp_gate_max_into", "warp_max_into"]
 
 
-@njit(cache=True)
-def warp_max_into(canvas, features, theta, rows, owner, first, width):  # pragma: no cover
+@njit(cache=True, nogil=True)
+def warp_max_into(canvas, features, theta, rows, owner, first, width, band):  # pragma: no cover
     """Max each warped map into its ego's canvas map, in place.
 
     canvas (E, H, Wc, C) float32, channels last: the egos' maps (written);
     features (N, h, w, C) float32, channels last: the source maps; theta (K, 2, 3):
     ``affine_grid`` matrices mapping normalised coordinates of a ``width``-column window
     of the canvas (all H rows) to normalised source coordinates; map k is source
-    ``rows[k]``, maxed into canvas ``owner[k]`` at columns first[k] .. first[k] + width.
+    ``rows[k]``, maxed into canvas ``owner[k]`` at columns first[k] .. first[k] + width;
+    band (start, stop): the canvas rows this call writes (calls on disjoint bands may
+    run at once in threads: the kernel releases the GIL).
     """
     no_vector = np.zeros(0, dtype=np.float32)
-    _fuse(canvas, canvas, features, theta, rows, owner, first, width,
+    _fuse(canvas, canvas, features, theta, rows, owner, first, width, band,
           np.zeros((0, 0), dtype=np.float32), no_vector, no_vector, 0.0, False)
 
 
-@njit(cache=True)
-def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width,
+@njit(cache=True, nogil=True)
+def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width, band,
                        w_in, b_in, w_out, b_out):  # pragma: no cover
     """:func:`warp_max_into` with every warped cell weighed by a fusion gate first.
 
@@ -55,12 +60,12 @@ def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width,
     o is sigmoid(b_out + w_out . relu(b_in + [o, v, |o - v|] @ w_in)), with
     w_in (3 C, hidden), b_in (hidden,), w_out (hidden,) float32 and b_out a float.
     """
-    _fuse(canvas, own, features, theta, rows, owner, first, width,
+    _fuse(canvas, own, features, theta, rows, owner, first, width, band,
           w_in, b_in, w_out, b_out, True)
 
 
-@njit(cache=True)
-def _fuse(canvas, own, features, theta, rows, owner, first, width,
+@njit(cache=True, nogil=True)
+def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
           w_in, b_in, w_out, b_out, gated):  # pragma: no cover
     """The loop of both kernels (their arguments); ``gated`` turns the gate on."""
     out_h = canvas.shape[1]
@@ -79,7 +84,7 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width,
         x_i, y_i = t[0, 1] * w / out_h, t[1, 1] * h / out_h
         x_c = 0.5 * w * (t[0, 2] + 1.0 - t[0, 0] - t[0, 1]) - 0.5
         y_c = 0.5 * h * (t[1, 2] + 1.0 - t[1, 0] - t[1, 1]) - 0.5
-        for i in range(out_h):
+        for i in range(band[0], band[1]):
             x_row = x_c + x_i * (i + 0.5)
             y_row = y_c + y_i * (i + 0.5)
             for j in range(width):
