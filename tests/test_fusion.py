@@ -8,6 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from roco_env.batched_nms import _iou_lower_bound, _separated, batched_nms_bev
 from roco_env.fusion import (
     EGO_SOURCE,
     FusedDetections,
@@ -16,7 +17,6 @@ from roco_env.fusion import (
     suppress,
 )
 from roco_env.fusion.intermediate import fuse_features
-from roco_env.fusion.nms import _iou_lower_bound, _separated, batched_nms_bev
 from roco_env.geometry import bev_iou, bev_iou_pairs, nms_bev, transform_boxes
 from roco_env.sensing import BevGrid
 

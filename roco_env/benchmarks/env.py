@@ -21,11 +21,11 @@ import time
 
 import numpy as np
 
+from roco_env.batched_nms import batched_nms_bev
 from roco_env.benchmarks._timing import median_seconds
 from roco_env.env import CollabPerceptionEnv
 from roco_env.evaluation import ground_truths
 from roco_env.fusion import merge_into_ego_frame
-from roco_env.fusion.nms import batched_nms_bev
 from roco_env.geometry import nms_bev
 from roco_env.metrics import frame_stats, match_frames
 from roco_env.policies.basic import IdentityPolicy

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.fusion.nms import batched_nms_unchecked
+from roco_env.batched_nms import batched_nms_unchecked
 from roco_env.geometry import transform_boxes, validate_boxes
 
 EGO_SOURCE = -1
@@ -166,7 +166,7 @@ def suppress(merged: Sequence[FusedDetections], nms_iou: float = 0.15,
     footprints[k]: ego k's own vehicle box (7,) in its frame, or None (an RSU);
     boxes overlapping it with BEV IoU > ``nms_iou`` are dropped (module
     docstring). Without footprints each result equals ``geometry.nms_bev`` on
-    that ego's boxes; see :mod:`roco_env.fusion.nms`.
+    that ego's boxes; see :mod:`roco_env.batched_nms`.
     """
     if footprints is None:
         footprints = [None] * len(merged)

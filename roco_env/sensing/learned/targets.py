@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from roco_env.fusion.nms import batched_nms_bev
+from roco_env.batched_nms import batched_nms_bev
 from roco_env.sensing.features import BevGrid
 
 __all__ = ["Decoded", "Targets", "build_targets", "decode", "feature_grid"]
