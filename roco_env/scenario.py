@@ -181,10 +181,9 @@ class LearnedDetectorParams:
     device: str = _spec("cpu", choices=("cpu", "cuda"), doc="torch device")
     score_threshold: float = _spec(0.2, low=0.0, high=1.0, low_open=True, high_open=True,
                                    doc="decoded boxes below this score are dropped")
-    threads: int | None = _spec(None, low=1, high=256,
-                                doc="CPU threads of the network (torch, set process-wide when "
-                                "the detector is built) and of intermediate fusion; None = "
-                                "torch's thread count, at most 4")
+    threads: int = _spec(1, low=1, high=256,
+                         doc="CPU threads of the network (torch, set process-wide when the "
+                         "detector is built) and of intermediate fusion")
     gate: bool | None = _spec(None, doc="intermediate fusion through the weights' learned "
                               "fusion gate: None = when they hold one, true = they must, false "
                               "= the plain maximum")

@@ -6,11 +6,12 @@ rasters, batched encoder + heads and decoding of all agents, divided by the
 agent count. Env throughput: identity policy, whole steps, for the parametric
 ``realistic`` detector with late fusion, and the learned detector with late
 and with intermediate fusion, all in this process (ratios are meaningful, the
-absolute numbers depend on the machine's load), with the detector's default thread
-count (``detector.params.threads``) and, last, with one thread. Each figure is given
-in wall time and in this process's CPU time (``time.process_time``: what other jobs
-on a shared machine disturb least; with one thread the two agree on an idle machine,
-with more the CPU time adds up the threads' time).
+absolute numbers depend on the machine's load), with the detector's default one
+thread and, last, learned + intermediate with one thread per core
+(``detector.params.threads``). Each figure is given in wall time and in this process's
+CPU time (``time.process_time``: what other jobs on a shared machine disturb least;
+with one thread the two agree on an idle machine, with more the CPU time adds up the
+threads' time).
 """
 
 from __future__ import annotations
@@ -46,10 +47,11 @@ def run(quick: bool) -> list[str]:
 
     from roco_env.sensing import compute_visibility
     from roco_env.sensing.learned import LearnedDetector
-    from roco_env.sensing.learned.model import MAX_DEFAULT_THREADS
+    from roco_env.sweeps.backends import default_workers
 
     repeats = 3 if quick else 7
     process_threads = torch.get_num_threads()
+    cores = default_workers()  # all cores this process may use
     env = CollabPerceptionEnv(**SETTING, max_cycles=10**9, detector="learned")
     env.reset(seed=0)
     state = env.unwrapped._frame.state
@@ -75,14 +77,12 @@ def run(quick: bool) -> list[str]:
         "learned + late": _steps_per_second(steps, repeats, detector="learned"),
         "learned + intermediate": _steps_per_second(steps, repeats, detector="learned",
                                                     fusion="intermediate"),
-        # Last: the detector sets torch's thread count process-wide.
-        "learned + intermediate, 1 thread": _steps_per_second(
-            steps, repeats, detector="learned", fusion="intermediate",
-            **{"detector.params": {"threads": 1}}),
     }
-    torch.set_num_threads(process_threads)
-    lines.append(f"threads: {detector.threads} (the default: this process's torch threads, "
-                 f"at most {MAX_DEFAULT_THREADS})")
+    if cores > 1:  # last: the detector sets torch's thread count process-wide
+        rates[f"learned + intermediate, {cores} threads"] = _steps_per_second(
+            steps, repeats, detector="learned", fusion="intermediate",
+            **{"detector.params": {"threads": cores}})
+        torch.set_num_threads(process_threads)
     for name, rate in rates.items():
         target = f"; target >= {TARGET_STEPS_PER_S:.0f}" if name.startswith("learned + int") else ""
         lines.append(f"env steps/s, {name}: " + ", ".join(

@@ -67,11 +67,23 @@ def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width, 
 @njit(cache=True, nogil=True)
 def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
           w_in, b_in, w_out, b_out, gated):  # pragma: no cover
-    """The loop of both kernels (their arguments); ``gated`` turns the gate on."""
+    """The loop of both kernels (their arguments); ``gated`` turns the gate on.
+
+    With the gate, one canvas row of one map at a time: the cells the map reaches and
+    could lift are sampled first, then the gate runs on all of them at once (its inner
+    loops over the cells, which the compiler vectorises), then their weighted values are
+    maxed in."""
     out_h = canvas.shape[1]
     h, w, n_ch = features.shape[1], features.shape[2], features.shape[3]
-    value = np.empty(n_ch, dtype=np.float32)
-    hidden = np.empty(b_in.shape[0], dtype=np.float32)
+    values = np.empty((width, n_ch), dtype=np.float32)  # the row's sampled cells
+    cols = np.empty(width, dtype=np.int64)
+    # The gate's work arrays: hidden units x cells; per cell, one channel of the two
+    # cells and their difference; the weights.
+    hidden = np.empty((b_in.shape[0], width), dtype=np.float32)
+    mine_ch = np.empty(width, dtype=np.float32)
+    theirs_ch = np.empty(width, dtype=np.float32)
+    difference = np.empty(width, dtype=np.float32)
+    weights = np.empty(width, dtype=np.float32)
     for k in range(theta.shape[0]):
         src = features[rows[k]]
         dst = canvas[owner[k]]
@@ -87,15 +99,24 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
         for i in range(band[0], band[1]):
             x_row = x_c + x_i * (i + 0.5)
             y_row = y_c + y_i * (i + 0.5)
+            n = 0
             for j in range(width):
+                value = values[n]
                 if not _bilinear(src, x_row + x_j * (j + 0.5), y_row + y_j * (j + 0.5), value):
                     continue  # all four neighbours outside the source map: adds zero
                 col = first[k] + j
-                out = dst[i, col]
+                if gated and _nowhere_above(value, mine[i, col]):
+                    continue  # any gate weight (<= 1) leaves the maximum as it is
+                cols[n] = col
+                n += 1
+            if gated and n:
+                _gate_cells(mine[i], values, cols, n, w_in, b_in, w_out, b_out, hidden,
+                            mine_ch, theirs_ch, difference, weights)
+            for m in range(n):
+                out = dst[i, cols[m]]
+                value = values[m]
                 if gated:
-                    if _nowhere_above(value, mine[i, col]):
-                        continue  # any gate weight (<= 1) leaves the maximum as it is
-                    weight = _gate(mine[i, col], value, w_in, b_in, w_out, b_out, hidden)
+                    weight = weights[m]
                     for ch in range(n_ch):
                         value[ch] *= weight
                 for ch in range(n_ch):
@@ -149,19 +170,32 @@ def _bilinear(src, x, y, value):  # pragma: no cover
 
 
 @njit(cache=True)
-def _gate(mine, theirs, w_in, b_in, w_out, b_out, hidden):  # pragma: no cover
-    """The fusion gate's weight (float32) of cell ``theirs`` (C,) beside ``mine`` (C,);
-    hidden (H,) is scratch. The inner loops run over the hidden units, contiguous in w_in."""
-    n_ch, n_hidden = mine.shape[0], hidden.shape[0]
-    hidden[:] = b_in
+def _gate_cells(mine_row, values, cols, n, w_in, b_in, w_out, b_out, hidden, a, b, d,
+                logit):  # pragma: no cover
+    """The fusion gate's weights, written to logit[:n], of the n cells values[:n] (C each)
+    beside the ego's cells mine_row[cols[:n]]; hidden (H, >= n), a, b and d (>= n) are
+    scratch. The same operations in the same order per cell as a cell at a time, but every
+    inner loop runs over the cells."""
+    n_ch, n_hidden = values.shape[1], b_in.shape[0]
+    for u in range(n_hidden):
+        hidden[u, :n] = b_in[u]
     for ch in range(n_ch):
-        a, b = mine[ch], theirs[ch]
-        d = abs(a - b)
+        for m in range(n):
+            a[m] = mine_row[cols[m], ch]
+            b[m] = values[m, ch]
+            d[m] = abs(a[m] - b[m])
         w_a, w_b, w_d = w_in[ch], w_in[n_ch + ch], w_in[2 * n_ch + ch]
         for u in range(n_hidden):
-            hidden[u] += a * w_a[u] + b * w_b[u] + d * w_d[u]
-    logit = np.float32(b_out)
+            wa, wb, wd = w_a[u], w_b[u], w_d[u]
+            row = hidden[u]
+            for m in range(n):
+                row[m] += a[m] * wa + b[m] * wb + d[m] * wd
+    logit[:n] = np.float32(b_out)
     for u in range(n_hidden):
-        if hidden[u] > 0.0:
-            logit += hidden[u] * w_out[u]
-    return np.float32(1.0 / (1.0 + math.exp(-logit)))
+        wo = w_out[u]
+        row = hidden[u]
+        for m in range(n):
+            if row[m] > 0.0:
+                logit[m] += row[m] * wo
+    for m in range(n):
+        logit[m] = np.float32(1.0 / (1.0 + math.exp(-logit[m])))

@@ -41,9 +41,8 @@ from roco_env.sensing.lidar import (
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
-__all__ = ["MAX_DEFAULT_THREADS", "SHIPPED_WEIGHTS", "WEIGHTS_FILE", "EncoderMaps",
-           "LearnedDetector", "load_checkpoint", "make_learned_detector", "save_checkpoint",
-           "shipped_weights_path", "sha256_of"]
+__all__ = ["SHIPPED_WEIGHTS", "WEIGHTS_FILE", "EncoderMaps", "LearnedDetector", "load_checkpoint",
+           "make_learned_detector", "save_checkpoint", "shipped_weights_path", "sha256_of"]
 
 # The file name `roco-env train-detector` writes into its output folder.
 WEIGHTS_FILE = "bev_detector.pt"
@@ -178,13 +177,6 @@ def covering_grid(grid: BevGrid, x_range: Sequence[float], y_range: Sequence[flo
                    (grid.y_range[0] - ky * step, grid.y_range[1] + ky * step), grid.resolution)
 
 
-#: The most CPU threads the learned detector takes by default (``threads=None``): a
-#: learned + intermediate step on a 16-core machine took 188 / 138 / 88 / 80 / 123 ms with
-#: 1 / 2 / 4 / 8 / 16 threads (``docs/perception.md``), so 4 has most of the gain and
-#: leaves cores to the rest of the process and to other jobs.
-MAX_DEFAULT_THREADS = 4
-
-
 class LearnedDetector:
     """Boxes, scores and uncertainties of every agent from the network, batched per step.
 
@@ -192,9 +184,7 @@ class LearnedDetector:
     ``"cpu"`` or ``"cuda"``; score_threshold: minimum heatmap score of a decoded box;
     threads: CPU threads of the network (torch's intra-op count, set process-wide with
     ``torch.set_num_threads`` when the detector is built) and of intermediate fusion's
-    compiled pass; None (default): the process's torch thread count, at most
-    :data:`MAX_DEFAULT_THREADS` (torch starts with one per physical core; the workers of
-    a sweep set one each, so they do not oversubscribe the cores); gate: intermediate fusion through the weights' learned
+    compiled pass; gate: intermediate fusion through the weights' learned
     fusion gate (None: when they hold one; True: they must; False: the plain maximum). The values are checked against
     :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
     region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
@@ -204,8 +194,10 @@ class LearnedDetector:
     100 m detects out to 100 m with weights trained on a 70.4 m grid, as OpenCOOD-style
     models read their dataset's whole perception range. Without it every raster is the
     trained grid. Agents with the same raster go through the network in one batch.
-    Threads pay off on an idle CPU and lose several times over on one busy with other
-    jobs (measured in ``docs/perception.md``): set ``threads=1`` there.
+    The default, one thread, is the safe choice: more threads pay off only on an idle
+    CPU (2 threads: 1.5x the steps per second of learned + intermediate fusion on an idle
+    2-core machine) and lose several times over on one busy with other jobs (6x slower
+    than one thread; measured in ``docs/perception.md``).
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
@@ -215,7 +207,7 @@ class LearnedDetector:
     axial_headings = True
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
-                 score_threshold: float = SCORE_THRESHOLD, threads: int | None = None,
+                 score_threshold: float = SCORE_THRESHOLD, threads: int = 1,
                  gate: bool | None = None,
                  region: tuple[Sequence[float], Sequence[float]] | None = None) -> None:
         params = _checked({"weights": None if weights is None else str(weights),
@@ -224,7 +216,7 @@ class LearnedDetector:
         if params.device == "cuda" and not torch.cuda.is_available():
             raise ValueError("learned detector device='cuda' but torch sees no CUDA device")
         #: CPU threads of the network (torch, process-wide) and of intermediate fusion.
-        self.threads = params.threads or min(torch.get_num_threads(), MAX_DEFAULT_THREADS)
+        self.threads = params.threads
         torch.set_num_threads(self.threads)
         path = Path(weights) if weights is not None else shipped_weights_path()
         self.checkpoint = load_checkpoint(path)
