@@ -194,8 +194,9 @@ class LearnedDetector:
     ``torch.set_num_threads`` when the detector is built) and of intermediate fusion's
     compiled pass; None (default): the process's torch thread count, at most
     :data:`MAX_DEFAULT_THREADS` (torch starts with one per physical core; the workers of
-    a sweep set one each, so they do not oversubscribe the cores); gate: intermediate fusion through the weights' learned
-    fusion gate (None: when they hold one; True: they must; False: the plain maximum). The values are checked against
+    a sweep set one each, so they do not oversubscribe the cores); gate: intermediate
+    fusion through the weights' learned fusion gate (None: when they hold one; True: they
+    must; False: the plain maximum). The values are checked against
     :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
     region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
     that is scored (the scenario's evaluation range). With it, an agent's raster is the
@@ -205,7 +206,11 @@ class LearnedDetector:
     models read their dataset's whole perception range. Without it every raster is the
     trained grid. Agents with the same raster go through the network in one batch.
     Threads pay off on an idle CPU and lose several times over on one busy with other
-    jobs (measured in ``docs/perception.md``): set ``threads=1`` there.
+    jobs (measured in ``docs/perception.md``): set ``threads=1`` there. The network's
+    outputs differ between thread counts at float32 rounding (the fused maps do not),
+    so results repeat bit for bit on the same count. In a forked process (a sweep's
+    worker) leave threads at None: torch's threads do not survive a fork, and more than
+    one hangs there once the parent has run torch on more than one.
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
