@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -77,11 +80,40 @@ def test_the_compiled_fusion_gives_the_same_maps_on_any_thread_count(gated):
     assert one.abs().sum() > 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("threads", [0, -1, 1.5, True, None])
-def test_the_fusion_thread_count_is_checked(threads):
+def test_the_fusion_thread_count_is_checked(threads, dtype):
+    """On every path: the compiled pass and grid_sample (float64) alike."""
     features, poses = _maps_and_poses()
     with pytest.raises(ValueError, match="threads must be an integer >= 1"):
-        fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, GRID, None, threads)
+        fuse_on_canvas(features.to(dtype), range(5), COLLABORATORS, poses, GRID, GRID, None,
+                       threads)
+
+
+def _fuse_in_forked_child(features, poses, canvas, expected) -> None:
+    """A sweep worker's situation: forked after the parent fused in threads."""
+    torch.set_num_threads(1)  # as the sweep's workers do (torch's threads do not survive a fork)
+    with torch.no_grad():
+        fused = fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, canvas, None, 2)
+    os._exit(0 if torch.equal(fused, expected) else 3)
+
+
+def test_a_forked_child_fuses_in_threads_after_its_parent_did():
+    """The parent's fusion threads do not exist in a forked child: it must start its own
+    instead of queueing the bands on the parent's pool and waiting forever."""
+    features, poses = _maps_and_poses()
+    canvas, _ = fusion_canvas(GRID, (-140.8, 140.8), (-40.0, 40.0))
+    with torch.no_grad():
+        expected = fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, canvas, None, 2)
+    child = multiprocessing.get_context("fork").Process(
+        target=_fuse_in_forked_child, args=(features, poses, canvas, expected))
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail("the forked child hung in the threaded fusion")
+    assert child.exitcode == 0
 
 
 @pytest.mark.parametrize("bias, expected", [(30.0, "max"), (-30.0, "own")])

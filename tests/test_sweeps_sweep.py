@@ -10,7 +10,9 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
+from roco_env.sweeps.backends import run_local
 from roco_env.sweeps.grid import Cell, build_grid
 from roco_env.sweeps.records import WALL_TIME_FIELDS
 from roco_env.sweeps.store import ResultStore
@@ -81,6 +83,25 @@ def test_failing_cells_are_recorded_and_the_rest_finish(tmp_path):
     assert status[bad_policy.key]["error"].startswith("ValueError: policy 'oracle' takes no ")
     assert all(status[c.key]["status"] == "ok" for c in good)
     assert all(status[c.key]["metrics"]["frames"] > 0 for c in good)
+
+
+def _torch_threads(cell: Cell) -> dict:
+    return {"threads": torch.get_num_threads()}
+
+
+def test_cells_run_in_this_process_get_one_torch_thread_as_the_pool_workers_do():
+    """The learned detector's default threads follow torch's count, and its network rounds
+    differently on another thread count: workers=1 must not give other records."""
+    cells = build_grid([SCENARIO], [0.4], ["identity"], [0, 1], 2)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for workers in (1, 2):
+            records = [r for _, r in run_local(cells, _torch_threads, workers=workers)]
+            assert [r["threads"] for r in records] == [1, 1], workers
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_ray_and_local_backends_give_identical_records(tmp_path):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -76,6 +77,8 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     in :func:`fuse_maps`; threads: CPU threads of the compiled pass, each on a band of
     canvas rows (the result does not depend on it).
     """
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1; got {threads!r}")
     canvas = canvas or grid
     own, rows, poses = _own_on_canvas(features, egos, collaborators, poses, grid, canvas)
     if not rows:
@@ -119,17 +122,24 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
 
 
 def _row_bands(rows: int, threads: int) -> list[np.ndarray]:
-    """``rows`` canvas rows split into at most ``threads`` contiguous (start, stop) bands."""
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads must be an integer >= 1; got {threads!r}")
+    """``rows`` canvas rows split into at most ``threads`` (>= 1) contiguous (start, stop)
+    bands."""
     edges = np.linspace(0, rows, min(threads, rows) + 1).round().astype(np.int64)
     return [edges[b:b + 2].copy() for b in range(len(edges) - 1)]
 
 
 @functools.cache
 def _band_pool(threads: int) -> ThreadPoolExecutor:
-    """One pool per thread count, kept for the process (threads idle between steps)."""
+    """One pool per thread count, kept for the process (threads idle between steps).
+
+    A forked child (a sweep's worker) starts without them: the pools are forgotten
+    there (below), or its first multi-thread fusion would queue bands on a pool whose
+    threads do not exist in it, and wait forever.
+    """
     return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="roco-fusion")
+
+
+os.register_at_fork(after_in_child=_band_pool.cache_clear)
 
 
 def _own_on_canvas(features: torch.Tensor, egos: Sequence[int],

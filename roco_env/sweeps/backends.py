@@ -64,17 +64,27 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
 def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None) -> Results:
     """Run cells in a process pool of ``workers`` processes (default: all cores).
 
-    ``workers=1`` runs in this process (no pool): the 1-process reference for speedups.
+    ``workers=1`` runs in this process (no pool): the 1-process reference for speedups,
+    with torch at one thread as in the pool's workers (restored after).
     """
     workers = workers or default_workers()
     if workers == 1:
-        for cell in cells:
-            start = time.perf_counter()
-            try:
-                record = cell_fn(cell)
-            except Exception as exc:  # noqa: BLE001 - same contract as the pool below
-                record = error_record(cell, exc, time.perf_counter() - start)
-            yield cell, record
+        # One torch thread, as in the pool's workers: torch's results can round
+        # differently on other thread counts (the learned detector's network does).
+        import torch
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for cell in cells:
+                start = time.perf_counter()
+                try:
+                    record = cell_fn(cell)
+                except Exception as exc:  # noqa: BLE001 - same contract as the pool below
+                    record = error_record(cell, exc, time.perf_counter() - start)
+                yield cell, record
+        finally:
+            torch.set_num_threads(threads)
         return
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker)
     try:

@@ -184,8 +184,9 @@ class LearnedDetector:
     ``"cpu"`` or ``"cuda"``; score_threshold: minimum heatmap score of a decoded box;
     threads: CPU threads of the network (torch's intra-op count, set process-wide with
     ``torch.set_num_threads`` when the detector is built) and of intermediate fusion's
-    compiled pass; gate: intermediate fusion through the weights' learned
-    fusion gate (None: when they hold one; True: they must; False: the plain maximum). The values are checked against
+    compiled pass; gate: intermediate fusion through the weights' learned fusion gate
+    (None: when they hold one; True: they must; False: the plain maximum). The values are
+    checked against
     :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
     region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
     that is scored (the scenario's evaluation range). With it, an agent's raster is the
@@ -195,9 +196,12 @@ class LearnedDetector:
     models read their dataset's whole perception range. Without it every raster is the
     trained grid. Agents with the same raster go through the network in one batch.
     The default, one thread, is the safe choice: more threads pay off only on an idle
-    CPU (2 threads: 1.5x the steps per second of learned + intermediate fusion on an idle
+    CPU (2 threads: 1.4x the steps per second of learned + intermediate fusion on an idle
     2-core machine) and lose several times over on one busy with other jobs (6x slower
-    than one thread; measured in ``docs/perception.md``).
+    than one thread; measured in ``docs/perception.md``). The network's outputs differ
+    between thread counts at float32 rounding (the fused maps do not), so results repeat
+    bit for bit on the same count. In a forked process (a sweep's local workers) keep one
+    thread: more hang in torch there once the parent has run torch on more than one.
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
