@@ -78,11 +78,11 @@ def run(quick: bool) -> list[str]:
         "learned + intermediate": _steps_per_second(steps, repeats, detector="learned",
                                                     fusion="intermediate"),
     }
-    if cores > 1:  # last: the detector sets torch's thread count process-wide
+    if cores > 1:
         rates[f"learned + intermediate, {cores} threads"] = _steps_per_second(
             steps, repeats, detector="learned", fusion="intermediate",
             **{"detector.params": {"threads": cores}})
-        torch.set_num_threads(process_threads)
+    torch.set_num_threads(process_threads)  # every detector set it process-wide
     for name, rate in rates.items():
         target = f"; target >= {TARGET_STEPS_PER_S:.0f}" if name.startswith("learned + int") else ""
         lines.append(f"env steps/s, {name}: " + ", ".join(

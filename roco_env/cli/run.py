@@ -51,7 +51,6 @@ def _line(cells: list[str] | tuple[str, ...]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     cell = episode_cell(args)
-    played: list[int] = []
 
     # Printed once the env is reset, so that a scene it cannot build says why on its own.
     def header(_scorer: object) -> None:
@@ -60,12 +59,11 @@ def run(args: argparse.Namespace) -> int:
         print(_line(COLUMNS), flush=True)
 
     def on_step(step: int, env, actions: dict, infos: dict) -> None:
-        played.append(step)
         print(_line(step_row(step, actions, infos)), flush=True)
 
     metrics, _ = run_episode(cell, on_step=on_step, on_scorer=header)
-    if len(played) < cell.steps:
-        print(f"the episode ended after {len(played)} of {cell.steps} steps: the scenario's "
+    if metrics["steps"] < cell.steps:
+        print(f"the episode ended after {metrics['steps']} of {cell.steps} steps: the scenario's "
               "frames ran out (a replay or user frames end at their last frame)")
     print(f"dataset AP@0.3 {_fmt(100 * metrics['ap30'], 1)}  AP@0.5 {_fmt(100 * metrics['ap50'], 1)}"
           f"  AP@0.7 {_fmt(100 * metrics['ap70'], 1)} (%)")

@@ -69,10 +69,10 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
           w_in, b_in, w_out, b_out, gated):  # pragma: no cover
     """The loop of both kernels (their arguments); ``gated`` turns the gate on.
 
-    With the gate, one canvas row of one map at a time: the cells the map reaches and
-    could lift are sampled first, then the gate runs on all of them at once (its inner
-    loops over the cells, which the compiler vectorises), then their weighted values are
-    maxed in."""
+    Without the gate each warped cell is maxed in as it is sampled. With it, one canvas
+    row of one map at a time: the cells the map reaches and could lift are sampled first,
+    then the gate runs on all of them at once (its inner loops over the cells, which the
+    compiler vectorises), then their weighted values are maxed in."""
     out_h = canvas.shape[1]
     h, w, n_ch = features.shape[1], features.shape[2], features.shape[3]
     values = np.empty((width, n_ch), dtype=np.float32)  # the row's sampled cells
@@ -105,23 +105,26 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
                 if not _bilinear(src, x_row + x_j * (j + 0.5), y_row + y_j * (j + 0.5), value):
                     continue  # all four neighbours outside the source map: adds zero
                 col = first[k] + j
-                if gated and _nowhere_above(value, mine[i, col]):
-                    continue  # any gate weight (<= 1) leaves the maximum as it is
-                cols[n] = col
-                n += 1
-            if gated and n:
+                if not gated:
+                    _max_into(dst[i, col], value, np.float32(1.0))
+                elif not _nowhere_above(value, mine[i, col]):
+                    # (else any gate weight, <= 1, leaves the maximum as it is)
+                    cols[n] = col
+                    n += 1
+            if n:  # the gated cells of the row, weighed together
                 _gate_cells(mine[i], values, cols, n, w_in, b_in, w_out, b_out, hidden,
                             mine_ch, theirs_ch, difference, weights)
-            for m in range(n):
-                out = dst[i, cols[m]]
-                value = values[m]
-                if gated:
-                    weight = weights[m]
-                    for ch in range(n_ch):
-                        value[ch] *= weight
-                for ch in range(n_ch):
-                    if value[ch] > out[ch]:
-                        out[ch] = value[ch]
+                for m in range(n):
+                    _max_into(dst[i, cols[m]], values[m], weights[m])
+
+
+@njit(cache=True)
+def _max_into(out, value, weight):  # pragma: no cover
+    """out[ch] = max(out[ch], value[ch] * weight) for every channel (value is scaled)."""
+    for ch in range(out.shape[0]):
+        value[ch] *= weight
+        if value[ch] > out[ch]:
+            out[ch] = value[ch]
 
 
 @njit(cache=True)

@@ -699,6 +699,6 @@ class RoCoPolicy(ArrayAlignmentPolicy):
             return super().align_view(view, observation, info)
         keys = collaborator_keys(info, view.slots)
         waived = [j for j, key in enumerate(keys) if self.pooled.waived(key)]
-        result = roco_align(*view.arrays, waived=waived, **self._kwargs)
+        result = self._align(*view.arrays, waived=waived, **self._kwargs)
         self.pooled.record(keys, result.slot_statistics)
         return result

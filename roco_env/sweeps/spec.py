@@ -118,9 +118,7 @@ def validate_policy_spec(text: str) -> PolicySpec:
     spec = parse_policy_spec(text)
     try:
         policy = spec.build()
-    except TypeError as exc:  # unknown keyword argument of the policy's constructor
-        raise ValueError(f"policy spec {text!r}: {exc}") from exc
-    except ValueError as exc:
+    except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
     if not callable(policy):
         raise ValueError(f"policy spec {text!r}: {spec.name}() returned {policy!r}, not a "
