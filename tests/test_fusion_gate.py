@@ -195,3 +195,20 @@ def test_a_gate_for_other_maps_is_refused():
     features, poses = _maps_and_poses(channels=8)
     with torch.no_grad(), pytest.raises(ValueError, match="reads 6 channels; the maps have 8"):
         fuse_on_canvas(features, range(5), COLLABORATORS, poses, GRID, gate=_gate(6))
+
+
+@pytest.mark.parametrize("gated", [False, True])
+def test_maps_moved_off_the_canvas_leave_the_egos_own(gated):
+    """A correction can move every collaborator's map past the canvas (a policy's action is
+    applied as given): fusion then keeps each ego's own map, on the compiled pass and the
+    training path alike (it once failed building a one-column window)."""
+    features, poses = _maps_and_poses()
+    canvas, pads = fusion_canvas(GRID, (-140.8, 140.8), (-40.0, 40.0))
+    far = [np.column_stack([np.full(len(p), 400.0), p[:, 1:]]) for p in poses]
+    gate = _gate(8) if gated else None
+    with torch.no_grad():
+        run_time = fuse_on_canvas(features, range(5), COLLABORATORS, far, GRID, canvas, gate)
+        training = fuse_maps(features, range(5), COLLABORATORS, far, GRID, canvas, gate)
+    own = torch.nn.functional.pad(features, pads)
+    torch.testing.assert_close(run_time, own)
+    torch.testing.assert_close(training, own)

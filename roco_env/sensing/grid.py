@@ -47,8 +47,9 @@ class BevGrid:
         for name in ("x_range", "y_range"):
             value = getattr(self, name)
             bounds = tuple(_as_float(v) for v in value) if np.ndim(value) == 1 else ()
+            # at least one cell, up to float rounding of a span built as min + k * res
             if not (len(bounds) == 2 and all(map(math.isfinite, bounds))
-                    and bounds[1] - bounds[0] >= resolution):
+                    and bounds[1] - bounds[0] >= resolution * (1.0 - 1e-9)):
                 raise ValueError(
                     f"BevGrid.{name} must be (min, max) finite with max - min >= resolution "
                     f"({resolution} m); got {value!r}"
