@@ -104,6 +104,38 @@ def test_cells_run_in_this_process_get_one_torch_thread_as_the_pool_workers_do()
         torch.set_num_threads(before)
 
 
+HANG_SCRIPT = """
+import torch
+from roco_env.sweeps.backends import run_local
+from roco_env.sweeps.grid import Cell
+
+def cell_fn(cell):
+    torch.set_num_threads(2)
+    return {"sum": float((torch.rand(1_000_000) * 2.0).sin().sum())}
+
+if __name__ == "__main__":
+    torch.set_num_threads(2)
+    (torch.rand(1_000_000) * 2.0).sin().sum()  # the parent runs torch on two threads
+    cells = [Cell("urban_intersection", 0.0, "identity", s, 1) for s in range(2)]
+    print(len([r for _, r in run_local(cells, cell_fn, workers=2)]))
+"""
+
+
+def test_pool_workers_may_use_torch_threads_after_the_parent_did(tmp_path):
+    """Local workers do not inherit the parent's OpenMP state: a worker forked from a
+    parent that ran torch on two threads hung on its first two-thread operation (the
+    pool now starts its workers from a fork server)."""
+    script = tmp_path / "threads_after_parent.py"
+    script.write_text(HANG_SCRIPT)
+    try:
+        done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                              timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("a pool worker hung in torch's threads")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "2"
+
+
 def test_ray_and_local_backends_give_identical_records(tmp_path):
     pytest.importorskip("ray")
     cells = build_grid([SCENARIO], [0.4], ["identity", "oracle"], [0, 1], 2, overrides=TINY)
@@ -150,8 +182,11 @@ def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, 
     try:
         deadline = time.monotonic() + 60
         workers: set[int] = set()
+        helpers: set[int] = set()
         while time.monotonic() < deadline and process.poll() is None and len(workers) < 2:
-            workers = _children(process.pid)
+            # the pool's workers are the children of its fork server, a child of the sweep
+            helpers = _children(process.pid)
+            workers = {pid for helper in helpers for pid in _children(helper)}
             time.sleep(0.05)
         assert len(workers) == 2, process.stderr.read() if process.poll() is not None else ""
         process.send_signal(sig)  # the parent only, as `kill <pid>` does
@@ -163,12 +198,12 @@ def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, 
     lines = [line for line in stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and f"stopped by {sig.name}" in lines[0], stderr
     deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+    while time.monotonic() < deadline and any(_alive(w) for w in workers | helpers):
         time.sleep(0.05)
-    orphans = [w for w in workers if _alive(w)]
+    orphans = [w for w in workers | helpers if _alive(w)]
     for pid in orphans:  # leave nothing behind even when the check fails
         os.kill(pid, signal.SIGKILL)
-    assert not orphans, "pool workers outlived the sweep"
+    assert not orphans, "pool workers or their fork server outlived the sweep"
     written = len(_lines(out / "results.jsonl"))
     finished = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert finished.returncode == 0, finished.stderr

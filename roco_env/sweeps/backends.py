@@ -14,6 +14,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Iterator, Sequence
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from roco_env.sweeps.grid import Cell
@@ -36,7 +37,7 @@ def _single_thread_worker() -> None:
 
     Workers ignore SIGINT: Ctrl-C reaches the whole process group, and the parent
     alone decides (it stops the workers, see :func:`_stop_workers`). SIGTERM gets its
-    default action back (a forked worker inherits the sweep's handler).
+    default action back.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
@@ -49,8 +50,8 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Kill the pool's worker processes now (a stopped sweep must not leave them).
 
     ``shutdown`` would wait for the running cells. SIGKILL, not SIGTERM: a worker
-    still starting has the parent's SIGTERM handler, and workers hold nothing to
-    save (the parent writes the records). ``kill_workers`` only exists from Python
+    still starting has not yet restored SIGTERM's default action, and workers hold
+    nothing to save (the parent writes the records). ``kill_workers`` only exists from Python
     3.14, so older versions kill the pool's processes directly.
     """
     kill = getattr(pool, "kill_workers", None)
@@ -66,6 +67,12 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
 
     ``workers=1`` runs in this process (no pool): the 1-process reference for speedups,
     with torch at one thread as in the pool's workers (restored after).
+
+    The pool's workers start from a fork server, not from this process: a worker forked
+    from a process that has run torch on several threads inherits a dead OpenMP pool and
+    hangs on its first multi-threaded operation (``detector.params.threads`` > 1). So
+    ``cells`` and ``cell_fn`` must pickle by reference (module-level functions), and a
+    script that runs a sweep needs the ``if __name__ == "__main__":`` guard.
     """
     workers = workers or default_workers()
     if workers == 1:
@@ -86,7 +93,8 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
         finally:
             torch.set_num_threads(threads)
         return
-    pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker)
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
+                               mp_context=multiprocessing.get_context("forkserver"))
     try:
         futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
         for future in as_completed(futures):
