@@ -132,6 +132,9 @@ class CollabPerceptionEnv(ParallelEnv):
     covering the evaluation range and decodes the fused map
     (:mod:`roco_env.fusion.intermediate`); AP and reward then come from those decoded
     boxes (the ego's own footprint kept clear the same way). docs/perception.md.
+    ``fusion="none"`` keeps the ego's own boxes alone, scored against the same ground
+    truth (the objects its collaboration sees): the "no fusion" reference row of
+    collaborative-perception tables, which no policy's action changes.
 
     ## State
 
@@ -404,12 +407,15 @@ class CollabPerceptionEnv(ParallelEnv):
                     [frame.views[k].collaborators for k in egos],
                     [corrected[self.possible_agents[k]] for k in egos],
                     self.config.evaluation.x_range, self.config.evaluation.y_range)
-            else:
+            elif self.config.fusion.method == "late":
                 merged = merge_many([
                     (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
                      frame.views[k].collab_scores, corrected[self.possible_agents[k]])
                     for k in egos
                 ])
+            else:  # "none": the ego's own boxes, scored against the collaboration's truth
+                merged = merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (),
+                                      np.zeros((0, 3))) for k in egos])
             fused = suppress(merged, self.config.fusion.nms_iou,
                              [frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))

@@ -208,9 +208,10 @@ class DetectorConfig:
 
 @dataclass
 class FusionConfig:
-    method: str = _spec("late", choices=("late", "intermediate"),
+    method: str = _spec("late", choices=("late", "intermediate", "none"),
                         doc="intermediate decodes fused BEV feature maps: needs detector.preset "
-                        "learned")
+                        "learned; none scores the ego's own boxes alone (the no-fusion "
+                        "reference)")
     nms_iou: float = _spec(0.15, low=0.0, high=1.0, doc="BEV IoU threshold of late-fusion NMS")
 
 

@@ -228,3 +228,20 @@ def test_bring_your_own_frames():
     np.testing.assert_allclose(obs["cav_1"]["pose"], [12.0, 0.0, 0.0], atol=1e-6)
     _, rewards, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
     assert infos["cav_0"]["n_gt"] == 3 and rewards["cav_0"] == 1.0
+
+
+def test_no_fusion_scores_the_egos_own_boxes_against_the_collaborations_truth():
+    """fusion='none': no action changes the scores (no collaborator box is fused), the
+    ground truth is late fusion's (the objects the collaboration sees), and late fusion
+    with clean poses scores above it (it adds what only collaborators see)."""
+    def frames(policy, fusion, sigma):
+        _, steps = run_episode(policy, 6, fusion=fusion, sigma_t=sigma, sigma_r=sigma)
+        return [(info["ap70"], info["n_gt"]) for _, _, infos in steps
+                for info in infos.values()]
+
+    alone = frames("identity", "none", 0.8)
+    assert frames("oracle", "none", 0.8) == alone
+    late = frames("oracle", "late", 0.8)
+    assert [n for _, n in late] == [n for _, n in alone]
+    defined = [(a, b) for (a, _), (b, _) in zip(alone, late, strict=True) if a != UNDEFINED]
+    assert np.mean([b for _, b in defined]) > np.mean([a for a, _ in defined]) + 0.05
