@@ -371,6 +371,7 @@ def scenario_file_name(path: str | os.PathLike, who: str) -> Path:
 def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> ScenarioConfig:
     """Return a copy of ``config`` with dotted-name or alias overrides applied and validated."""
     data = scenario_to_dict(config)
+    base_density = config.traffic.density
     fields: dict[str, str] = {}  # override key -> the dotted field it sets
     for key, value in overrides.items():
         dotted = ALIASES.get(key, key)
@@ -392,7 +393,8 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
         node[parts[-1]] = value
     config = _build_scenario(data, where="override")
     traffic = config.traffic
-    if "traffic.density" in fields.values() \
+    # the scene's own value is no change (a sweep may pass every scene its density)
+    if "traffic.density" in fields.values() and traffic.density != base_density \
             and traffic.layout not in DENSITY_LAYOUTS.get(traffic.source, ()):
         scene = f" with layout {traffic.layout!r}" if traffic.source in DENSITY_LAYOUTS else ""
         raise ScenarioError(

@@ -78,13 +78,20 @@ def test_two_overrides_of_one_field_are_refused(overrides, fragment):
     ("opv2v_replay", {"density": 2.0}, "traffic.source='opv2v'"),
     ("urban_intersection", {"traffic.source": "frames", "traffic.density": 2.0},
      "traffic.source='frames'"),
-    ("highway_env_merge", {"density": 2.0}, "traffic.source='highway_env' with layout 'merge'"),
+    ("highway_env_merge", {"density": 2.5}, "traffic.source='highway_env' with layout 'merge'"),
 ])
 def test_a_density_the_traffic_does_not_read_is_refused(scenario, overrides, fragment):
     """A crowding sweep over it would report identical scenes under different densities."""
     with pytest.raises(ScenarioError, match=re.escape(f"override: traffic.density has no effect "
                                                       f"with {fragment}")):
         load_scenario(scenario, **overrides)
+
+
+@pytest.mark.parametrize("scenario", ["opv2v_replay", "highway_env_merge"])
+def test_a_scenes_own_density_is_no_change_and_is_taken(scenario):
+    """A sweep may pass every scene its density: the scene's own value changes nothing."""
+    own = load_scenario(scenario)
+    assert load_scenario(scenario, density=own.traffic.density) == own
 
 
 def test_a_density_the_traffic_reads_is_taken():
