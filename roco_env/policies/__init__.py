@@ -92,6 +92,12 @@ def register_policy(name: str, target: str) -> None:
     _REGISTRY[name] = target
 
 
+def registered_policies() -> dict[str, str]:
+    """The built-in and ``register_policy`` names with their ``"module:factory"`` targets
+    (installed packages' entry points left out: every process finds those itself)."""
+    return dict(_REGISTRY)
+
+
 def make_policy(name: str, **params: Any) -> Callable:
     """Build the policy registered as ``name``, or imported from ``module:factory``."""
     registry = _registry()
@@ -129,5 +135,6 @@ __all__ = [
     "is_import_target",
     "make_policy",
     "register_policy",
+    "registered_policies",
     "reported_relative_poses",
 ]

@@ -10,13 +10,14 @@ killed, a result that cannot be shipped back) that cell gets an error record.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import time
 from collections.abc import Callable, Iterator, Sequence
-import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
+from roco_env.policies import register_policy, registered_policies
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record
 
@@ -32,8 +33,10 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _single_thread_worker() -> None:
-    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2.
+def _single_thread_worker(policies: dict[str, str]) -> None:
+    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2,
+    and the parent's policy registry (names added by ``register_policy`` in the sweep's
+    process, which a worker started from the fork server would not otherwise know).
 
     Workers ignore SIGINT: Ctrl-C reaches the whole process group, and the parent
     alone decides (it stops the workers, see :func:`_stop_workers`). SIGTERM gets its
@@ -44,6 +47,8 @@ def _single_thread_worker() -> None:
     import torch
 
     torch.set_num_threads(1)
+    for name, target in policies.items():
+        register_policy(name, target)
 
 
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
@@ -72,7 +77,8 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
     from a process that has run torch on several threads inherits a dead OpenMP pool and
     hangs on its first multi-threaded operation (``detector.params.threads`` > 1). So
     ``cells`` and ``cell_fn`` must pickle by reference (module-level functions), and a
-    script that runs a sweep needs the ``if __name__ == "__main__":`` guard.
+    script that runs a sweep needs the ``if __name__ == "__main__":`` guard. Policies
+    registered in this process are registered in every worker.
     """
     workers = workers or default_workers()
     if workers == 1:
@@ -94,6 +100,7 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
             torch.set_num_threads(threads)
         return
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
+                               initargs=(registered_policies(),),
                                mp_context=multiprocessing.get_context("forkserver"))
     try:
         futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
