@@ -446,8 +446,8 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
         raise ScenarioError(
             f"{where}: detector.params.gate={gate!r} chooses how intermediate fusion fuses the "
             f"feature maps, so it needs fusion.method='intermediate'; got "
-            f"fusion.method={config.fusion.method!r} (for late fusion leave the gate unset, or "
-            f"set detector.params.gate=null)"
+            f"fusion.method={config.fusion.method!r} (with it leave the gate unset, or set "
+            f"detector.params.gate=null)"
         )
     return config
 

@@ -184,10 +184,12 @@ def test_gate_training_inputs_are_checked(tmp_path):
               progress=False)
 
 
+@pytest.mark.parametrize("fusion", ["late", "none"])
 @pytest.mark.parametrize("gate", [True, False])
-def test_a_gate_choice_without_intermediate_fusion_is_refused(gate):
-    with pytest.raises(ValueError, match="needs fusion.method='intermediate'"):
-        roco_env.parallel_env("v2x_crossroad", detector="learned",
+def test_a_gate_choice_without_intermediate_fusion_is_refused(gate, fusion):
+    with pytest.raises(ValueError, match=f"needs fusion.method='intermediate'; got "
+                       f"fusion.method='{fusion}' \\(with it leave the gate unset"):
+        roco_env.parallel_env("v2x_crossroad", detector="learned", fusion=fusion,
                               **{"detector.params.gate": gate})
 
 
