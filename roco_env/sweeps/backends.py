@@ -58,10 +58,10 @@ def _single_thread_worker(policies: dict[str, str]) -> None:
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Kill the pool's worker processes now (a stopped sweep must not leave them).
 
-    ``shutdown`` would wait for the running cells. SIGKILL, not SIGTERM: a worker
-    still starting has not yet restored SIGTERM's default action, and workers hold
-    nothing to save (the parent writes the records). ``kill_workers`` only exists from Python
-    3.14, so older versions kill the pool's processes directly.
+    ``shutdown`` would wait for the running cells. SIGKILL: it stops a worker whatever
+    its handlers (one still starting has not run :func:`_start_worker`), and workers hold
+    nothing to save (the parent writes the records). ``kill_workers`` only exists from
+    Python 3.14, so older versions kill the pool's processes directly.
     """
     kill = getattr(pool, "kill_workers", None)
     if kill is not None:
