@@ -179,16 +179,21 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _stoppable_sweep(out: Path) -> list[str]:
+    """A `roco-env compare` of 8 cells of 10 steps on 2 workers: it must still run when the
+    signal comes (with fewer, a quiet machine finished it first, and the restored default
+    handler ended the process)."""
+    return [str(Path(sys.executable).with_name("roco-env")), "compare", "--scenario",
+            "urban_roundabout", "--policies", "identity", "--noise", "0", "0.4", "--seeds", "4",
+            "--steps", "10", "--workers", "2", "--quiet", "--no-plots", "--out", str(out),
+            "--set", "cavs=2", "--set", "rsus=0"]
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process table from /proc")
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, sig):
     out = tmp_path / "stopped"
-    # 8 cells of 10 steps: the sweep must still run when the signal comes (with fewer, a
-    # quiet machine finished it first, and the restored default handler ended the process)
-    command = [str(Path(sys.executable).with_name("roco-env")), "compare", "--scenario",
-               "urban_roundabout", "--policies", "identity", "--noise", "0", "0.4", "--seeds",
-               "4", "--steps", "10", "--workers", "2", "--quiet", "--no-plots", "--out", str(out),
-               "--set", "cavs=2", "--set", "rsus=0"]
+    command = _stoppable_sweep(out)
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
     try:
@@ -220,3 +225,27 @@ def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, 
     finished = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert finished.returncode == 0, finished.stderr
     assert f"{8 - written} run, {written} resumed" in finished.stdout
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process table from /proc")
+def test_ctrl_c_while_the_fork_server_starts_stops_the_sweep_with_one_line(tmp_path):
+    """Ctrl-C reaches the whole process group, the pool's fork server too: one still
+    importing torch and the cell's module must ignore it, as the workers do, rather than
+    print a KeyboardInterrupt traceback."""
+    process = subprocess.Popen(_stoppable_sweep(tmp_path / "stopped"),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and process.poll() is None \
+                and not _children(process.pid):
+            time.sleep(0.01)
+        time.sleep(0.3)  # the fork server has started and is importing (seconds)
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "stopped by SIGINT" in lines[0], stderr

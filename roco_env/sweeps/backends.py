@@ -11,8 +11,10 @@ killed, a result that cannot be shipped back) that cell gets an error record.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.context
 import os
 import signal
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -28,7 +30,7 @@ CellFn = Callable[[Cell], dict]
 Results = Iterator[tuple[Cell, dict]]
 
 
-# What a worker imports to run a cell: preloaded by the fork server (see run_local).
+# What a worker imports to run a cell: preloaded by the fork server (see _fork_server).
 _WORKER_IMPORTS = ("torch", "roco_env.sweeps.episode")
 
 
@@ -71,6 +73,43 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
         process.kill()
 
 
+def _ready() -> None:
+    """A process that does nothing: once it has run, the fork server serves."""
+
+
+def _fork_server() -> multiprocessing.context.BaseContext:
+    """The fork-server context, its server started (once a process) importing once what
+    every worker needs, so that each worker starts as a fork of it: on this 2-core machine
+    a pool of two took ~6 s to start without the preload, ~4 s for a process's first pool
+    with it and ~0.05 s for every later one. Importing torch starts no threads, so the
+    workers inherit no OpenMP pool.
+
+    Ctrl-C reaches the whole process group. From the main thread the server starts with
+    SIGINT ignored (which survives its exec and passes to the workers): one still
+    importing, for seconds, would print a KeyboardInterrupt traceback and die. Returns
+    once the server serves: a sweep stopped while the server imports then has asked it
+    for no worker, which it would fork later to find the pool's queues gone (another
+    traceback).
+    """
+    from multiprocessing import forkserver  # POSIX only, as the context
+
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["__main__", *_WORKER_IMPORTS])
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is None or threading.current_thread() is not threading.main_thread():
+        forkserver.ensure_running()  # a handler set outside Python cannot be restored
+    else:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            forkserver.ensure_running()
+        finally:
+            signal.signal(signal.SIGINT, handler)
+    process = context.Process(target=_ready)
+    process.start()
+    process.join()
+    return context
+
+
 def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None) -> Results:
     """Run cells in a process pool of ``workers`` processes (default: all cores).
 
@@ -103,14 +142,8 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
         finally:
             torch.set_num_threads(threads)
         return
-    context = multiprocessing.get_context("forkserver")
-    # The server imports once what every worker needs (importing torch starts no
-    # threads) and each worker starts as a fork of it: on this 2-core machine a pool of
-    # two took ~6 s to start without the preload, ~4 s for a process's first pool with
-    # it and ~0.05 s for every later one.
-    context.set_forkserver_preload(["__main__", *_WORKER_IMPORTS])
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
-                               initargs=(registered_policies(),), mp_context=context)
+                               initargs=(registered_policies(),), mp_context=_fork_server())
     try:
         futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
         for future in as_completed(futures):
