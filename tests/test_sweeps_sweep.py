@@ -148,6 +148,28 @@ def test_pool_workers_know_the_policies_registered_in_the_sweeps_process(tmp_pat
     assert [r["status"] for r in outcome.records] == ["ok", "ok"], outcome.records
 
 
+def test_without_a_fork_server_the_pool_spawns_its_workers(tmp_path, monkeypatch):
+    """Windows has no fork server: the workers start as fresh interpreters there, with the
+    same records."""
+    import multiprocessing
+
+    cells = build_grid([SCENARIO], [0.4], ["identity"], [0, 1], 2, overrides=TINY)
+    served = run_sweep(cells, tmp_path / "served.jsonl", workers=2, progress=False)
+    asked: list[str] = []
+    get_context = multiprocessing.get_context
+
+    def recording(method=None):
+        asked.append(method)
+        return get_context(method)
+
+    monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["spawn"])
+    monkeypatch.setattr(multiprocessing, "get_context", recording)
+    spawned = run_sweep(cells, tmp_path / "spawned.jsonl", workers=2, progress=False)
+    assert asked == ["spawn"]
+    assert all(r["status"] == "ok" for r in spawned.records)
+    assert _strip(spawned.records) == _strip(served.records)
+
+
 def test_ray_and_local_backends_give_identical_records(tmp_path):
     pytest.importorskip("ray")
     cells = build_grid([SCENARIO], [0.4], ["identity", "oracle"], [0, 1], 2, overrides=TINY)

@@ -77,6 +77,14 @@ def _ready() -> None:
     """A process that does nothing: once it has run, the fork server serves."""
 
 
+def _worker_context() -> multiprocessing.context.BaseContext:
+    """Where the pool's workers start: the fork server (:func:`_fork_server`), or fresh
+    interpreters (``spawn``) on a platform without one (Windows)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    return _fork_server()
+
+
 def _fork_server() -> multiprocessing.context.BaseContext:
     """The fork-server context, its server started (once a process) importing once what
     every worker needs, so that each worker starts as a fork of it: on this 2-core machine
@@ -143,7 +151,7 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
             torch.set_num_threads(threads)
         return
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
-                               initargs=(registered_policies(),), mp_context=_fork_server())
+                               initargs=(registered_policies(),), mp_context=_worker_context())
     try:
         futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
         for future in as_completed(futures):
