@@ -136,15 +136,20 @@ def test_pool_workers_may_use_torch_threads_after_the_parent_did(tmp_path):
     assert done.stdout.strip() == "2"
 
 
-def test_pool_workers_know_the_policies_registered_in_the_sweeps_process(tmp_path, monkeypatch):
-    """Workers start from a fork server, not as copies of this process: the registry
-    is handed to them."""
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_workers_know_the_policies_registered_in_the_sweeps_process(tmp_path, monkeypatch,
+                                                                    backend):
+    """Local workers start from a fork server and Ray's are its own processes, not copies
+    of this one: the registry is handed to them."""
+    if backend == "ray":
+        pytest.importorskip("ray")
     import roco_env.policies as policies
 
     monkeypatch.setattr(policies, "_REGISTRY", dict(policies._REGISTRY))
     policies.register_policy("registered_here", "roco_env.policies.basic:IdentityPolicy")
     cells = build_grid([SCENARIO], [0.4], ["registered_here"], [0, 1], 2, overrides=TINY)
-    outcome = run_sweep(cells, tmp_path / "r.jsonl", workers=2, progress=False)
+    outcome = run_sweep(cells, tmp_path / "r.jsonl", backend=backend, workers=2,
+                        progress=False)
     assert [r["status"] for r in outcome.records] == ["ok", "ok"], outcome.records
 
 

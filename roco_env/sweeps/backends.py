@@ -39,10 +39,8 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _single_thread_worker(policies: dict[str, str]) -> None:
-    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2,
-    and the parent's policy registry (names added by ``register_policy`` in the sweep's
-    process, which a worker started from the fork server would not otherwise know).
+def _single_thread_worker() -> None:
+    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2.
 
     Workers ignore SIGINT: Ctrl-C reaches the whole process group, and the parent
     alone decides (it stops the workers, see :func:`_stop_workers`). SIGTERM gets its
@@ -53,8 +51,15 @@ def _single_thread_worker(policies: dict[str, str]) -> None:
     import torch
 
     torch.set_num_threads(1)
+
+
+def _run_with_policies(cell_fn: CellFn, policies: dict[str, str], cell: Cell) -> dict:
+    """``cell_fn(cell)`` in a worker that first registers the sweep process's policies
+    (names added there by ``register_policy``: a worker started from the fork server, or
+    by Ray, would not otherwise know them)."""
     for name, target in policies.items():
         register_policy(name, target)
+    return cell_fn(cell)
 
 
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
@@ -129,7 +134,7 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
     hangs on its first multi-threaded operation (``detector.params.threads`` > 1). So
     ``cells`` and ``cell_fn`` must pickle by reference (module-level functions), and a
     script that runs a sweep needs the ``if __name__ == "__main__":`` guard. Policies
-    registered in this process are registered in every worker.
+    registered in this process are registered in every worker before its cells.
     """
     workers = workers or default_workers()
     if workers == 1:
@@ -151,9 +156,11 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
             torch.set_num_threads(threads)
         return
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
-                               initargs=(registered_policies(),), mp_context=_worker_context())
+                               mp_context=_worker_context())
+    policies = registered_policies()
     try:
-        futures = {pool.submit(cell_fn, cell): (cell, time.perf_counter()) for cell in cells}
+        futures = {pool.submit(_run_with_policies, cell_fn, policies, cell):
+                   (cell, time.perf_counter()) for cell in cells}
         for future in as_completed(futures):
             cell, start = futures[future]
             try:
@@ -199,9 +206,10 @@ def run_ray(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None,
         else:
             ray.init(num_cpus=workers or default_workers(), **options)
     try:
-        remote_fn = ray.remote(num_cpus=1)(cell_fn)
+        remote_fn = ray.remote(num_cpus=1)(_run_with_policies)
+        policies = registered_policies()
         start = time.perf_counter()
-        pending = {remote_fn.remote(cell): cell for cell in cells}
+        pending = {remote_fn.remote(cell_fn, policies, cell): cell for cell in cells}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
