@@ -89,6 +89,24 @@ def _torch_threads(cell: Cell) -> dict:
     return {"threads": torch.get_num_threads()}
 
 
+def _pid(cell: Cell) -> dict:
+    time.sleep(0.2)  # long enough for both workers to take cells
+    return {"pid": os.getpid()}
+
+
+def test_a_process_keeps_its_pool_for_later_sweeps_and_drops_a_stopped_ones():
+    """Later sweeps run on the same (warm) workers; a sweep stopped early kills its
+    workers, and the next one starts new ones."""
+    cells = build_grid([SCENARIO], [0.4], ["identity"], [0, 1, 2, 3], 2)
+    first = {r["pid"] for _, r in run_local(cells, _pid, workers=2)}
+    assert {r["pid"] for _, r in run_local(cells, _pid, workers=2)} <= first
+    stopped = run_local(cells, _pid, workers=2)
+    next(stopped)
+    stopped.close()  # the consumer is gone
+    assert all(not _alive(pid) for pid in first)
+    assert not {r["pid"] for _, r in run_local(cells, _pid, workers=2)} & first
+
+
 def test_cells_run_in_this_process_get_one_torch_thread_as_the_pool_workers_do():
     """The learned detector's default threads follow torch's count, and its network rounds
     differently on another thread count: workers=1 must not give other records."""

@@ -132,7 +132,7 @@ def _row_bands(rows: int, threads: int) -> list[np.ndarray]:
 def _band_pool(threads: int) -> ThreadPoolExecutor:
     """One pool per thread count, kept for the process (threads idle between steps).
 
-    A forked child (a sweep's worker) starts without them: the pools are forgotten
+    A forked child (of a user's own ``fork``) starts without them: the pools are forgotten
     there (below), or its first multi-thread fusion would queue bands on a pool whose
     threads do not exist in it, and wait forever.
     """

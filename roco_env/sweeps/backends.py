@@ -14,10 +14,12 @@ import multiprocessing
 import multiprocessing.context
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 
 from roco_env.policies import register_policy, registered_policies
 from roco_env.sweeps.grid import Cell
@@ -39,24 +41,23 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _single_thread_worker() -> None:
-    """Pool initializer: one torch thread per worker so N workers use N cores, not N^2.
-
-    Workers ignore SIGINT: Ctrl-C reaches the whole process group, and the parent
-    alone decides (it stops the workers, see :func:`_stop_workers`). SIGTERM gets its
-    default action back.
-    """
+def _worker_signals() -> None:
+    """Pool initializer: workers ignore SIGINT (Ctrl-C reaches the whole process group,
+    and the parent alone decides: it stops the workers, see :func:`_stop_workers`);
+    SIGTERM gets its default action back."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    import torch
-
-    torch.set_num_threads(1)
 
 
-def _run_with_policies(cell_fn: CellFn, policies: dict[str, str], cell: Cell) -> dict:
-    """``cell_fn(cell)`` in a worker that first registers the sweep process's policies
-    (names added there by ``register_policy``: a worker started from the fork server, or
-    by Ray, would not otherwise know them)."""
+def _run_in_worker(cell_fn: CellFn, policies: dict[str, str], cell: Cell) -> dict:
+    """``cell_fn(cell)`` in a pool or Ray worker, which may have run other sweeps' cells:
+    torch at one thread (N workers use N cores, not N^2, and a cell runs as ``workers=1``
+    runs it; a learned detector then sets its own count), and the sweep process's
+    policies registered (names added there by ``register_policy``, which a worker started
+    from the fork server, or by Ray, would not otherwise know)."""
+    torch = sys.modules.get("torch")  # preloaded in the pool's workers
+    if torch is not None:
+        torch.set_num_threads(1)
     for name, target in policies.items():
         register_policy(name, target)
     return cell_fn(cell)
@@ -66,7 +67,7 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Kill the pool's worker processes now (a stopped sweep must not leave them).
 
     ``shutdown`` would wait for the running cells. SIGKILL: it stops a worker whatever
-    its handlers (one still starting has not run :func:`_start_worker`), and workers hold
+    its handlers (one still starting has not run :func:`_worker_signals`), and workers hold
     nothing to save (the parent writes the records). ``kill_workers`` only exists from
     Python 3.14, so older versions kill the pool's processes directly.
     """
@@ -82,12 +83,37 @@ def _ready() -> None:
     """A process that does nothing: once it has run, the fork server serves."""
 
 
-def _worker_context() -> multiprocessing.context.BaseContext:
+def _start_method() -> str:
     """Where the pool's workers start: the fork server (:func:`_fork_server`), or fresh
     interpreters (``spawn``) on a platform without one (Windows)."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    return _fork_server()
+    return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
+# The process's pools by (workers, start method): kept between sweeps (see _pool).
+_POOLS: dict[tuple[int, str], ProcessPoolExecutor] = {}
+os.register_at_fork(after_in_child=_POOLS.clear)  # a forked child has none of their workers
+
+
+def _pool(workers: int) -> tuple[tuple[int, str], ProcessPoolExecutor]:
+    """This process's pool of ``workers`` workers (and its key), started on first use and
+    kept: a later sweep reuses its workers warm (imports, compiled kernels, caches), where
+    new ones would each spend ~0.5-1 s on their first cell. Dropped when a sweep stops
+    early or a worker dies (:func:`_drop_pool`)."""
+    key = (workers, _start_method())
+    if key not in _POOLS:
+        context = (_fork_server() if key[1] == "forkserver"
+                   else multiprocessing.get_context(key[1]))
+        _POOLS[key] = ProcessPoolExecutor(max_workers=workers,
+                                          initializer=_worker_signals, mp_context=context)
+    return key, _POOLS[key]
+
+
+def _drop_pool(key: tuple[int, str], kill: bool) -> None:
+    """Forget the pool of ``key`` and shut it down, its workers killed first if ``kill``."""
+    pool = _POOLS.pop(key)
+    if kill:
+        _stop_workers(pool)
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _fork_server() -> multiprocessing.context.BaseContext:
@@ -129,7 +155,8 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
     ``workers=1`` runs in this process (no pool): the 1-process reference for speedups,
     with torch at one thread as in the pool's workers (restored after).
 
-    The pool's workers start from a fork server, not from this process: a worker forked
+    The pool is kept for the process's later sweeps of as many workers (:func:`_pool`).
+    Its workers start from a fork server, not from this process: a worker forked
     from a process that has run torch on several threads inherits a dead OpenMP pool and
     hangs on its first multi-threaded operation (``detector.params.threads`` > 1). So
     ``cells`` and ``cell_fn`` must pickle by reference (module-level functions), and a
@@ -155,24 +182,25 @@ def run_local(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None
         finally:
             torch.set_num_threads(threads)
         return
-    pool = ProcessPoolExecutor(max_workers=workers, initializer=_single_thread_worker,
-                               mp_context=_worker_context())
+    key, pool = _pool(workers)
     policies = registered_policies()
+    broken = False
     try:
-        futures = {pool.submit(_run_with_policies, cell_fn, policies, cell):
+        futures = {pool.submit(_run_in_worker, cell_fn, policies, cell):
                    (cell, time.perf_counter()) for cell in cells}
         for future in as_completed(futures):
             cell, start = futures[future]
             try:
                 record = future.result()
             except Exception as exc:  # noqa: BLE001 - machinery failure, recorded per cell
+                broken |= isinstance(exc, BrokenProcessPool)
                 record = error_record(cell, exc, time.perf_counter() - start)
             yield cell, record
     except BaseException:  # stopped (signal, consumer gone): the workers stop too
-        _stop_workers(pool)
+        _drop_pool(key, kill=True)
         raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    if broken:  # a worker died: the pool takes no more cells
+        _drop_pool(key, kill=False)
 
 
 def _import_ray():
@@ -206,7 +234,7 @@ def run_ray(cells: Sequence[Cell], cell_fn: CellFn, workers: int | None = None,
         else:
             ray.init(num_cpus=workers or default_workers(), **options)
     try:
-        remote_fn = ray.remote(num_cpus=1)(_run_with_policies)
+        remote_fn = ray.remote(num_cpus=1)(_run_in_worker)
         policies = registered_policies()
         start = time.perf_counter()
         pending = {remote_fn.remote(cell_fn, policies, cell): cell for cell in cells}

@@ -200,8 +200,9 @@ class LearnedDetector:
     2-core machine) and lose several times over on one busy with other jobs (6x slower
     than one thread; measured in ``docs/perception.md``). The network's outputs differ
     between thread counts at float32 rounding (the fused maps do not), so results repeat
-    bit for bit on the same count. In a forked process (a sweep's local workers) keep one
-    thread: more hang in torch there once the parent has run torch on more than one.
+    bit for bit on the same count. In a process forked from one that has run torch on
+    more than one thread keep one: more hang in torch there (a sweep's local workers
+    start from a fork server, which runs none).
     The network runs with its batch norms folded into the convolutions, channels-last.
     """
 
