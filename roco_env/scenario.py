@@ -187,6 +187,11 @@ class LearnedDetectorParams:
     gate: bool | None = _spec(None, doc="intermediate fusion through the weights' learned "
                               "fusion gate: None = when they hold one, true = they must, false "
                               "= the plain maximum")
+    box_sigma_xy: float = _spec(0.0, low=0.0, high=10.0,
+                                doc="extra centre std (m, each axis) of the boxes each agent "
+                                "reports and shares; its feature maps are untouched")
+    box_sigma_yaw: float = _spec(0.0, low=0.0, high=3.141592653589793,
+                                 doc="extra heading std (rad) of those boxes")
 
 
 # detector.preset -> the dataclass declaring its detector.params.

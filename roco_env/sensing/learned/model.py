@@ -195,6 +195,13 @@ class LearnedDetector:
     100 m detects out to 100 m with weights trained on a 70.4 m grid, as OpenCOOD-style
     models read their dataset's whole perception range. Without it every raster is the
     trained grid. Agents with the same raster go through the network in one batch.
+    box_sigma_xy (m) / box_sigma_yaw (rad): extra Gaussian noise on the centre (each axis)
+    and heading of every box an agent reports and shares, with its reported uncertainty
+    widened to match (added in quadrature, so it stays calibrated); the feature maps that
+    intermediate fusion decodes are untouched. This is the precision of the boxes the
+    aligners and late fusion work from: 0 (default) keeps the network's own, whose two
+    views of one car differ by a median 0.26 m on ``v2xset_like``; the RoCo paper's
+    Table 1 losses fit 0.3 m / 1.5 deg (docs/perception.md, "Box precision").
     The default, one thread, is the safe choice: more threads pay off only on an idle
     CPU (2 threads: 1.4x the steps per second of learned + intermediate fusion on an idle
     2-core machine) and lose several times over on one busy with other jobs (6x slower
@@ -213,11 +220,12 @@ class LearnedDetector:
 
     def __init__(self, weights: str | Path | None = None, device: str = "cpu",
                  score_threshold: float = SCORE_THRESHOLD, threads: int = 1,
-                 gate: bool | None = None,
+                 gate: bool | None = None, box_sigma_xy: float = 0.0, box_sigma_yaw: float = 0.0,
                  region: tuple[Sequence[float], Sequence[float]] | None = None) -> None:
         params = _checked({"weights": None if weights is None else str(weights),
                            "device": device, "score_threshold": score_threshold,
-                           "threads": threads, "gate": gate})
+                           "threads": threads, "gate": gate, "box_sigma_xy": box_sigma_xy,
+                           "box_sigma_yaw": box_sigma_yaw})
         if params.device == "cuda" and not torch.cuda.is_available():
             raise ValueError("learned detector device='cuda' but torch sees no CUDA device")
         #: CPU threads of the network (torch, process-wide) and of intermediate fusion.
@@ -238,6 +246,9 @@ class LearnedDetector:
         self.feature_grid = feature_grid(self.grid, self.checkpoint.net.stride)
         self.noise = self.checkpoint.noise
         self.score_threshold = params.score_threshold
+        #: Extra box noise (std of x, y in m and of yaw in rad), see the class docstring.
+        self.box_sigma = np.array([params.box_sigma_xy, params.box_sigma_xy,
+                                   params.box_sigma_yaw])
         self.region = None if region is None else _checked_region(region)
 
     def raster_grid(self, sensor_range: float) -> BevGrid:
@@ -306,8 +317,10 @@ class LearnedDetector:
                 decoded[agent] = boxes
             parts.append((rows, features, fgrid))
         maps = parts[0][1] if len(parts) == 1 else _on_one_grid(parts, wide, state.num_agents)
-        return ([self._labelled(state, a, d) for a, d in enumerate(decoded)],
-                EncoderMaps(maps, wide))
+        detections = [self._labelled(state, a, d) for a, d in enumerate(decoded)]
+        if self.box_sigma.any():  # drawn only then: the default stream stays as it was
+            detections = [_blurred(d, self.box_sigma, rng) for d in detections]
+        return detections, EncoderMaps(maps, wide)
 
     def detect(self, state: WorldState, visibility: Visibility,
                rng: np.random.Generator) -> list[AgentDetections]:
@@ -317,6 +330,17 @@ class LearnedDetector:
     def _labelled(self, state: WorldState, agent: int, decoded: Decoded) -> AgentDetections:
         return AgentDetections(decoded.boxes, decoded.uncertainty, decoded.scores,
                                label_boxes(state, agent, decoded.boxes))
+
+
+def _blurred(detections: AgentDetections, sigma: np.ndarray,
+             rng: np.random.Generator) -> AgentDetections:
+    """``detections`` with N(0, sigma) added to each box's (x, y, yaw) and sigma added in
+    quadrature to its reported (sigma_x, sigma_y, sigma_yaw); labels unchanged (they name
+    the object a box detects)."""
+    boxes = detections.boxes.copy()
+    boxes[:, [0, 1, 6]] += rng.standard_normal((boxes.shape[0], 3)) * sigma
+    return AgentDetections(boxes, np.hypot(detections.uncertainty, sigma), detections.scores,
+                           detections.object_ids)
 
 
 def _checked_region(region) -> tuple[tuple[float, float], tuple[float, float]]:
