@@ -7,12 +7,16 @@ import numpy as np
 import pytest
 import torch
 
+from roco_env.env import parallel_env
 from roco_env.scenario import load_scenario
 from roco_env.sensing import compute_visibility
 from roco_env.sensing.learned import LearnedDetector, make_learned_detector
+from roco_env.sensing.lidar import sample_scans
 from roco_env.traffic import make_traffic_source
 
 SIGMA = np.array([0.3, 0.3, 0.05])  # x, y (m), yaw (rad)
+BLURRED = {"detector.params.box_sigma_xy": float(SIGMA[0]),
+           "detector.params.box_sigma_yaw": float(SIGMA[2])}
 
 
 @pytest.fixture(scope="module")
@@ -51,3 +55,56 @@ def test_box_noise_moves_each_box_by_its_sigma_widens_its_uncertainty_and_spares
 def test_a_bad_box_sigma_is_a_clear_error(key, value):
     with pytest.raises(ValueError, match=f"detector.params.{key}"):
         make_learned_detector({key: value})
+
+
+def test_the_default_draws_nothing_beyond_the_scans(crossing):
+    """Default episodes stay bit for bit as they were: perceive's only draws are the scans'."""
+    state, visibility = crossing
+    for detector, extra in ((LearnedDetector(), False),
+                            (LearnedDetector(box_sigma_xy=float(SIGMA[0])), True)):
+        perceived, scans_only = np.random.default_rng(0), np.random.default_rng(0)
+        detector.perceive(state, visibility, perceived)
+        sample_scans(state, visibility, detector.noise, scans_only)
+        assert (perceived.bit_generator.state != scans_only.bit_generator.state) == extra
+
+
+def _first_step(fusion: str, **overrides):
+    """Reset observations, reset infos and first-step infos of a learned v2xset_like episode
+    in which every agent keeps its reported poses."""
+    env = parallel_env("v2xset_like", detector="learned", fusion=fusion, **overrides)
+    observations, reset_infos = env.reset(seed=2)
+    for agent, observation in observations.items():
+        assert env.observation_space(agent).contains(observation), agent
+    actions = {a: np.zeros(env.action_space(a).shape, dtype=np.float32) for a in env.agents}
+    return observations, reset_infos, env.step(actions)[4]
+
+
+def test_the_boxes_an_agent_shares_are_the_ones_it_reports_in_its_own_observation():
+    observations, infos, _ = _first_step("intermediate", **BLURRED)
+    default, _, _ = _first_step("intermediate")
+    checked = 0
+    for ego, observation in observations.items():
+        for slot, sender in enumerate(infos[ego]["collaborators"]):
+            own = observations[sender]
+            count = int(own["box_mask"].sum())
+            # One draw per box, sent as drawn: centres (each in the sender's frame) and
+            # widened sigmas alike (headings differ only by the half-turn convention).
+            np.testing.assert_array_equal(observation["collab_boxes"][slot, :count, :2],
+                                          own["boxes"][:count, :2])
+            np.testing.assert_array_equal(observation["collab_uncertainty"][slot, :count],
+                                          own["uncertainty"][:count])
+            checked += count
+        assert not np.array_equal(observation["boxes"], default[ego]["boxes"])
+    assert checked > 0
+
+
+@pytest.mark.parametrize("fusion, boxes_change", [("intermediate", False), ("late", True),
+                                                  ("none", True)])
+def test_only_fusions_of_boxes_see_the_box_noise(fusion, boxes_change):
+    """Intermediate fusion decodes the untouched maps (the step's scans are drawn first);
+    late fusion merges the shared boxes and no fusion keeps the ego's own, both blurred."""
+    _, _, plain = _first_step(fusion)
+    _, _, blurred = _first_step(fusion, **BLURRED)
+    same = [np.array_equal(plain[a]["fused_boxes"], blurred[a]["fused_boxes"])
+            for a in plain if "fused_boxes" in plain[a]]
+    assert same and not any(same) if boxes_change else all(same)

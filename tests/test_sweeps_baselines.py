@@ -1,8 +1,10 @@
-"""Baseline experiments: valid grids, printed commands equal to the runner, a smoke run."""
+"""Baseline experiments: valid grids, printed commands equal to the runner and to the ones
+baselines/README.md quotes, a smoke run."""
 
 from __future__ import annotations
 
 import shlex
+from pathlib import Path
 
 import pytest
 
@@ -19,6 +21,14 @@ def test_printed_command_builds_the_same_grid(item):
     args = build_parser().parse_args(words[1:])
     assert [c.key for c in grid_from_args(args)] == [c.key for c in item.cells()]
     validate_grid(item.cells(smoke=True))  # scenarios, overrides and policy specs all valid
+
+
+def test_the_readme_quotes_every_experiments_command():
+    """baselines/README.md quotes the very commands the runner prints, and no others."""
+    readme = (Path(__file__).resolve().parents[1] / "baselines" / "README.md").read_text()
+    quoted = {line.strip() for line in readme.splitlines()
+              if line.startswith("    roco-env compare ")}
+    assert quoted == {item.command("baselines/results") for item in EXPERIMENTS}
 
 
 def test_ablations_cover_the_papers_tables():

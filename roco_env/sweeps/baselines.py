@@ -38,7 +38,9 @@ ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "ro
 PROTOCOL = {"detector": "realistic", "noise.perturb_ego": True}
 LEARNED_INTERMEDIATE = {"detector": "learned", "fusion": "intermediate"}
 PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_fallback", "oracle")
-POOLED_POLICIES = ("coalign", "roco", "roco:pooled_significance=0.9999")
+# RoCo with its significance test pooled over a collaborator's frames.
+ROCO_POOLED = "roco:pooled_significance=0.9999"
+POOLED_POLICIES = ("coalign", "roco", ROCO_POOLED)
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
 # The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
@@ -49,8 +51,9 @@ DETECTOR_NOISE_X15 = {"detector.params.sigma_xy": 0.09, "detector.params.sigma_x
 
 
 def _box_sigma(xy: float) -> dict[str, Scalar]:
-    """Extra noise on the learned boxes every agent shares (not on its feature maps): ``xy`` m
-    on each centre axis and 5 deg per m of it on the heading (rad, 5 digits)."""
+    """Overrides for extra noise on the learned boxes every agent reports and shares (not on
+    its feature maps): ``xy`` m on each centre axis and 5 deg per m of it on the heading
+    (given in rad, 5 digits)."""
     return {"detector.params.box_sigma_xy": xy,
             "detector.params.box_sigma_yaw": round(math.radians(5.0 * xy), 5)}
 
@@ -170,13 +173,13 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("paper_table1_calibrated",
                "Table 1 with the shared boxes' precision calibrated to the paper's losses",
                ("v2xset_like", "dair_like"), PAPER_NOISE,
-               (*PAPER_TABLE1_POLICIES, ROCO_WITHOUT_TEST, POOLED_POLICIES[2]), seeds=2,
+               (*PAPER_TABLE1_POLICIES, ROCO_WITHOUT_TEST, ROCO_POOLED), seeds=2,
                steps=20,
                overrides={**PROTOCOL, **LEARNED_INTERMEDIATE, **CALIBRATED_BOXES}),
     Experiment("paper_table1_calibrated_seeds",
                "The same on 6 seeds: its losses and the RoCo - CoAlign order at each level",
                ("v2xset_like", "dair_like"), PAPER_NOISE,
-               ("identity", "coalign", "roco", ROCO_WITHOUT_TEST, POOLED_POLICIES[2]), seeds=6,
+               ("identity", "coalign", "roco", ROCO_WITHOUT_TEST, ROCO_POOLED), seeds=6,
                steps=20,
                overrides={**PROTOCOL, **LEARNED_INTERMEDIATE, **CALIBRATED_BOXES}),
     *(Experiment(f"box_sigma_{xy:g}",

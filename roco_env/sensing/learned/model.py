@@ -334,9 +334,12 @@ class LearnedDetector:
 
 def _blurred(detections: AgentDetections, sigma: np.ndarray,
              rng: np.random.Generator) -> AgentDetections:
-    """``detections`` with N(0, sigma) added to each box's (x, y, yaw) and sigma added in
-    quadrature to its reported (sigma_x, sigma_y, sigma_yaw); labels unchanged (they name
-    the object a box detects)."""
+    """One agent's ``detections`` (its true sensor frame) with N(0, sigma) added to each
+    box's centre x, y (m) and heading (rad), sigma = (sigma_x m, sigma_y m, sigma_yaw rad),
+    and sigma added in quadrature to the box's reported (sigma_x, sigma_y, sigma_yaw).
+    Three normals per box from ``rng`` (none for an agent without boxes); z, sizes, scores
+    and labels unchanged (a label names the object a box detects). Headings are left
+    unwrapped: the pipeline puts them in its axial convention when it builds the views."""
     boxes = detections.boxes.copy()
     boxes[:, [0, 1, 6]] += rng.standard_normal((boxes.shape[0], 3)) * sigma
     return AgentDetections(boxes, np.hypot(detections.uncertainty, sigma), detections.scores,
