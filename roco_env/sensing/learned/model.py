@@ -318,8 +318,11 @@ class LearnedDetector:
             parts.append((rows, features, fgrid))
         maps = parts[0][1] if len(parts) == 1 else _on_one_grid(parts, wide, state.num_agents)
         detections = [self._labelled(state, a, d) for a, d in enumerate(decoded)]
-        if self.box_sigma.any():  # drawn only then: the default stream stays as it was
-            detections = [_blurred(d, self.box_sigma, rng) for d in detections]
+        if self.box_sigma.any():
+            # From a child stream (spawning one draws nothing from ``rng``): the scans of
+            # this and every later step are those of the same episode without the noise.
+            (box_rng,) = rng.spawn(1)
+            detections = [_blurred(d, self.box_sigma, box_rng) for d in detections]
         return detections, EncoderMaps(maps, wide)
 
     def detect(self, state: WorldState, visibility: Visibility,
