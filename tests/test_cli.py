@@ -174,17 +174,19 @@ def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
 
 
 def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
+    from roco_env.traffic.export import scenario_folder
     from roco_env.traffic.generate import generate
 
     generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
-    assert main(["run", "--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}",
+    scene = scenario_folder(tmp_path / "scene")
+    assert main(["run", "--scenario", "opv2v_replay", "--set", f"traffic.path={scene}",
                  "--policy", "identity", "--steps", "5"]) == 0
     out = capsys.readouterr().out
     assert "the episode ended after 2 of 5 steps: the scenario's frames ran out" in out
     assert main(["run", "--policy", "identity", "--steps", "2", *TINY]) == 0
     assert "the episode ended" not in capsys.readouterr().out
     for name, steps in (("replay", "5"), ("synthetic", "2")):
-        scenario = ["--scenario", "opv2v_replay", "--set", f"traffic.path={tmp_path / 'scene'}"] \
+        scenario = ["--scenario", "opv2v_replay", "--set", f"traffic.path={scene}"] \
             if name == "replay" else TINY
         assert main(["compare", *scenario, "--policies", "identity", "--noise", "0",
                      "--seeds", "1", "--steps", steps, "--no-plots", "--quiet",

@@ -60,6 +60,12 @@ def write_opv2v(root: Path) -> Path:
     return scenario
 
 
+def exported_scenario(root: Path) -> Path:
+    """The scenario folder of an export (``<root>/<split>/<scenario>``)."""
+    (scenario,) = root.glob("*/*")
+    return scenario
+
+
 def opv2v_config(path, cavs=2, rsus=1):
     return scenario_from_dict({"traffic": {"source": "opv2v", "path": str(path)},
                                "agents": {"cavs": cavs, "rsus": rsus}})
@@ -93,13 +99,33 @@ def test_opv2v_fixture_loads_to_expected_boxes(tmp_path):
 
 def test_rsu_handling(tmp_path):
     scenario = write_opv2v(tmp_path)
-    no_rsu = make_traffic_source(opv2v_config(scenario, rsus=0)).reset(None)
-    assert no_rsu.agent_ids == ("cav_0", "cav_1")
-    assert -1 not in no_rsu.object_ids  # an RSU is never an object
-    with pytest.raises(ReplayError, match="agents.rsus=2"):
-        make_traffic_source(opv2v_config(scenario, rsus=2))
-    one_cav = make_traffic_source(opv2v_config(scenario, cavs=1, rsus=1))
-    assert one_cav.dataset_agent_ids == [641, -1]
+    state = make_traffic_source(opv2v_config(scenario)).reset(None)
+    assert -1 not in state.object_ids  # an RSU is never an object
+    assert make_traffic_source(opv2v_config(scenario)).dataset_agent_ids == [641, 650, -1]
+
+
+@pytest.mark.parametrize("cavs, rsus", [(2, 0), (1, 1), (2, 2), (3, 1)])
+def test_agent_counts_must_match_the_folders(tmp_path, cavs, rsus):
+    with pytest.raises(ReplayError) as info:
+        make_traffic_source(opv2v_config(write_opv2v(tmp_path), cavs=cavs, rsus=rsus))
+    assert (f"holds 2 CAV folders [641, 650] and 1 RSU folders [-1]; agents.cavs={cavs} and "
+            f"agents.rsus={rsus} must equal them: set agents.cavs=2 agents.rsus=1") \
+        in str(info.value)
+
+
+def test_a_4_cav_1_rsu_export_is_not_replayed_with_2_cavs(tmp_path):
+    import roco_env
+
+    config = scenario_from_dict({"traffic": {"layout": "intersection", "length": 100.0,
+                                             "density": 4.0}, "agents": {"cavs": 4, "rsus": 1}})
+    source = make_traffic_source(config)
+    export_opv2v([source.reset(np.random.default_rng(3))], tmp_path / "export")
+    path = str(exported_scenario(tmp_path / "export"))
+    with pytest.raises(ReplayError, match=r"agents.cavs=2 and agents.rsus=0 must equal them: "
+                                          r"set agents.cavs=4 agents.rsus=1"):
+        roco_env.parallel_env("opv2v_replay", **{"traffic.path": path})
+    env = roco_env.parallel_env("opv2v_replay", cavs=4, rsus=1, **{"traffic.path": path})
+    assert len(env.possible_agents) == 5
 
 
 def test_float_aware_loader_is_still_safe():
@@ -110,7 +136,7 @@ def test_float_aware_loader_is_still_safe():
 
 
 @pytest.mark.parametrize("damage, fragment", [
-    (lambda s: (s / "650" / "000070.yaml").unlink(), "650/000070.yaml: file not found"),
+    (lambda s: (s / "650" / "000070.yaml").unlink(), "650: frame(s) 000070 missing"),
     (lambda s: (s / "641" / "000070.yaml").write_text("vehicles: [1, 2\n"), "malformed YAML"),
     (lambda s: (s / "641" / "000070.yaml").write_text(
         CAV_641.format(x650=1.0).replace("    extent: [2.3, 0.95, 0.8]\n", "")),
@@ -127,6 +153,15 @@ def test_bad_opv2v_input_names_the_path(tmp_path, damage, fragment):
         make_traffic_source(opv2v_config(scenario))
     assert fragment in str(info.value)
     assert str(scenario) in str(info.value)
+
+
+@pytest.mark.parametrize("agent", ["641", "650", "-1"])
+def test_a_frame_missing_in_one_agent_folder_is_refused_at_load(tmp_path, agent):
+    scenario = write_opv2v(tmp_path)
+    (scenario / agent / "000068.yaml").unlink()
+    with pytest.raises(ReplayError) as info:
+        make_traffic_source(opv2v_config(scenario))
+    assert f"{scenario / agent}: frame(s) 000068 missing (1 of the 2 frames" in str(info.value)
 
 
 def test_missing_folder_and_missing_path(tmp_path):
@@ -148,7 +183,8 @@ def test_round_trip_synthetic_export_replay(tmp_path, layout):
     states = [source.reset(np.random.default_rng(11))]
     states += [source.step(0.1) for _ in range(4)]
     export_opv2v(states, tmp_path / "episode")
-    replay = make_traffic_source(opv2v_config(tmp_path / "episode", cavs=3, rsus=1))
+    replay = make_traffic_source(opv2v_config(exported_scenario(tmp_path / "episode"),
+                                              cavs=3, rsus=1))
     replayed = [replay.reset(None)] + [replay.step(0.1) for _ in range(4)]
     for a, b in zip(states, replayed, strict=True):
         assert a.agent_ids == b.agent_ids and a.agent_kinds == b.agent_kinds
@@ -234,13 +270,13 @@ def test_dair_fixture_loads_poses_and_boxes(tmp_path):
     np.testing.assert_allclose(state.agent_poses[0], [x, y, 0.6], atol=1e-12)
     # RSU pose includes the system error offset
     np.testing.assert_allclose(state.agent_poses[1], [110.5, 59.75, -2.0], atol=1e-12)
-    assert state.num_objects == 3  # ego + car + bus; the pedestrian is skipped
-    np.testing.assert_array_equal(state.object_classes, [0, 0, 3])
-    np.testing.assert_allclose(state.object_boxes[1:, :6], np.array(DAIR_BOXES)[:, :6],
+    assert state.num_objects == 2  # car + bus; the pedestrian is skipped, no ego box made up
+    np.testing.assert_array_equal(state.object_classes, [0, 3])
+    np.testing.assert_allclose(state.object_boxes[:, :6], np.array(DAIR_BOXES)[:, :6],
                                atol=1e-9)
-    np.testing.assert_allclose(state.object_boxes[1:, 6], np.array(DAIR_BOXES)[:, 6],
+    np.testing.assert_allclose(state.object_boxes[:, 6], np.array(DAIR_BOXES)[:, 6],
                                atol=1e-9)  # DAIR's corner order gives the full heading
-    assert state.agent_object_ids[0] == state.object_ids[0]
+    np.testing.assert_array_equal(state.agent_object_ids, [-1, -1])  # no box is the vehicle's
     assert source.step(0.1).agent_poses[0, 0] == pytest.approx(x + 1.0)
 
 
@@ -274,7 +310,7 @@ def test_bad_dair_input_names_the_path(tmp_path, damage, fragment):
 def test_replay_episode_truncates_at_the_last_frame(tmp_path):
     import roco_env
 
-    env = roco_env.parallel_env("opv2v_replay", max_cycles=50,
+    env = roco_env.parallel_env("opv2v_replay", max_cycles=50, rsus=1,
                                 **{"traffic.path": str(write_opv2v(tmp_path))})
     env.reset(seed=0)
     steps = 0
@@ -362,7 +398,7 @@ def test_dair_label_height_wins_and_bad_values_name_the_file(tmp_path):
     objects[0]["3d_dimensions"] = {"h": 1.55, "w": 1.8, "l": 4.4}
     label.write_text(json.dumps(objects))
     state = make_traffic_source(dair_config(root)).reset(None)
-    assert state.object_boxes[1, 5] == 1.55
+    assert state.object_boxes[0, 5] == 1.55
     objects[0]["3d_dimensions"]["h"] = "tall"
     label.write_text(json.dumps(objects))
     with pytest.raises(ReplayError, match="015344.json: 3d_dimensions.h"):
@@ -390,18 +426,40 @@ def test_dair_without_rsu_needs_no_rsu_calibration(tmp_path):
         make_traffic_source(dair_config(root, rsus=1))
 
 
-def test_opv2v_cav_car_from_true_ego_pos_when_no_one_lists_it(tmp_path):
+def test_dair_empty_system_error_offset_means_no_offset(tmp_path):
+    root = write_dair(tmp_path)
+    info_path = root / "cooperative/data_info.json"
+    info = json.loads(info_path.read_text())
+    info[0]["system_error_offset"] = ""  # as the official devkit reads it: no offset
+    info_path.write_text(json.dumps(info))
+    source = make_traffic_source(dair_config(root))
+    np.testing.assert_allclose(source.reset(None).agent_poses[1], [110.0, 60.0, -2.0],
+                               atol=1e-12)
+    np.testing.assert_allclose(source.step(0.1).agent_poses[1], [110.5, 59.75, -2.0],
+                               atol=1e-12)
+
+
+def test_opv2v_cav_no_one_lists_has_no_box(tmp_path):
+    """Ground truth holds only what the data holds: no box is made up for CAV 650."""
+    import roco_env
+
     scenario = write_opv2v(tmp_path)
     for frame in ("000068", "000070"):  # nobody lists CAV 650 any more
         path = scenario / "641" / f"{frame}.yaml"
         data = yaml.safe_load(path.read_text())
         del data["vehicles"][650]
         path.write_text(yaml.safe_dump(data))
-    state = make_traffic_source(opv2v_config(scenario, cavs=1, rsus=1)).reset(None)
-    assert state.agent_ids == ("cav_0", "rsu_0")
-    assert 650 in state.object_ids.tolist()  # CAV 650 is not an agent here, still a car
-    box = state.object_boxes[state.object_ids.tolist().index(650)]
-    np.testing.assert_allclose(box[[0, 1, 6]], [30.0, -5.0, math.radians(30.0)], atol=1e-9)
+    state = make_traffic_source(opv2v_config(scenario)).reset(None)
+    np.testing.assert_array_equal(state.object_ids, [641, 700])
+    np.testing.assert_array_equal(state.agent_object_ids, [641, 650, -1])
+    np.testing.assert_allclose(state.agent_poses[1], [30.0, -5.0, math.radians(30.0)],
+                               atol=1e-12)  # the CAV itself is still there, at its LiDAR pose
+    env = roco_env.parallel_env("opv2v_replay", cavs=2, rsus=1, sigma_t=0.0, sigma_r=0.0,
+                                **{"traffic.path": str(scenario)})
+    env.reset(seed=0)
+    _, _, _, _, infos = env.step({a: np.zeros(env.action_space(a).shape) for a in env.agents})
+    truth = {a: i["gt_boxes"][i["gt_mask"]] for a, i in infos.items() if "gt_mask" in i}
+    assert truth and all(n <= 2 for n in map(len, truth.values()))  # 641 and 700 at most
 
 
 def test_export_of_a_raised_replay_round_trips_its_ground(tmp_path):
@@ -409,6 +467,6 @@ def test_export_of_a_raised_replay_round_trips_its_ground(tmp_path):
     raise_opv2v(folder, 10.0)
     state = make_traffic_source(opv2v_config(folder)).reset(None)
     export_opv2v([state], tmp_path / "again")
-    back = make_traffic_source(opv2v_config(tmp_path / "again")).reset(None)
+    back = make_traffic_source(opv2v_config(exported_scenario(tmp_path / "again"))).reset(None)
     np.testing.assert_allclose(back.ground_heights, state.ground_heights, atol=1e-9)
     np.testing.assert_allclose(back.object_boxes[:, :6], state.object_boxes[:, :6], atol=1e-6)

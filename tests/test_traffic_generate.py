@@ -8,6 +8,7 @@ from roco_env.cli import main
 from roco_env.geometry import box_corners_bev
 from roco_env.scenario import load_scenario, scenario_from_dict
 from roco_env.traffic import make_traffic_source
+from roco_env.traffic.export import scenario_folder
 from roco_env.traffic.generate import generate, nearest_gaps
 
 
@@ -49,9 +50,11 @@ def test_cli_generate_and_export(tmp_path, capsys):
     assert code == 0
     printed = capsys.readouterr().out
     assert "vehicles:" in printed and "nearest-neighbour gap" in printed
-    assert "-1" in {p.name for p in export.iterdir()}  # RSU folder (V2XSet style)
+    assert "-1" in {p.name for p in scenario_folder(export).iterdir()}  # RSU folder (V2XSet)
+    assert f"exported 3 frames to {scenario_folder(export)}" in printed
     replay = make_traffic_source(scenario_from_dict(
-        {"traffic": {"source": "opv2v", "path": str(export)}, "agents": {"cavs": 2, "rsus": 1}}))
+        {"traffic": {"source": "opv2v", "path": str(scenario_folder(export))},
+         "agents": {"cavs": 2, "rsus": 1}}))
     assert replay.num_frames == 3
     assert main(["scenario", "generate", "--layout", "spaghetti", "--density", "1",
                  "-o", str(out)]) == 2
@@ -67,7 +70,7 @@ def test_export_into_a_non_empty_folder_needs_overwrite(tmp_path, capsys):
                      "--export-opv2v", str(export), "--frames", "2", *extra])
 
     def agent_folders():
-        return sorted(p.name for p in export.iterdir())
+        return sorted(p.name for p in scenario_folder(export).iterdir())
 
     assert export_seed(3) == 0
     first = agent_folders()
@@ -78,7 +81,8 @@ def test_export_into_a_non_empty_folder_needs_overwrite(tmp_path, capsys):
     assert export_seed(4, "--overwrite") == 0
     second = agent_folders()
     replay = make_traffic_source(scenario_from_dict(
-        {"traffic": {"source": "opv2v", "path": str(export)}, "agents": {"cavs": 2, "rsus": 0}}))
+        {"traffic": {"source": "opv2v", "path": str(scenario_folder(export))},
+         "agents": {"cavs": 2, "rsus": 0}}))
     assert replay.num_frames == 2 and len(second) == 2  # only the new scene's agents
     (export / "notes.txt").write_text("mine")
     assert export_seed(5, "--overwrite") == 2  # never deletes what it did not write

@@ -55,5 +55,8 @@ def _generate(args: argparse.Namespace) -> int:
     for line in summary.lines():
         print(line)
     if args.export_opv2v:
-        print(f"exported {frames} frames to {args.export_opv2v}")
+        from roco_env.traffic.export import scenario_folder
+
+        print(f"exported {frames} frames to {scenario_folder(args.export_opv2v)} (OpenCOOD "
+              f"layout <dir>/<split>/<scenario>; replay with traffic.path=that folder)")
     return 0

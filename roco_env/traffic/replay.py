@@ -7,22 +7,28 @@ ever returned. Conversions happen here and nowhere else (frames: docs/convention
 
 OPV2V / V2XSet (``traffic.source: opv2v``, ``traffic.path`` = one scenario folder)
   ``<scenario>/<agent id>/<frame>.yaml``; CARLA frame: left-handed, degrees.
-  ``lidar_pose`` / ``true_ego_pos`` = [x, y, z, roll, yaw, pitch];
+  ``lidar_pose`` = [x, y, z, roll, yaw, pitch];
   ``vehicles: {id: {location, center, angle [roll, yaw, pitch], extent (half
   sizes), speed (km/h)}}``; box centre = location + center. Converted with
   y -> -y, yaw -> -yaw (radians). Agent folders with id >= 0 are CAVs (sorted by
-  id, the first ``agents.cavs`` are used), negative ids are RSUs (V2XSet; ordered
-  -1, -2, ...). A CAV's pose is its ``lidar_pose``; its own box is taken from
-  another agent's ``vehicles`` list, or built from ``true_ego_pos`` with a
-  typical car size when no other agent lists it (for every CAV folder read, used
-  or not). Objects = union of all agents' lists. An optional ``obj_type``
-  (car/van/truck/bus) restores the class.
+  id; a folder named ``+<id>`` comes first: cav_0, the OpenCOOD ego of an
+  export, see :mod:`roco_env.traffic.export`), negative ids are RSUs (V2XSet;
+  ordered -1, -2, ...). Every agent folder is replayed: ``agents.cavs`` and
+  ``agents.rsus`` must equal the folder counts, and every folder must hold the
+  same frames (both checked at load, errors naming the fields / the folder and
+  frame). A CAV's pose is its ``lidar_pose``. Objects = union of all agents'
+  lists; nothing else: a CAV's own car is an object only when another agent
+  lists it (an OPV2V agent never lists itself). A CAV no list holds has no box:
+  it is in no ground truth, occludes nothing and no one detects it (its
+  ``agent_object_ids`` entry is its folder id, matching no object). An optional
+  ``obj_type`` (car/van/truck/bus) restores the class.
 
 DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
   ``cooperative/data_info.json`` lists frame pairs; vehicle pose =
   ``novatel_to_world`` * ``lidar_to_novatel`` (vehicle-side calib), RSU pose =
   ``virtuallidar_to_world`` with ``system_error_offset`` (delta_x, delta_y) added
-  to its translation (the corrected pose); objects from
+  to its translation (the corrected pose; ``""`` means no offset, as in the
+  official devkit); objects from
   ``cooperative/label_world/*.json`` ``world_8_points`` (right-handed, metres);
   label types other than car/van/truck/bus (pedestrians, cyclists) are skipped.
   A box follows DAIR's corner order (corners 0-3 one face, 4-7 the other, heading
@@ -31,7 +37,8 @@ DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
   the edges 0-4 .. 3-7 (not the z extent of a tilted box). Corners in any other
   order fall back to an order-free fit whose heading is only known modulo pi.
   DAIR cooperative frames are independent samples: object ids are per frame.
-  The vehicle's own box is built from its LiDAR pose with a typical car size.
+  The vehicle's own car is an object only as far as the labels hold it (no box
+  is made up for it; its ``agent_object_ids`` entry is -1, matching no object).
   One CAV (``cav_0``) and at most one RSU (``rsu_0``); the RSU's calibration and
   ``system_error_offset`` are read only when ``agents.rsus`` is 1.
 
@@ -53,11 +60,9 @@ import yaml
 
 from roco_env.geometry import wrap_angle
 from roco_env.scenario import ScenarioConfig
-from roco_env.traffic.agents import make_world
+from roco_env.scenario import AgentsConfig
 from roco_env.traffic.frames import SequenceSource
 from roco_env.traffic.state import OBJECT_CLASSES, WorldState
-
-DEFAULT_CAR = np.array([4.5, 1.9, 1.6])  # l, w, h (m) for an ego box no label describes
 
 
 class ReplayError(ValueError):
@@ -144,79 +149,122 @@ def _opv2v_object(path: Path, key: str, entry: Any) -> tuple[int, np.ndarray, fl
     return oid, box, speed, cls
 
 
-def _agent_folders(root: Path) -> tuple[list[int], list[int]]:
+def _agent_folders(root: Path) -> dict[int, Path]:
+    """Agent id -> folder of a scenario, in agent order: CAVs (a ``+``-named folder, the
+    OpenCOOD ego of an export, first; then by id), then RSUs (-1, -2, ...)."""
     if not root.is_dir():
         raise ReplayError(f"{root}: dataset folder not found (set traffic.path to an OPV2V/"
                           "V2XSet scenario folder holding <agent id>/<frame>.yaml)")
-    ids = sorted(int(p.name) for p in root.iterdir()
-                 if p.is_dir() and re.fullmatch(r"-?\d+", p.name))
-    if not ids:
+    folders = [p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"[-+]?\d+", p.name)]
+    if not folders:
         raise ReplayError(f"{root}: no agent folders (<agent id>/ with <frame>.yaml files)")
-    return [i for i in ids if i >= 0], sorted((i for i in ids if i < 0), reverse=True)
+    by_id: dict[int, Path] = {}
+    for folder in folders:
+        if int(folder.name) in by_id:
+            raise ReplayError(f"{root}: agent folders {by_id[int(folder.name)].name!r} and "
+                              f"{folder.name!r} name the same id")
+        by_id[int(folder.name)] = folder
+
+    def order(agent: int) -> tuple:
+        return (agent < 0, not by_id[agent].name.startswith("+"), abs(agent))
+
+    return {agent: by_id[agent] for agent in sorted(by_id, key=order)}
+
+
+def _check_agent_counts(root: Path, agents_found: list[int], agents: AgentsConfig) -> None:
+    """Refuse a config whose agent counts differ from the folder's (no agent silently dropped)."""
+    cavs = [a for a in agents_found if a >= 0]
+    rsus = [a for a in agents_found if a < 0]
+    if len(cavs) != agents.cavs or len(rsus) != agents.rsus:
+        raise ReplayError(
+            f"{root}: holds {len(cavs)} CAV folders {cavs} and {len(rsus)} RSU folders {rsus}; "
+            f"agents.cavs={agents.cavs} and agents.rsus={agents.rsus} must equal them: set "
+            f"agents.cavs={len(cavs)} agents.rsus={len(rsus)} (overrides cavs={len(cavs)} "
+            f"rsus={len(rsus)}); to replay fewer agents, point traffic.path at a copy of the "
+            "scenario holding only their folders")
+
+
+def _common_frames(root: Path, folders: dict[int, Path]) -> list[str]:
+    """The frame names (sorted) every agent folder holds; ReplayError naming the folder and
+    the frames it lacks when the folders disagree."""
+    held = {folder: {p.stem for p in folder.glob("*.yaml")} for folder in folders.values()}
+    frames = set().union(*held.values())
+    if not frames:
+        raise ReplayError(f"{root}: no <frame>.yaml files in the agent folders")
+    for folder, have in held.items():
+        missing = sorted(frames - have)
+        if missing:
+            raise ReplayError(
+                f"{folder}: frame(s) {', '.join(missing[:5])} missing "
+                f"({len(missing)} of the {len(frames)} frames the other agent folders hold); "
+                "every agent folder must hold the same <frame>.yaml files")
+    return sorted(frames)
 
 
 def load_opv2v(root: str | Path, config: ScenarioConfig) -> tuple[list[WorldState], list[int]]:
     """All frames of an OPV2V/V2XSet scenario folder as WorldStates, plus the dataset ids
-    of the agents used (CAVs then RSUs)."""
+    of the agents (CAVs then RSUs)."""
     root = Path(root)
-    cav_folders, rsu_folders = _agent_folders(root)
-    n_cav, n_rsu = config.agents.cavs, config.agents.rsus
-    if len(cav_folders) < n_cav or len(rsu_folders) < n_rsu:
-        raise ReplayError(f"{root}: has CAV folders {cav_folders} and RSU folders {rsu_folders};"
-                          f" agents.cavs={n_cav} and agents.rsus={n_rsu} must not exceed them")
-    agents = cav_folders[:n_cav] + rsu_folders[:n_rsu]
-    frames = sorted(p.stem for p in (root / str(agents[0] if agents else cav_folders[0]))
-                    .glob("*.yaml"))
-    if not frames:
-        raise ReplayError(f"{root / str(agents[0])}: no <frame>.yaml files")
-    states = []
-    for index, frame in enumerate(frames):
-        objects: dict[int, tuple[np.ndarray, float, int]] = {}
-        poses, egos, lidar_z = {}, {}, {}
-        for agent in cav_folders + rsu_folders:
-            path = root / str(agent) / f"{frame}.yaml"
-            if agent not in agents and not path.is_file():
-                continue  # unused agents only contribute the objects they list
-            data = load_yaml(path)
-            lidar = _numbers(path, _get(path, data, "lidar_pose"), "lidar_pose", 6)
-            poses[agent], lidar_z[agent] = carla_pose_to_world(lidar), lidar[2]
-            if agent >= 0:
-                ego = _numbers(path, _get(path, data, "true_ego_pos"), "true_ego_pos", 6)
-                egos[agent] = (ego, path)
-            vehicles = _get(path, data, "vehicles") or {}
-            if not isinstance(vehicles, dict):
-                raise ReplayError(f"{path}: vehicles must be a mapping id -> object")
-            for key, entry in vehicles.items():
-                oid, box, speed, cls = _opv2v_object(path, key, entry)
-                objects.setdefault(oid, (box, speed, cls))
-        for agent in egos:  # a CAV's own car, when no other agent lists it
-            if agent not in objects:
-                ego, _ = egos[agent]
-                pose = carla_pose_to_world(ego)
-                box = np.r_[pose[:2], ego[2] + DEFAULT_CAR[2] / 2, DEFAULT_CAR, pose[2]]
-                objects[agent] = (box, 0.0, 0)
-        ids = np.array(sorted(objects), dtype=np.int64)
-        boxes = np.array([objects[i][0] for i in ids]).reshape(-1, 7)
-        speed = np.array([objects[i][1] for i in ids])
-        vel = speed[:, None] * np.column_stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6])])
-        classes = np.array([objects[i][2] for i in ids], dtype=np.int64)
-        rows = np.searchsorted(ids, agents[:n_cav])
-        rsu = np.array([poses[a] for a in agents[n_cav:]]).reshape(-1, 3)
-        state = make_world(index * config.traffic.dt, ids, classes, boxes, vel, rows, rsu,
-                           config.agents)
-        cav_poses = np.array([poses[a] for a in agents[:n_cav]]).reshape(-1, 3)
-        poses_all = np.vstack([cav_poses, rsu])
-        states.append(_with_sensors(state, poses_all, [lidar_z[a] for a in agents]))
+    folders = _agent_folders(root)
+    agents = list(folders)
+    _check_agent_counts(root, agents, config.agents)
+    states = [_opv2v_state(folders, frame, index * config.traffic.dt, config.agents)
+              for index, frame in enumerate(_common_frames(root, folders))]
     return states, agents
 
 
-def _with_sensors(state: WorldState, poses: np.ndarray, lidar_z: Any) -> WorldState:
-    """The same state with the agents' sensor poses (LiDAR pose, not box pose) and the
-    ground under them (LiDAR z minus the sensor height) filled in."""
-    fields = {name: getattr(state, name) for name in state.__dataclass_fields__}
-    fields["agent_poses"] = poses
-    fields["ground_heights"] = np.asarray(lidar_z, dtype=float) - state.sensor_heights
-    return WorldState(**fields)
+def _opv2v_state(folders: dict[int, Path], frame: str, time: float,
+                 config: AgentsConfig) -> WorldState:
+    """One frame: every agent's pose and the union of the objects they list."""
+    objects: dict[int, tuple[np.ndarray, float, int]] = {}
+    poses, lidar_z = [], []
+    for folder in folders.values():
+        path = folder / f"{frame}.yaml"
+        data = load_yaml(path)
+        lidar = _numbers(path, _get(path, data, "lidar_pose"), "lidar_pose", 6)
+        poses.append(carla_pose_to_world(lidar))
+        lidar_z.append(lidar[2])
+        vehicles = _get(path, data, "vehicles") or {}
+        if not isinstance(vehicles, dict):
+            raise ReplayError(f"{path}: vehicles must be a mapping id -> object")
+        for key, entry in vehicles.items():
+            oid, box, speed, cls = _opv2v_object(path, key, entry)
+            objects.setdefault(oid, (box, speed, cls))
+    ids = np.array(sorted(objects), dtype=np.int64)
+    boxes = np.array([objects[i][0] for i in ids]).reshape(-1, 7)
+    speed = np.array([objects[i][1] for i in ids])
+    vel = speed[:, None] * np.column_stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6])])
+    classes = np.array([objects[i][2] for i in ids], dtype=np.int64)
+    cavs = [agent for agent in folders if agent >= 0]
+    return _replay_state(time, ids, classes, boxes, vel, cavs, np.array(poses), lidar_z, config)
+
+
+def _replay_state(time: float, ids: np.ndarray, classes: np.ndarray, boxes: np.ndarray,
+                  velocities: np.ndarray, cav_object_ids: Any, poses: np.ndarray,
+                  lidar_z: Any, agents: AgentsConfig) -> WorldState:
+    """A replayed frame: objects (world boxes, m / rad), then CAVs and RSUs at their LiDAR
+    poses (``poses`` (A, 3) world x, y, yaw; CAVs first), the ground under each = its
+    LiDAR z minus its sensor height. ``cav_object_ids``: each CAV's own vehicle id, which
+    need not be among ``ids`` (no label describes it); RSUs get -1.
+
+    Built here rather than with :func:`roco_env.traffic.agents.make_world`, which takes a
+    CAV's pose from its box: a replayed CAV may have none."""
+    n_cav = len(cav_object_ids)
+    n_rsu = poses.shape[0] - n_cav
+    heights = np.r_[np.full(n_cav, agents.cav_height), np.full(n_rsu, agents.rsu_height)]
+    return WorldState(
+        time=float(time), object_ids=ids, object_classes=classes, object_boxes=boxes,
+        object_velocities=velocities,
+        agent_ids=tuple(f"cav_{i}" for i in range(n_cav)) + tuple(f"rsu_{i}" for i in range(n_rsu)),
+        agent_kinds=("cav",) * n_cav + ("rsu",) * n_rsu,
+        agent_poses=poses.reshape(-1, 3),
+        agent_object_ids=np.r_[np.asarray(cav_object_ids, dtype=np.int64),
+                               -np.ones(n_rsu, np.int64)],
+        sensor_heights=heights,
+        sensor_ranges=np.r_[np.full(n_cav, agents.cav_range), np.full(n_rsu, agents.rsu_range)],
+        comm_ranges=np.full(n_cav + n_rsu, agents.comm_range),
+        ground_heights=np.asarray(lidar_z, dtype=float) - heights,
+    )
 
 
 def _transform(path: Path, data: Any, key: str | None = None) -> np.ndarray:
@@ -309,16 +357,13 @@ def load_dair(root: str | Path, config: ScenarioConfig) -> list[WorldState]:
                                    _label_height(label_path, obj))
                  for obj in vehicles]
         classes = [class_index(obj["type"]) for obj in vehicles]
-        veh_pose = _matrix_to_pose(veh)
-        ego = np.r_[veh_pose[:2], veh[2, 3] - config.agents.cav_height + DEFAULT_CAR[2] / 2,
-                    DEFAULT_CAR, veh_pose[2]]
-        all_boxes = np.vstack([ego[None], np.array(boxes).reshape(-1, 7)])
-        ids = np.arange(all_boxes.shape[0], dtype=np.int64)
+        ids = np.arange(len(boxes), dtype=np.int64)
         rsu = np.zeros((0, 3)) if inf is None else _matrix_to_pose(inf)[None]
-        state = make_world(index * config.traffic.dt, ids, np.r_[0, classes].astype(np.int64),
-                           all_boxes, np.zeros((ids.size, 2)), [0], rsu, config.agents)
         lidar_z = [veh[2, 3]] + ([] if inf is None else [inf[2, 3]])
-        states.append(_with_sensors(state, np.vstack([veh_pose[None], rsu]), lidar_z))
+        states.append(_replay_state(
+            index * config.traffic.dt, ids, np.array(classes, dtype=np.int64),
+            np.array(boxes).reshape(-1, 7), np.zeros((ids.size, 2)), [-1],
+            np.vstack([_matrix_to_pose(veh)[None], rsu]), lidar_z, config.agents))
     return states
 
 
@@ -326,6 +371,8 @@ def _dair_rsu(root: Path, info_path: Path, item: Any) -> np.ndarray:
     """4x4 RSU LiDAR-to-world of a frame pair, corrected by its ``system_error_offset``."""
     inf_frame = Path(_get(info_path, item, "infrastructure_pointcloud_path")).stem
     offset = _get(info_path, item, "system_error_offset")
+    if offset == "":  # the official devkit's "no offset"
+        offset = {"delta_x": 0.0, "delta_y": 0.0}
     delta = _numbers(info_path, [_get(info_path, offset, "delta_x"),
                                  _get(info_path, offset, "delta_y")],
                      "system_error_offset (delta_x, delta_y)", 2)
