@@ -376,7 +376,8 @@ class CollabPerceptionEnv(ParallelEnv):
             evaluations = evaluate_egos(
                 [views[a] for a in fused], list(fused.values()), [corrected[a] for a in fused],
                 frame.state, frame.visibility.visible, cfg.evaluation.x_range,
-                cfg.evaluation.y_range, cfg.max_collaborators)
+                cfg.evaluation.y_range, cfg.max_collaborators, cfg.evaluation.ground_truth,
+                cfg.evaluation.z_range)
             capacity = self._info_capacity
             for agent, evaluation in zip(fused, evaluations, strict=True):
                 infos[agent] = metric_info(evaluation, capacity)
@@ -416,8 +417,10 @@ class CollabPerceptionEnv(ParallelEnv):
             else:  # "none": the ego's own boxes, scored against the collaboration's truth
                 merged = merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (),
                                       np.zeros((0, 3))) for k in egos])
+            # OpenCOOD's ground truth holds the ego's own car: keep the collaborators' boxes on it
+            own_car_is_truth = self.config.evaluation.ground_truth == "opencood"
             fused = suppress(merged, self.config.fusion.nms_iou,
-                             [frame.footprints[k] for k in egos])
+                             [None if own_car_is_truth else frame.footprints[k] for k in egos])
             return dict(zip(self.evaluated_agents, fused, strict=True))
 
 

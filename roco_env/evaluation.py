@@ -3,11 +3,15 @@
 Frames: everything here is in the ego's TRUE frame. The ego's own boxes are
 already there (sensors see the world correctly, docs/conventions.md); the
 collaborators' boxes got there through the corrected relative poses, so a
-wrong correction shows up as misplaced boxes. Ground truth for ego i = the
+wrong correction shows up as misplaced boxes. Ground truth for ego i
+(``evaluation.ground_truth``, docs/metrics.md): ``visible`` (default) = the
 objects visible to at least one agent of i's collaboration (i and its
 collaborator slots), minus i's own vehicle, kept only when all BEV corners lie
-inside the evaluation range (docs/metrics.md). Fused predictions are range
-filtered the same way (OpenCOOD filters predictions before matching too).
+inside the evaluation range; ``opencood`` = OpenCOOD's convention: every
+object of the world state (i's own vehicle included, no occlusion filter) whose
+BEV corners lie inside the range and whose bottom and top lie inside
+``z_range`` in i's LiDAR frame. Fused predictions are range filtered in BEV
+either way (OpenCOOD filters predictions before matching too).
 Relative pose errors are [translation m, rotation deg].
 """
 
@@ -29,7 +33,7 @@ from roco_env.metrics import (
     relative_pose_error,
 )
 from roco_env.observation import EgoView
-from roco_env.scenario import REWARDS
+from roco_env.scenario import GROUND_TRUTHS, REWARDS
 from roco_env.traffic.state import WorldState
 
 AP_KEYS: dict[float, str] = {0.3: "ap30", 0.5: "ap50", 0.7: "ap70"}
@@ -57,31 +61,54 @@ class EgoEvaluation:
 
 def ground_truths(state: WorldState, visible: np.ndarray,
                   egos: Sequence[tuple[int, Sequence[int]]], x_range: Sequence[float],
-                  y_range: Sequence[float]) -> list[tuple[np.ndarray, np.ndarray]]:
+                  y_range: Sequence[float], convention: str = "visible",
+                  z_range: Sequence[float] = (-3.0, 1.0)) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per (ego, collaborators): GT boxes (G, 7) in the ego's true frame and object ids (G,).
 
     visible (A, M) bool: which agent sees which object (state's object order).
+    convention: ``visible`` or ``opencood`` (module docstring); z_range (m, ego LiDAR
+    frame: heights above the ego's sensor) applies to ``opencood`` only.
     All egos are transformed and range-tested in one batch.
     """
-    visible = np.asarray(visible, dtype=bool)
-    rows = [np.flatnonzero(visible[[ego, *collaborators]].any(axis=0)
-                           & (state.object_ids != state.agent_object_ids[ego]))
-            for ego, collaborators in egos]
+    if convention not in GROUND_TRUTHS:
+        raise ValueError(f"evaluation.ground_truth must be one of {list(GROUND_TRUTHS)}; "
+                         f"got {convention!r}")
+    ego_rows = np.array([ego for ego, _ in egos], dtype=np.int64)
+    if convention == "visible":
+        visible = np.asarray(visible, dtype=bool)
+        rows = [np.flatnonzero(visible[[ego, *collaborators]].any(axis=0)
+                               & (state.object_ids != state.agent_object_ids[ego]))
+                for ego, collaborators in egos]
+    else:
+        rows = [np.arange(state.num_objects)] * len(egos)
     counts = [r.shape[0] for r in rows]
     objects = np.concatenate([np.zeros(0, dtype=np.int64), *rows])
-    to_ego = np.repeat(se2_inverse(state.agent_poses[[ego for ego, _ in egos]]).reshape(-1, 3),
-                       counts, axis=0)
+    to_ego = np.repeat(se2_inverse(state.agent_poses[ego_rows]).reshape(-1, 3), counts, axis=0)
     boxes = transform_boxes(state.object_boxes[objects], to_ego)
     keep = in_range_mask(boxes, x_range, y_range)
+    if convention == "opencood":
+        sensor_z = np.repeat(state.ground_heights[ego_rows] + state.sensor_heights[ego_rows],
+                             counts)
+        keep &= in_z_range(boxes, sensor_z, z_range)
     return [(b[k], state.object_ids[o][k]) for b, k, o in zip(
         _split(boxes, counts), _split(keep, counts), rows, strict=True)]
 
 
+def in_z_range(boxes: np.ndarray, sensor_z: np.ndarray, z_range: Sequence[float]) -> np.ndarray:
+    """(N,) bool: True where box bottom and top (world z of boxes (N, 7), m) lie inside
+    ``z_range`` [low, high] (inclusive) measured from ``sensor_z`` (N,) (each box's ego
+    LiDAR height, world z): OpenCOOD's test that all 8 corners are in its z range."""
+    low, high = float(z_range[0]), float(z_range[1])
+    z = boxes[:, 2] - sensor_z
+    return (z - boxes[:, 5] / 2 >= low) & (z + boxes[:, 5] / 2 <= high)
+
+
 def ground_truth(state: WorldState, visible: np.ndarray, ego: int, collaborators: Sequence[int],
-                 x_range: Sequence[float],
-                 y_range: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+                 x_range: Sequence[float], y_range: Sequence[float], convention: str = "visible",
+                 z_range: Sequence[float] = (-3.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """GT boxes (G, 7) in ego ``ego``'s true frame and their object ids (G,) (one ego)."""
-    return ground_truths(state, visible, [(ego, collaborators)], x_range, y_range)[0]
+    return ground_truths(state, visible, [(ego, collaborators)], x_range, y_range, convention,
+                         z_range)[0]
 
 
 def slot_errors(views: Sequence[EgoView], corrected: Sequence[np.ndarray],
@@ -109,15 +136,17 @@ def slot_errors(views: Sequence[EgoView], corrected: Sequence[np.ndarray],
 def evaluate_egos(views: Sequence[EgoView], fused: Sequence[FusedDetections],
                   corrected: Sequence[np.ndarray], state: WorldState, visible: np.ndarray,
                   x_range: Sequence[float], y_range: Sequence[float],
-                  max_collaborators: int) -> list[EgoEvaluation]:
+                  max_collaborators: int, convention: str = "visible",
+                  z_range: Sequence[float] = (-3.0, 1.0)) -> list[EgoEvaluation]:
     """Score each ego's fused detections against its ground truth (one frame, several egos).
 
     fused[k] and corrected[k] ((n_k, 3) corrected T_{j->i} of the filled slots, the
-    poses the fusion used) belong to views[k]. Transforms, range tests and the
-    matching (:func:`~roco_env.metrics.match_frames`) are batched over the egos.
+    poses the fusion used) belong to views[k]. convention / z_range: the ground truth's
+    (:func:`ground_truths`). Transforms, range tests and the matching
+    (:func:`~roco_env.metrics.match_frames`) are batched over the egos.
     """
     gts = ground_truths(state, visible, [(v.agent, v.collaborators) for v in views],
-                        x_range, y_range)
+                        x_range, y_range, convention, z_range)
     counts = [len(f) for f in fused]
     all_fused = np.concatenate([np.zeros((0, 7)), *(f.boxes for f in fused)])
     in_range = _split(in_range_mask(all_fused, x_range, y_range), counts)

@@ -228,6 +228,8 @@ class FeaturesConfig:
 
 # Per-step reward kinds (roco_env.evaluation.reward computes them).
 REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "neg_rpe")
+# Ground-truth conventions (roco_env.evaluation.ground_truths, docs/metrics.md).
+GROUND_TRUTHS: tuple[str, ...] = ("visible", "opencood")
 
 
 @dataclass
@@ -235,6 +237,11 @@ class EvaluationConfig:
     x_range: list = _spec([-140.8, 140.8], doc="ego-frame evaluation range along x, m")
     y_range: list = _spec([-40.0, 40.0], doc="ego-frame evaluation range along y, m")
     reward: str = _spec("ap70", choices=REWARDS)
+    ground_truth: str = _spec("visible", choices=GROUND_TRUTHS,
+                              doc="visible: what the collaboration sees, own car out; opencood: "
+                                  "every vehicle in range, own car in, z_range applies")
+    z_range: list = _spec([-3.0, 1.0], doc="ego-LiDAR-frame z range of the opencood ground "
+                                           "truth (every box corner inside), m")
 
 
 @dataclass
@@ -432,7 +439,7 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
         raise ScenarioError(
             f"{where}: traffic.params is only read by traffic.source='highway_env' (extra "
             f"highway-env config); got {traffic.params!r} with source {traffic.source!r}")
-    for name in ("x_range", "y_range"):
+    for name in ("x_range", "y_range", "z_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,

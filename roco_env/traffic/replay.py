@@ -59,8 +59,7 @@ import numpy as np
 import yaml
 
 from roco_env.geometry import wrap_angle
-from roco_env.scenario import ScenarioConfig
-from roco_env.scenario import AgentsConfig
+from roco_env.scenario import AgentsConfig, ScenarioConfig
 from roco_env.traffic.frames import SequenceSource
 from roco_env.traffic.state import OBJECT_CLASSES, WorldState
 
