@@ -27,9 +27,13 @@ def replay_folder(tmp_path_factory):
 
 def make_parallel(scenario, replay_folder, **kwargs):
     """The scenario with its defaults; the replay one gets the fixture folder it requires."""
-    if scenario == "opv2v_replay":
-        kwargs["traffic.path"] = str(replay_folder)
-    return roco_env.parallel_env(scenario, max_cycles=CYCLES, **kwargs)
+    return roco_env.parallel_env(scenario, max_cycles=CYCLES,
+                                 **replay_overrides(scenario, replay_folder), **kwargs)
+
+
+def replay_overrides(scenario, replay_folder):
+    """The fixture folder and its agent counts (2 CAVs, 1 RSU) for the replay scenario."""
+    return {"traffic.path": str(replay_folder), "rsus": 1} if scenario == "opv2v_replay" else {}
 
 
 def walk(value, path=""):
@@ -57,9 +61,8 @@ def test_parallel_api_and_seed(scenario, replay_folder):
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_aec_api_and_seed(scenario, replay_folder):
     def aec():
-        return roco_env.env(**({"traffic.path": str(replay_folder)}
-                               if scenario == "opv2v_replay" else {}),
-                            scenario=scenario, max_cycles=CYCLES)
+        return roco_env.env(**replay_overrides(scenario, replay_folder), scenario=scenario,
+                            max_cycles=CYCLES)
 
     api_test(aec(), num_cycles=CYCLES)
     seed_test(aec, num_cycles=CYCLES)
