@@ -276,7 +276,8 @@ def test_dair_fixture_loads_poses_and_boxes(tmp_path):
                                atol=1e-9)
     np.testing.assert_allclose(state.object_boxes[:, 6], np.array(DAIR_BOXES)[:, 6],
                                atol=1e-9)  # DAIR's corner order gives the full heading
-    np.testing.assert_array_equal(state.agent_object_ids, [-1, -1])  # no box is the vehicle's
+    np.testing.assert_array_equal(state.object_ids, [1, 2])
+    np.testing.assert_array_equal(state.agent_object_ids, [0, -1])  # no box is the vehicle's
     assert source.step(0.1).agent_poses[0, 0] == pytest.approx(x + 1.0)
 
 
@@ -424,6 +425,17 @@ def test_dair_without_rsu_needs_no_rsu_calibration(tmp_path):
     assert state.agent_ids == ("cav_0",)
     with pytest.raises(ReplayError, match="virtuallidar_to_world"):
         make_traffic_source(dair_config(root, rsus=1))
+
+
+def test_a_dair_replay_exports_and_replays_back(tmp_path):
+    state = make_traffic_source(dair_config(write_dair(tmp_path / "dair"))).reset(None)
+    export_opv2v([state], tmp_path / "export")
+    back = make_traffic_source(opv2v_config(exported_scenario(tmp_path / "export"), cavs=1,
+                                            rsus=1)).reset(None)
+    np.testing.assert_array_equal(back.object_ids, state.object_ids)
+    np.testing.assert_array_equal(back.agent_object_ids, state.agent_object_ids)
+    np.testing.assert_allclose(back.object_boxes[:, :6], state.object_boxes[:, :6], atol=1e-6)
+    np.testing.assert_allclose(back.agent_poses, state.agent_poses, atol=1e-9)
 
 
 def test_dair_empty_system_error_offset_means_no_offset(tmp_path):

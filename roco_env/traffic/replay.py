@@ -36,9 +36,10 @@ DAIR-V2X cooperative (``traffic.source: dair``, ``traffic.path`` = dataset root)
   its height is the label's ``3d_dimensions.h`` when given, else the length of
   the edges 0-4 .. 3-7 (not the z extent of a tilted box). Corners in any other
   order fall back to an order-free fit whose heading is only known modulo pi.
-  DAIR cooperative frames are independent samples: object ids are per frame.
-  The vehicle's own car is an object only as far as the labels hold it (no box
-  is made up for it; its ``agent_object_ids`` entry is -1, matching no object).
+  DAIR cooperative frames are independent samples: object ids are per frame
+  (1, 2, ... in label order). The vehicle's own car is an object only as far as
+  the labels hold it: no box is made up for it; its ``agent_object_ids`` entry is
+  0, which no object has.
   One CAV (``cav_0``) and at most one RSU (``rsu_0``); the RSU's calibration and
   ``system_error_offset`` are read only when ``agents.rsus`` is 1.
 
@@ -356,12 +357,12 @@ def load_dair(root: str | Path, config: ScenarioConfig) -> list[WorldState]:
                                    _label_height(label_path, obj))
                  for obj in vehicles]
         classes = [class_index(obj["type"]) for obj in vehicles]
-        ids = np.arange(len(boxes), dtype=np.int64)
+        ids = np.arange(1, len(boxes) + 1, dtype=np.int64)  # 0 is the vehicle's own id
         rsu = np.zeros((0, 3)) if inf is None else _matrix_to_pose(inf)[None]
         lidar_z = [veh[2, 3]] + ([] if inf is None else [inf[2, 3]])
         states.append(_replay_state(
             index * config.traffic.dt, ids, np.array(classes, dtype=np.int64),
-            np.array(boxes).reshape(-1, 7), np.zeros((ids.size, 2)), [-1],
+            np.array(boxes).reshape(-1, 7), np.zeros((ids.size, 2)), [0],
             np.vstack([_matrix_to_pose(veh)[None], rsu]), lidar_z, config.agents))
     return states
 
