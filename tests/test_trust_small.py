@@ -86,3 +86,117 @@ def test_pooled_roco_without_ids_refuses_instead_of_keying_by_slot():
     policy = make_policy("roco", pooled_significance=0.9999)
     with pytest.raises(ValueError, match=r"roco with pooled_significance .*infos\[agent\]"):
         policy(observation)
+
+
+def _write_scenario(folder, text: str):
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "mine.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_relative_paths_in_a_scenario_file_are_relative_to_its_folder(tmp_path, monkeypatch):
+    from roco_env.scenario import load_scenario
+
+    path = _write_scenario(tmp_path / "scenes", "traffic:\n  path: ../data/opv2v\n"
+                           "detector:\n  preset: learned\n  params:\n    weights: w.pt\n")
+    monkeypatch.chdir(tmp_path.parent)  # the working directory is elsewhere
+    config = load_scenario(path)
+    folder = (tmp_path / "scenes").absolute()
+    assert config.traffic.path == str(folder / ".." / "data" / "opv2v")
+    assert config.detector.params["weights"] == str(folder / "w.pt")
+    # Overrides (Python or command line) stay relative to the working directory.
+    overridden = load_scenario(path, **{"traffic.path": "here", "detector.params":
+                                        {"weights": "other.pt"}})
+    assert overridden.traffic.path == "here" and overridden.detector.params["weights"] == "other.pt"
+    absolute = _write_scenario(tmp_path / "abs", f"traffic:\n  path: {tmp_path / 'data'}\n")
+    assert load_scenario(absolute).traffic.path == str(tmp_path / "data")
+
+
+def test_a_scenario_file_that_is_not_utf8_is_an_error_naming_it(tmp_path):
+    from roco_env.scenario import ScenarioError, load_scenario
+
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("description: caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(ScenarioError, match=rf"{re.escape(str(path))}: not UTF-8 text"):
+        load_scenario(path)
+
+
+@pytest.mark.parametrize("pair, message", [
+    ([1e9, 0.0], r"noise.per_agent.cav_1\[0\] \(sigma_t\)=1000000000.0 is out of range; "
+                 r"allowed \[0.0, 20.0\]"),
+    ([0.5, 90], r"noise.per_agent.cav_1\[1\] \(sigma_r\)=90.0 is out of range; "
+                r"allowed \[0.0, 45.0\]"),
+    ([0.5], r"noise.per_agent.cav_1 must be \[sigma_t m, sigma_r deg\]"),
+], ids=["sigma_t", "sigma_r", "pair"])
+def test_per_agent_noise_has_the_global_caps(tmp_path, pair, message):
+    from roco_env.scenario import ScenarioError, load_scenario
+
+    path = _write_scenario(tmp_path, f"noise:\n  per_agent:\n    cav_1: {pair}\n")
+    with pytest.raises(ScenarioError, match=rf"{re.escape(str(path))}: {message}"):
+        load_scenario(path)
+    with pytest.raises(ScenarioError, match=rf"override: {message}"):
+        load_scenario("urban_intersection", **{"noise.per_agent": {"cav_1": pair}})
+    assert load_scenario("urban_intersection", **{"noise.per_agent": {"cav_1": [20, 45]}}
+                         ).noise.per_agent == {"cav_1": [20.0, 45.0]}
+
+
+@pytest.mark.parametrize("layout", ["highway", "roundabout"])
+def test_the_no_vehicle_message_advises_a_density_that_places_vehicles(layout):
+    from roco_env.scenario import load_scenario
+    from roco_env.traffic.synthetic import make_synthetic
+
+    def traffic(density):
+        config = load_scenario("urban_intersection", cavs=0, **{"traffic.layout": layout,
+                                                                "traffic.density": density})
+        return make_synthetic(config).reset(np.random.default_rng(0))
+
+    with pytest.raises(ValueError, match=r"use traffic.density >= ([0-9.]+)") as error:
+        traffic(0.3)
+    advised = float(re.search(r">= ([0-9.]+)", str(error.value)).group(1))
+    assert 0.3 < advised < 1.0 and traffic(advised).num_objects >= 1
+
+
+def test_bad_policy_names_and_frames_are_errors_naming_the_argument():
+    from roco_env.policies import make_policy
+    from roco_env.scenario import load_scenario
+    from roco_env.traffic import make_traffic_source
+
+    with pytest.raises(ValueError, match=r"make_policy: name must be a policy name .*got None"):
+        make_policy(None)
+    config = load_scenario("urban_intersection", cavs=1, **{"traffic.source": "frames"})
+    frame = {"object_ids": [7], "object_boxes": [[0, 0, 0, 4, 2, 1.5, 0]], "cav_object_ids": [7]}
+    with pytest.raises(ValueError, match=r"frames\[0\] must be a roco_env.traffic.frames.Frame"
+                                         r" .*got dict"):
+        make_traffic_source(config, frames=[frame])
+
+
+def test_the_pettingzoo_floor_has_the_registry_roco_env_uses():
+    """roco_env registers its env ids with ``pettingzoo.register`` and checks
+    ``pettingzoo.parallel_registry``, which PettingZoo has from 1.27 on."""
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+
+    root = Path(__file__).resolve().parents[1]
+    assert "pettingzoo.parallel_registry" in (root / "roco_env" / "__init__.py").read_text()
+    # The one quoted requirement naming pettingzoo (tomllib is Python 3.11+).
+    (line,) = re.findall(r'"(pettingzoo[^"]*)"', (root / "pyproject.toml").read_text())
+    pettingzoo = Requirement(line)
+    assert "1.27.0" in pettingzoo.specifier
+    assert not any(old in pettingzoo.specifier for old in ("1.24.0", "1.25.0", "1.26.1"))
+
+
+def test_gymnasium_make_of_the_ego_env_does_not_warn():
+    import warnings
+
+    import gymnasium
+
+    import roco_env
+    from roco_env.wrappers import EgoEnv
+
+    assert "rgb_array" in EgoEnv.metadata["render_modes"]  # on the class, where make reads it
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = gymnasium.make(roco_env.EGO_ENV_ID, render_mode="rgb_array")
+    env.close()
