@@ -22,7 +22,14 @@ from typing import Any
 import numpy as np
 import yaml
 
-from roco_env.schema import ScenarioError, build, load_yaml, spec, unknown_key_message
+from roco_env.schema import (
+    ScenarioError,
+    build,
+    check_value,
+    load_yaml,
+    spec,
+    unknown_key_message,
+)
 
 SCENARIO_DIR_ENV = "ROCO_ENV_SCENARIOS"
 
@@ -72,7 +79,7 @@ class TrafficConfig:
     speed_limit: float | None = _spec(
         None, low=0.5, high=60.0, doc="desired speed, m/s; null = the layout's default"
     )
-    path: str | None = _spec(None, doc="dataset folder for opv2v/dair replay")
+    path: str | None = _spec(None, path=True, doc="dataset folder for opv2v/dair replay")
     params: dict = _spec(
         {}, doc="source-specific options (highway_env: extra env config; replay: see traffic)"
     )
@@ -177,7 +184,8 @@ class DetectorParams:
 class LearnedDetectorParams:
     """The learned detector's parameters (roco_env.sensing.learned)."""
 
-    weights: str | None = _spec(None, doc="weights file; None = the shipped weights")
+    weights: str | None = _spec(None, path=True,
+                                doc="weights file; None = the shipped weights")
     device: str = _spec("cpu", choices=("cpu", "cuda"), doc="torch device")
     score_threshold: float = _spec(0.2, low=0.0, high=1.0, low_open=True, high_open=True,
                                    doc="decoded boxes below this score are dropped")
@@ -322,10 +330,17 @@ def scenario_path(name_or_path: str | os.PathLike) -> Path:
 
 def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
                   **overrides: Any) -> ScenarioConfig:
-    """Load and validate a scenario, then apply validated overrides."""
+    """Load and validate a scenario, then apply validated overrides.
+
+    Relative paths in the file (``traffic.path``, ``detector.params.weights``: every field
+    declared ``path=True``) are relative to the file's folder; relative paths in
+    ``overrides`` stay relative to the working directory."""
     path = scenario_path(name_or_path)
     try:
-        raw = load_yaml(path.read_text())
+        raw = load_yaml(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); "
+                            "save the scenario file as UTF-8") from exc
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
     if raw is None:
@@ -334,7 +349,7 @@ def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
     if not isinstance(raw, dict):
         raise ScenarioError(f"{path}: top level must be a mapping of keys, got {type(raw).__name__}")
     raw.setdefault("name", path.stem)
-    config = _build_scenario(raw, where=str(path))
+    config = _build_scenario(raw, where=str(path), base=path.parent)
     return apply_overrides(config, overrides)
 
 
@@ -417,9 +432,10 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
     return config
 
 
-def _build_scenario(data: dict, where: str) -> ScenarioConfig:
-    """The config of ``data`` with every field checked, then the rules that join fields."""
-    config = build(ScenarioConfig, data, where=where)
+def _build_scenario(data: dict, where: str, base: Path | None = None) -> ScenarioConfig:
+    """The config of ``data`` with every field checked, then the rules that join fields;
+    relative path fields joined to ``base`` (a scenario file's folder) when given."""
+    config = build(ScenarioConfig, data, where=where, base=base)
     traffic = config.traffic
     allowed = SOURCE_LAYOUTS.get(traffic.source)
     if allowed is not None and traffic.layout not in allowed:
@@ -442,11 +458,12 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
     for name in ("x_range", "y_range", "z_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
+    config.noise.per_agent = _per_agent_levels(config.noise.per_agent, where)
     config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,
-                                         config.noise.params, where, "noise.params.")
+                                         config.noise.params, where, "noise.params.", base)
     config.detector.params = _choice_params(DETECTOR_PARAMS, "detector.preset",
                                             config.detector.preset, config.detector.params,
-                                            where, "detector.params.")
+                                            where, "detector.params.", base)
     if config.fusion.method == "intermediate" and config.detector.preset != "learned":
         raise ScenarioError(
             f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
@@ -465,7 +482,7 @@ def _build_scenario(data: dict, where: str) -> ScenarioConfig:
 
 
 def _choice_params(table: Mapping[str, type], field: str, choice: str, given: Any, where: str,
-                   prefix: str) -> dict:
+                   prefix: str, base: Path | None = None) -> dict:
     """The checked parameters ``given`` for ``choice`` (a noise model, a detector preset), its
     parameter dataclass in ``table``; a key that belongs to another choice says which."""
     names = {name: [f.name for f in dataclasses.fields(cls)] for name, cls in table.items()}
@@ -476,7 +493,23 @@ def _choice_params(table: Mapping[str, type], field: str, choice: str, given: An
                                       [prefix + key for key in names[choice]])
         raise ScenarioError(f"{message}; {prefix}{unknown[0]} is a parameter of {field} "
                             f"{' / '.join(map(repr, owners))}, not of {choice!r}")
-    return _given(build(table[choice], given, where, prefix), given)
+    return _given(build(table[choice], given, where, prefix, base), given)
+
+
+def _per_agent_levels(per_agent: dict, where: str) -> dict:
+    """noise.per_agent (agent id -> [sigma_t m, sigma_r deg]) with each level checked
+    against the bounds of noise.sigma_t / noise.sigma_r (an agent's level is one of
+    theirs); the agent ids are checked when the env knows its agents."""
+    bounds = {f.name: f.metadata for f in dataclasses.fields(NoiseConfig)}
+    checked = {}
+    for agent, pair in per_agent.items():
+        key = f"noise.per_agent.{agent}"
+        if not isinstance(pair, (list, tuple)) or len(pair) != 2:
+            raise ScenarioError(f"{where}: {key} must be [sigma_t m, sigma_r deg]; got {pair!r}")
+        checked[agent] = [check_value(value, float, bounds[name], where, f"{key}[{k}] ({name})")
+                          for k, (value, name) in enumerate(zip(pair, ("sigma_t", "sigma_r"),
+                                                                strict=True))]
+    return checked
 
 
 def _given(params: Any, given: Mapping[str, Any]) -> dict:

@@ -4,7 +4,9 @@ A setting is a dataclass field declared once with :func:`spec`: its type (the
 annotation), its default and what is allowed (``choices`` or an interval
 ``[low, high]``, either end open). :func:`build` turns a plain mapping into
 such a dataclass, checking every key and value; the messages name the place
-(a file, ``override``, a policy), the dotted key and what is allowed. Scenario
+(a file, ``override``, a policy), the dotted key and what is allowed. A field
+declared ``path=True`` names a file or folder: given a ``base`` folder (a scenario
+file's), :func:`build` resolves a relative value against it. Scenario
 files, overrides, noise-model and detector parameters (:mod:`roco_env.scenario`)
 and alignment-policy parameters all go through it.
 
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 import types
 import typing
@@ -40,11 +43,12 @@ ScenarioError = ConfigError
 
 def spec(default: Any, *, choices: tuple | None = None, low: float | None = None,
          high: float | None = None, low_open: bool = False, high_open: bool = False,
-         doc: str = "") -> Any:
+         path: bool = False, doc: str = "") -> Any:
     """A dataclass field carrying its allowed values: ``choices``, or ``low``..``high``
-    (closed ends unless ``low_open`` / ``high_open``; either bound may be omitted)."""
+    (closed ends unless ``low_open`` / ``high_open``; either bound may be omitted);
+    ``path``: a string naming a file or folder (see :func:`build`)."""
     meta = {"choices": choices, "low": low, "high": high, "low_open": low_open,
-            "high_open": high_open, "doc": doc}
+            "high_open": high_open, "path": path, "doc": doc}
     if isinstance(default, (list, dict, tuple)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -60,9 +64,13 @@ def allowed_text(meta: Mapping[str, Any]) -> str:
     return f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
 
 
-def build(cls: type, data: Any, where: str, prefix: str = "") -> Any:
+def build(cls: type, data: Any, where: str, prefix: str = "",
+          base: str | os.PathLike | None = None) -> Any:
     """An instance of dataclass ``cls`` from ``data`` (a mapping; missing keys keep their
-    defaults), nested dataclasses included. Raises :class:`ScenarioError`."""
+    defaults), nested dataclasses included. Raises :class:`ScenarioError`.
+
+    base: the folder relative values of ``path`` fields are relative to (a scenario
+    file's folder); None keeps them as given (relative to the working directory)."""
     if not isinstance(data, Mapping):
         raise ScenarioError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping of "
                             f"keys; got {type(data).__name__} ({data!r})")
@@ -76,10 +84,21 @@ def build(cls: type, data: Any, where: str, prefix: str = "") -> Any:
     for name, value in data.items():
         key, hint = prefix + name, hints[name]
         if dataclasses.is_dataclass(hint):
-            values[name] = build(hint, value, where, key + ".")
+            values[name] = build(hint, value, where, key + ".", base)
         else:
             values[name] = check_value(value, hint, fields[name].metadata, where, key)
+            if base is not None and fields[name].metadata.get("path"):
+                values[name] = resolved_path(values[name], base)
     return cls(**values)
+
+
+def resolved_path(value: str | None, base: str | os.PathLike) -> str | None:
+    """A path field's value with a relative path joined to the folder ``base`` (made
+    absolute, so the result does not depend on a later working directory); None, an
+    empty string and absolute paths stay as they are."""
+    if not value or os.path.isabs(value):
+        return value
+    return os.path.join(os.path.abspath(base), value)
 
 
 def unknown_key_message(where: str, key: str, allowed: list[str]) -> str:

@@ -44,6 +44,12 @@ class EgoEnv(gymnasium.Env):
     them and its determinism check compares them.
     """
 
+    # Class-level, as gymnasium.make reads the render modes from the class before building
+    # (an instance-only metadata made it warn that every render_mode was unsupported);
+    # an instance's render_fps follows its scenario's time step, as the parallel env's.
+    metadata = {"render_modes": list(CollabPerceptionEnv.metadata["render_modes"]),
+                "render_fps": CollabPerceptionEnv.metadata["render_fps"]}
+
     def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None, *,
                  env: CollabPerceptionEnv | None = None, agent: str | None = None,
@@ -66,8 +72,7 @@ class EgoEnv(gymnasium.Env):
         self.others = others if others is not None else IdentityPolicy()
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)
-        self.metadata = {"render_modes": list(base.metadata["render_modes"]),
-                         "render_fps": base.metadata["render_fps"]}
+        self.metadata = {**type(self).metadata, "render_fps": base.metadata["render_fps"]}
         self.render_mode = base.render_mode
         self._last: tuple[dict, dict] | None = None
 

@@ -123,3 +123,20 @@ def tiny_detector_start(tmp_path: Path):
                     train_scenes=2, val_scenes=1, scenarios=("urban_intersection",),
                     threads=1, init=str(start))
     return net, start, settings
+
+
+def assert_equal_to_rounding(got, expected, rtol: float = 1e-12, err_msg: str = "") -> None:
+    """A compiled (numba) float result against the numpy path it replaces, to rounding.
+
+    The two evaluate the same formula but not with the same elementary functions: the
+    compiled loops call libm's exp / sin / cos / atan2, numpy's ufuncs (and BLAS) pick
+    SIMD versions by CPU (AVX-512 ones differ from libm by an ulp), so results may differ
+    in the last bits on some x86-64 CPUs. Relative tolerance ``rtol``, absolute
+    ``rtol`` times the reference's largest magnitude (at least 1): a value that cancels
+    to near zero keeps the rounding of its larger inputs. NaN equals NaN; shapes must
+    match. Discrete outcomes (indices, counts, choices) are compared exactly instead.
+    """
+    expected = np.asarray(expected, dtype=float)
+    finite = np.abs(expected[np.isfinite(expected)])
+    atol = rtol * max(1.0, float(finite.max(initial=0.0)))
+    np.testing.assert_allclose(got, expected, rtol=rtol, atol=atol, err_msg=err_msg)

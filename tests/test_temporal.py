@@ -13,6 +13,11 @@ def observation(n_slots=2, filled=2):
     return {"collab_mask": mask}
 
 
+def info(filled=2):
+    """The env's info of ego cav_0 with ``filled`` collaborators."""
+    return {"agent": "cav_0", "collaborators": [f"cav_{j + 1}" for j in range(filled)]}
+
+
 class Scripted:
     """Inner policy replaying (action, applied) pairs and exposing last_result."""
 
@@ -34,9 +39,9 @@ def test_frames_without_evidence_inherit_the_last_good_estimate():
     steps = [(good, [True, False])] * 3 + [(np.zeros((2, 3)), [False, False])] * 2
     wrapper = TemporalSmoothing(Scripted(steps))
     for _ in range(3):
-        out = wrapper(observation())
+        out = wrapper(observation(), info())
     assert np.allclose(out[0], good[0], atol=1e-6) and np.all(out[1] == 0)
-    held = wrapper(observation())
+    held = wrapper(observation(), info())
     assert np.allclose(held[0], good[0], atol=1e-6)  # inner kept the prior; estimate survives
 
 
@@ -48,7 +53,7 @@ def test_smoothing_reduces_noise_of_a_constant_correction():
     wrapper = TemporalSmoothing(
         Scripted(steps), process_std=(0.005, 0.005, 1e-4), measurement_std=(0.05, 0.05, 0.001)
     )
-    outputs = np.array([wrapper(observation())[0] for _ in range(60)])
+    outputs = np.array([wrapper(observation(), info())[0] for _ in range(60)])
     raw_err = np.abs(noisy[20:, :2] - truth[:2]).mean()
     smooth_err = np.abs(outputs[20:, :2] - truth[:2]).mean()
     assert smooth_err < 0.5 * raw_err
@@ -58,8 +63,8 @@ def test_filters_follow_collaborator_ids_not_slots():
     a, b = np.array([1.0, 0.0, 0.0]), np.array([-1.0, 2.0, 0.0])
     steps = [(np.vstack([a, b]), [True, True]), (np.zeros((2, 3)), [False, False])]
     wrapper = TemporalSmoothing(Scripted(steps))
-    wrapper(observation(), {"collaborators": ["cav_1", "rsu_0"]})
-    swapped = wrapper(observation(), {"collaborators": ["rsu_0", "cav_1"]})
+    wrapper(observation(), {"agent": "cav_0", "collaborators": ["cav_1", "rsu_0"]})
+    swapped = wrapper(observation(), {"agent": "cav_0", "collaborators": ["rsu_0", "cav_1"]})
     assert np.allclose(swapped[0], b, atol=1e-6) and np.allclose(swapped[1], a, atol=1e-6)
 
 
@@ -67,11 +72,11 @@ def test_stale_estimates_expire_and_reset_forgets():
     steps = [(np.array([[1.0, 0, 0]]), [True])] + [(np.zeros((1, 3)), [False])] * 4
     inner = Scripted(steps)
     wrapper = TemporalSmoothing(inner, max_age=2)
-    outs = [wrapper(observation(1, 1))[0, 0] for _ in range(4)]
+    outs = [wrapper(observation(1, 1), info(1))[0, 0] for _ in range(4)]
     assert outs[:3] == pytest.approx([1.0, 1.0, 1.0], abs=1e-6) and outs[3] == 0.0
     wrapper.reset()
     assert inner.resets == 1
-    assert wrapper(observation(1, 1))[0, 0] == 0.0
+    assert wrapper(observation(1, 1), info(1))[0, 0] == 0.0
 
 
 def test_yaw_is_filtered_across_the_wrap():
@@ -80,14 +85,14 @@ def test_yaw_is_filtered_across_the_wrap():
         (np.array([[0, 0, -np.pi + 0.01]]), [True]),
     ]
     wrapper = TemporalSmoothing(Scripted(steps))
-    wrapper(observation(1, 1))
-    yaw = wrapper(observation(1, 1))[0, 2]
+    wrapper(observation(1, 1), info(1))
+    yaw = wrapper(observation(1, 1), info(1))[0, 2]
     assert abs(abs(yaw) - np.pi) < 0.02  # stays near +-pi, never averages to 0
 
 
 def test_accepts_registry_names_and_validates():
     wrapper = TemporalSmoothing("identity")
-    assert np.all(wrapper(observation()) == 0)
+    assert np.all(wrapper(observation(), info()) == 0)
     with pytest.raises(ValueError, match="process_std"):
         TemporalSmoothing("identity", process_std=(0.1, -1.0, 0.1))
     with pytest.raises(ValueError, match="policy_params"):
@@ -113,7 +118,7 @@ def test_wraps_a_real_aligner_on_a_static_scene():
     obs = to_observation(scene, max_boxes=16, max_collaborators=2)
     wrapper = roco_temporal(max_age=5, tau2=2.5)
     for _ in range(3):
-        action = wrapper(obs, {"collaborators": ["cav_1", None]})
+        action = wrapper(obs, {"agent": "cav_0", "collaborators": ["cav_1", None]})
     err = relative_pose_error(apply_correction(obs["collab_rel_poses"], action)[:1], scene.true)
     assert err[0, 0] < 0.1 and np.all(action[1] == 0)
     assert wrapper.last_result.applied.tolist() == [True, False]
@@ -126,5 +131,5 @@ def test_iid_corrections_are_followed_with_lag():
     truth = rng.normal(0.0, [0.8, 0.8, 0.01], size=(30, 3))
     steps = [(z[None], [True]) for z in truth]
     wrapper = TemporalSmoothing(Scripted(steps))
-    outputs = np.array([wrapper(observation(1, 1))[0] for _ in range(30)])
+    outputs = np.array([wrapper(observation(1, 1), info(1))[0] for _ in range(30)])
     assert np.abs(outputs[1:, :2] - truth[1:, :2]).mean() > 0.1

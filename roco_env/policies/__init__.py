@@ -100,6 +100,10 @@ def registered_policies() -> dict[str, str]:
 
 def make_policy(name: str, **params: Any) -> Callable:
     """Build the policy registered as ``name``, or imported from ``module:factory``."""
+    if not isinstance(name, str):
+        raise ValueError(f"make_policy: name must be a policy name (available_policies()) or "
+                         f"an import target 'my_pkg.module:make_policy'; got {name!r} "
+                         f"({type(name).__name__})")
     registry = _registry()
     if name not in registry and not is_import_target(name):
         registry = _registry(refresh=True)

@@ -88,13 +88,26 @@ class ObservationView:
                        slot_reasons=tuple(reasons), slot_statistics=statistics)
 
 
-def collaborator_keys(info: dict | None, slots: Sequence[int]) -> list[tuple]:
-    """The key of each collaborator slot for state kept across steps: (ego id, collaborator
-    id) from ``info["agent"]`` and ``info["collaborators"]`` (so reordered slots keep their
-    state), the slot index in place of an id the info lacks."""
-    names = (info or {}).get("collaborators")
-    ego = (info or {}).get("agent")
-    return [(ego, names[s] if names is not None and s < len(names) else int(s)) for s in slots]
+def collaborator_keys(info: dict | None, slots: Sequence[int], policy: str) -> list[tuple]:
+    """The key of each filled collaborator slot for state kept across steps: (ego id,
+    collaborator id) from ``info["agent"]`` and ``info["collaborators"]``, so reordered
+    slots keep their state and one instance serving several egos never mixes theirs.
+
+    ValueError naming ``policy`` (the stateful policy) when the info lacks either id:
+    keyed by slot, the egos sharing an instance would share (and corrupt) one state.
+    """
+    info = {} if info is None else info
+    ego, names = info.get("agent"), info.get("collaborators")
+    if ego is None or names is None:
+        raise ValueError(
+            f"{policy} keeps state per ego and collaborator, so it needs the env's info with "
+            "'agent' and 'collaborators': call policy(obs[agent], infos[agent]); got "
+            f"{'no info' if not info else 'an info with keys ' + str(sorted(info))}")
+    unnamed = [int(s) for s in slots if s >= len(names) or names[s] is None]
+    if unnamed:
+        raise ValueError(f"{policy}: info['collaborators'] ({len(names)} names) names no "
+                         f"agent for the filled collaborator slots {unnamed}")
+    return [(ego, names[s]) for s in slots]
 
 
 def _field(observation: dict, key: str) -> np.ndarray:

@@ -670,8 +670,8 @@ class RoCoPolicy(ArrayAlignmentPolicy):
     frames (:mod:`roco_env.policies.pooled`): once it shows that collaborator's reported
     poses carry errors, its frame-by-frame test no longer keeps them. The policy then
     keeps a history per ego and collaborator (``info["agent"]``,
-    ``info["collaborators"]``; by slot without infos): call :meth:`reset` between
-    episodes. Needs the significance test (``significance`` not None or 0).
+    ``info["collaborators"]``; a call without them is a ValueError): call :meth:`reset`
+    between episodes. Needs the significance test (``significance`` not None or 0).
     """
 
     def __init__(self, pooled_significance: float | None = None, **params) -> None:
@@ -697,7 +697,7 @@ class RoCoPolicy(ArrayAlignmentPolicy):
         test finds wrong; their statistics extend the history."""
         if self.pooled is None:
             return super().align_view(view, observation, info)
-        keys = collaborator_keys(info, view.slots)
+        keys = collaborator_keys(info, view.slots, "roco with pooled_significance")
         waived = [j for j, key in enumerate(keys) if self.pooled.waived(key)]
         result = self._align(*view.arrays, waived=waived, **self._kwargs)
         self.pooled.record(keys, result.slot_statistics)

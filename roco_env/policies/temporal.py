@@ -4,10 +4,10 @@
 collaborator, its correction (dx m, dy m, dyaw rad; the action of one slot) with
 a filterpy Kalman filter under a random-walk model (F = I, H = I). Filters are
 keyed by (ego, collaborator): the ego from ``info["agent"]`` and the collaborator
-by agent id from ``info["collaborators"]`` when the info has them (so slot
-reordering does not mix filters), else by slot index. One instance can therefore
-serve every agent of an env (``{a: policy(obs[a], infos[a]) for a in env.agents}``);
-called without infos it serves a single ego only.
+by agent id from ``info["collaborators"]`` (so slot reordering does not mix
+filters). One instance can therefore serve every agent of an env
+(``{a: policy(obs[a], infos[a]) for a in env.agents}``); a call without those ids
+is a ValueError (keyed by slot, the egos would share filters).
 
 * A step where the inner policy applied a correction to a slot is a measurement
   (yaw innovation wrapped to (-pi, pi]); the filter's estimate is the output.
@@ -102,11 +102,12 @@ class TemporalSmoothing:
         return np.any(action != 0.0, axis=1)
 
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
+        filled = np.nonzero(np.asarray(observation["collab_mask"]) > 0)[0]
+        keys = collaborator_keys(info, filled, "temporal smoothing")
         action = np.asarray(self.policy(observation, info), dtype=float).reshape(-1, 3)
         applied = self._applied(action)
-        filled = np.nonzero(np.asarray(observation["collab_mask"]) > 0)[0]
         out = action.copy()
-        for slot, key in zip(filled, collaborator_keys(info, filled), strict=True):
+        for slot, key in zip(filled, keys, strict=True):
             kf = self._filters.get(key)
             if applied[slot]:
                 if kf is None:

@@ -89,6 +89,9 @@ def frame_to_state(frame: Frame, agents: AgentsConfig, index: int,
                    default_dt: float = 0.1) -> WorldState:
     """Validate one Frame and turn it into a WorldState (errors name frames[index].field)."""
     where = f"frames[{index}]"
+    if not isinstance(frame, Frame):
+        raise ValueError(f"{where} must be a roco_env.traffic.frames.Frame (Frame(object_ids=..., "
+                         f"object_boxes=..., ...)); got {type(frame).__name__}")
     boxes = validate_boxes(frame.object_boxes, f"{where}.object_boxes")
     ids = np.asarray(frame.object_ids, dtype=np.int64).reshape(-1)
     m = boxes.shape[0]

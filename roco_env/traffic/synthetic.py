@@ -13,6 +13,8 @@ one is dropped). CAVs are vehicles near the scene centre chosen from the rng.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from roco_env.geometry import bev_iou
@@ -99,9 +101,15 @@ class LaneTraffic:
         self.classes = np.concatenate([c for _, c, _ in spawned])
         self.sizes = np.concatenate([z for _, _, z in spawned])
         if self.s.size == 0:
+            longest = float(np.max(lanes.lengths))
+            # The smallest density whose floor(density * length / 100) is 1 on the longest
+            # lane, rounded up to 3 decimals (100 / 300 m = 0.333 would still give 0).
+            least = math.ceil(100.0 / longest * 1000.0) / 1000.0
             raise ValueError(
-                f"traffic.density={cfg.density} places no vehicle on layout {cfg.layout!r}; "
-                "use a density > 0 (vehicles per 100 m of lane)"
+                f"traffic.density={cfg.density} places no vehicle on layout {cfg.layout!r}: a "
+                f"lane holds floor(density * length / 100) vehicles and its longest lane is "
+                f"{longest:.0f} m; use traffic.density >= {least:g} (vehicles per 100 m of "
+                "lane) or a longer traffic.length"
             )
         keep = _drop_overlaps(self._boxes()) & ~self._in_box()
         self.lane, self.s = self.lane[keep], self.s[keep]

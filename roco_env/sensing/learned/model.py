@@ -6,7 +6,8 @@ A weights file (written by ``roco-env train-detector``, read with
 detector grid (x_range, y_range, resolution of the LiDAR raster, agent frame),
 the raster channel names (:data:`LIDAR_CHANNELS`), the scan noise it was
 trained with and the training command. Every field is checked on load; a
-missing, corrupt or mismatched file raises ValueError naming the problem.
+missing, corrupt or mismatched file, or one with a NaN or infinite weight, raises
+ValueError naming the problem.
 """
 
 from __future__ import annotations
@@ -135,7 +136,24 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     if grid.H % 4 or grid.W % 4:
         raise ValueError(f"learned detector weights file {path}: grid {grid.H} x {grid.W} cells "
                          "must be multiples of 4 on both axes")
-    return Checkpoint(net, grid, noise, payload["state_dict"], dict(payload.get("meta", {})))
+    state_dict = payload.get("state_dict")
+    if not isinstance(state_dict, dict) or not all(
+            isinstance(v, torch.Tensor) for v in state_dict.values()):
+        raise ValueError(f"learned detector weights file {path} has no state_dict of tensors")
+    non_finite = _non_finite_tensors(state_dict)
+    if non_finite:
+        # A NaN weight scores every box NaN: no detection passes, every reward is 0.
+        raise ValueError(f"learned detector weights file {path} holds non-finite (NaN or inf) "
+                         f"values in {', '.join(non_finite)}: retrain with 'roco-env "
+                         "train-detector'")
+    return Checkpoint(net, grid, noise, state_dict, dict(payload.get("meta", {})))
+
+
+def _non_finite_tensors(state_dict: dict[str, torch.Tensor]) -> list[str]:
+    """Names of the floating-point tensors (detector and fusion gate weights, buffers)
+    holding a NaN or an infinity, in the state dict's order."""
+    return [name for name, value in state_dict.items()
+            if value.is_floating_point() and not bool(torch.isfinite(value).all())]
 
 
 def build_network(checkpoint: Checkpoint, path: str | Path) -> BevDetectorNet:
