@@ -113,10 +113,9 @@ def picture_title(scenario: str, step: int, ego: str, noise: NoiseConfig,
 def _evaluation_rectangle(ax, ego_pose: np.ndarray, evaluation_range: EvaluationRange) -> None:
     """The ego-frame rectangle x_range x y_range (m) placed with the ego's true pose."""
     (x0, x1), (y0, y1) = evaluation_range
-    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
-    c, s = np.cos(ego_pose[2]), np.sin(ego_pose[2])
-    placed = corners @ np.array([[c, s], [-s, c]]) + ego_pose[:2]
-    ax.add_collection(PolyCollection([placed], facecolors="none", edgecolors="0.2",
+    area = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0, x1 - x0, y1 - y0, 0.0, 0.0])
+    placed = box_corners_bev(transform_boxes(area, ego_pose))
+    ax.add_collection(PolyCollection(placed, facecolors="none", edgecolors="0.2",
                                      linewidths=1.2, linestyles=":", zorder=3))
 
 
