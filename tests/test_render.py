@@ -80,7 +80,7 @@ def test_the_title_names_policy_scenario_and_noise_and_the_evaluation_range_is_d
     env.render_caption = "policy roco"
     env.render()
     (fig,) = figures
-    title = fig._suptitle.get_text()
+    title = fig.get_suptitle()
     cfg = env.config
     assert title.splitlines() == [
         f"policy roco  {cfg.name}",
