@@ -3,8 +3,12 @@
 One JSON object per line, written with flush + fsync as each cell finishes, so a
 killed sweep loses at most the cell being written. A torn last line (killed mid
 write) is sealed with a newline before the next append. Lines that are not a
-record (torn, edited, foreign) are skipped on reading and counted
-(:attr:`ResultStore.unreadable`), so callers can report them.
+valid record (torn, edited, foreign: not JSON, or failing the record schema of
+:func:`roco_env.sweeps.records.record_problem`, e.g. ``"ap70": "high"``, ``5.0``
+or ``NaN``, or no ``metrics``) are skipped on reading and counted
+(:attr:`ResultStore.unreadable`, their line numbers and reasons in
+:attr:`ResultStore.skipped`), so callers can report them and the sweep recomputes
+their cells.
 Records carry ``key`` and ``status`` ("ok" or "error"); when a key appears more
 than once (a failed cell retried later) the last record wins.
 """
@@ -17,6 +21,8 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+from roco_env.sweeps.records import record_problem
 
 
 def _json_safe(value: Any) -> Any:
@@ -35,26 +41,39 @@ class ResultStore:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
-        self.unreadable = 0  # non-blank lines the last read could not use
+        self.skipped: list[tuple[int, str]] = []  # (line number from 1, why) of the last read
+
+    @property
+    def unreadable(self) -> int:
+        """Non-blank lines the last read could not use."""
+        return len(self.skipped)
+
+    def skipped_text(self, shown: int = 10) -> str:
+        """``results.jsonl: N unreadable line(s) skipped (line 3: metrics.ap70 ...; ...)``."""
+        reasons = "; ".join(f"line {number}: {why}" for number, why in self.skipped[:shown])
+        more = f"; and {self.unreadable - shown} more" if self.unreadable > shown else ""
+        return f"{self.path}: {self.unreadable} unreadable line(s) skipped ({reasons}{more})"
 
     def records(self) -> list[dict]:
-        """Every readable record in file order (others skipped, counted in ``unreadable``)."""
-        self.unreadable = 0
+        """Every valid record in file order (others skipped, listed in ``skipped``)."""
+        self.skipped = []
         if not self.path.exists():
             return []
         records = []
         with self.path.open(encoding="utf-8", errors="replace") as handle:
-            for line in handle:
+            for number, line in enumerate(handle, start=1):
                 if not line.strip():
                     continue
                 try:
                     record = json.loads(line)
-                except json.JSONDecodeError:
-                    record = None
-                if isinstance(record, dict) and "key" in record and "status" in record:
+                except json.JSONDecodeError as exc:
+                    problem: str | None = f"not JSON ({exc.msg})"
+                else:
+                    problem = record_problem(record)
+                if problem is None:
                     records.append(record)
                 else:
-                    self.unreadable += 1
+                    self.skipped.append((number, problem))
         return records
 
     def latest(self) -> dict[str, dict]:

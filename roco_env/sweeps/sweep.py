@@ -4,7 +4,8 @@ A cell whose latest record in the file is ``ok`` *and* carries the provenance th
 current code computes for it (:mod:`roco_env.sweeps.provenance`) is reused; the
 rest (new, previously failed, or stale: produced by other code or scenario
 content) run on the chosen backend and each record is appended as soon as it
-arrives. Stale and unreadable lines are counted and said on stderr. A tqdm bar
+arrives. Stale records and unreadable lines (torn, or failing the record schema:
+their cells run again) are counted and said on stderr, the lines by number. A tqdm bar
 shows progress and the failure count.
 
 SIGTERM (like Ctrl-C) stops the sweep: the workers are stopped with it, finished
@@ -47,7 +48,7 @@ class SweepOutcome:
 
     stale: cells whose earlier ``ok`` record was produced by other code or scenario
     content and were recomputed; unreadable: lines of the results file that are not
-    records (skipped).
+    valid records (skipped; their cells recomputed).
     """
 
     records: list[dict]
@@ -122,7 +123,7 @@ def run_sweep(
     reusable = {key for key in ok if latest[key].get("provenance") == fingerprints[key]}
     stale = len(ok) - len(reusable)
     if unreadable:
-        print(f"{store.path}: {unreadable} unreadable line(s) skipped", file=sys.stderr)
+        print(store.skipped_text(), file=sys.stderr)
     if stale:
         print(f"{store.path}: {stale} cell(s) recomputed: their results were produced by "
               "other code or scenario content", file=sys.stderr)
