@@ -4,11 +4,15 @@ killed sweep, and the time per call is a warm one."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
+from pathlib import Path
 
 import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
 
+from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import build_grid
 from roco_env.sweeps.report import write_report
 from roco_env.sweeps.sweep import run_sweep
@@ -80,3 +84,109 @@ def test_a_null_metric_is_a_valid_record(tmp_path):
     again = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
     assert (again.ran, again.skipped, again.unreadable) == (0, 2, 0)
     assert all(r["metrics"]["ap70"] is None for r in again.records)
+
+
+# --- Every file a cell reads is in its provenance (item 2) ------------------------------
+
+
+def _rerun(cells, path):
+    """A second sweep of ``cells`` into ``path`` (a new process would hash afresh too)."""
+    CALLS.clear()
+    return run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+
+
+def _overwrite(path, data: bytes) -> None:
+    """Rewrite ``path`` as retraining would: other bytes, a newer modification time."""
+    before = path.stat().st_mtime_ns
+    path.write_bytes(data)
+    os.utime(path, ns=(before + 10**9, before + 10**9))
+
+
+def test_overwritten_detector_weights_make_the_records_stale(tmp_path):
+    weights = tmp_path / "detector.pt"
+    weights.write_bytes(b"first training")
+    cells = build_grid(["crowded_intersection"], [0.4], ["identity"], [0], 2,
+                       overrides={"detector": "learned", "detector.params.weights": str(weights)})
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert (_rerun(cells, path).ran, CALLS) == (0, [])
+    _overwrite(weights, b"retrained!!!!!")  # the same size
+    again = _rerun(cells, path)
+    assert (again.ran, again.skipped, again.stale) == (1, 0, 1)
+
+
+def _replay_folder(root, x: float):
+    (root / "0").mkdir(parents=True, exist_ok=True)
+    (root / "0" / "000068.yaml").write_text(f"lidar_pose: [{x}, 0, 1.9, 0, 0, 0]\n")
+    (root / "0" / "000068.pcd").write_bytes(b"points")  # never read by the replay
+    return root
+
+
+def test_an_edited_replay_label_makes_the_records_stale(tmp_path):
+    folder = _replay_folder(tmp_path / "scene", x=1.0)
+    cells = build_grid(["opv2v_replay"], [0.4], ["identity"], [0], 2,
+                       overrides={"traffic.path": str(folder)})
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    (folder / "0" / "000068.pcd").write_bytes(b"other points")
+    assert _rerun(cells, path).ran == 0  # point clouds are not read, not hashed
+    _overwrite(folder / "0" / "000068.yaml", b"lidar_pose: [2.0, 0, 1.9, 0, 0, 0]\n")
+    assert _rerun(cells, path).stale == 1
+
+
+class WeightsPolicy:
+    """A policy that reads a weights file and says so (the ReadsFiles hook)."""
+
+    def __init__(self, weights: str) -> None:
+        self.weights = weights
+
+    def input_files(self) -> list[str]:
+        return [self.weights]
+
+    def __call__(self, observation, info=None):
+        raise NotImplementedError("never run: the sweep runs fake cells")
+
+
+def test_the_files_a_policy_declares_are_in_the_provenance(tmp_path, monkeypatch):
+    import roco_env.policies as policies
+
+    monkeypatch.setattr(policies, "_REGISTRY", dict(policies._REGISTRY))
+    policies.register_policy("with_weights", "test_sweeps_trust:WeightsPolicy")
+    weights = tmp_path / "policy.bin"
+    weights.write_bytes(b"v1")
+    cells = build_grid(["s"], [0.4], [f"with_weights:weights={weights}"], [0], 2)
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert _rerun(cells, path).ran == 0
+    _overwrite(weights, b"v2")
+    assert _rerun(cells, path).stale == 1
+
+
+def test_a_file_is_hashed_once_while_its_size_and_mtime_stay(tmp_path, monkeypatch):
+    digests = []
+    file_digest = hashlib.file_digest
+
+    def counting(handle, name):
+        digests.append(handle.name)
+        return file_digest(handle, name)
+
+    monkeypatch.setattr(hashlib, "file_digest", counting)
+    weights = tmp_path / "w.pt"
+    weights.write_bytes(b"weights")
+    for _ in range(3):  # three sweeps of one process, each with its own Provenance
+        assert len(provenance.content_hashes(weights)) == 64
+    assert digests == [str(weights)]
+    _overwrite(weights, b"WEIGHTS")
+    provenance.content_hashes(weights)
+    assert digests == [str(weights)] * 2
+
+
+def test_a_policy_must_declare_its_files_as_a_list_of_paths():
+    from roco_env.policies.base import policy_input_files
+
+    assert policy_input_files(WeightsPolicy("w.bin")) == (Path("w.bin"),)
+    assert policy_input_files(lambda observation, info=None: None) == ()
+    with pytest.raises(TypeError, match=r"WeightsPolicy.input_files\(\) must return a list "
+                       "of paths; got 'w.bin'"):
+        policy_input_files(type("WeightsPolicy", (WeightsPolicy,), {
+            "input_files": lambda self: self.weights})("w.bin"))

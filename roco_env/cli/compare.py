@@ -2,7 +2,7 @@
 
 Results go to ``OUT/results.jsonl`` as cells finish; re-running the same command
 resumes (finished cells are skipped, failed ones retried, and results produced by
-other code or scenario content are recomputed, which the run says). The report
+other code, scenario content or input files are recomputed, which the run says). The report
 (``report.md``, ``summary.csv``, PNG plots) is rewritten from all current results
 in the folder, including earlier runs' other policies or settings.
 SIGTERM or Ctrl-C stops the sweep and its workers with one line; re-running the

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from roco_env.schema import ConfigError, build, check_value, spec
+from roco_env.schema import ConfigError, build, spec
 from roco_env.sweeps.grid import Cell
 
 RECORD_VERSION = 1

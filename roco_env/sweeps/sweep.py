@@ -2,7 +2,7 @@
 
 A cell whose latest record in the file is ``ok`` *and* carries the provenance the
 current code computes for it (:mod:`roco_env.sweeps.provenance`) is reused; the
-rest (new, previously failed, or stale: produced by other code or scenario
+rest (new, previously failed, or stale: produced by other code, input files or scenario
 content) run on the chosen backend and each record is appended as soon as it
 arrives. Stale records and unreadable lines (torn, or failing the record schema:
 their cells run again) are counted and said on stderr, the lines by number. A tqdm bar
@@ -46,7 +46,7 @@ class SweepStopped(KeyboardInterrupt):
 class SweepOutcome:
     """Records of the grid's cells (grid order) and what this run did.
 
-    stale: cells whose earlier ``ok`` record was produced by other code or scenario
+    stale: cells whose earlier ``ok`` record was produced by other code, input files or scenario
     content and were recomputed; unreadable: lines of the results file that are not
     valid records (skipped; their cells recomputed).
     """
@@ -126,7 +126,7 @@ def run_sweep(
         print(store.skipped_text(), file=sys.stderr)
     if stale:
         print(f"{store.path}: {stale} cell(s) recomputed: their results were produced by "
-              "other code or scenario content", file=sys.stderr)
+              "other code, scenario content or input files (weights, replay labels)", file=sys.stderr)
     pending = [cell for cell in unique if cell.key not in reusable]
     failed = 0
     with _stop_on_signals(store.path), tqdm(
