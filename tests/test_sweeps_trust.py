@@ -7,14 +7,18 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
 
+from roco_env.cli import main
 from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import build_grid
 from roco_env.sweeps.report import write_report
+from roco_env.sweeps.store import ResultsInUse, ResultStore
 from roco_env.sweeps.sweep import run_sweep
 
 
@@ -190,3 +194,45 @@ def test_a_policy_must_declare_its_files_as_a_list_of_paths():
                        "of paths; got 'w.bin'"):
         policy_input_files(type("WeightsPolicy", (WeightsPolicy,), {
             "input_files": lambda self: self.weights})("w.bin"))
+
+
+# --- One sweep at a time per output folder (item 4) -------------------------------------
+
+HOLD_LOCK = """
+import sys, time
+from roco_env.sweeps.store import ResultStore
+with ResultStore(sys.argv[1]).exclusive():
+    print("locked", flush=True)
+    time.sleep(60)
+"""
+
+
+def _holding_process(results) -> subprocess.Popen:
+    """A process that holds the results file's lock, as a running sweep does."""
+    process = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(results)],
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "locked"
+    return process
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no fcntl lock on Windows")
+def test_a_second_sweep_into_a_busy_folder_stops_and_a_killed_one_leaves_no_lock(tmp_path,
+                                                                                 capsys):
+    cells = _grid()
+    results = tmp_path / "results.jsonl"
+    holder = _holding_process(results)
+    try:
+        with pytest.raises(ResultsInUse, match=f"{results} is being written by another sweep "
+                           rf"\(pid {holder.pid}\); wait for it to finish"):
+            run_sweep(cells, results, workers=1, cell_fn=fake_cell, progress=False)
+        assert CALLS == [] and not results.exists()
+        code = main(["compare", "--scenario", "urban_intersection", "--policies", "identity",
+                     "--out", str(tmp_path), "--quiet", "--workers", "1"])
+        assert code == 2
+        assert f"roco-env compare: error: {results} is being written by another sweep" \
+            in capsys.readouterr().err
+    finally:
+        holder.kill()  # SIGKILL: no clean-up runs
+        holder.wait()
+    outcome = run_sweep(cells, results, workers=1, cell_fn=fake_cell, progress=False)
+    assert (outcome.ran, len(ResultStore(results).records())) == (4, 4)  # each cell once

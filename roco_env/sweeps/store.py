@@ -11,6 +11,13 @@ or ``NaN``, or no ``metrics``) are skipped on reading and counted
 their cells.
 Records carry ``key`` and ``status`` ("ok" or "error"); when a key appears more
 than once (a failed cell retried later) the last record wins.
+
+One sweep at a time writes a results file: :meth:`ResultStore.exclusive` holds an
+advisory lock (``fcntl.flock``) on ``<results file>.lock`` beside it, and a second
+sweep into the same folder stops with :class:`ResultsInUse`. The lock belongs to the
+open file, so it ends with the process however it ends (a killed sweep leaves no stale
+lock; the lock file itself stays, empty of meaning). Platforms without ``fcntl``
+(Windows) run unlocked.
 """
 
 from __future__ import annotations
@@ -18,9 +25,15 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None  # type: ignore[assignment]
 
 from roco_env.sweeps.records import record_problem
 
@@ -34,6 +47,10 @@ def _json_safe(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_json_safe(v) for v in value]
     return value
+
+
+class ResultsInUse(RuntimeError):
+    """Another sweep is writing the results file (it holds the lock)."""
 
 
 class ResultStore:
@@ -83,6 +100,27 @@ class ResultStore:
     def completed_keys(self) -> set[str]:
         """Keys whose latest record succeeded (skipped on resume; failed ones are retried)."""
         return {key for key, record in self.latest().items() if record["status"] == "ok"}
+
+    @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the results file's lock for the block; :class:`ResultsInUse` naming the file
+        and the holder's pid when another process holds it."""
+        lock_path = self.path.with_name(self.path.name + ".lock")
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        with lock_path.open("a+", encoding="utf-8") as handle:
+            if fcntl is not None:
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    handle.seek(0)
+                    holder = handle.read().strip() or "unknown"
+                    raise ResultsInUse(
+                        f"{self.path} is being written by another sweep (pid {holder}); wait "
+                        "for it to finish or choose another output folder") from None
+                handle.truncate(0)
+                handle.write(f"{os.getpid()}\n")
+                handle.flush()
+            yield
 
     def append(self, record: dict) -> None:
         """Write one record as a line and make it durable before returning."""
