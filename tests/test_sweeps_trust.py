@@ -7,8 +7,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -236,3 +238,58 @@ def test_a_second_sweep_into_a_busy_folder_stops_and_a_killed_one_leaves_no_lock
         holder.wait()
     outcome = run_sweep(cells, results, workers=1, cell_fn=fake_cell, progress=False)
     assert (outcome.ran, len(ResultStore(results).records())) == (4, 4)  # each cell once
+
+
+# --- Workers die with a killed sweep (item 5) -------------------------------------------
+
+
+def _children(pid: int) -> set[int]:
+    """Pids of the live processes whose parent is ``pid`` (from /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.slow  # a real compare with a pool: 7-25 s
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="watches a pidfd: Linux")
+def test_sigkill_of_compare_leaves_no_fork_server_worker_or_resource_tracker(tmp_path):
+    command = [str(Path(sys.executable).with_name("roco-env")), "compare", "--scenario",
+               "urban_roundabout", "--policies", "identity", "--noise", "0", "0.4", "--seeds",
+               "4", "--steps", "10", "--workers", "2", "--quiet", "--no-plots", "--out",
+               str(tmp_path), "--set", "cavs=2", "--set", "rsus=0"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    descendants: set[int] = set()
+    try:
+        deadline = time.monotonic() + 60
+        workers: set[int] = set()
+        while time.monotonic() < deadline and process.poll() is None and len(workers) < 2:
+            # fork server and resource tracker: children of the sweep; workers: the server's
+            helpers = _children(process.pid)
+            workers = {pid for helper in helpers for pid in _children(helper)}
+            descendants |= helpers | workers
+            time.sleep(0.05)
+        assert len(workers) == 2, "the sweep ended before its pool started"
+        process.kill()  # SIGKILL to the sweep alone: no handler, no clean-up runs
+        process.wait()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(_alive(pid) for pid in descendants):
+            time.sleep(0.05)
+        survivors = [pid for pid in descendants if _alive(pid)]
+    finally:
+        for pid in descendants:  # leave nothing behind even when the check fails
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    assert not survivors, "processes outlived the killed sweep"
