@@ -13,12 +13,13 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
 
 from roco_env.cli import main
 from roco_env.sweeps import provenance
-from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.grid import Cell, build_grid
 from roco_env.sweeps.report import write_report
 from roco_env.sweeps.store import ResultsInUse, ResultStore
 from roco_env.sweeps.sweep import run_sweep
@@ -293,3 +294,38 @@ def test_sigkill_of_compare_leaves_no_fork_server_worker_or_resource_tracker(tmp
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
     assert not survivors, "processes outlived the killed sweep"
+
+
+# --- The time per call is a warm one (item 7) -------------------------------------------
+
+
+class FakeClock:
+    """perf_counter stand-in: time moves only when a policy call says how long it took."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_time_per_call_leaves_out_each_agents_first_call(monkeypatch):
+    """The first call of each policy pays numba's compilation (hundreds of ms in a fresh
+    worker): it must not be in the reported per-call time."""
+    from roco_env.sweeps import episode
+
+    clock = FakeClock()
+    monkeypatch.setattr(episode, "time", clock)
+
+    class Compiling:
+        calls = 0
+
+        def __call__(self, observation, info=None):
+            clock.now += 0.5 if self.calls == 0 else 0.002  # s: compiled once, then warm
+            self.calls += 1
+            return np.zeros((len(observation["collab_mask"]), 3), dtype=np.float32)
+
+    scorers = []
+    cell = Cell("crowded_intersection", 0.0, "identity", 0, 3, overrides=(("cavs", 2), ("rsus", 0)))
+    episode.run_episode(cell, policy_factory=Compiling, on_scorer=scorers.append)
+    assert scorers[0].time_per_call_ms() == pytest.approx(2.0)  # not (2 x 500 + 4 x 2) / 6
