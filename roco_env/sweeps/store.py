@@ -16,7 +16,7 @@ One sweep at a time writes a results file: :meth:`ResultStore.exclusive` holds a
 advisory lock (``fcntl.flock``) on ``<results file>.lock`` beside it, and a second
 sweep into the same folder stops with :class:`ResultsInUse`. The lock belongs to the
 open file, so it ends with the process however it ends (a killed sweep leaves no stale
-lock; the lock file itself stays, empty of meaning). Platforms without ``fcntl``
+lock; the lock file stays, holding the last sweep's pid). Platforms without ``fcntl``
 (Windows) run unlocked.
 """
 
