@@ -1,4 +1,4 @@
-"""Sweep results you can trust (issue 27): bad records are skipped and recomputed, every
+"""Sweep results you can trust: bad records are skipped and recomputed, every
 file a cell reads is in its provenance, one sweep per output folder, workers die with a
 killed sweep, and the time per call is a warm one."""
 
