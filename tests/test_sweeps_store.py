@@ -14,7 +14,7 @@ from conftest import CALLS, FAILING_NOISE, fake_cell
 import roco_env
 from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import build_grid
-from roco_env.sweeps.records import WALL_TIME_FIELDS
+from roco_env.sweeps.records import WALL_TIME_FIELDS, error_record, ok_record
 from roco_env.sweeps.store import ResultStore
 from roco_env.sweeps.sweep import run_sweep, stored_results
 
@@ -30,28 +30,37 @@ def _grid():
                       seeds=[0, 1], steps=2)
 
 
+def _record(index: int, ap70: float) -> dict:
+    """A valid ok record of the grid's cell ``index`` with AP@0.7 ``ap70``."""
+    cell = _grid()[index]
+    return ok_record(cell, {"ap30": 1.0, "ap50": 1.0, "ap70": ap70},
+                     {"before": [], "after": []}, 0.1)
+
+
 def test_store_is_strict_jsonl_and_last_record_wins(tmp_path):
+    a, b = _grid()[:2]
     store = ResultStore(tmp_path / "r.jsonl")
-    store.append({"key": "a", "status": "error", "error": "x"})
-    store.append({"key": "b", "status": "ok", "metrics": {"ap70": float("nan")}})
-    store.append({"key": "a", "status": "ok", "metrics": {"ap70": 0.5}})
+    store.append(error_record(a, RuntimeError("x"), 0.1))
+    store.append(_record(1, float("nan")))
+    store.append(_record(0, 0.5))
     lines = (tmp_path / "r.jsonl").read_text().splitlines()
     assert len(lines) == 3
     assert json.loads(lines[1])["metrics"]["ap70"] is None  # NaN stored as null
-    assert store.completed_keys() == {"a", "b"}
-    assert store.latest()["a"]["metrics"]["ap70"] == 0.5
-    assert [r["key"] for r in store.select(["b", "zz", "a"])] == ["b", "a"]
+    assert store.completed_keys() == {a.key, b.key}
+    assert store.latest()[a.key]["metrics"]["ap70"] == 0.5
+    assert [r["key"] for r in store.select([b.key, "zz", a.key])] == [b.key, a.key]
 
 
 def test_torn_last_line_is_skipped_and_sealed(tmp_path):
     path = tmp_path / "r.jsonl"
     store = ResultStore(path)
-    store.append({"key": "a", "status": "ok"})
+    store.append(_record(0, 0.5))
     with path.open("a") as handle:
         handle.write('{"key": "b", "sta')  # a kill in the middle of a write
-    assert store.completed_keys() == {"a"}
-    store.append({"key": "c", "status": "ok"})
-    assert store.completed_keys() == {"a", "c"}
+    assert store.completed_keys() == {_grid()[0].key}
+    assert store.skipped == [(2, "not JSON (Unterminated string starting at)")]
+    store.append(_record(2, 0.5))
+    assert store.completed_keys() == {_grid()[0].key, _grid()[2].key}
     assert len(path.read_text().splitlines()) == 3
 
 

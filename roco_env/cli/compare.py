@@ -2,12 +2,14 @@
 
 Results go to ``OUT/results.jsonl`` as cells finish; re-running the same command
 resumes (finished cells are skipped, failed ones retried, and results produced by
-other code or scenario content are recomputed, which the run says). The report
+other code, scenario content or input files are recomputed, which the run says). The report
 (``report.md``, ``summary.csv``, PNG plots) is rewritten from all current results
 in the folder, including earlier runs' other policies or settings.
 SIGTERM or Ctrl-C stops the sweep and its workers with one line; re-running the
-command resumes. Exit code 0 when every cell succeeded, 1 when some failed
-(listed in the report), 2 for bad options, 128 + the signal number when stopped.
+command resumes. One sweep at a time writes an output folder: a second compare into
+a folder another one is writing stops at once with a message naming it.
+Exit code 0 when every cell succeeded, 1 when some failed (listed in the report),
+2 for bad options or a busy output folder, 128 + the signal number when stopped.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from roco_env.sweeps.options import DEFAULT_SCENARIO
 from roco_env.sweeps.provenance import Provenance
 from roco_env.sweeps.report import write_report
 from roco_env.sweeps.spec import parse_overrides
+from roco_env.sweeps.store import ResultsInUse
 from roco_env.sweeps.sweep import SweepStopped, run_sweep, stored_results
 
 # Defaults, and the `--demo` preset (crowded default scenario, the four built-in
@@ -62,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
         outcome = run_sweep(cells, out / "results.jsonl", backend=args.backend,
                             workers=args.workers, address=args.address, progress=not args.quiet,
                             provenance=provenance)
+    except ResultsInUse as busy:
+        print(f"roco-env compare: error: {busy}", file=sys.stderr)
+        return 2
     except SweepStopped as stop:
         print(f"roco-env compare: stopped by {stop.signal_name}; finished cells are saved in "
               f"{stop.results_path}, run the same command again to resume", file=sys.stderr)

@@ -5,18 +5,25 @@ action (N, 3) holds one correction (dx, dy, dyaw) per collaborator slot, in the
 ego frame: ``T_corrected_{j->i} = SE2(dx, dy, dyaw) * T_reported_{j->i}``
 (metres, radians). Zeros trust the reported poses. Built-in alignment policies
 also keep their last :class:`AlignmentResult` in ``policy.last_result`` so a
-sweep can score their matching.
+sweep can score their matching. A policy that reads files (learned weights, lookup
+tables) declares them with an ``input_files()`` method (:class:`ReadsFiles`), so a
+sweep's resume check covers their content.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from roco_env.geometry import apply_correction, se2_compose, se2_inverse, se2_relative
 
-__all__ = ["AlignmentResult", "apply_correction", "correction_action", "reported_relative_poses"]
+__all__ = ["AlignmentResult", "ReadsFiles", "apply_correction", "correction_action",
+           "policy_input_files", "reported_relative_poses"]
 
 
 @dataclass
@@ -66,3 +73,29 @@ def correction_action(reported: np.ndarray, corrected: np.ndarray) -> np.ndarray
     return se2_compose(np.asarray(corrected, dtype=float), se2_inverse(reported)).astype(np.float32)
 
 
+
+
+@runtime_checkable
+class ReadsFiles(Protocol):
+    """A policy that reads files declares them: ``input_files()`` returns every file (or
+    folder: all files under it) whose content its actions depend on, e.g. its weights.
+    A sweep hashes their content into each record's provenance, so overwriting one
+    (retraining) makes the records of that policy stale instead of silently reused."""
+
+    def input_files(self) -> Sequence[str | os.PathLike]:
+        ...
+
+
+def policy_input_files(policy: Any) -> tuple[Path, ...]:
+    """The files ``policy`` declares through :class:`ReadsFiles` (none without the hook).
+
+    Raises TypeError naming the policy when ``input_files()`` returns anything but a
+    sequence of paths."""
+    if not isinstance(policy, ReadsFiles):
+        return ()
+    declared = policy.input_files()
+    if isinstance(declared, (str, os.PathLike)) or not isinstance(declared, Sequence) or \
+            not all(isinstance(item, (str, os.PathLike)) for item in declared):
+        raise TypeError(f"{type(policy).__name__}.input_files() must return a list of paths; "
+                        f"got {declared!r}")
+    return tuple(Path(item) for item in declared)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import multiprocessing
 import multiprocessing.context
 import os
+import select
 import signal
 import sys
 import threading
@@ -41,12 +42,38 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _worker_signals() -> None:
+def _die_with(sweep_pid: int) -> None:
+    """Kill this process (SIGKILL) as soon as process ``sweep_pid`` ends, however it ends.
+
+    A pool worker's parent is the fork server, not the sweep, so the kernel's parent-death
+    signal (``PR_SET_PDEATHSIG``) would tie it to the server, which itself only exits once
+    every worker has (each holds the server's "alive" pipe). So a daemon thread waits on a
+    pidfd of the sweep process (Linux >= 5.3) instead; where there is none (macOS, Windows)
+    nothing watches. With the workers gone, the fork server and the resource tracker see
+    their pipes close and exit too.
+    """
+    try:
+        pidfd = os.pidfd_open(sweep_pid)
+    except ProcessLookupError:  # the sweep ended before this worker started
+        os.kill(os.getpid(), signal.SIGKILL)
+    except (AttributeError, OSError):  # no pidfd on this platform or kernel
+        return
+
+    def watch() -> None:
+        select.select([pidfd], [], [])  # readable once the process has ended
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="die-with-the-sweep", daemon=True).start()
+
+
+def _worker_setup(sweep_pid: int) -> None:
     """Pool initializer: workers ignore SIGINT (Ctrl-C reaches the whole process group,
     and the parent alone decides: it stops the workers, see :func:`_stop_workers`);
-    SIGTERM gets its default action back."""
+    SIGTERM gets its default action back; a worker dies with the sweep process
+    ``sweep_pid`` even when that is SIGKILLed (:func:`_die_with`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with(sweep_pid)
 
 
 def _run_in_worker(cell_fn: CellFn, policies: dict[str, str], cell: Cell) -> dict:
@@ -67,7 +94,7 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Kill the pool's worker processes now (a stopped sweep must not leave them).
 
     ``shutdown`` would wait for the running cells. SIGKILL: it stops a worker whatever
-    its handlers (one still starting has not run :func:`_worker_signals`), and workers hold
+    its handlers (one still starting has not run :func:`_worker_setup`), and workers hold
     nothing to save (the parent writes the records). ``kill_workers`` only exists from
     Python 3.14, so older versions kill the pool's processes directly.
     """
@@ -103,8 +130,8 @@ def _pool(workers: int) -> tuple[tuple[int, str], ProcessPoolExecutor]:
     if key not in _POOLS:
         context = (_fork_server() if key[1] == "forkserver"
                    else multiprocessing.get_context(key[1]))
-        _POOLS[key] = ProcessPoolExecutor(max_workers=workers,
-                                          initializer=_worker_signals, mp_context=context)
+        _POOLS[key] = ProcessPoolExecutor(max_workers=workers, initializer=_worker_setup,
+                                          initargs=(os.getpid(),), mp_context=context)
     return key, _POOLS[key]
 
 

@@ -62,7 +62,9 @@ def render_markdown(rows: Sequence[SummaryRow], failures: Sequence[dict],
         parts += [f"Episodes of {', '.join(map(str, steps))} steps; seeds per setting: "
                   f"{', '.join(map(str, seeds))}. AP = mean over seeds of each episode's dataset "
                   "AP (OpenCOOD protocol); RPE and success pool every collaborator slot of every "
-                  "step; noise s/s = sigma_t s m, sigma_r s deg." + _short_episodes(rows), ""]
+                  "step; noise s/s = sigma_t s m, sigma_r s deg. Warm time per call = median "
+                  "wall time of a policy call after each agent's first (which pays one-off "
+                  "compilation), mean over seeds." + _short_episodes(rows), ""]
     for (scenario, density), group in _groups(rows, lambda r: (r.scenario, r.density)).items():
         overrides = ", ".join(f"{k}={format_scalar(v)}" for k, v in group[0].overrides.items())
         extra = f"; {overrides}" if overrides else ""

@@ -2,9 +2,10 @@
 
 A cell whose latest record in the file is ``ok`` *and* carries the provenance the
 current code computes for it (:mod:`roco_env.sweeps.provenance`) is reused; the
-rest (new, previously failed, or stale: produced by other code or scenario
+rest (new, previously failed, or stale: produced by other code, input files or scenario
 content) run on the chosen backend and each record is appended as soon as it
-arrives. Stale and unreadable lines are counted and said on stderr. A tqdm bar
+arrives. Stale records and unreadable lines (torn, or failing the record schema:
+their cells run again) are counted and said on stderr, the lines by number. A tqdm bar
 shows progress and the failure count.
 
 SIGTERM (like Ctrl-C) stops the sweep: the workers are stopped with it, finished
@@ -45,9 +46,9 @@ class SweepStopped(KeyboardInterrupt):
 class SweepOutcome:
     """Records of the grid's cells (grid order) and what this run did.
 
-    stale: cells whose earlier ``ok`` record was produced by other code or scenario
+    stale: cells whose earlier ``ok`` record was produced by other code, input files or scenario
     content and were recomputed; unreadable: lines of the results file that are not
-    records (skipped).
+    valid records (skipped; their cells recomputed).
     """
 
     records: list[dict]
@@ -110,33 +111,37 @@ def run_sweep(
     """Run the cells not yet (currently) finished in ``results_path``; every cell's record.
 
     ``provenance``: pass the one the caller also reports with (hashing the package once).
+    Raises :class:`roco_env.sweeps.store.ResultsInUse` when another sweep is writing
+    ``results_path`` (two sweeps would run every cell twice).
     """
     store = ResultStore(results_path)
-    provenance = provenance or Provenance()
-    unique = list({cell.key: cell for cell in cells}.values())
-    fingerprints = {cell.key: provenance.of(cell) for cell in unique}
-    latest = store.latest()
-    unreadable = store.unreadable
-    ok = {cell.key for cell in unique
-          if latest.get(cell.key, {}).get("status") == "ok"}
-    reusable = {key for key in ok if latest[key].get("provenance") == fingerprints[key]}
-    stale = len(ok) - len(reusable)
-    if unreadable:
-        print(f"{store.path}: {unreadable} unreadable line(s) skipped", file=sys.stderr)
-    if stale:
-        print(f"{store.path}: {stale} cell(s) recomputed: their results were produced by "
-              "other code or scenario content", file=sys.stderr)
-    pending = [cell for cell in unique if cell.key not in reusable]
-    failed = 0
-    with _stop_on_signals(store.path), tqdm(
-            total=len(unique), initial=len(unique) - len(pending), unit="cell", desc="sweep",
-            disable=not progress, dynamic_ncols=True) as bar, closing(
-            run_cells(pending, cell_fn, backend, workers, address)) as results:
-        for cell, record in results:
-            store.append({**record, "provenance": fingerprints[cell.key]})
-            failed += record["status"] != "ok"
-            bar.update(1)
-            bar.set_postfix(failed=failed, refresh=False)
-    return SweepOutcome(records=store.select(c.key for c in unique), ran=len(pending),
-                        skipped=len(unique) - len(pending), failed=failed, stale=stale,
-                        unreadable=unreadable)
+    with store.exclusive():  # one sweep at a time writes the file
+        provenance = provenance or Provenance()
+        unique = list({cell.key: cell for cell in cells}.values())
+        fingerprints = {cell.key: provenance.of(cell) for cell in unique}
+        latest = store.latest()
+        unreadable = store.unreadable
+        ok = {cell.key for cell in unique
+              if latest.get(cell.key, {}).get("status") == "ok"}
+        reusable = {key for key in ok if latest[key].get("provenance") == fingerprints[key]}
+        stale = len(ok) - len(reusable)
+        if unreadable:
+            print(store.skipped_text(), file=sys.stderr)
+        if stale:
+            print(f"{store.path}: {stale} cell(s) recomputed: their results were produced by "
+                  "other code, scenario content or input files (weights, replay labels)",
+                  file=sys.stderr)
+        pending = [cell for cell in unique if cell.key not in reusable]
+        failed = 0
+        with _stop_on_signals(store.path), tqdm(
+                total=len(unique), initial=len(unique) - len(pending), unit="cell", desc="sweep",
+                disable=not progress, dynamic_ncols=True) as bar, closing(
+                run_cells(pending, cell_fn, backend, workers, address)) as results:
+            for cell, record in results:
+                store.append({**record, "provenance": fingerprints[cell.key]})
+                failed += record["status"] != "ok"
+                bar.update(1)
+                bar.set_postfix(failed=failed, refresh=False)
+        return SweepOutcome(records=store.select(c.key for c in unique), ran=len(pending),
+                            skipped=len(unique) - len(pending), failed=failed, stale=stale,
+                            unreadable=unreadable)

@@ -64,12 +64,13 @@ def ap_by_density(rows: Sequence[SummaryRow], key: str) -> str:
 POSE_HEADER = ("Policy", "Noise", "RPE t med / p95 (m)", "RPE r med / p95 (deg)",
                "before: t med / p95 (m)", "before: r med / p95 (deg)", "Success@1m1deg (%)",
                "Success@2m2deg (%)", "Success@3m3deg (%)", "Match P (%)", "Match R (%)",
-               "Corrected (%)", "Time per call (ms)")
+               "Corrected (%)", "Warm time per call (ms)")
 
 
 def pose_table(rows: Sequence[SummaryRow]) -> str:
     """RPE (pooled median / 95th percentile) and success, matching, correction share and
-    the mean time of one policy call."""
+    the time of one warm policy call (median per episode leaving out each agent's first
+    call, which pays numba's compilation; mean over seeds)."""
     body = []
     for row in sorted(rows, key=lambda r: r.noise):  # stable: policies keep their order
         pair = [f"{_cell(row, a, 1.0, 3)} / {_cell(row, b, 1.0, 3)}" for a, b in (
