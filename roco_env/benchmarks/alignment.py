@@ -126,7 +126,11 @@ def policy_lines(repeats: int) -> list[str]:
     for error in (0.8, 5.0):
         scene = benchmark_scene(np.random.default_rng(0), 5, 60, error, error)
         obs = to_observation(scene, max_boxes=80, max_collaborators=4)
-        info = {"privileged": {"true_relative_poses": scene.true,
+        # the ids every stateful policy keys its state by, as the env's info carries them
+        info = {"agent": "ego",
+                "collaborators": [f"collaborator_{j}"
+                                  for j in range(int(obs["collab_mask"].sum()))],
+                "privileged": {"true_relative_poses": scene.true,
                                "reported_relative_poses": scene.reported}}
         policies = {name: make_policy(name) for name in available_policies()}
         calls = {name: functools.partial(policy, obs, info) for name, policy in policies.items()}
