@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import CALLS, FAILING_NOISE, fake_cell
+from test_sweeps_sweep import _alive, _children
 
 from roco_env.cli import main
 from roco_env.sweeps import provenance
@@ -242,26 +243,6 @@ def test_a_second_sweep_into_a_busy_folder_stops_and_a_killed_one_leaves_no_lock
 
 
 # --- Workers die with a killed sweep (item 5) -------------------------------------------
-
-
-def _children(pid: int) -> set[int]:
-    """Pids of the live processes whose parent is ``pid`` (from /proc)."""
-    found = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if int(fields[1]) == pid and fields[0] != "Z":
-            found.add(int(stat.parent.name))
-    return found
-
-
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 @pytest.mark.slow  # a real compare with a pool: 7-25 s
