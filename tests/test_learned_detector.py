@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -260,6 +261,8 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
                    "--fused-x-range -100.0 100.0", "--fused-y-range -40.0 40.0"):
         assert option in meta["command"]
     assert f"sha256 `{sha256_of(first)}`" in (tmp_path / "two" / "report.md").read_text()
+    history = json.loads((tmp_path / "two" / "loss_history.json").read_text())
+    assert len(history["total"]) == 2  # per step: the loss picture can be redrawn
     capsys.readouterr()
     for bad, message in ((["--freeze-encoder"], "(a frozen encoder, --freeze-encoder) needs "
                                                 "init, the weights file to start from (--init"),

@@ -47,9 +47,11 @@ def loss_curves_figure(history: dict[str, list[float]]) -> Figure:
 
 def write_report(result: TrainResult, out: Path, command: str, weights_sha256: str,
                  init_sha256: str | None = None) -> None:
-    """loss_curves.png, report.json and report.md in ``out``; init_sha256: of the weights
-    file a fine-tuning run started from."""
+    """loss_curves.png, loss_history.json (the per-step losses the picture draws, so it can
+    be redrawn), report.json and report.md in ``out``; init_sha256: of the weights file a
+    fine-tuning run started from."""
     loss_curves_figure(result.history).savefig(out / "loss_curves.png", dpi=90)
+    (out / "loss_history.json").write_text(json.dumps(result.history) + "\n")
     init = {} if init_sha256 is None else {"init_sha256": init_sha256}
     summary = {"command": command, "weights_sha256": weights_sha256, **init,
                **result.summary()}
