@@ -310,3 +310,25 @@ def test_time_per_call_leaves_out_each_agents_first_call(monkeypatch):
     cell = Cell("crowded_intersection", 0.0, "identity", 0, 3, overrides=(("cavs", 2), ("rsus", 0)))
     episode.run_episode(cell, policy_factory=Compiling, on_scorer=scorers.append)
     assert scorers[0].time_per_call_ms() == pytest.approx(2.0)  # not (2 x 500 + 4 x 2) / 6
+
+
+def test_a_wrapped_policy_still_declares_its_files(tmp_path, monkeypatch):
+    """Temporal smoothing around a policy that reads weights: the sweep must still hash
+    them, or retraining the inner policy would leave its records reused."""
+    import roco_env.policies as policies
+    from roco_env.policies.base import policy_input_files
+    from roco_env.policies.temporal import TemporalSmoothing
+
+    assert policy_input_files(TemporalSmoothing(WeightsPolicy("w.bin"))) == (Path("w.bin"),)
+    assert policy_input_files(TemporalSmoothing("identity")) == ()
+    monkeypatch.setattr(policies, "_REGISTRY", dict(policies._REGISTRY))
+    policies.register_policy("with_weights", "test_sweeps_trust:WeightsPolicy")
+    weights = tmp_path / "policy.bin"
+    weights.write_bytes(b"v1")
+    spec = f"roco_env.policies.temporal:TemporalSmoothing:policy=with_weights,weights={weights}"
+    cells = build_grid(["s"], [0.4], [spec], [0], 2)
+    path = tmp_path / "results.jsonl"
+    run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert _rerun(cells, path).ran == 0
+    _overwrite(weights, b"v2")
+    assert _rerun(cells, path).stale == 1

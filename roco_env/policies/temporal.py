@@ -23,12 +23,14 @@ Call :meth:`reset` between episodes.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.policies.adapter import collaborator_keys
+from roco_env.policies.base import policy_input_files
 
 __all__ = ["TemporalSmoothing", "coalign_temporal", "roco_temporal"]
 
@@ -80,6 +82,11 @@ class TemporalSmoothing:
     def last_result(self):
         """The inner policy's last AlignmentResult (None if it keeps none)."""
         return getattr(self.policy, "last_result", None)
+
+    def input_files(self) -> tuple[Path, ...]:
+        """The files the inner policy declares (:class:`roco_env.policies.base.ReadsFiles`),
+        so a sweep's resume check still covers them once the policy is wrapped."""
+        return policy_input_files(self.policy)
 
     def reset(self) -> None:
         """Forget every filter (call between episodes) and reset the inner policy."""
