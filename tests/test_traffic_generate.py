@@ -107,3 +107,21 @@ def test_the_scenario_output_must_be_a_yaml_file(tmp_path, capsys):
                  "-o", str(out), "--export-opv2v", str(export)]) == 2
     assert "scenario output: " in capsys.readouterr().err
     assert not out.exists() and not export.exists()
+
+
+def test_overwrite_replaces_an_export_of_the_older_flat_layout(tmp_path):
+    """Exports written before the OpenCOOD layout put the agent folders straight into the
+    folder (``<folder>/<agent id>/*.yaml``): --overwrite replaces them too."""
+    from roco_env.traffic.export import prepare_export_folder
+
+    export = tmp_path / "opv2v"
+    for agent in ("641", "650", "-1"):
+        (export / agent).mkdir(parents=True)
+        (export / agent / "000000.yaml").write_text("lidar_pose: [0, 0, 1.9, 0, 0, 0]\n")
+    prepare_export_folder(export, overwrite=True)
+    assert list(export.iterdir()) == []
+    (export / "641").mkdir()
+    (export / "641" / "cloud.pcd").write_bytes(b"points")  # not written by an export
+    with pytest.raises(ValueError, match=r"holds \['641'\], which are not OPV2V agent folders"):
+        prepare_export_folder(export, overwrite=True)
+    assert (export / "641" / "cloud.pcd").exists()

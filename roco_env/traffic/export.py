@@ -75,9 +75,9 @@ def _is_export(path: Path, depth: int) -> bool:
 def prepare_export_folder(folder: str | Path, overwrite: bool) -> None:
     """Make ``folder`` ready for a fresh export: refuse a non-empty one unless ``overwrite``.
 
-    Overwriting removes only earlier exports (``<split>/<scenario>/<agent id>/*.yaml``);
-    anything else in the folder is left alone and makes the export refuse (two scenes
-    must never mix).
+    Overwriting removes only earlier exports (``<split>/<scenario>/<agent id>/*.yaml``, or
+    ``<agent id>/*.yaml``, the layout exports had before OpenCOOD's); anything else in the
+    folder is left alone and makes the export refuse (two scenes must never mix).
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -87,13 +87,15 @@ def prepare_export_folder(folder: str | Path, overwrite: bool) -> None:
     if not overwrite:
         raise ValueError(f"export folder {folder} is not empty; exporting into it would mix "
                          "two scenes: choose an empty folder or pass overwrite (--overwrite)")
-    foreign = sorted(p.name for p in folder.iterdir() if not _is_export(p, depth=2))
+    foreign = sorted(p.name for p in folder.iterdir()
+                     if not (_is_export(p, depth=2) or _is_agent_folder(p)))
     if foreign:
         raise ValueError(f"export folder {folder} holds {foreign[:3]}, which are not OPV2V agent "
-                         "folders of an earlier export (<split>/<scenario>/<agent id>/*.yaml); "
-                         "overwrite only replaces an earlier export: choose another folder")
-    for split_folder in folder.iterdir():
-        shutil.rmtree(split_folder)
+                         "folders of an earlier export (<split>/<scenario>/<agent id>/*.yaml, "
+                         "or <agent id>/*.yaml); overwrite only replaces an earlier export: "
+                         "choose another folder")
+    for earlier in folder.iterdir():  # split folders, or agent folders of the older layout
+        shutil.rmtree(earlier)
 
 
 def agent_folder_names(state: WorldState) -> list[str]:
