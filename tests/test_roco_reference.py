@@ -3,7 +3,8 @@
 pose errors 0-1.5 m/deg, three parameter sets). Speed work must not change a result. They
 were recorded while the matching rounds weighed each edge by its box's information alone,
 ``round_information="box"``, so they pin that rule; the default one ("difference") is the
-Python loop's to the bit (tests/test_roco_kernels.py)."""
+Python loop's, exactly in its discrete outcomes and to rounding in its floats
+(tests/test_roco_kernels.py)."""
 
 import json
 from pathlib import Path

@@ -73,8 +73,6 @@ def correction_action(reported: np.ndarray, corrected: np.ndarray) -> np.ndarray
     return se2_compose(np.asarray(corrected, dtype=float), se2_inverse(reported)).astype(np.float32)
 
 
-
-
 @runtime_checkable
 class ReadsFiles(Protocol):
     """A policy that reads files declares them: ``input_files()`` returns every file (or

@@ -5,8 +5,9 @@ overrides). Per setting: AP@0.3/0.5/0.7 = mean over seeds of each episode's
 dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2/@3 are
 computed on the pooled samples of all seeds (so the tail is not averaged away);
 matching precision/recall, the correction share and the time per policy call (each
-episode's median warm call, see :mod:`roco_env.sweeps.episode`) are means over seeds; ``steps_played`` is the fewest env steps a seed's episode played
-(below ``steps`` when a replay's frames ran out).
+episode's median warm call, see :mod:`roco_env.sweeps.episode`) are means over
+seeds; ``steps_played`` is the fewest env steps a seed's episode played (below
+``steps`` when a replay's frames ran out).
 """
 
 from __future__ import annotations
