@@ -18,7 +18,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train the learned BEV detector in the simulator (weights + report)",
         description="Generate training scenes from the scenario library (seeds disjoint from "
         "evaluation seeds), train the learned BEV detector deterministically, and write "
-        "OUT/bev_detector.pt, OUT/report.md, OUT/report.json and OUT/loss_curves.png.",
+        "OUT/bev_detector.pt, OUT/report.md, OUT/report.json, OUT/loss_curves.png and "
+        "OUT/loss_history.json (the per-step losses it draws).",
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--seed", type=int, default=d.seed, help="training seed (default %(default)s)")
