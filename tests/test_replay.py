@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +173,17 @@ def test_missing_folder_and_missing_path(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ReplayError, match="no agent folders"):
         make_traffic_source(opv2v_config(tmp_path / "empty"))
+
+
+def test_an_export_root_as_traffic_path_names_its_scenario_folder(tmp_path):
+    """Exports used to put the agent folders straight into the folder; now they are two
+    levels down (<folder>/<split>/<scenario>/): the error says where."""
+    write_opv2v(tmp_path / "export" / "test")  # -> export/test/<scenario>/<agent>/
+    (scenario,) = (tmp_path / "export" / "test").iterdir()
+    for root in (tmp_path / "export", tmp_path / "export" / "test"):
+        with pytest.raises(ReplayError, match=rf"no agent folders .*; scenario folders below "
+                           rf"it: {re.escape(str(scenario))} \(an OPV2V root or an export's"):
+            make_traffic_source(opv2v_config(root))
 
 
 @pytest.mark.parametrize("layout", ["intersection", "parking_lot"])

@@ -149,15 +149,26 @@ def _opv2v_object(path: Path, key: str, entry: Any) -> tuple[int, np.ndarray, fl
     return oid, box, speed, cls
 
 
+def _numbered_folders(folder: Path) -> list[Path]:
+    """The sub-folders of ``folder`` named by an agent id (``641``, ``-1``, ``+641``)."""
+    return [p for p in folder.iterdir() if p.is_dir() and re.fullmatch(r"[-+]?\d+", p.name)]
+
+
 def _agent_folders(root: Path) -> dict[int, Path]:
     """Agent id -> folder of a scenario, in agent order: CAVs (a ``+``-named folder, the
     OpenCOOD ego of an export, first; then by id), then RSUs (-1, -2, ...)."""
     if not root.is_dir():
         raise ReplayError(f"{root}: dataset folder not found (set traffic.path to an OPV2V/"
                           "V2XSet scenario folder holding <agent id>/<frame>.yaml)")
-    folders = [p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"[-+]?\d+", p.name)]
+    folders = _numbered_folders(root)
     if not folders:
-        raise ReplayError(f"{root}: no agent folders (<agent id>/ with <frame>.yaml files)")
+        inside = sorted(p for p in [*root.glob("*"), *root.glob("*/*")]
+                        if p.is_dir() and _numbered_folders(p))
+        hint = (f"; scenario folders below it: {', '.join(map(str, inside[:3]))} (an OPV2V root "
+                "or an export's <folder>/<split>/<scenario>): set traffic.path to one of "
+                "them") if inside else ""
+        raise ReplayError(f"{root}: no agent folders (<agent id>/ with <frame>.yaml files)"
+                          + hint)
     by_id: dict[int, Path] = {}
     for folder in folders:
         if int(folder.name) in by_id:
