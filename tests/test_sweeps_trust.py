@@ -81,6 +81,32 @@ def test_records_that_break_their_schema_are_skipped_counted_and_recomputed(tmp_
     assert "255" not in report and "seeds per setting: 2" in report
 
 
+def _set_cell(name, value):
+    return lambda record: record["cell"].__setitem__(name, value)
+
+
+def test_records_whose_cell_breaks_its_schema_are_skipped_not_fatal(tmp_path, capsys):
+    """The cell is part of the schema too: a word for its noise level used to escape the
+    check (computing the key raised) and stop the sweep with no file or line."""
+    cells = _grid()
+    path = tmp_path / "results.jsonl"
+    clean = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    edits = [_set_cell("noise", "x"), _set_cell("seed", "0"), _set_cell("steps", 0),
+             lambda record: record["cell"].pop("policy")]
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(_edited(line, edit) for line, edit in
+                              zip(lines, edits, strict=True)) + "\n")
+    capsys.readouterr()
+    again = run_sweep(cells, path, workers=1, cell_fn=fake_cell, progress=False)
+    assert (again.ran, again.unreadable) == (4, 4)
+    assert again.records == clean.records
+    warning = capsys.readouterr().err
+    assert "line 1: cell.noise expects a number; got 'x'" in warning
+    assert "line 2: cell.seed expects an integer" in warning
+    assert "line 3: cell.steps=0 is out of range" in warning
+    assert "line 4: cell without policy" in warning
+
+
 def test_a_null_metric_is_a_valid_record(tmp_path):
     """NaN (AP of an episode with no ground truth and no prediction) is written as null:
     that record is valid and reused."""

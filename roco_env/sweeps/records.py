@@ -9,8 +9,9 @@ median wall time of one warm policy call, see :mod:`roco_env.sweeps.episode`) ar
 out of ``metrics``, which a rerun reproduces exactly.
 
 :func:`record_problem` checks a record read back from a file against this schema
-(:class:`RecordMetrics` declares every metric with its allowed range through
-:mod:`roco_env.schema`); the store skips a record that fails it like a torn line.
+(:class:`RecordMetrics` declares every metric with its allowed range, and
+:class:`RecordCell` every field of the cell, through :mod:`roco_env.schema`); the
+store skips a record that fails it like a torn line.
 """
 
 from __future__ import annotations
@@ -112,13 +113,32 @@ class RecordHead:
     samples: dict = spec({})
 
 
+@dataclass
+class RecordCell:
+    """A record's ``cell`` (:meth:`roco_env.sweeps.grid.Cell.to_dict`): noise level s
+    (sigma_t = s m, sigma_r = s deg), env steps, traffic density (null = the scenario's)."""
+
+    scenario: str = spec("")
+    noise: float = spec(0.0, low=0.0)
+    policy: str = spec("")
+    seed: int = spec(0, low=0)
+    steps: int = spec(1, low=1)
+    density: float | None = spec(None, low=0.0)
+    overrides: dict = spec({})
+
+
 def _check_cell(record: dict) -> None:
+    missing = [f for f in ("scenario", "noise", "policy", "seed", "steps")
+               if isinstance(record["cell"], dict) and f not in record["cell"]]
+    if missing:
+        raise ConfigError(f"cell without {', '.join(missing)}")
+    build(RecordCell, record["cell"], "record", "cell.")
     try:
-        cell = Cell.from_dict(record["cell"])
-    except (TypeError, ValueError) as exc:
+        key = Cell.from_dict(record["cell"]).key
+    except (TypeError, ValueError) as exc:  # e.g. an override value that is a list
         raise ConfigError(f"cell: {exc}") from exc
-    if cell.key != record["key"]:
-        raise ConfigError(f"key {record['key']!r} is not the key of its cell ({cell.key!r})")
+    if key != record["key"]:
+        raise ConfigError(f"key {record['key']!r} is not the key of its cell ({key!r})")
 
 
 def _check_samples(samples: dict) -> None:
