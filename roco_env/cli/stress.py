@@ -27,6 +27,8 @@ from roco_env.sweeps.spec import parse_policy_spec
 def run(args: argparse.Namespace) -> int:
     if args.address is not None and args.backend != "ray":
         raise ValueError("--address needs --backend ray")
+    if args.workers < 1:
+        raise ValueError(f"--workers: workers must be an integer >= 1; got {args.workers}")
     space = load_space(args.space)
     all_settings = [
         SearchSettings(out=args.out, policy=parse_policy_spec(policy).label,

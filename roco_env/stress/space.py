@@ -32,8 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from roco_env.schema import ConfigError, build, check_value, load_yaml, spec
 from roco_env.scenario import ScenarioConfig, apply_overrides, load_scenario
+from roco_env.schema import ConfigError, build, check_value, load_yaml, spec
 
 DEFAULT_SPACE = "default_space.yaml"  # package data of roco_env.stress
 FILL = "fill"  # the derived parameter (see the module docstring)
@@ -99,8 +99,8 @@ def _field(dotted: str) -> tuple[Any, dict] | None:
         if dataclasses.is_dataclass(hint):
             cls = hint
             continue
-        if depth != len(parts) - 1 or typing.get_origin(hint) in (list, dict) \
-                or hint in (list, dict):
+        scalar = next(t for t in typing.get_args(hint) or (hint,) if t is not type(None))
+        if depth != len(parts) - 1 or (typing.get_origin(scalar) or scalar) in (list, dict):
             return None
         return hint, dict(fields[part].metadata)
     return None
@@ -205,13 +205,14 @@ def lane_density(fill: float, min_gap: float) -> float:
 
 def scenario_for(space: SearchSpace, values: dict[str, Any], name: str) -> ScenarioConfig:
     """The validated scenario of one evaluation: the base with ``values`` applied."""
+    base = load_scenario(space.base)
     overrides = {k: v for k, v in values.items() if k != FILL}
-    config = apply_overrides(load_scenario(space.base), overrides)
-    if FILL in values:
-        traffic = config.traffic
-        density = (values[FILL] if traffic.layout == "parking_lot"
-                   else lane_density(values[FILL], traffic.min_gap))
-        config = apply_overrides(config, {"traffic.density": float(density)})
+    if FILL in values:  # one validation: the density's meaning depends on the layout
+        layout = values.get("traffic.layout", base.traffic.layout)
+        min_gap = values.get("traffic.min_gap", base.traffic.min_gap)
+        overrides["traffic.density"] = float(
+            values[FILL] if layout == "parking_lot" else lane_density(values[FILL], min_gap))
+    config = apply_overrides(base, overrides)
     return dataclasses.replace(config, name=name, description=(
         "Found by roco-env stress: " + ", ".join(f"{k}={_text(v)}" for k, v in values.items())))
 

@@ -86,8 +86,8 @@ class SearchSettings:
     def identity(self) -> dict[str, Any]:
         """What a resumed study must share with the one stored (else values differ)."""
         return {"seeds": list(self.seeds), "steps": self.steps,
-                "space": [[p.name, p.type, p.low, p.high, p.log, list(p.choices)]
-                          for p in self.space.params], "base": self.space.base}
+                "space": sorted([p.name, p.type, p.low, p.high, p.log, list(p.choices)]
+                                for p in self.space.params), "base": self.space.base}
 
 
 def check_settings(settings: SearchSettings) -> None:
@@ -134,14 +134,14 @@ def count(study, state_name: str) -> int:
 def open_study(settings: SearchSettings, worker: int = 0):
     """The stored study (created on first use), its sampler seeded for ``worker``."""
     optuna = import_optuna()
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    optuna.logging.set_verbosity(optuna.logging.ERROR)  # infeasible trials: user attrs
     (settings.folder / "trials").mkdir(parents=True, exist_ok=True)
     probe = optuna.create_study(storage=settings.storage_url, study_name=settings.study_name,
                                 direction="maximize", load_if_exists=True)
     stored = probe.user_attrs.get("identity")
     if stored is None:
         probe.set_user_attr("identity", settings.identity())
-    elif stored != settings.identity():
+    elif {**stored, "space": sorted(stored["space"])} != settings.identity():
         raise ValueError(
             f"{settings.out}: the stored study {settings.study_name!r} was run with other "
             f"settings ({stored}); resume it with the same --seeds/--steps/--space or "
