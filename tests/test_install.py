@@ -32,6 +32,7 @@ def test_wheel_ships_every_scenario(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     for yaml_file in (ROOT / "scenarios").glob("*.yaml"):
         assert f"roco_env/scenarios/{yaml_file.name}" in names
+    assert "roco_env/stress/default_space.yaml" in names  # roco-env stress's default space
 
 
 _TORCH_PROBE = """

@@ -29,6 +29,7 @@ LAYERS = (
      "__init__"),
     ("training",),
     ("sweeps",),
+    ("stress",),
     ("cli",),
     ("benchmarks",),
 )

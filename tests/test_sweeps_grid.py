@@ -96,3 +96,10 @@ def test_policy_spec_label_round_trips(params):
     spec = parse_policy_spec(text)
     assert dict(spec.params) == params
     assert parse_policy_spec(spec.label) == spec
+
+
+def test_a_cell_without_a_noise_level_keeps_the_scenarios_own_noise():
+    cell = Cell("urban_intersection", None, "roco", 0, 3)
+    assert "noise=default" in cell.key
+    assert "sigma_t" not in cell.env_overrides() and "sigma_r" not in cell.env_overrides()
+    assert Cell("urban_intersection", 0.4, "roco", 0, 3).env_overrides()["sigma_r"] == 0.4

@@ -18,6 +18,7 @@ from PIL import Image
 
 from roco_env.render import GifStream
 from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.options import add_episode_options, episode_cell
 
 
@@ -26,6 +27,32 @@ def _frame(env) -> Image.Image:
     if picture.ndim != 3 or picture.shape[2] not in (3, 4):
         raise ValueError(f"env.render() must return an (H, W, 3) image; got shape {picture.shape}")
     return Image.fromarray(picture.astype(np.uint8)[..., :3])
+
+
+def render_episode(cell: Cell, out: Path | None = None, gif: str | Path | None = None,
+                   fps: float = 5.0, ego: str | None = None) -> tuple[int, dict]:
+    """Run ``cell`` and write each step's picture as ``out/frame_NNNN.png`` and/or one
+    frame of the GIF ``gif`` (streamed); returns (frames written, the episode's metrics).
+    ``ego``: the agent whose fused boxes are drawn (None: the first evaluated one)."""
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    written = 0
+
+    with GifStream(gif, fps) if gif is not None else nullcontext() as stream:
+        def on_step(step: int, env, actions: dict, infos: dict) -> None:
+            nonlocal written
+            if ego is not None:
+                env.render_ego = ego  # ValueError naming the agents when unknown
+            env.render_caption = f"policy {cell.policy}"
+            frame = _frame(env)
+            if out is not None:
+                frame.save(out / f"frame_{step:04d}.png")
+            if stream is not None:
+                stream.append(frame)
+            written += 1
+
+        metrics, _ = run_episode(cell, on_step=on_step, render_mode="rgb_array")
+    return written, metrics
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,24 +64,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--gif must name a .gif file; got {args.gif}")
     cell = episode_cell(args)
     out = Path(args.out) if args.out else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-    written = 0
-
-    with GifStream(args.gif, args.fps) if args.gif is not None else nullcontext() as gif:
-        def on_step(step: int, env, actions: dict, infos: dict) -> None:
-            nonlocal written
-            if args.ego is not None:
-                env.render_ego = args.ego  # ValueError naming the agents when unknown
-            env.render_caption = f"policy {cell.policy}"
-            frame = _frame(env)
-            if out is not None:
-                frame.save(out / f"frame_{step:04d}.png")
-            if gif is not None:
-                gif.append(frame)
-            written += 1
-
-        metrics, _ = run_episode(cell, on_step=on_step, render_mode="rgb_array")
+    written, metrics = render_episode(cell, out, args.gif, args.fps, args.ego)
     if out is not None:
         print(f"wrote {written} PNG frames to {out}/")
     if args.gif is not None:

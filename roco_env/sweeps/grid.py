@@ -25,14 +25,14 @@ GRID_OWNED_OVERRIDES = ("sigma_t", "sigma_r", "density", "noise.sigma_t", "noise
 class Cell:
     """One episode of the sweep.
 
-    scenario: scenario name or YAML path; noise: level s (sigma_t = s m, sigma_r = s deg);
-    policy: canonical policy spec (see :mod:`roco_env.sweeps.spec`); seed: env reset seed;
+    scenario: scenario name or YAML path; noise: level s (sigma_t = s m, sigma_r = s deg),
+    None = the scenario's own sigma_t / sigma_r (``roco-env stress`` cells); policy: canonical policy spec (see :mod:`roco_env.sweeps.spec`); seed: env reset seed;
     steps: env steps (max_cycles); density: traffic density override, None = scenario
     default; overrides: further scenario overrides as sorted (key, value) pairs.
     """
 
     scenario: str
-    noise: float
+    noise: float | None
     policy: str
     seed: int
     steps: int
@@ -43,10 +43,11 @@ class Cell:
     def key(self) -> str:
         """Stable identity of the cell, e.g. ``urban|density=default|noise=0.4|policy=roco|...``."""
         density = "default" if self.density is None else format_scalar(float(self.density))
+        noise = "default" if self.noise is None else format_scalar(float(self.noise))
         parts = [
             self.scenario,
             f"density={density}",
-            f"noise={format_scalar(float(self.noise))}",
+            f"noise={noise}",
             f"policy={self.policy}",
             f"seed={self.seed}",
             f"steps={self.steps}",
@@ -57,8 +58,9 @@ class Cell:
     def env_overrides(self) -> dict[str, Any]:
         """Keyword overrides for ``roco_env.parallel_env``."""
         kwargs: dict[str, Any] = dict(self.overrides)
-        kwargs["sigma_t"] = float(self.noise)
-        kwargs["sigma_r"] = float(self.noise)
+        if self.noise is not None:
+            kwargs["sigma_t"] = float(self.noise)
+            kwargs["sigma_r"] = float(self.noise)
         if self.density is not None:
             kwargs["density"] = float(self.density)
         return kwargs
