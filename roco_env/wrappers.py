@@ -27,6 +27,7 @@ from pettingzoo.utils import BaseParallelWrapper
 from roco_env.action_modes import ActionMode
 from roco_env.env import CollabPerceptionEnv
 from roco_env.policies import make_policy
+from roco_env.policies.spec import merge_env_overrides
 from roco_env.scenario import ScenarioConfig
 
 
@@ -40,7 +41,9 @@ class EgoEnv(gymnasium.Env):
     name for :func:`roco_env.policies.make_policy` (``"roco"``); by default they take
     the action mode's neutral action (zeros: trust the reported poses in ``correction``
     mode, keep the base aligner's poses in ``residual`` and ``gate`` modes, the first
-    choice in ``select`` mode). A built env scores only the controlled agent (the others
+    choice in ``select`` mode). A built env takes the env modes the others' policy
+    declares in its ``env_overrides`` (``others="learned_select"`` builds a select-mode
+    env; a conflicting override is a ValueError naming the field). A built env scores only the controlled agent (the others
     act unscored) unless ``evaluate_others`` is True; an env passed in is used as it is.
     Observation, action, reward and info are that agent's (see roco_env.env).
     Infos have fixed shapes and no NaN (see roco_env.env), so Gymnasium's vector
@@ -61,6 +64,10 @@ class EgoEnv(gymnasium.Env):
                  privileged: bool | None = None, evaluate_others: bool = False,
                  **overrides: Any) -> None:
         built = env is None
+        if isinstance(others, str):
+            others = make_policy(others)
+        if built:  # in the env modes the others' policy acts in (a learned policy's)
+            overrides = merge_env_overrides(overrides, others, "others")
         self.env = CollabPerceptionEnv(
             scenario, max_cycles=max_cycles, render_mode=render_mode, info_level=info_level,
             privileged=privileged, **overrides) if built else env
@@ -74,8 +81,6 @@ class EgoEnv(gymnasium.Env):
         if built and not evaluate_others:  # fuse and score only what this env returns
             base.evaluated_agents = [self.agent]
         base.render_ego = self.agent  # pictures show the controlled agent's fused view
-        if isinstance(others, str):
-            others = make_policy(others)
         if others is not None and not callable(others):
             raise ValueError("others must be a policy(obs, info) -> action or a policy name "
                              f"(roco_env.policies.available_policies()); got {others!r}")

@@ -14,12 +14,14 @@ Values are YAML scalars (``2`` -> int, ``1.5`` -> float, ``false`` -> bool,
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import yaml
 
 from roco_env.policies import available_policies, is_import_target, make_policy
+from roco_env.scenario import ALIASES
 from roco_env.schema import load_yaml
 
 Scalar = bool | int | float | str | None
@@ -116,3 +118,27 @@ def validate_policy_spec(text: str) -> PolicySpec:
                          "policy(obs, info) -> action")
     return spec
 
+
+
+def merge_env_overrides(overrides: Mapping[str, Any], policy: object,
+                        label: str = "policy") -> dict[str, Any]:
+    """``overrides`` plus the env modes ``policy`` acts in (its ``env_overrides`` mapping of
+    dotted scenario fields, e.g. ``{"action.mode": "select"}``; none for a correction policy).
+
+    A field set in both to different values is a ValueError naming the field and both values
+    (aliases such as ``fusion`` are compared with their dotted name).
+    """
+    declared = getattr(policy, "env_overrides", None) or {}
+    if not isinstance(declared, Mapping):
+        raise ValueError(f"{label}: env_overrides must be a mapping of scenario fields; "
+                         f"got {declared!r}")
+    merged = dict(overrides)
+    given = {ALIASES.get(key, key): value for key, value in overrides.items()}
+    for key, value in declared.items():
+        dotted = ALIASES.get(key, key)
+        if dotted in given and given[dotted] != value:
+            raise ValueError(f"{label} acts with {dotted}={value!r}, but the env sets "
+                             f"{dotted}={given[dotted]!r}; leave {dotted} out")
+        if dotted not in given:
+            merged[key] = value
+    return merged
