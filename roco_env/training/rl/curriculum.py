@@ -137,6 +137,12 @@ class CurriculumEnv(gymnasium.Env):
         self.observation_space = spaces.Box(-np.inf, np.inf, (size,), np.float32)
         self.action_space = first.action_space
         self.condition: Condition | None = None
+        self._fresh = False  # reset and not stepped since
+
+    def resume_index(self) -> int:
+        """The episode index a resumed run starts with: the one in progress if it has not
+        been stepped (a vector env resets right after an episode ends), else the next."""
+        return self.episodes - 1 if self._fresh else self.episodes
 
     def flat(self, observation: dict) -> np.ndarray:
         """The observation as the policy network reads it."""
@@ -157,12 +163,14 @@ class CurriculumEnv(gymnasium.Env):
             raise ValueError(f"scenario {self.condition.scenario!r} gives the action space "
                              f"{self._env.action_space}, not {self.action_space}")
         observation, info = self._env.reset(seed=self.condition.seed)
+        self._fresh = True
         return self.flat(observation), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         if self._env is None:
             raise ValueError("step() called before reset()")
         observation, reward, terminated, truncated, info = self._env.step(action)
+        self._fresh = False
         return self.flat(observation), reward, terminated, truncated, info
 
     def close(self) -> None:

@@ -106,7 +106,7 @@ def train(config: PolicyTrainConfig, out: Path, progress: bool = True,
         wall += time.perf_counter() - started
         curve.append({"timesteps": int(model.num_timesteps), "wall_s": round(wall, 1),
                       **score})
-        save_checkpoint(out, model, env.episodes,
+        save_checkpoint(out, model, env.resume_index(),
                         {"config": asdict(config), "baselines": baselines, "curve": curve,
                          "wall_s": wall})
         log(f"{model.num_timesteps} steps, {wall:.0f} s: reward {score['reward']:.4f} "
