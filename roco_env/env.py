@@ -185,7 +185,10 @@ class CollabPerceptionEnv(ParallelEnv):
     - ``frames``: your own scene, a sequence of :class:`roco_env.traffic.frames.Frame`,
       with ``**{"traffic.source": "frames"}``.
     - ``render_ego``: the agent whose fused boxes the picture shows (default: the
-      first evaluated agent); also a settable attribute.
+      first evaluated agent); also a settable attribute. The attribute
+      ``render_caption`` (default "") heads the picture's title, e.g. the policy
+      (``roco-env render`` sets it); the title also names the scenario, step, ego
+      and pose noise.
     - ``info_level``: ``"full"`` (default), ``"metrics"`` or ``"none"`` (see Info);
       ``privileged``: whether infos carry the privileged truth (default: with ``"full"``).
     - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
@@ -253,6 +256,7 @@ class CollabPerceptionEnv(ParallelEnv):
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
         self._info_capacity = info_capacity(config.max_boxes, config.max_collaborators)
         self.render_ego = render_ego
+        self.render_caption = ""
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
         self._frame: PerceptionFrame | None = None
@@ -360,9 +364,12 @@ class CollabPerceptionEnv(ParallelEnv):
                 return None
         frame, fused = self._shown if self._shown is not None else (self._frame, {})
         ego = self.render_ego
-        image = rendering.render_bev(frame, self.possible_agents.index(ego), fused.get(ego),
-                                     title=f"step {self._cycles}  ego {ego}",
-                                     agent_ids=self.possible_agents)
+        cfg = self.config
+        title = rendering.picture_title(cfg.name, self._cycles, ego, cfg.noise, self.render_caption)
+        image = rendering.render_bev(frame, self.possible_agents.index(ego), fused.get(ego), title,
+                                     agent_ids=self.possible_agents,
+                                     evaluation_range=(cfg.evaluation.x_range,
+                                                       cfg.evaluation.y_range))
         if self.render_mode == "rgb_array":
             return image
         self._viewer.show(image)
