@@ -28,15 +28,18 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from gymnasium import spaces
 
 from roco_env.geometry import apply_correction
 from roco_env.observation import EgoView, action_space, check_action
-from roco_env.policies.base import AlignmentResult
-from roco_env.policies.spec import PolicySpec, validate_policy_spec
 from roco_env.scenario import ActionConfig
+
+if TYPE_CHECKING:  # the policies load when a mode names one: `import roco_env` stays light
+    from roco_env.policies.base import AlignmentResult
+    from roco_env.policies.spec import PolicySpec
 
 REJECT_GATE = 1  # gate mode's "reject"; 0 keeps the base aligner's pose
 
@@ -260,6 +263,8 @@ def check_indices(action: object, agent: str, max_collaborators: int,
 
 def _policy_spec(text: object, field: str) -> PolicySpec:
     """The checked spec of ``text``, or a ValueError naming the scenario field."""
+    from roco_env.policies.spec import validate_policy_spec
+
     if not isinstance(text, str):
         raise ValueError(f"{field} must be a policy spec such as 'roco' or "
                          f"'roco:tau2=2'; got {text!r}")

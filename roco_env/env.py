@@ -11,6 +11,7 @@ design notes are in the repository's docs/ folder (docs/architecture.md).
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import types
@@ -245,14 +246,15 @@ class CollabPerceptionEnv(ParallelEnv):
         self.evaluated_agents = _evaluated_agents(config, self.possible_agents)
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
-        space = observation_space(k, n, feature_shape) if config.observation.mode == "raw" \
-            else mode_space(config.observation, k, n)
-        self._observation_spaces = dict.fromkeys(self.possible_agents, space)
+        self._observation_spaces = {  # one space object per agent: each samples its own seed
+            a: observation_space(k, n, feature_shape) if config.observation.mode == "raw"
+            else mode_space(config.observation, k, n) for a in self.possible_agents}
         self.action_mode = build_action_mode(config.action, n, self.possible_agents)
         # The base aligner runs on every observation when the action or observation reads it.
         self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
             if self.action_mode.needs_base or config.observation.mode == "aligned" else None
-        self._action_spaces = dict.fromkeys(self.possible_agents, self.action_mode.space)
+        self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
+                               for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
         self._info_capacity = info_capacity(config.max_boxes, config.max_collaborators)
         self.render_ego = render_ego

@@ -22,13 +22,17 @@ to +-:data:`EGO_FRAME_BOUND` m, diagnostics to their columns' bounds).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from gymnasium import spaces
 
 from roco_env.geometry import se2_compose, se2_inverse, transform_boxes
 from roco_env.observation import EgoView
-from roco_env.policies.base import AlignmentResult
 from roco_env.scenario import ObservationConfig
+
+if TYPE_CHECKING:
+    from roco_env.policies.base import AlignmentResult
 
 _F32 = np.float32
 EGO_FRAME_BOUND = 2000.0  # m: beyond any communication plus sensor range
