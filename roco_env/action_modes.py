@@ -19,21 +19,27 @@ what it would have added. docs/learning.md describes the modes for RL users.
 * ``gate``: a MultiDiscrete (N,) of 0 (keep the base aligner's pose) or 1 (reject).
 
 The aligners a mode names run inside the env, one instance per agent (several keep
-state per ego), on the same observation and info the agent received.
+state per ego), on the same (raw) observation and info the agent received; the base
+aligner runs when the env builds each observation (:class:`AlignerSet`), so the
+``aligned`` observation shows the very poses the ``residual`` and ``gate`` actions act on.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from gymnasium import spaces
 
 from roco_env.geometry import apply_correction
 from roco_env.observation import EgoView, action_space, check_action
-from roco_env.policies.spec import PolicySpec, validate_policy_spec
 from roco_env.scenario import ActionConfig
+
+if TYPE_CHECKING:  # the policies load when a mode names one: `import roco_env` stays light
+    from roco_env.policies.base import AlignmentResult
+    from roco_env.policies.spec import PolicySpec
 
 REJECT_GATE = 1  # gate mode's "reject"; 0 keeps the base aligner's pose
 
@@ -52,8 +58,25 @@ class Decision:
     kept: np.ndarray
 
 
-class _Aligners:
-    """One instance of each named policy per agent, called on the agent's observation."""
+@dataclass(frozen=True)
+class Alignment:
+    """One aligner's output for one agent's filled slots.
+
+    corrected: (n, 3) relative poses ``T_{j->i}`` it computed; result: its
+    :class:`~roco_env.policies.base.AlignmentResult` for this call, or None when the
+    policy reports none.
+    """
+
+    corrected: np.ndarray
+    result: AlignmentResult | None
+
+
+class AlignerSet:
+    """One instance of each named policy per agent, called on the agent's raw observation.
+
+    field: the scenario field naming the policies (errors name it); texts: their policy
+    specs; agents: the env's agent ids.
+    """
 
     def __init__(self, field: str, texts: Sequence[str], agents: Sequence[str]) -> None:
         self.specs = [_policy_spec(text, field) for text in texts]
@@ -68,14 +91,17 @@ class _Aligners:
                 if callable(reset):
                     reset()
 
-    def corrected(self, agent: str, index: int, view: EgoView, observation: dict,
-                  info: dict) -> np.ndarray:
-        """(n, 3) poses the ``index``-th aligner computes for ``agent``'s filled slots."""
+    def align(self, agent: str, index: int, view: EgoView, observation: dict,
+              info: dict) -> Alignment:
+        """What the ``index``-th aligner computes for ``agent``'s filled slots."""
         policy = self.instances[agent][index]
+        previous = getattr(policy, "last_result", None)
         action = check_action(policy(observation, info), f"{agent} ({self.specs[index].label})",
                               len(observation["collab_mask"]))
+        result = getattr(policy, "last_result", None)
         n = len(view.collaborators)
-        return apply_correction(view.reported_relative, action[:n])
+        return Alignment(apply_correction(view.reported_relative, action[:n]),
+                         None if result is previous else result)  # never a stale result
 
     def keeps_state(self, index: int) -> bool:
         """Whether the ``index``-th aligner must see every step (it keeps state)."""
@@ -84,9 +110,13 @@ class _Aligners:
 
 
 class ActionMode:
-    """Base of the modes: the action space, the action check and the decision."""
+    """Base of the modes: the action space, the action check and the decision.
+
+    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``).
+    """
 
     space: spaces.Space
+    needs_base = False
 
     def reset(self) -> None:
         """Start an episode (stateful aligners forget the last one)."""
@@ -99,7 +129,9 @@ class ActionMode:
         raise NotImplementedError
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict) -> Decision:
+               info: dict, base: np.ndarray | None) -> Decision:
+        """The decision of ``action`` (checked) on ``agent``'s last observation; ``base``
+        holds the base aligner's (n, 3) poses when the mode needs them, else None."""
         raise NotImplementedError
 
 
@@ -115,7 +147,7 @@ class CorrectionMode(ActionMode):
         return check_action(action, agent, self.n)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict) -> Decision:
+               info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         return Decision(apply_correction(view.reported_relative, action[:n]), np.ones(n, bool))
 
@@ -123,23 +155,20 @@ class CorrectionMode(ActionMode):
 class ResidualMode(ActionMode):
     """A scaled residual on top of the base aligner's poses."""
 
-    def __init__(self, config: ActionConfig, max_collaborators: int,
-                 agents: Sequence[str]) -> None:
+    needs_base = True
+
+    def __init__(self, config: ActionConfig, max_collaborators: int) -> None:
         self.n = max_collaborators
-        self.base = _Aligners("action.base", [config.base], agents)
         self.scale = np.array([config.scale[0], config.scale[1], np.radians(config.scale[2])])
         self.space = spaces.Box(-1.0, 1.0, (max_collaborators, 3), np.float32)
-
-    def reset(self) -> None:
-        self.base.reset()
 
     def check(self, action: object, agent: str) -> np.ndarray:
         return np.clip(check_action(action, agent, self.n), -1.0, 1.0)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict) -> Decision:
+               info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
-        corrected = self.base.corrected(agent, 0, view, observation, info)
+        corrected = base.copy()
         residual = action[:n].astype(float) * self.scale
         moved = np.any(residual != 0.0, axis=1)  # a zero residual keeps the base pose exactly
         corrected[moved] = apply_correction(corrected[moved], residual[moved])
@@ -152,7 +181,7 @@ class SelectMode(ActionMode):
     def __init__(self, config: ActionConfig, max_collaborators: int,
                  agents: Sequence[str]) -> None:
         self.n = max_collaborators
-        self.choices = _Aligners("action.choices", config.choices, agents)
+        self.choices = AlignerSet("action.choices", config.choices, agents)
         self.reject = len(config.choices)
         self.space = spaces.MultiDiscrete(np.full(max_collaborators, self.reject + 1))
 
@@ -163,7 +192,7 @@ class SelectMode(ActionMode):
         return check_indices(action, agent, self.n, self.reject + 1)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict) -> Decision:
+               info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         picked = action[:n]
         corrected = view.reported_relative[:n].astype(float).copy()
@@ -171,7 +200,7 @@ class SelectMode(ActionMode):
             chosen = picked == index
             # a stateless aligner nobody picked is not run; a stateful one sees every step
             if chosen.any() or self.choices.keeps_state(index):
-                poses = self.choices.corrected(agent, index, view, observation, info)
+                poses = self.choices.align(agent, index, view, observation, info).corrected
                 corrected[chosen] = poses[chosen]
         return Decision(corrected, picked != self.reject)
 
@@ -179,23 +208,20 @@ class SelectMode(ActionMode):
 class GateMode(ActionMode):
     """Per slot, keep the base aligner's pose (0) or reject the collaborator (1)."""
 
-    def __init__(self, config: ActionConfig, max_collaborators: int,
-                 agents: Sequence[str]) -> None:
-        self.n = max_collaborators
-        self.base = _Aligners("action.base", [config.base], agents)
-        self.space = spaces.MultiDiscrete(np.full(max_collaborators, 2))
+    needs_base = True
 
-    def reset(self) -> None:
-        self.base.reset()
+    def __init__(self, max_collaborators: int) -> None:
+        self.n = max_collaborators
+        self.space = spaces.MultiDiscrete(np.full(max_collaborators, 2))
 
     def check(self, action: object, agent: str) -> np.ndarray:
         return check_indices(action, agent, self.n, 2)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict) -> Decision:
+               info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         kept = action[:n] != REJECT_GATE
-        corrected = self.base.corrected(agent, 0, view, observation, info)
+        corrected = base.copy()
         corrected[~kept] = view.reported_relative[:n][~kept]
         return Decision(corrected, kept)
 
@@ -207,10 +233,13 @@ def build_action_mode(config: ActionConfig, max_collaborators: int,
     Raises ValueError naming ``action.base`` / ``action.choices`` for a policy spec that
     is unknown or whose parameters its policy refuses.
     """
-    if config.mode == "correction":
-        return CorrectionMode(config, max_collaborators)
-    modes = {"residual": ResidualMode, "select": SelectMode, "gate": GateMode}
-    return modes[config.mode](config, max_collaborators, agents)
+    if config.mode == "residual":
+        return ResidualMode(config, max_collaborators)
+    if config.mode == "select":
+        return SelectMode(config, max_collaborators, agents)
+    if config.mode == "gate":
+        return GateMode(max_collaborators)
+    return CorrectionMode(config, max_collaborators)
 
 
 def check_indices(action: object, agent: str, max_collaborators: int,
@@ -234,6 +263,8 @@ def check_indices(action: object, agent: str, max_collaborators: int,
 
 def _policy_spec(text: object, field: str) -> PolicySpec:
     """The checked spec of ``text``, or a ValueError naming the scenario field."""
+    from roco_env.policies.spec import validate_policy_spec
+
     if not isinstance(text, str):
         raise ValueError(f"{field} must be a policy spec such as 'roco' or "
                          f"'roco:tau2=2'; got {text!r}")

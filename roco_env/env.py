@@ -11,6 +11,7 @@ design notes are in the repository's docs/ folder (docs/architecture.md).
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import types
@@ -23,7 +24,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from roco_env.action_modes import Decision, build_action_mode
+from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_mode
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
@@ -41,6 +42,7 @@ from roco_env.observation import (
     pack_observation,
     privileged_truth,
 )
+from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
 from roco_env.scenario import (
     ScenarioConfig,
@@ -184,7 +186,10 @@ class CollabPerceptionEnv(ParallelEnv):
     - ``frames``: your own scene, a sequence of :class:`roco_env.traffic.frames.Frame`,
       with ``**{"traffic.source": "frames"}``.
     - ``render_ego``: the agent whose fused boxes the picture shows (default: the
-      first evaluated agent); also a settable attribute.
+      first evaluated agent); also a settable attribute. The attribute
+      ``render_caption`` (default "") heads the picture's title, e.g. the policy
+      (``roco-env render`` sets it); the title also names the scenario, step, ego
+      and pose noise.
     - ``info_level``: ``"full"`` (default), ``"metrics"`` or ``"none"`` (see Info);
       ``privileged``: whether infos carry the privileged truth (default: with ``"full"``).
     - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
@@ -241,17 +246,24 @@ class CollabPerceptionEnv(ParallelEnv):
         self.evaluated_agents = _evaluated_agents(config, self.possible_agents)
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
-        self._observation_spaces = {
-            a: observation_space(k, n, feature_shape) for a in self.possible_agents}
+        self._observation_spaces = {  # one space object per agent: each samples its own seed
+            a: observation_space(k, n, feature_shape) if config.observation.mode == "raw"
+            else mode_space(config.observation, k, n) for a in self.possible_agents}
         self.action_mode = build_action_mode(config.action, n, self.possible_agents)
-        self._action_spaces = dict.fromkeys(self.possible_agents, self.action_mode.space)
+        # The base aligner runs on every observation when the action or observation reads it.
+        self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
+            if self.action_mode.needs_base or config.observation.mode == "aligned" else None
+        self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
+                               for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
         self._info_capacity = info_capacity(config.max_boxes, config.max_collaborators)
         self.render_ego = render_ego
+        self.render_caption = ""
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
         self._frame: PerceptionFrame | None = None
-        self._observations: dict[str, dict] = {}
+        self._observations: dict[str, dict] = {}  # raw, what the env's aligners read
+        self._alignments: dict[str, Alignment] = {}  # the base aligner's, by agent
         self._shown: tuple[PerceptionFrame, dict] | None = None
         self._cycles = 0
         self._viewer = None
@@ -290,6 +302,8 @@ class CollabPerceptionEnv(ParallelEnv):
         (episode_rng,) = self._seeds.spawn(1)
         self._frame = self.pipeline.reset(episode_rng)
         self.action_mode.reset()
+        if self.base_aligner is not None:
+            self.base_aligner.reset()
         self._shown = None
         self._cycles = 0
         self.agents = list(self.possible_agents)
@@ -306,9 +320,10 @@ class CollabPerceptionEnv(ParallelEnv):
         checked = self._check_actions(actions)
         frame = self._frame
         decisions = {
-            agent: self.action_mode.decide(agent, checked[agent], view,
-                                           self._observations[agent],
-                                           self._view_info(view, privileged=True))
+            agent: self.action_mode.decide(
+                agent, checked[agent], view, self._observations[agent],
+                self._view_info(view, privileged=True),
+                self._alignments[agent].corrected if self.action_mode.needs_base else None)
             for agent, view in zip(self.possible_agents, frame.views, strict=True)
         }
         fused_by_agent, alone_by_agent = self._fuse(frame, decisions)
@@ -351,9 +366,12 @@ class CollabPerceptionEnv(ParallelEnv):
                 return None
         frame, fused = self._shown if self._shown is not None else (self._frame, {})
         ego = self.render_ego
-        image = rendering.render_bev(frame, self.possible_agents.index(ego), fused.get(ego),
-                                     title=f"step {self._cycles}  ego {ego}",
-                                     agent_ids=self.possible_agents)
+        cfg = self.config
+        title = rendering.picture_title(cfg.name, self._cycles, ego, cfg.noise, self.render_caption)
+        image = rendering.render_bev(frame, self.possible_agents.index(ego), fused.get(ego), title,
+                                     agent_ids=self.possible_agents,
+                                     evaluation_range=(cfg.evaluation.x_range,
+                                                       cfg.evaluation.y_range))
         if self.render_mode == "rgb_array":
             return image
         self._viewer.show(image)
@@ -386,14 +404,33 @@ class CollabPerceptionEnv(ParallelEnv):
         return {a: self.action_mode.check(actions[a], a) for a in self.agents}
 
     def _observe(self, frame: PerceptionFrame) -> dict[str, dict[str, np.ndarray]]:
-        """Every agent's packed observation of ``frame``, kept for the action mode's aligners."""
+        """Every agent's observation of ``frame`` in ``observation.mode``. The raw ones are
+        kept for the env's aligners; the base aligner, when one runs, aligns them here."""
         cfg = self.config
+        views = dict(zip(self.possible_agents, frame.views, strict=True))
         with self.clock.measure("observation"):
             self._observations = {
                 a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
-                                    cfg.features.enabled)
-                for a, view in zip(self.possible_agents, frame.views, strict=True)}
-        return self._observations
+                                    cfg.features.enabled) for a, view in views.items()}
+        if self.base_aligner is not None:
+            with self.clock.measure("base_alignment"):
+                self._alignments = {
+                    a: self.base_aligner.align(a, 0, view, self._observations[a],
+                                               self._view_info(view, privileged=True))
+                    for a, view in views.items()}
+        if cfg.observation.mode == "raw":
+            return self._observations
+        with self.clock.measure("observation"):
+            return {a: self._mode_observation(a, view) for a, view in views.items()}
+
+    def _mode_observation(self, agent: str, view: EgoView) -> dict[str, np.ndarray]:
+        """``agent``'s aligned or bev observation: its collaborators' boxes moved by the pose
+        its action acts on (the base aligner's in residual and gate modes, else reported)."""
+        alignment = self._alignments.get(agent)
+        poses = alignment.corrected if self.action_mode.needs_base else view.reported_relative
+        return build_observation(self.config.observation, view, self._observations[agent],
+                                 poses, alignment.result if alignment else None,
+                                 alignment.corrected if alignment else None)
 
     def _view_info(self, view: EgoView, privileged: bool) -> dict:
         collaborators = [self.possible_agents[j] for j in view.collaborators]

@@ -241,6 +241,8 @@ REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "ap30_gain", "ap50_gain", "a
 GROUND_TRUTHS: tuple[str, ...] = ("visible", "opencood")
 # What an agent's action means (roco_env.action_modes implements each).
 ACTION_MODES: tuple[str, ...] = ("correction", "residual", "select", "gate")
+# What an agent observes (roco_env.observation_modes implements each).
+OBSERVATION_MODES: tuple[str, ...] = ("raw", "aligned", "bev")
 
 
 @dataclass
@@ -276,6 +278,20 @@ class ActionConfig:
 
 
 @dataclass
+class ObservationConfig:
+    """What an agent observes (roco_env.observation_modes; docs/learning.md)."""
+
+    mode: str = _spec("raw", choices=OBSERVATION_MODES,
+                      doc="raw: own and collaborators' boxes in their own frames; aligned: "
+                      "collaborators' boxes in the ego frame plus the base aligner's per-slot "
+                      "diagnostics; bev: occupancy rasters of the ego and each collaborator")
+    bev_range: float = _spec(40.0, low=5.0, high=200.0,
+                             doc="bev mode: half side of the square raster around the ego, m")
+    bev_resolution: float = _spec(1.0, low=0.1, high=10.0,
+                                  doc="bev mode: raster cell side, m")
+
+
+@dataclass
 class ScenarioConfig:
     name: str = _spec("custom")
     description: str = _spec("")
@@ -287,6 +303,7 @@ class ScenarioConfig:
     features: FeaturesConfig = field(default_factory=FeaturesConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
     max_objects: int = _spec(256, low=1, high=4096,

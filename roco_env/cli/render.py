@@ -1,18 +1,22 @@
 """``roco-env render``: an episode's bird's-eye view as PNG frames and/or an animated GIF.
 
 Each step's ``env.render()`` (rgb_array: ground truth, every agent's boxes in its
-colour, fused boxes, true and reported poses) becomes ``OUT/frame_0001.png`` ...
-and, with ``--gif``, one frame of the GIF (written with Pillow).
+colour, fused boxes, true and reported poses, the ego's evaluation range; the
+title names the policy, scenario, step, ego and pose noise) becomes
+``OUT/frame_0001.png`` ... and, with ``--gif``, one frame of the GIF. Frames are
+written as they are drawn (none is kept), so memory does not grow with ``--steps``.
 """
 
 from __future__ import annotations
 
 import argparse
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from roco_env.render import GifStream
 from roco_env.sweeps.episode import run_episode
 from roco_env.sweeps.options import add_episode_options, episode_cell
 
@@ -35,23 +39,26 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    frames: list[Image.Image] = []
+    written = 0
 
-    def on_step(step: int, env, actions: dict, infos: dict) -> None:
-        if args.ego is not None:
-            env.render_ego = args.ego  # ValueError naming the agents when unknown
-        frames.append(_frame(env))
-        if out is not None:
-            frames[-1].save(out / f"frame_{step:04d}.png")
+    with GifStream(args.gif, args.fps) if args.gif is not None else nullcontext() as gif:
+        def on_step(step: int, env, actions: dict, infos: dict) -> None:
+            nonlocal written
+            if args.ego is not None:
+                env.render_ego = args.ego  # ValueError naming the agents when unknown
+            env.render_caption = f"policy {cell.policy}"
+            frame = _frame(env)
+            if out is not None:
+                frame.save(out / f"frame_{step:04d}.png")
+            if gif is not None:
+                gif.append(frame)
+            written += 1
 
-    metrics, _ = run_episode(cell, on_step=on_step, render_mode="rgb_array")
+        metrics, _ = run_episode(cell, on_step=on_step, render_mode="rgb_array")
     if out is not None:
-        print(f"wrote {len(frames)} PNG frames to {out}/")
+        print(f"wrote {written} PNG frames to {out}/")
     if args.gif is not None:
-        Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
-        frames[0].save(args.gif, save_all=True, append_images=frames[1:],
-                       duration=round(1000 / args.fps), loop=0)
-        print(f"wrote {args.gif} ({len(frames)} frames, {args.fps:g} fps)")
+        print(f"wrote {args.gif} ({written} frames, {args.fps:g} fps)")
     print(f"dataset AP@0.7 {100 * metrics['ap70']:.1f}%")
     return 0
 

@@ -6,10 +6,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from roco_env.training.train import TrainResult
 
-__all__ = ["write_report"]
+__all__ = ["loss_curves_figure", "write_report"]
 
 
 def _smooth(values: list[float], window: int) -> np.ndarray:
@@ -21,29 +22,34 @@ def _smooth(values: list[float], window: int) -> np.ndarray:
     return (cumsum[idx] - cumsum[lo]) / (idx - lo)
 
 
+def loss_curves_figure(history: dict[str, list[float]]) -> Figure:
+    """Per-step training losses (moving average): the total, single-agent and fused losses,
+    then the single-agent terms. Linear y axes: the Gaussian NLL term (and so the
+    single-agent and total losses) goes negative, which a log axis would drop."""
+    window = max(1, len(history["total"]) // 30)
+    fig = Figure(figsize=(11, 4))
+    axes = fig.subplots(1, 2)
+    for name in ("total", "single", "fused"):
+        axes[0].plot(_smooth(history[name], window), label=name)
+    axes[0].set(title=f"loss (moving average over {window} steps)", xlabel="training step",
+                ylabel="loss")
+    for name in ("heatmap", "offset", "size", "yaw", "nll"):
+        axes[1].plot(_smooth(history[name], window), label=name)
+    axes[1].set(title="single-agent loss terms (same average)", xlabel="training step",
+                ylabel="loss term")
+    for ax in axes:
+        ax.axhline(0.0, color="0.5", linewidth=0.8)
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 def write_report(result: TrainResult, out: Path, command: str, weights_sha256: str,
                  init_sha256: str | None = None) -> None:
     """loss_curves.png, report.json and report.md in ``out``; init_sha256: of the weights
     file a fine-tuning run started from."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    window = max(1, len(result.history["total"]) // 30)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for name in ("total", "single", "fused"):
-        axes[0].plot(_smooth(result.history[name], window), label=name)
-    axes[0].set(title="loss (moving average)", xlabel="step", yscale="log")
-    for name in ("heatmap", "offset", "size", "yaw", "nll"):
-        axes[1].plot(_smooth(result.history[name], window), label=name)
-    axes[1].set(title="single-agent loss terms", xlabel="step")
-    for ax in axes:
-        ax.legend()
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out / "loss_curves.png", dpi=90)
-    plt.close(fig)
+    loss_curves_figure(result.history).savefig(out / "loss_curves.png", dpi=90)
     init = {} if init_sha256 is None else {"init_sha256": init_sha256}
     summary = {"command": command, "weights_sha256": weights_sha256, **init,
                **result.summary()}
