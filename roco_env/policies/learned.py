@@ -5,15 +5,16 @@ A weights file (``torch.save`` of a plain dict, read back with ``weights_only=Tr
 * ``state_dict``: the MLP's tensors, ``layers.<i>.weight`` / ``layers.<i>.bias`` of its
   linear layers (tanh between them, none after the last) and ``input_scale`` (F,), the
   divisor applied to the flat observation;
-* ``metadata``: a JSON text with ``format`` (:data:`FORMAT`), ``env_overrides`` (the
+* ``metadata``: a JSON text with ``format`` (:data:`FORMAT`), ``input_clip`` (the
+  scaled observation is clipped to +-it), ``env_overrides`` (the
   scenario fields the policy acts in: ``action.mode``, ``observation.mode``,
   ``max_collaborators``, ``max_boxes`` and the mode's aligners), ``observation`` (the
   observation keys in the flattening order with their shapes), ``action`` (``nvec`` of a
   MultiDiscrete action, or ``shape``/``low``/``high`` of a Box one) and provenance
   (``command``, training summary).
 
-The policy flattens the observation (keys in the stored order, each raveled, float32),
-divides by ``input_scale``, runs the MLP and acts deterministically: per slot the argmax
+The policy flattens the observation (keys in the stored order, each raveled), divides by
+``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per slot the argmax
 of its logits (``select``/``gate``), or the mean clipped to the bounds (Box modes).
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
@@ -108,14 +109,16 @@ class LearnedPolicy:
         if self._scale.shape != (size,) or np.any(self._scale <= 0):
             raise ValueError(f"learned policy weights file {self.path}: input_scale must be "
                              f"({size},) positive values for its observation keys")
+        self._clip = float(self.metadata.get("input_clip", np.inf))
         self._net = _build_mlp(state, self.path, size)
         self._action = self.metadata["action"]
         self._torch = torch
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None) -> np.ndarray:
-        flat = self._flatten(observation) / self._scale
+        flat = scaled_observation(observation, self._keys, self._scale, self._clip,
+                                  self._hint())
         with self._torch.no_grad():
-            out = self._net(self._torch.as_tensor(flat, dtype=self._torch.float32)[None])[0]
+            out = self._net(self._torch.as_tensor(flat)[None])[0]
         out = out.double().numpy()
         if "nvec" in self._action:  # MultiDiscrete: argmax per slot
             splits = np.cumsum(self._action["nvec"])[:-1]
@@ -124,13 +127,20 @@ class LearnedPolicy:
         low, high = np.asarray(self._action["low"]), np.asarray(self._action["high"])
         return np.clip(out.reshape(self._action["shape"]), low, high).astype(np.float32)
 
-    def _flatten(self, observation: Mapping[str, Any]) -> np.ndarray:
-        hint = (f"policy {self.name!r} ({self.path.name}) was trained with observation.mode="
+    def _hint(self) -> str:
+        return (f"policy {self.name!r} ({self.path.name}) was trained with observation.mode="
                 f"{self.env_overrides.get('observation.mode', 'raw')!r}, max_collaborators="
                 f"{self.env_overrides.get('max_collaborators')}, max_boxes="
                 f"{self.env_overrides.get('max_boxes')}: build the env with the policy's "
                 "env_overrides (sweeps and EgoEnv do)")
-        return flatten_observation(observation, self._keys, hint)
+
+
+def scaled_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],
+                       scale: np.ndarray, clip: float, hint: str = "") -> np.ndarray:
+    """What the network reads: the flat observation / ``scale``, clipped to +-``clip``,
+    float32 (training and :class:`LearnedPolicy` share this function)."""
+    flat = flatten_observation(observation, keys, hint) / scale
+    return np.clip(flat, -clip, clip).astype(np.float32)
 
 
 def flatten_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],

@@ -14,7 +14,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-from roco_env.scenario import list_scenarios
+from roco_env.scenario import OBSERVATION_MODES, list_scenarios
 from roco_env.schema import ConfigError, allowed_text, build, spec
 
 ACTION_MODES = ("correction", "residual", "select", "gate")
@@ -28,8 +28,10 @@ class PolicyTrainConfig:
     """PPO on a curriculum of conditions (roco_env.training.rl; docs/learning.md)."""
 
     action_mode: str = spec("select", choices=ACTION_MODES, doc="the env's action.mode")
-    observation_mode: str = spec("aligned", doc="the env's observation.mode (raw | aligned | bev)")
-    action_base: str = spec("roco_antialias", doc="residual and gate modes: action.base")
+    observation_mode: str = spec("aligned", choices=OBSERVATION_MODES,
+                                 doc="the env's observation.mode")
+    action_base: str = spec("roco_antialias", doc="action.base: the aligner of residual and "
+                            "gate modes and of the aligned observation's diagnostics")
     scenarios: list = spec(["urban_intersection", "parking_lot", "v2xset_like"],
                            doc="scenarios an episode is drawn from")
     noise_low: float = spec(0.0, low=0.0, high=20.0,

@@ -18,7 +18,7 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from roco_env.policies.learned import flatten_observation
+from roco_env.policies.learned import scaled_observation
 from roco_env.scenario import load_scenario
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.wrappers import EgoEnv
@@ -27,8 +27,10 @@ from roco_env.wrappers import EgoEnv
 # (EVAL_SEED_BASE...) and `roco-env compare` uses 0, 1, 2...
 TRAIN_SEED_BASE = 1_000_000
 EVAL_SEED_BASE = 500
-# |value| of an unbounded observation entry that maps to 1 (m for positions, boxes).
-UNBOUNDED_SCALE = 50.0
+# The largest divisor of an observation entry (m for positions and boxes): an entry with
+# wider or open bounds maps 50 to 1; scaled values are clipped to +-INPUT_CLIP.
+SCALE_CAP = 50.0
+INPUT_CLIP = 10.0
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,7 @@ def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
                                  "max_boxes": config.max_boxes, "reward": config.reward}
     if config.observation_mode != "raw":
         overrides["observation.mode"] = config.observation_mode
-    if config.action_mode in ("residual", "gate"):
+    if config.action_mode in ("residual", "gate") or config.observation_mode == "aligned":
         overrides["action.base"] = config.action_base
     return overrides
 
@@ -104,8 +106,8 @@ def condition_env(config: PolicyTrainConfig, condition: Condition, *,
 def observation_layout(space: spaces.Dict) -> tuple[list[tuple[str, tuple]], np.ndarray]:
     """(keys with shapes in the space's order, per-entry divisor) of a Dict of Boxes.
 
-    The divisor is max(|low|, |high|) where both bounds are finite and non-zero, else
-    :data:`UNBOUNDED_SCALE`; a non-Box entry is a ValueError naming it."""
+    The divisor is max(|low|, |high|) capped at :data:`SCALE_CAP` (also for open or zero
+    bounds); a non-Box entry is a ValueError naming it."""
     keys, scales = [], []
     for key, box in space.spaces.items():
         if not isinstance(box, spaces.Box):
@@ -113,7 +115,7 @@ def observation_layout(space: spaces.Dict) -> tuple[list[tuple[str, tuple]], np.
                              "flattens Box entries only")
         keys.append((key, tuple(box.shape)))
         bound = np.maximum(np.abs(box.low), np.abs(box.high)).astype(np.float64)
-        bound[~np.isfinite(bound) | (bound == 0)] = UNBOUNDED_SCALE
+        bound[~np.isfinite(bound) | (bound == 0) | (bound > SCALE_CAP)] = SCALE_CAP
         scales.append(bound.reshape(-1))
     return keys, np.concatenate(scales)
 
@@ -146,7 +148,7 @@ class CurriculumEnv(gymnasium.Env):
 
     def flat(self, observation: dict) -> np.ndarray:
         """The observation as the policy network reads it."""
-        return (flatten_observation(observation, self.keys) / self.scale).astype(np.float32)
+        return scaled_observation(observation, self.keys, self.scale, INPUT_CLIP)
 
     def reset(self, *, seed: int | None = None,
               options: dict | None = None) -> tuple[np.ndarray, dict]:

@@ -19,7 +19,7 @@ from gymnasium import spaces
 
 from roco_env.policies.learned import FORMAT
 from roco_env.training.rl.config import PolicyTrainConfig
-from roco_env.training.rl.curriculum import CurriculumEnv, env_overrides
+from roco_env.training.rl.curriculum import INPUT_CLIP, CurriculumEnv, env_overrides
 
 
 def actor_state_dict(policy: torch.nn.Module, scale: np.ndarray) -> dict[str, torch.Tensor]:
@@ -58,7 +58,7 @@ def policy_env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
 def save_policy(path: Path, policy: torch.nn.Module, env: CurriculumEnv,
                 config: PolicyTrainConfig, provenance: dict[str, Any]) -> None:
     """Write the weights file (``torch.save`` of tensors and a JSON text)."""
-    metadata = {"format": FORMAT, "env_overrides": policy_env_overrides(config),
+    metadata = {"format": FORMAT, "input_clip": INPUT_CLIP, "env_overrides": policy_env_overrides(config),
                 "observation": [[key, list(shape)] for key, shape in env.keys],
                 "action": action_metadata(env.action_space), **provenance}
     path.parent.mkdir(parents=True, exist_ok=True)
