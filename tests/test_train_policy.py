@@ -113,6 +113,7 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     ({"batch_size": 1000}, "batch_size"),
     ({"net_arch": [0]}, "net_arch"),
     ({"learning_rat": 0.1}, "learning_rat"),
+    ({"observation_keys": ["boxes", "boxes"]}, "observation_keys"),
 ])
 def test_bad_options_name_the_field(values, field):
     with pytest.raises(ConfigError, match=field):
@@ -133,3 +134,14 @@ def test_conditions_are_a_function_of_seed_and_index():
               for i in range(50)]
     assert all(0.0 <= c.noise <= 2.0 and c.density <= 1.0 for c in noises)
     assert {c.noise_model for c in noises} == {"gaussian", "ar1"}
+
+
+def test_observation_keys_choose_what_the_policy_reads(tmp_path):
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    config = build_config({**TINY, "observation_mode": "aligned",
+                           "observation_keys": ["diagnostics", "collab_mask"]})
+    env = CurriculumEnv(config)
+    assert [key for key, _ in env.keys] == ["collab_mask", "diagnostics"]  # space order
+    assert env.observation_space.shape == (5 + 5 * 8,)
+    with pytest.raises(ValueError, match=r"observation_keys names \['pose'\]"):
+        CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))

@@ -30,6 +30,8 @@ class PolicyTrainConfig:
     action_mode: str = spec("select", choices=ACTION_MODES, doc="the env's action.mode")
     observation_mode: str = spec("aligned", choices=OBSERVATION_MODES,
                                  doc="the env's observation.mode")
+    observation_keys: list = spec([], doc="the observation entries the policy reads, in "
+                                  "the space's order (empty: all)")
     action_base: str = spec("roco_antialias", doc="action.base: the aligner of residual and "
                             "gate modes and of the aligned observation's diagnostics")
     scenarios: list = spec(["urban_intersection", "parking_lot", "v2xset_like"],
@@ -91,6 +93,10 @@ def _check_lists(config: PolicyTrainConfig) -> None:
     if not config.net_arch or any(not isinstance(w, int) or isinstance(w, bool) or w < 1
                                   for w in config.net_arch):
         raise ConfigError(f"{WHERE}: net_arch={config.net_arch!r} must be positive integers")
+    if any(not isinstance(key, str) for key in config.observation_keys) or \
+            len(set(config.observation_keys)) != len(config.observation_keys):
+        raise ConfigError(f"{WHERE}: observation_keys={config.observation_keys!r} must be "
+                          "distinct entry names of the observation")
     if not config.eval_noises or any(not isinstance(s, int | float) or isinstance(s, bool)
                                      or not 0 <= s <= 20 for s in config.eval_noises):
         raise ConfigError(f"{WHERE}: eval_noises={config.eval_noises!r} must be numbers in "
@@ -150,5 +156,8 @@ def command_arguments(config: PolicyTrainConfig) -> list[str]:
     for field in dataclasses.fields(PolicyTrainConfig):
         value = getattr(config, field.name)
         flag = "--" + field.name.replace("_", "-")
-        argv += [flag, *map(str, value)] if isinstance(value, list) else [f"{flag}={value}"]
+        if isinstance(value, list):
+            argv += [flag, *map(str, value)] if value else []  # empty: the default
+        else:
+            argv.append(f"{flag}={value}")
     return argv

@@ -103,13 +103,22 @@ def condition_env(config: PolicyTrainConfig, condition: Condition, *,
                   info_level=info_level, **overrides, **extra)
 
 
-def observation_layout(space: spaces.Dict) -> tuple[list[tuple[str, tuple]], np.ndarray]:
-    """(keys with shapes in the space's order, per-entry divisor) of a Dict of Boxes.
+def observation_layout(space: spaces.Dict, only: list[str] | None = None) -> \
+        tuple[list[tuple[str, tuple]], np.ndarray]:
+    """(keys with shapes in the space's order, per-entry divisor) of a Dict of Boxes;
+    ``only``: the keys to keep (empty or None: all; an unknown key is a ValueError naming
+    ``observation_keys`` and the entries).
 
     The divisor is max(|low|, |high|) capped at :data:`SCALE_CAP` (also for open or zero
     bounds); a non-Box entry is a ValueError naming it."""
+    unknown = sorted(set(only or ()) - set(space.spaces))
+    if unknown:
+        raise ValueError(f"train-policy: observation_keys names {unknown}, not entries of the "
+                         f"observation; choose from {list(space.spaces)}")
     keys, scales = [], []
     for key, box in space.spaces.items():
+        if only and key not in only:
+            continue
         if not isinstance(box, spaces.Box):
             raise ValueError(f"observation[{key!r}] is a {type(box).__name__}; train-policy "
                              "flattens Box entries only")
@@ -133,7 +142,8 @@ class CurriculumEnv(gymnasium.Env):
         self.episodes = 0
         self._env: EgoEnv | None = None
         first = condition_env(config, draw_condition(config, 0))
-        self.keys, self.scale = observation_layout(first.observation_space)
+        self.keys, self.scale = observation_layout(first.observation_space,
+                                                   config.observation_keys)
         first.close()
         size = self.scale.shape[0]
         self.observation_space = spaces.Box(-np.inf, np.inf, (size,), np.float32)
