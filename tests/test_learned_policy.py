@@ -23,7 +23,7 @@ from roco_env.sweeps.episode import run_episode
 from roco_env.sweeps.grid import Cell
 from roco_env.wrappers import EgoEnv
 
-SHIPPED_SHA256 = "SHA256_PLACEHOLDER"
+SHIPPED_SHA256 = "270601ec264998f49cdb9438c6f564d012e64514cfe0452e8c4703023dcebaa0"
 SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
 
 
@@ -88,10 +88,11 @@ def test_an_observation_of_another_mode_or_size_is_refused_naming_the_field():
     observations, infos = raw_env.reset(seed=0)
     with pytest.raises(ValueError, match=r"observation.mode='aligned'.*max_collaborators=5"):
         policy(observations["cav_0"], infos["cav_0"])
-    small = roco_env.parallel_env("v2xset_like", max_cycles=1, max_boxes=32,
+    small = roco_env.parallel_env("v2xset_like", max_cycles=1, max_collaborators=3,
                                   **{"observation.mode": "aligned"})
     observations, _ = small.reset(seed=0)
-    with pytest.raises(ValueError, match=r"observation\['boxes'\] has shape \(32, 7\)"):
+    with pytest.raises(ValueError, match=r"observation\['collab_mask'\] has shape \(3,\), "
+                                         r"expected \(5,\)"):
         policy(observations["cav_0"])
 
 
