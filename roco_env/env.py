@@ -11,6 +11,7 @@ design notes are in the repository's docs/ folder (docs/architecture.md).
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import types
@@ -23,25 +24,25 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
+from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_mode
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
+    is_gain_reward,
     metric_info,
     reward,
     rpe_info,
     slot_errors,
 )
 from roco_env.fusion import FusedDetections, merge_many, suppress
-from roco_env.geometry import apply_correction
 from roco_env.global_state import pack_state, state_space
 from roco_env.observation import (
     EgoView,
-    action_space,
-    check_action,
     observation_space,
     pack_observation,
     privileged_truth,
 )
+from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
 from roco_env.scenario import (
     ScenarioConfig,
@@ -52,6 +53,12 @@ from roco_env.scenario import (
 )
 
 RENDER_MODES = ("rgb_array", "human")
+# How much each step's info carries (see the class docstring's Info section).
+INFO_LEVELS = ("full", "metrics", "none")
+# The per-agent entries info_level="metrics" keeps.
+METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
+                    "rejected", "evaluated", "evaluated_collaborators", "agent",
+                    "collaborators", "n_collaborators")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -83,12 +90,24 @@ class CollabPerceptionEnv(ParallelEnv):
 
     ## Action
 
-    A ``Box`` (N, 3): one correction (dx m, dy m, dyaw rad) per collaborator slot of
-    the observation returned last, in the ego frame:
-    ``T_corrected = SE2(action) * T_reported``. Zeros trust the reported poses.
-    Bounds: |dx|, |dy| <= 2 x ``agents.comm_range``, |dyaw| <= pi; finite values
-    outside are applied as given; NaN/inf, complex or bool values and wrong shapes
-    raise ValueError. Empty slots ignore their action.
+    Set by the scenario section ``action`` (:mod:`roco_env.action_modes`,
+    docs/learning.md); every mode acts per collaborator slot of the observation
+    returned last, and empty slots ignore their action. ``action.mode``:
+
+    - ``correction`` (default): a ``Box`` (N, 3), one correction (dx m, dy m, dyaw rad)
+      in the ego frame: ``T_corrected = SE2(action) * T_reported``. Zeros trust the
+      reported poses. Bounds: |dx|, |dy| <= ``action.max_translation`` (m), |dyaw| <=
+      ``action.max_rotation`` (degrees); finite values outside are applied as given;
+      NaN/inf, complex or bool values and wrong shapes raise ValueError.
+    - ``residual``: a ``Box`` (N, 3) in [-1, 1] (clipped), ``T = SE2(action x
+      action.scale) * T_base`` on the pose the base aligner ``action.base`` computes;
+      zeros are the base aligner exactly.
+    - ``select``: a ``MultiDiscrete`` (N,): index k fuses the slot with the k-th of
+      ``action.choices``' poses, ``len(action.choices)`` rejects the collaborator.
+    - ``gate``: a ``MultiDiscrete`` (N,): 0 keeps the base aligner's pose, 1 rejects.
+
+    A rejected collaborator is left out of fusion (late and intermediate); the ground
+    truth stays the collaboration's.
 
     ## Reward
 
@@ -96,6 +115,8 @@ class CollabPerceptionEnv(ParallelEnv):
     ``ap30``, the per-step AP of the agent's fused detections at that IoU in
     its true frame (an undefined AP, no ground truth and no predictions, counts as
     0), or
+    ``ap30_gain``/``ap50_gain``/``ap70_gain``, that AP minus the AP of the agent's own
+    boxes alone on the same frame (doing nothing useful scores 0, harm below 0), or
     ``neg_rpe``, minus the mean (translation m + rotation deg) error of the
     corrected relative poses. Agents outside ``agents.evaluated`` (a scenario field;
     default all) act and observe but always get 0 and no AP entries in their info.
@@ -119,8 +140,13 @@ class CollabPerceptionEnv(ParallelEnv):
     scored frame) and, describing the observation returned with it: ``agent`` (the
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
-    the observed boxes, -1 = false positive or empty slot; read by ``oracle``).
+    the observed boxes, -1 = false positive or empty slot; read by ``oracle``), and
+    ``rejected`` (N,) bool by slot of the scored frame.
     ``reset()`` infos carry the last four and ``evaluated``.
+
+    ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
+    errors and ids), ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
+    adds the privileged truth at any level (the ``oracle`` policy reads it).
 
     ## Fusion
 
@@ -164,6 +190,8 @@ class CollabPerceptionEnv(ParallelEnv):
       ``render_caption`` (default "") heads the picture's title, e.g. the policy
       (``roco-env render`` sets it); the title also names the scenario, step, ego
       and pose noise.
+    - ``info_level``: ``"full"`` (default), ``"metrics"`` or ``"none"`` (see Info);
+      ``privileged``: whether infos carry the privileged truth (default: with ``"full"``).
     - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
       ``sigma_r``, ``noise_model``, ``density``, ``cavs``, ``rsus``, ``detector``,
       ``fusion``, ``reward``, ``features``) or dotted name
@@ -181,7 +209,12 @@ class CollabPerceptionEnv(ParallelEnv):
     def __init__(self, scenario: ScenarioLike = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None,
                  frames: Sequence | None = None, render_ego: str | None = None,
+                 info_level: str = "full", privileged: bool | None = None,
                  **overrides: Any) -> None:
+        if info_level not in INFO_LEVELS:
+            raise ValueError(f"info_level must be one of {list(INFO_LEVELS)}; got {info_level!r}")
+        if privileged is not None and not isinstance(privileged, bool):
+            raise ValueError(f"privileged must be None, True or False; got {privileged!r}")
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}; "
                              f"got {render_mode!r}")
@@ -202,6 +235,8 @@ class CollabPerceptionEnv(ParallelEnv):
             raise ValueError("agents.cavs + agents.rsus must be >= 1: an env needs at least one "
                              "agent (cavs=0, rsus=0 describes traffic only)")
         self.config = config
+        self.info_level = info_level
+        self.privileged = info_level == "full" if privileged is None else privileged
         self.max_cycles = int(max_cycles)
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / config.traffic.dt))}
@@ -211,10 +246,15 @@ class CollabPerceptionEnv(ParallelEnv):
         self.evaluated_agents = _evaluated_agents(config, self.possible_agents)
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
-        self._observation_spaces = {
-            a: observation_space(k, n, feature_shape) for a in self.possible_agents}
-        self._action_spaces = {
-            a: action_space(n, 2.0 * config.agents.comm_range) for a in self.possible_agents}
+        self._observation_spaces = {  # one space object per agent: each samples its own seed
+            a: observation_space(k, n, feature_shape) if config.observation.mode == "raw"
+            else mode_space(config.observation, k, n) for a in self.possible_agents}
+        self.action_mode = build_action_mode(config.action, n, self.possible_agents)
+        # The base aligner runs on every observation when the action or observation reads it.
+        self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
+            if self.action_mode.needs_base or config.observation.mode == "aligned" else None
+        self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
+                               for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
         self._info_capacity = info_capacity(config.max_boxes, config.max_collaborators)
         self.render_ego = render_ego
@@ -222,6 +262,8 @@ class CollabPerceptionEnv(ParallelEnv):
         self.agents: list[str] = []
         self._seeds: np.random.Generator | None = None
         self._frame: PerceptionFrame | None = None
+        self._observations: dict[str, dict] = {}  # raw, what the env's aligners read
+        self._alignments: dict[str, Alignment] = {}  # the base aligner's, by agent
         self._shown: tuple[PerceptionFrame, dict] | None = None
         self._cycles = 0
         self._viewer = None
@@ -248,7 +290,7 @@ class CollabPerceptionEnv(ParallelEnv):
     def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
         return self._observation_spaces[self._known(agent)]
 
-    def action_space(self, agent: str) -> gymnasium.spaces.Box:
+    def action_space(self, agent: str) -> gymnasium.spaces.Space:
         return self._action_spaces[self._known(agent)]
 
     def reset(self, seed: int | None = None,
@@ -259,11 +301,15 @@ class CollabPerceptionEnv(ParallelEnv):
             self._seeds = np.random.default_rng(seed)
         (episode_rng,) = self._seeds.spawn(1)
         self._frame = self.pipeline.reset(episode_rng)
+        self.action_mode.reset()
+        if self.base_aligner is not None:
+            self.base_aligner.reset()
         self._shown = None
         self._cycles = 0
         self.agents = list(self.possible_agents)
-        observations = self._observations(self._frame)
-        infos = {a: {"evaluated": a in self.evaluated_agents, **self._view_info(view)}
+        observations = self._observe(self._frame)
+        infos = {a: self._lean({"evaluated": a in self.evaluated_agents,
+                                **self._view_info(view, self.privileged)})
                  for a, view in zip(self.possible_agents, self._frame.views, strict=True)}
         if self.render_mode == "human":
             self.render()
@@ -273,21 +319,23 @@ class CollabPerceptionEnv(ParallelEnv):
         """Apply the corrections, score the fused detections, advance the world."""
         checked = self._check_actions(actions)
         frame = self._frame
-        corrected = {
-            agent: apply_correction(view.reported_relative,
-                                    checked[agent][: len(view.collaborators)])
+        decisions = {
+            agent: self.action_mode.decide(
+                agent, checked[agent], view, self._observations[agent],
+                self._view_info(view, privileged=True),
+                self._alignments[agent].corrected if self.action_mode.needs_base else None)
             for agent, view in zip(self.possible_agents, frame.views, strict=True)
         }
-        fused_by_agent = self._fuse(frame, corrected)
-        rewards, infos = self._score(frame, corrected, fused_by_agent)
+        fused_by_agent, alone_by_agent = self._fuse(frame, decisions)
+        rewards, infos = self._score(frame, decisions, fused_by_agent, alone_by_agent)
         self._shown = (frame, fused_by_agent)
         self._cycles += 1
         out_of_frames = self.pipeline.finished
         if not out_of_frames:
             self._frame = self.pipeline.advance()
-        observations = self._observations(self._frame)
+        observations = self._observe(self._frame)
         for agent, view in zip(self.possible_agents, self._frame.views, strict=True):
-            infos[agent].update(self._view_info(view))
+            infos[agent] = self._lean({**infos[agent], **self._view_info(view, self.privileged)})
         truncated = self._cycles >= self.max_cycles or out_of_frames
         terminations = dict.fromkeys(self.agents, False)
         truncations = dict.fromkeys(self.agents, truncated)
@@ -353,42 +401,79 @@ class CollabPerceptionEnv(ParallelEnv):
         if missing:
             raise ValueError(f"actions is missing agent(s) {missing}; give an (N, 3) action for "
                              f"every agent in env.agents (zeros = trust the reported poses)")
-        n = self.config.max_collaborators
-        return {a: check_action(actions[a], a, n) for a in self.agents}
+        return {a: self.action_mode.check(actions[a], a) for a in self.agents}
 
-    def _observations(self, frame: PerceptionFrame) -> dict[str, dict[str, np.ndarray]]:
+    def _observe(self, frame: PerceptionFrame) -> dict[str, dict[str, np.ndarray]]:
+        """Every agent's observation of ``frame`` in ``observation.mode``. The raw ones are
+        kept for the env's aligners; the base aligner, when one runs, aligns them here."""
         cfg = self.config
+        views = dict(zip(self.possible_agents, frame.views, strict=True))
         with self.clock.measure("observation"):
-            return {a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
-                                        cfg.features.enabled)
-                    for a, view in zip(self.possible_agents, frame.views, strict=True)}
+            self._observations = {
+                a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
+                                    cfg.features.enabled) for a, view in views.items()}
+        if self.base_aligner is not None:
+            with self.clock.measure("base_alignment"):
+                self._alignments = {
+                    a: self.base_aligner.align(a, 0, view, self._observations[a],
+                                               self._view_info(view, privileged=True))
+                    for a, view in views.items()}
+        if cfg.observation.mode == "raw":
+            return self._observations
+        with self.clock.measure("observation"):
+            return {a: self._mode_observation(a, view) for a, view in views.items()}
 
-    def _view_info(self, view: EgoView) -> dict:
+    def _mode_observation(self, agent: str, view: EgoView) -> dict[str, np.ndarray]:
+        """``agent``'s aligned or bev observation: its collaborators' boxes moved by the pose
+        its action acts on (the base aligner's in residual and gate modes, else reported)."""
+        alignment = self._alignments.get(agent)
+        poses = alignment.corrected if self.action_mode.needs_base else view.reported_relative
+        return build_observation(self.config.observation, view, self._observations[agent],
+                                 poses, alignment.result if alignment else None,
+                                 alignment.corrected if alignment else None)
+
+    def _view_info(self, view: EgoView, privileged: bool) -> dict:
         collaborators = [self.possible_agents[j] for j in view.collaborators]
-        return {
+        info = {
             "agent": self.possible_agents[view.agent],
             "collaborators": collaborators,
             "n_collaborators": len(collaborators),
-            "privileged": privileged_truth(view, self.config.max_boxes,
-                                           self.config.max_collaborators),
         }
+        if privileged:
+            info["privileged"] = privileged_truth(view, self.config.max_boxes,
+                                                  self.config.max_collaborators)
+        return info
 
-    def _score(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray],
-               fused: dict[str, FusedDetections]) -> tuple[dict, dict]:
-        """Rewards and metric infos of every agent (evaluated ones are those in ``fused``)."""
+    def _lean(self, info: dict) -> dict:
+        """``info`` cut to the entries ``info_level`` keeps (the privileged truth as asked)."""
+        if self.info_level == "full":
+            return info
+        keep = METRIC_INFO_KEYS if self.info_level == "metrics" else ()
+        return {k: v for k, v in info.items() if k in keep or k == "privileged"}
+
+    def _score(self, frame: PerceptionFrame, decisions: dict[str, Decision],
+               fused: dict[str, FusedDetections],
+               alone: dict[str, FusedDetections]) -> tuple[dict, dict]:
+        """Rewards and metric infos of every agent (evaluated ones are those in ``fused``);
+        ``alone`` holds the evaluated agents' own boxes when the reward is a gain."""
         cfg = self.config
         views = dict(zip(self.possible_agents, frame.views, strict=True))
+        corrected = {a: decision.corrected for a, decision in decisions.items()}
         rewards, infos = {}, {}
         with self.clock.measure("metrics"):
-            evaluations = evaluate_egos(
-                [views[a] for a in fused], list(fused.values()), [corrected[a] for a in fused],
-                frame.state, frame.visibility.visible, cfg.evaluation.x_range,
-                cfg.evaluation.y_range, cfg.max_collaborators, cfg.evaluation.ground_truth,
-                cfg.evaluation.z_range)
+            def evaluate(detections: dict[str, FusedDetections]) -> list:
+                return evaluate_egos(
+                    [views[a] for a in detections], list(detections.values()),
+                    [corrected[a] for a in detections], frame.state, frame.visibility.visible,
+                    cfg.evaluation.x_range, cfg.evaluation.y_range, cfg.max_collaborators,
+                    cfg.evaluation.ground_truth, cfg.evaluation.z_range)
+
+            evaluations = evaluate(fused)
+            alone_evaluations = evaluate(alone) if alone else [None] * len(evaluations)
             capacity = self._info_capacity
-            for agent, evaluation in zip(fused, evaluations, strict=True):
+            for agent, evaluation, own in zip(fused, evaluations, alone_evaluations, strict=True):
                 infos[agent] = metric_info(evaluation, capacity)
-                rewards[agent] = reward(evaluation, cfg.evaluation.reward)
+                rewards[agent] = reward(evaluation, cfg.evaluation.reward, own)
             others = [a for a in self.possible_agents if a not in fused]
             for agent, (before, after) in zip(others, slot_errors(
                     [views[a] for a in others], [corrected[a] for a in others],
@@ -396,39 +481,64 @@ class CollabPerceptionEnv(ParallelEnv):
                 infos[agent] = {"rpe_before": rpe_info(before), "rpe_after": rpe_info(after)}
                 rewards[agent] = 0.0
         for agent, view in views.items():
+            rejected = np.zeros(cfg.max_collaborators, dtype=bool)
+            rejected[: len(view.collaborators)] = ~decisions[agent].kept
+            infos[agent]["rejected"] = rejected
             infos[agent]["evaluated"] = agent in fused
             infos[agent]["evaluated_collaborators"] = [self.possible_agents[j]
                                                        for j in view.collaborators]
         return ({a: rewards[a] for a in self.possible_agents},
                 {a: infos[a] for a in self.possible_agents})
 
-    def _fuse(self, frame: PerceptionFrame, corrected: dict[str, np.ndarray]) -> dict:
-        """Fused detections of every evaluated agent (one batched NMS), own footprint clear."""
+    def _fuse(self, frame: PerceptionFrame,
+              decisions: dict[str, Decision]) -> tuple[dict, dict]:
+        """(fused, alone) detections of every evaluated agent in one batched NMS: fused
+        through its kept collaborators, and with a gain reward its own boxes alone (else
+        ``alone`` is empty). Boxes on the ego's own footprint are dropped, except with
+        OpenCOOD's ground truth, which holds the ego's own car."""
         with self.clock.measure("fusion"):
             egos = [k for k, agent in enumerate(self.possible_agents)
                     if agent in self.evaluated_agents]
-            if self.config.fusion.method == "intermediate":
+            kept = [decisions[self.possible_agents[k]].kept for k in egos]
+            poses = [decisions[self.possible_agents[k]].corrected[keep]
+                     for k, keep in zip(egos, kept, strict=True)]
+            method = self.config.fusion.method
+            gain = is_gain_reward(self.config.evaluation.reward)
+            own = merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (),
+                               np.zeros((0, 3))) for k in egos]) \
+                if gain or method == "none" else []
+            if method == "intermediate":
                 from roco_env.fusion.intermediate import intermediate_fusion
 
                 merged = intermediate_fusion(
                     self.pipeline.detector, frame.encoder_maps, frame.state, egos,
-                    [frame.views[k].collaborators for k in egos],
-                    [corrected[self.possible_agents[k]] for k in egos],
-                    self.config.evaluation.x_range, self.config.evaluation.y_range)
-            elif self.config.fusion.method == "late":
+                    [_kept(frame.views[k].collaborators, keep)
+                     for k, keep in zip(egos, kept, strict=True)],
+                    poses, self.config.evaluation.x_range, self.config.evaluation.y_range)
+            elif method == "late":
                 merged = merge_many([
-                    (frame.views[k].boxes, frame.views[k].scores, frame.views[k].collab_boxes,
-                     frame.views[k].collab_scores, corrected[self.possible_agents[k]])
-                    for k in egos
-                ])
+                    (frame.views[k].boxes, frame.views[k].scores,
+                     _kept(frame.views[k].collab_boxes, keep),
+                     _kept(frame.views[k].collab_scores, keep), pose)
+                    for k, keep, pose in zip(egos, kept, poses, strict=True)])
             else:  # "none": the ego's own boxes, scored against the collaboration's truth
-                merged = merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (),
-                                      np.zeros((0, 3))) for k in egos])
-            # OpenCOOD's ground truth holds the ego's own car: keep the collaborators' boxes on it
+                merged, own = own, []
+            sets = merged + (own if gain else [])
             own_car_is_truth = self.config.evaluation.ground_truth == "opencood"
-            fused = suppress(merged, self.config.fusion.nms_iou,
-                             [None if own_car_is_truth else frame.footprints[k] for k in egos])
-            return dict(zip(self.evaluated_agents, fused, strict=True))
+            footprints = [None if own_car_is_truth else frame.footprints[k] for k in egos]
+            suppressed = suppress(sets, self.config.fusion.nms_iou,
+                                  footprints * (len(sets) // len(egos)))
+            fused = dict(zip(self.evaluated_agents, suppressed[: len(egos)], strict=True))
+            if not gain:
+                return fused, {}
+            if method == "none":
+                return fused, fused
+            return fused, dict(zip(self.evaluated_agents, suppressed[len(egos):], strict=True))
+
+
+def _kept(items: Sequence, keep: np.ndarray) -> list:
+    """The entries of ``items`` (one per collaborator slot) whose ``keep`` is True."""
+    return [item for item, k in zip(items, keep, strict=True) if k]
 
 
 def check_seed(seed: Any) -> None:
@@ -481,7 +591,7 @@ class _CheckedActions(BaseWrapper):
     def step(self, action: Any) -> None:
         agent = self.agent_selection
         if not (self.terminations[agent] or self.truncations[agent]):
-            action = check_action(action, agent, self.unwrapped.config.max_collaborators)
+            action = self.unwrapped.action_mode.check(action, agent)
         super().step(action)
 
 

@@ -171,21 +171,41 @@ def _split(values: np.ndarray, counts: Sequence[int]) -> list[np.ndarray]:
     return np.split(values, np.cumsum(counts)[:-1]) if len(counts) else []
 
 
-def reward(evaluation: EgoEvaluation, kind: str) -> float:
+def reward(evaluation: EgoEvaluation, kind: str,
+           alone: EgoEvaluation | None = None) -> float:
     """Scalar reward of an evaluated frame.
 
     ``ap30``/``ap50``/``ap70``: the per-step AP at 0.3/0.5/0.7, with a NaN AP
     (no GT and no predictions: nothing to get right) counted as 0.
+    ``ap30_gain``/``ap50_gain``/``ap70_gain``: that AP minus the AP of the ego's own
+    boxes alone on the same frame and ground truth (``alone``, needed for these), so a
+    collaboration that adds nothing scores 0 and one that harms scores below 0.
     ``neg_rpe``: minus the mean over filled slots of (translation error m +
     rotation error deg) after correction; 0 without collaborators.
     """
     if kind == "neg_rpe":
         rows = evaluation.rpe_after[~np.isnan(evaluation.rpe_after).any(axis=1)]
         return -float(rows.sum(axis=1).mean()) if rows.shape[0] else 0.0
+    ap_kind, gain, _ = kind.partition("_gain")
     thresholds = {key: thr for thr, key in AP_KEYS.items()}
-    if kind not in thresholds:
+    if ap_kind not in thresholds or kind not in REWARDS:
         raise ValueError(f"evaluation.reward must be one of {list(REWARDS)}; got {kind!r}")
-    value = evaluation.ap[thresholds[kind]]
+    value = _ap_or_zero(evaluation, thresholds[ap_kind])
+    if not gain:
+        return value
+    if alone is None:
+        raise ValueError(f"reward {kind!r} needs the evaluation of the ego's own boxes alone")
+    return value - _ap_or_zero(alone, thresholds[ap_kind])
+
+
+def is_gain_reward(kind: str) -> bool:
+    """Whether reward ``kind`` subtracts the ego's no-fusion AP (needs its evaluation)."""
+    return kind.endswith("_gain")
+
+
+def _ap_or_zero(evaluation: EgoEvaluation, threshold: float) -> float:
+    """The frame's AP at ``threshold``; 0 where it is undefined (no GT, no predictions)."""
+    value = evaluation.ap[threshold]
     return 0.0 if np.isnan(value) else float(value)
 
 

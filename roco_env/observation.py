@@ -91,12 +91,13 @@ def observation_space(max_boxes: int, max_collaborators: int,
     return spaces.Dict(entries)
 
 
-def action_space(max_collaborators: int, max_translation: float) -> spaces.Box:
+def action_space(max_collaborators: int, max_translation: float,
+                 max_rotation: float = np.pi) -> spaces.Box:
     """Box (N, 3) float32 of corrections (dx, dy, dyaw).
 
-    Bounds: |dx|, |dy| <= max_translation (m), |dyaw| <= pi (rad).
+    Bounds: |dx|, |dy| <= max_translation (m), |dyaw| <= max_rotation (rad).
     """
-    bound = np.array([max_translation, max_translation, np.pi], dtype=_F32)
+    bound = np.array([max_translation, max_translation, max_rotation], dtype=_F32)
     high = np.tile(bound, (max_collaborators, 1))
     return spaces.Box(low=-high, high=high, dtype=_F32)
 

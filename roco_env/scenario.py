@@ -235,9 +235,14 @@ class FeaturesConfig:
 
 
 # Per-step reward kinds (roco_env.evaluation.reward computes them).
-REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "neg_rpe")
+REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "ap30_gain", "ap50_gain", "ap70_gain",
+                            "neg_rpe")
 # Ground-truth conventions (roco_env.evaluation.ground_truths, docs/metrics.md).
 GROUND_TRUTHS: tuple[str, ...] = ("visible", "opencood")
+# What an agent's action means (roco_env.action_modes implements each).
+ACTION_MODES: tuple[str, ...] = ("correction", "residual", "select", "gate")
+# What an agent observes (roco_env.observation_modes implements each).
+OBSERVATION_MODES: tuple[str, ...] = ("raw", "aligned", "bev")
 
 
 @dataclass
@@ -253,6 +258,40 @@ class EvaluationConfig:
 
 
 @dataclass
+class ActionConfig:
+    """What an agent's action means (roco_env.action_modes; docs/learning.md)."""
+
+    mode: str = _spec("correction", choices=ACTION_MODES,
+                      doc="correction: (dx, dy, dyaw) per slot; residual: a scaled residual on "
+                      "the base aligner's pose; select: one of the choices or reject per slot; "
+                      "gate: keep the base aligner's pose or reject per slot")
+    max_translation: float = _spec(15.0, low=0.0, high=20.0, low_open=True,
+                                   doc="correction mode: the action space's |dx|, |dy| bound, m")
+    max_rotation: float = _spec(15.0, low=0.0, high=180.0, low_open=True,
+                                doc="correction mode: the action space's |dyaw| bound, degrees")
+    base: str = _spec("roco", doc="residual and gate modes: the policy spec run first")
+    choices: list = _spec(["identity", "coalign", "roco", "roco_antialias"],
+                          doc="select mode: the policy specs chosen among (index len(choices) "
+                          "rejects)")
+    scale: list = _spec([1.0, 1.0, 1.0], doc="residual mode: the residual of action 1, "
+                        "(dx m, dy m, dyaw degrees)")
+
+
+@dataclass
+class ObservationConfig:
+    """What an agent observes (roco_env.observation_modes; docs/learning.md)."""
+
+    mode: str = _spec("raw", choices=OBSERVATION_MODES,
+                      doc="raw: own and collaborators' boxes in their own frames; aligned: "
+                      "collaborators' boxes in the ego frame plus the base aligner's per-slot "
+                      "diagnostics; bev: occupancy rasters of the ego and each collaborator")
+    bev_range: float = _spec(40.0, low=5.0, high=200.0,
+                             doc="bev mode: half side of the square raster around the ego, m")
+    bev_resolution: float = _spec(1.0, low=0.1, high=10.0,
+                                  doc="bev mode: raster cell side, m")
+
+
+@dataclass
 class ScenarioConfig:
     name: str = _spec("custom")
     description: str = _spec("")
@@ -263,6 +302,8 @@ class ScenarioConfig:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     features: FeaturesConfig = field(default_factory=FeaturesConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    action: ActionConfig = field(default_factory=ActionConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
     max_objects: int = _spec(256, low=1, high=4096,
@@ -459,6 +500,8 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.per_agent = _per_agent_levels(config.noise.per_agent, where)
+    config.action.scale = _check_scale(config.action.scale, where)
+    config.action.choices = _check_choices(config.action.choices, where)
     config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,
                                          config.noise.params, where, "noise.params.", base)
     config.detector.params = _choice_params(DETECTOR_PARAMS, "detector.preset",
@@ -515,6 +558,27 @@ def _per_agent_levels(per_agent: dict, where: str) -> dict:
 def _given(params: Any, given: Mapping[str, Any]) -> dict:
     """The checked values of the keys a user gave (the rest stay with the preset)."""
     return {key: getattr(params, key) for key in given}
+
+
+def _check_scale(value: list, where: str) -> list[float]:
+    """action.scale as three finite numbers > 0 (m, m, degrees), else a ScenarioError."""
+    ok = isinstance(value, list) and len(value) == 3 and all(
+        isinstance(v, Real) and not isinstance(v, bool) and np.isfinite(v) and v > 0
+        for v in value)
+    if not ok:
+        raise ScenarioError(f"{where}: action.scale must be three finite numbers > 0, the "
+                            f"residual of action 1 as [dx m, dy m, dyaw degrees]; got {value!r}")
+    return [float(v) for v in value]
+
+
+def _check_choices(value: list, where: str) -> list[str]:
+    """action.choices as a non-empty list of distinct policy-spec strings, else a ScenarioError
+    (the policies themselves are checked when an env builds them)."""
+    ok = isinstance(value, list) and value and all(isinstance(v, str) and v for v in value)
+    if not ok or len(set(value)) != len(value):
+        raise ScenarioError(f"{where}: action.choices must be a non-empty list of distinct "
+                            f"policy specs (e.g. [identity, coalign, roco]); got {value!r}")
+    return list(value)
 
 
 def _check_range(value: list, where: str, key: str) -> list[float]:

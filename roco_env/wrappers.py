@@ -24,9 +24,10 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 
+from roco_env.action_modes import ActionMode
 from roco_env.env import CollabPerceptionEnv
 from roco_env.policies import make_policy
-from roco_env.policies.basic import IdentityPolicy
+from roco_env.policies.spec import merge_env_overrides
 from roco_env.scenario import ScenarioConfig
 
 
@@ -34,10 +35,16 @@ class EgoEnv(gymnasium.Env):
     """One agent of :class:`CollabPerceptionEnv` as a Gymnasium env.
 
     env: an existing (unwrapped) parallel env, or None to build one from
-    ``scenario``, ``max_cycles``, ``render_mode`` and ``overrides``; agent: the
-    controlled agent (default: the first evaluated agent); others: the policy
-    ``policy(obs, info) -> action`` of every other agent, or a policy name for
-    :func:`roco_env.policies.make_policy` (``"roco"``; default identity).
+    ``scenario``, ``max_cycles``, ``render_mode``, ``info_level``, ``privileged`` and
+    ``overrides``; agent: the controlled agent (default: the first evaluated agent);
+    others: the policy ``policy(obs, info) -> action`` of every other agent, or a policy
+    name for :func:`roco_env.policies.make_policy` (``"roco"``); by default they take
+    the action mode's neutral action (zeros: trust the reported poses in ``correction``
+    mode, keep the base aligner's poses in ``residual`` and ``gate`` modes, the first
+    choice in ``select`` mode). A built env takes the env modes the others' policy
+    declares in its ``env_overrides`` (``others="learned_select"`` builds a select-mode
+    env; a conflicting override is a ValueError naming the field). A built env scores only the controlled agent (the others
+    act unscored) unless ``evaluate_others`` is True; an env passed in is used as it is.
     Observation, action, reward and info are that agent's (see roco_env.env).
     Infos have fixed shapes and no NaN (see roco_env.env), so Gymnasium's vector
     envs (``gymnasium.make_vec(..., vectorization_mode="sync" | "async")``) stack
@@ -53,9 +60,17 @@ class EgoEnv(gymnasium.Env):
     def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
                  max_cycles: int = 100, render_mode: str | None = None, *,
                  env: CollabPerceptionEnv | None = None, agent: str | None = None,
-                 others: Callable | str | None = None, **overrides: Any) -> None:
-        self.env = env if env is not None else CollabPerceptionEnv(
-            scenario, max_cycles=max_cycles, render_mode=render_mode, **overrides)
+                 others: Callable | str | None = None, info_level: str = "full",
+                 privileged: bool | None = None, evaluate_others: bool = False,
+                 **overrides: Any) -> None:
+        built = env is None
+        if isinstance(others, str):
+            others = make_policy(others)
+        if built:  # in the env modes the others' policy acts in (a learned policy's)
+            overrides = merge_env_overrides(overrides, others, "others")
+        self.env = CollabPerceptionEnv(
+            scenario, max_cycles=max_cycles, render_mode=render_mode, info_level=info_level,
+            privileged=privileged, **overrides) if built else env
         if not isinstance(self.env, CollabPerceptionEnv):
             raise ValueError(f"env must be an unwrapped CollabPerceptionEnv; "
                              f"got {type(self.env).__name__}")
@@ -63,13 +78,13 @@ class EgoEnv(gymnasium.Env):
         self.agent = agent if agent is not None else base.evaluated_agents[0]
         if self.agent not in base.possible_agents:
             raise ValueError(f"agent must be one of {base.possible_agents}; got {self.agent!r}")
+        if built and not evaluate_others:  # fuse and score only what this env returns
+            base.evaluated_agents = [self.agent]
         base.render_ego = self.agent  # pictures show the controlled agent's fused view
-        if isinstance(others, str):
-            others = make_policy(others)
         if others is not None and not callable(others):
             raise ValueError("others must be a policy(obs, info) -> action or a policy name "
                              f"(roco_env.policies.available_policies()); got {others!r}")
-        self.others = others if others is not None else IdentityPolicy()
+        self.others = others if others is not None else _NeutralPolicy(base.action_mode)
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)
         self.metadata = {**type(self).metadata, "render_fps": base.metadata["render_fps"]}
@@ -105,6 +120,16 @@ class EgoEnv(gymnasium.Env):
         self.env.close()
 
 
+class _NeutralPolicy:
+    """Takes the action mode's neutral action whatever it observes."""
+
+    def __init__(self, mode: ActionMode) -> None:
+        self.mode = mode
+
+    def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
+        return self.mode.neutral_action()
+
+
 class FlattenObservations(BaseParallelWrapper):
     """Each agent's Dict observation flattened into one float32 Box (keys in space order)."""
 
@@ -138,6 +163,12 @@ class FlattenActions(BaseParallelWrapper):
 
     def __init__(self, env: ParallelEnv) -> None:
         super().__init__(env)
+        for agent in env.possible_agents:
+            if not isinstance(env.action_space(agent), spaces.Box):
+                raise ValueError(
+                    f"FlattenActions flattens Box actions (action.mode correction or residual); "
+                    f"{agent!r} has {env.action_space(agent)}: RL libraries take MultiDiscrete "
+                    "actions (select and gate modes) as they are")
         self._shapes = {a: env.action_space(a).shape for a in env.possible_agents}
         self._flat_spaces = {}
         for agent in env.possible_agents:

@@ -15,12 +15,14 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 # example says it is skipping (and why).
 RLLIB = importlib.util.find_spec("ray") is not None and \
     importlib.util.find_spec("ray.rllib") is not None
+SB3 = importlib.util.find_spec("stable_baselines3") is not None
 EXPECTED = {  # a line fragment each example must print
     "quickstart.py": "AP@0.7 =",
     "compare_policies.py": "### AP@0.7 (%)",
     "custom_policy.py": "nn-icp (this file)",
     "stress_crowding.py": "nearest-neighbour gap",
-    "rllib_ppo.py": "iteration 1: mean episode return" if RLLIB else "RLlib is not available",
+    "rllib_ppo.py": "roco_antialias" if RLLIB else "RLlib is not available",
+    "sb3_ppo.py": "roco_antialias" if SB3 else "Stable-Baselines3 is not available",
 }
 
 

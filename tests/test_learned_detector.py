@@ -15,6 +15,7 @@ from roco_env.fusion.intermediate import fuse_maps, fuse_on_canvas, fusion_canva
 from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
+from roco_env.policies.spec import merge_env_overrides
 from roco_env.scenario import ScenarioError
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.learned import (
@@ -365,9 +366,10 @@ def test_learned_detector_options_are_checked():
     for name in available_policies()])
 @pytest.mark.parametrize("fusion", ["late", "intermediate"])
 def test_every_policy_runs_with_the_learned_detector(policy, fusion):
-    env = roco_env.parallel_env("urban_intersection", max_cycles=2, detector="learned",
-                                fusion=fusion, density=2.0, sigma_t=0.4, sigma_r=0.4)
     act = make_policy(policy)
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, **merge_env_overrides(
+        {"detector": "learned", "fusion": fusion, "density": 2.0, "sigma_t": 0.4,
+         "sigma_r": 0.4}, act))  # in the env modes the policy acts in (a learned one's)
     obs, infos = env.reset(seed=1)
     while env.agents:
         obs, rewards, _, _, infos = env.step({a: act(obs[a], infos[a]) for a in env.agents})

@@ -8,6 +8,7 @@ import pytest
 import roco_env
 from roco_env.cli import main
 from roco_env.policies import available_policies, make_policy
+from roco_env.policies.spec import merge_env_overrides
 from roco_env.sweeps.spec import parse_policy_spec, validate_policy_spec
 
 PLUGIN = textwrap.dedent('''
@@ -109,9 +110,11 @@ def test_policy_parameter_of_the_wrong_type_is_named():
     assert make_policy("roco", tau2=np.float32(2.0)).params.tau2 == 2.0
 
 
-def _episode_actions(policy_for, steps=3):
-    env = roco_env.parallel_env("urban_intersection", max_cycles=steps, cavs=3, rsus=1,
-                                density=2.0, sigma_t=0.6, sigma_r=0.6, noise_model="bias")
+def _episode_actions(policy_for, steps=3, modes=None):
+    """Every step's actions; ``modes``: a policy whose env_overrides the env takes."""
+    overrides = merge_env_overrides({"cavs": 3, "rsus": 1, "density": 2.0, "sigma_t": 0.6,
+                                     "sigma_r": 0.6, "noise_model": "bias"}, modes)
+    env = roco_env.parallel_env("urban_intersection", max_cycles=steps, **overrides)
     obs, infos = env.reset(seed=3)
     actions_seen = []
     while env.agents:
@@ -125,8 +128,8 @@ def _episode_actions(policy_for, steps=3):
 def test_a_shared_policy_acts_as_one_per_agent(name):
     shared = make_policy(name)
     own = {}
-    per_agent = _episode_actions(lambda a: own.setdefault(a, make_policy(name)))
-    together = _episode_actions(lambda a: shared)
+    per_agent = _episode_actions(lambda a: own.setdefault(a, make_policy(name)), modes=shared)
+    together = _episode_actions(lambda a: shared, modes=shared)
     for step_a, step_b in zip(per_agent, together, strict=True):
         for agent in step_a:
             np.testing.assert_array_equal(step_a[agent], step_b[agent])

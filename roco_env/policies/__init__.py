@@ -43,6 +43,8 @@ _REGISTRY: dict[str, str] = {
     "v2i_calib": "roco_env.policies.v2i_calib:V2ICalibPolicy",
     "freealign": "roco_env.policies.freealign:FreeAlignPolicy",
     "roco_fallback": "roco_env.policies.fallback:RoCoFallbackPolicy",
+    # acts in action.mode select (its env_overrides; roco_env.policies.learned)
+    "learned_select": "roco_env.policies.learned:learned_select",
 }
 
 
@@ -116,7 +118,7 @@ def make_policy(name: str, **params: Any) -> Callable:
         raise ValueError(f"unknown policy {name!r}: make_policy takes parameters as keyword "
                          f"arguments, make_policy({base!r}, ...) for {settings!r}; the "
                          "'NAME:KEY=VALUE' spec is the command line's "
-                         "(roco_env.sweeps.spec.parse_policy_spec reads it)")
+                         "(roco_env.policies.spec.parse_policy_spec reads it)")
     else:
         raise ValueError(f"unknown policy {name!r}; available: {', '.join(sorted(registry))} "
                          "or an import target 'my_pkg.module:make_policy'")

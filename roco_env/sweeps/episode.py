@@ -30,8 +30,8 @@ import numpy as np
 import roco_env
 from roco_env.evaluation import filled_rpe_rows, info_frame_stats
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_precision_recall
-from roco_env.observation import check_action
 from roco_env.policies.base import AlignmentResult
+from roco_env.policies.spec import merge_env_overrides
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record, ok_record
 from roco_env.sweeps.spec import parse_policy_spec
@@ -55,17 +55,22 @@ class EpisodeScorer:
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
     call_seconds: dict[str, list[float]] = field(default_factory=dict)  # by agent, in order
+    decisions: int = 0  # agent-steps with >= 1 collaborator
     steps: int = 0  # env steps played (fewer than asked when a replay's frames run out)
 
-    def add_decision(self, observation: dict, info: dict, action: np.ndarray,
+    def add_decision(self, observation: dict, info: dict, action: np.ndarray | None,
                      result: AlignmentResult | None) -> None:
         """Score an action taken on ``observation`` (``info`` came with it); ``result`` is
-        the policy's alignment result for this very call, None when it reported none."""
+        the policy's alignment result for this very call, None when it reported none;
+        ``action`` is the (N, 3) correction, None in the other action modes (whose actions
+        are no corrections: the correction share is left undefined)."""
         filled = np.asarray(observation["collab_mask"]) > 0
         if not filled.any():
             return
-        moved = np.abs(np.asarray(action, dtype=float)[filled]) > _ACTION_EPS
-        self.applied.append(bool(moved.any()))
+        self.decisions += 1
+        if action is not None:
+            moved = np.abs(np.asarray(action, dtype=float)[filled]) > _ACTION_EPS
+            self.applied.append(bool(moved.any()))
         privileged = info.get("privileged") if info else None
         if result is None or privileged is None:
             return
@@ -104,7 +109,7 @@ class EpisodeScorer:
         metrics["match_recall"] = nanmean(self.recall)
         metrics["correction_share"] = nanmean(self.applied)
         metrics["frames"] = self.ap.n_frames  # evaluated agent-steps
-        metrics["decisions"] = len(self.applied)  # agent-steps with >= 1 collaborator
+        metrics["decisions"] = self.decisions  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result
         metrics["pairs"] = int(after.shape[0])
         metrics["steps"] = self.steps
@@ -115,10 +120,13 @@ class EpisodeScorer:
         return metrics, samples
 
 
-def make_env(cell: Cell, render_mode: str | None = None):
-    """The cell's PettingZoo ParallelEnv (scenario + noise/density/other overrides)."""
+def make_env(cell: Cell, render_mode: str | None = None, policy: object | None = None):
+    """The cell's PettingZoo ParallelEnv (scenario + noise/density/other overrides), in the
+    env modes ``policy`` declares (its ``env_overrides``, e.g. a learned select-mode policy's
+    ``action.mode``; a conflict with the cell's overrides is a ValueError naming the field)."""
+    overrides = merge_env_overrides(cell.env_overrides(), policy, f"policy {cell.policy!r}")
     return roco_env.parallel_env(cell.scenario, max_cycles=cell.steps, render_mode=render_mode,
-                                 **cell.env_overrides())
+                                 **overrides)
 
 
 def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
@@ -134,10 +142,13 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
     receives the episode's :class:`EpisodeScorer` (its wall times stay out of the metrics).
     """
     factory = policy_factory or parse_policy_spec(cell.policy).build
-    env = make_env(cell, render_mode)
+    first = factory()  # its env_overrides say which env modes it acts in
+    env = make_env(cell, render_mode, first)
     try:
         observations, infos = env.reset(seed=cell.seed)
-        policies = {agent: factory() for agent in env.agents}
+        policies = {agent: first if index == 0 else factory()
+                    for index, agent in enumerate(env.agents)}
+        correction = env.config.action.mode == "correction"
         scorer = EpisodeScorer()
         if on_scorer is not None:
             on_scorer(scorer)
@@ -150,10 +161,11 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
                 start = time.perf_counter()
                 action = policy(observations[agent], infos[agent])
                 scorer.add_call(agent, time.perf_counter() - start)
-                # the env's own check, before the scorer reads the action by slot
-                action = check_action(action, agent, env.config.max_collaborators)
+                # the env's own check (of its action mode), before the scorer reads it by slot
+                action = env.action_mode.check(action, agent)
                 result = getattr(policy, "last_result", None)
-                scorer.add_decision(observations[agent], infos[agent], action,
+                scorer.add_decision(observations[agent], infos[agent],
+                                    action if correction else None,
                                     None if result is previous else result)  # never a stale one
                 actions[agent] = action
             observations, _, _, _, infos = env.step(actions)

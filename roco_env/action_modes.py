@@ -1,0 +1,274 @@
+"""What an agent's action means: the modes of the scenario section ``action``.
+
+Every mode turns one agent's action, taken on the observation it received last, into a
+:class:`Decision`: the relative pose ``T_{j->i}`` (x m, y m, yaw rad, in the ego's frame)
+each filled collaborator slot is fused with, and which slots are kept. A rejected
+collaborator is left out of fusion (late and intermediate alike); the ground truth the
+ego is scored against stays the collaboration's, so rejecting a useful collaborator costs
+what it would have added. docs/learning.md describes the modes for RL users.
+
+* ``correction`` (default): a Box (N, 3) of corrections (dx m, dy m, dyaw rad),
+  ``T = SE2(action) * T_reported``; bounds ``action.max_translation`` m and
+  ``action.max_rotation`` degrees; finite values outside are applied as given.
+* ``residual``: the base aligner (``action.base``) runs first; the action, a Box (N, 3)
+  in [-1, 1] (values outside are clipped), is a residual scaled by ``action.scale``
+  (m, m, degrees): ``T = SE2(scale * action) * T_base``. Zeros give the base aligner's
+  poses exactly.
+* ``select``: a MultiDiscrete (N,) of indices: ``k < len(action.choices)`` fuses the slot
+  with the pose the k-th choice computes, ``len(action.choices)`` rejects it.
+* ``gate``: a MultiDiscrete (N,) of 0 (keep the base aligner's pose) or 1 (reject).
+
+The aligners a mode names run inside the env, one instance per agent (several keep
+state per ego), on the same (raw) observation and info the agent received; the base
+aligner runs when the env builds each observation (:class:`AlignerSet`), so the
+``aligned`` observation shows the very poses the ``residual`` and ``gate`` actions act on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from gymnasium import spaces
+
+from roco_env.geometry import apply_correction
+from roco_env.observation import EgoView, action_space, check_action
+from roco_env.scenario import ActionConfig
+
+if TYPE_CHECKING:  # the policies load when a mode names one: `import roco_env` stays light
+    from roco_env.policies.base import AlignmentResult
+    from roco_env.policies.spec import PolicySpec
+
+REJECT_GATE = 1  # gate mode's "reject"; 0 keeps the base aligner's pose
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One agent's decision on its filled collaborator slots (n = len(view.collaborators)).
+
+    corrected: (n, 3) relative poses ``T_{j->i}`` (x m, y m, yaw rad) fusion moves each
+        collaborator's boxes or maps with; a rejected slot holds its reported pose (so its
+        pose error after equals the one before).
+    kept: (n,) bool, False where the collaborator is left out of fusion.
+    """
+
+    corrected: np.ndarray
+    kept: np.ndarray
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """One aligner's output for one agent's filled slots.
+
+    corrected: (n, 3) relative poses ``T_{j->i}`` it computed; result: its
+    :class:`~roco_env.policies.base.AlignmentResult` for this call, or None when the
+    policy reports none.
+    """
+
+    corrected: np.ndarray
+    result: AlignmentResult | None
+
+
+class AlignerSet:
+    """One instance of each named policy per agent, called on the agent's raw observation.
+
+    field: the scenario field naming the policies (errors name it); texts: their policy
+    specs; agents: the env's agent ids.
+    """
+
+    def __init__(self, field: str, texts: Sequence[str], agents: Sequence[str]) -> None:
+        self.specs = [_policy_spec(text, field) for text in texts]
+        self.instances: dict[str, list[Callable]] = {
+            agent: [spec.build() for spec in self.specs] for agent in agents}
+
+    def reset(self) -> None:
+        """A new episode for every stateful instance."""
+        for instances in self.instances.values():
+            for policy in instances:
+                reset = getattr(policy, "reset", None)
+                if callable(reset):
+                    reset()
+
+    def align(self, agent: str, index: int, view: EgoView, observation: dict,
+              info: dict) -> Alignment:
+        """What the ``index``-th aligner computes for ``agent``'s filled slots."""
+        policy = self.instances[agent][index]
+        previous = getattr(policy, "last_result", None)
+        action = check_action(policy(observation, info), f"{agent} ({self.specs[index].label})",
+                              len(observation["collab_mask"]))
+        result = getattr(policy, "last_result", None)
+        n = len(view.collaborators)
+        return Alignment(apply_correction(view.reported_relative, action[:n]),
+                         None if result is previous else result)  # never a stale result
+
+    def keeps_state(self, index: int) -> bool:
+        """Whether the ``index``-th aligner must see every step (it keeps state)."""
+        return any(bool(getattr(instances[index], "keeps_state", False))
+                   for instances in self.instances.values())
+
+
+class ActionMode:
+    """Base of the modes: the action space, the action check and the decision.
+
+    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``).
+    """
+
+    space: spaces.Space
+    needs_base = False
+
+    def reset(self) -> None:
+        """Start an episode (stateful aligners forget the last one)."""
+
+    def neutral_action(self) -> np.ndarray:
+        """The action that changes nothing the mode decides (zeros)."""
+        return np.zeros(self.space.shape, dtype=self.space.dtype)
+
+    def check(self, action: object, agent: str) -> np.ndarray:
+        raise NotImplementedError
+
+    def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
+               info: dict, base: np.ndarray | None) -> Decision:
+        """The decision of ``action`` (checked) on ``agent``'s last observation; ``base``
+        holds the base aligner's (n, 3) poses when the mode needs them, else None."""
+        raise NotImplementedError
+
+
+class CorrectionMode(ActionMode):
+    """The action is the correction itself (today's contract)."""
+
+    def __init__(self, config: ActionConfig, max_collaborators: int) -> None:
+        self.n = max_collaborators
+        self.space = action_space(max_collaborators, config.max_translation,
+                                  np.radians(config.max_rotation))
+
+    def check(self, action: object, agent: str) -> np.ndarray:
+        return check_action(action, agent, self.n)
+
+    def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
+               info: dict, base: np.ndarray | None) -> Decision:
+        n = len(view.collaborators)
+        return Decision(apply_correction(view.reported_relative, action[:n]), np.ones(n, bool))
+
+
+class ResidualMode(ActionMode):
+    """A scaled residual on top of the base aligner's poses."""
+
+    needs_base = True
+
+    def __init__(self, config: ActionConfig, max_collaborators: int) -> None:
+        self.n = max_collaborators
+        self.scale = np.array([config.scale[0], config.scale[1], np.radians(config.scale[2])])
+        self.space = spaces.Box(-1.0, 1.0, (max_collaborators, 3), np.float32)
+
+    def check(self, action: object, agent: str) -> np.ndarray:
+        return np.clip(check_action(action, agent, self.n), -1.0, 1.0)
+
+    def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
+               info: dict, base: np.ndarray | None) -> Decision:
+        n = len(view.collaborators)
+        corrected = base.copy()
+        residual = action[:n].astype(float) * self.scale
+        moved = np.any(residual != 0.0, axis=1)  # a zero residual keeps the base pose exactly
+        corrected[moved] = apply_correction(corrected[moved], residual[moved])
+        return Decision(corrected, np.ones(n, bool))
+
+
+class SelectMode(ActionMode):
+    """Per slot, one of the choices' poses, or reject (index ``len(choices)``)."""
+
+    def __init__(self, config: ActionConfig, max_collaborators: int,
+                 agents: Sequence[str]) -> None:
+        self.n = max_collaborators
+        self.choices = AlignerSet("action.choices", config.choices, agents)
+        self.reject = len(config.choices)
+        self.space = spaces.MultiDiscrete(np.full(max_collaborators, self.reject + 1))
+
+    def reset(self) -> None:
+        self.choices.reset()
+
+    def check(self, action: object, agent: str) -> np.ndarray:
+        return check_indices(action, agent, self.n, self.reject + 1)
+
+    def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
+               info: dict, base: np.ndarray | None) -> Decision:
+        n = len(view.collaborators)
+        picked = action[:n]
+        corrected = view.reported_relative[:n].astype(float).copy()
+        for index in range(self.reject):
+            chosen = picked == index
+            # a stateless aligner nobody picked is not run; a stateful one sees every step
+            if chosen.any() or self.choices.keeps_state(index):
+                poses = self.choices.align(agent, index, view, observation, info).corrected
+                corrected[chosen] = poses[chosen]
+        return Decision(corrected, picked != self.reject)
+
+
+class GateMode(ActionMode):
+    """Per slot, keep the base aligner's pose (0) or reject the collaborator (1)."""
+
+    needs_base = True
+
+    def __init__(self, max_collaborators: int) -> None:
+        self.n = max_collaborators
+        self.space = spaces.MultiDiscrete(np.full(max_collaborators, 2))
+
+    def check(self, action: object, agent: str) -> np.ndarray:
+        return check_indices(action, agent, self.n, 2)
+
+    def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
+               info: dict, base: np.ndarray | None) -> Decision:
+        n = len(view.collaborators)
+        kept = action[:n] != REJECT_GATE
+        corrected = base.copy()
+        corrected[~kept] = view.reported_relative[:n][~kept]
+        return Decision(corrected, kept)
+
+
+def build_action_mode(config: ActionConfig, max_collaborators: int,
+                      agents: Sequence[str]) -> ActionMode:
+    """The mode ``config.mode`` names, its aligners built for every agent.
+
+    Raises ValueError naming ``action.base`` / ``action.choices`` for a policy spec that
+    is unknown or whose parameters its policy refuses.
+    """
+    if config.mode == "residual":
+        return ResidualMode(config, max_collaborators)
+    if config.mode == "select":
+        return SelectMode(config, max_collaborators, agents)
+    if config.mode == "gate":
+        return GateMode(max_collaborators)
+    return CorrectionMode(config, max_collaborators)
+
+
+def check_indices(action: object, agent: str, max_collaborators: int,
+                  count: int) -> np.ndarray:
+    """``action`` as an (N,) int64 array of indices in [0, count), else a ValueError naming
+    the agent, the shape and the allowed values (bools, floats with a fraction, NaN refused)."""
+    array = np.asarray(action)
+    if array.shape != (max_collaborators,):
+        raise ValueError(f"action of {agent!r} must have shape ({max_collaborators},), one "
+                         f"index per collaborator slot; got shape {array.shape}")
+    if array.dtype == bool or not (np.issubdtype(array.dtype, np.integer)
+                                   or np.issubdtype(array.dtype, np.floating)):
+        raise ValueError(f"action of {agent!r} must hold integer indices in [0, {count - 1}]; "
+                         f"got dtype {array.dtype}")
+    if not np.all(np.isfinite(array)) or np.any(array != np.round(array)) \
+            or np.any(array < 0) or np.any(array >= count):
+        raise ValueError(f"action of {agent!r} must hold integer indices in [0, {count - 1}]; "
+                         f"got {array.tolist()}")
+    return array.astype(np.int64)
+
+
+def _policy_spec(text: object, field: str) -> PolicySpec:
+    """The checked spec of ``text``, or a ValueError naming the scenario field."""
+    from roco_env.policies.spec import validate_policy_spec
+
+    if not isinstance(text, str):
+        raise ValueError(f"{field} must be a policy spec such as 'roco' or "
+                         f"'roco:tau2=2'; got {text!r}")
+    try:
+        return validate_policy_spec(text)
+    except ValueError as exc:
+        raise ValueError(f"{field}: {exc}") from exc

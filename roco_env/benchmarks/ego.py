@@ -1,0 +1,84 @@
+"""Single-agent (EgoEnv) throughput for RL: what scoring only the controlled agent and lean
+infos save, and what an asynchronous vector env of 2 workers gains over one env.
+
+Setting: ``urban_intersection`` (4 CAVs, default density), noise 0.8 m / 0.8 deg, late
+fusion, zero corrections, whole seeded episodes. Baselines in the same process: the
+ego env scoring every agent with full infos (what ``EgoEnv`` did before it scored only its
+agent), and one env stepped alone against ``gymnasium.make_vec(..., "async")`` with 2.
+"""
+
+from __future__ import annotations
+
+import pickle
+import time
+
+import gymnasium
+import numpy as np
+
+from roco_env.benchmarks._timing import median_seconds
+from roco_env.wrappers import EgoEnv
+
+SETTING = dict(scenario="urban_intersection", sigma_t=0.8, sigma_r=0.8)
+TARGET_ASYNC_SPEEDUP = 1.6
+
+
+def _episode_rate(env: EgoEnv, steps: int) -> float:
+    """Steps per second over one seeded episode of ``steps`` zero actions."""
+    action = np.zeros(env.action_space.shape, dtype=np.float32)
+
+    def episode() -> None:
+        env.reset(seed=0)
+        for _ in range(steps):
+            env.step(action)
+
+    return steps / median_seconds(episode, repeats=3, warmup=1)
+
+
+def _info_bytes(env: EgoEnv) -> int:
+    """Pickled size of one step's info (what a worker process sends back)."""
+    env.reset(seed=0)
+    *_, info = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    return len(pickle.dumps(info))
+
+
+def _vector_rate(num_envs: int, mode: str, steps: int) -> float:
+    """Env steps per second (all envs together) of a vector env of ``num_envs``."""
+    envs = gymnasium.make_vec("roco/CollabPerceptionEgo-v0", num_envs=num_envs,
+                              vectorization_mode=mode, max_cycles=10**6, info_level="metrics",
+                              **SETTING)
+    try:
+        envs.reset(seed=list(range(num_envs)))
+        action = np.zeros(envs.action_space.shape, dtype=np.float32)
+        envs.step(action)  # workers warm (imports, compiled kernels)
+        start = time.perf_counter()
+        for _ in range(steps):
+            envs.step(action)
+        return num_envs * steps / (time.perf_counter() - start)
+    finally:
+        envs.close()
+
+
+def run(quick: bool) -> list[str]:
+    steps = 20 if quick else 100
+    before = EgoEnv(max_cycles=steps, evaluate_others=True, **SETTING)
+    scored = EgoEnv(max_cycles=steps, **SETTING)
+    lean = EgoEnv(max_cycles=steps, info_level="metrics", **SETTING)
+    rates = [_episode_rate(env, steps) for env in (before, scored, lean)]
+    sizes = [_info_bytes(env) for env in (before, lean)]
+    lines = [
+        f"setting: {SETTING['scenario']}, {len(before.env.possible_agents)} agents, noise 0.8, "
+        "late fusion, zero corrections",
+        f"EgoEnv scoring every agent, full infos: {rates[0]:.0f} steps/s (baseline)",
+        f"EgoEnv scoring its agent only:          {rates[1]:.0f} steps/s "
+        f"({rates[1] / rates[0]:.2f}x)",
+        f"  ... with info_level='metrics':        {rates[2]:.0f} steps/s "
+        f"({rates[2] / rates[0]:.2f}x)",
+        f"info per step: {sizes[0] / 1e3:.1f} kB full, {sizes[1] / 1e3:.2f} kB metrics",
+    ]
+    vector_steps = 10 if quick else 100
+    one = _vector_rate(1, "sync", vector_steps)
+    two = _vector_rate(2, "async", vector_steps)
+    lines.append(f"make_vec async, 2 workers, info_level='metrics': {two:.0f} env steps/s vs one "
+                 f"env {one:.0f} ({two / one:.2f}x; target {TARGET_ASYNC_SPEEDUP}x on 2 cores: "
+                 f"{'met' if two / one >= TARGET_ASYNC_SPEEDUP else 'NOT met'})")
+    return lines

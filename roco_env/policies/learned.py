@@ -1,0 +1,194 @@
+"""Learned policies: a small MLP trained with PPO (``roco-env train-policy``), run by argmax.
+
+A weights file (``torch.save`` of a plain dict, read back with ``weights_only=True``) holds
+
+* ``state_dict``: the MLP's tensors, ``layers.<i>.weight`` / ``layers.<i>.bias`` of its
+  linear layers (tanh between them, none after the last) and ``input_scale`` (F,), the
+  divisor applied to the flat observation;
+* ``metadata``: a JSON text with ``format`` (:data:`FORMAT`), ``input_clip`` (the
+  scaled observation is clipped to +-it), ``env_overrides`` (the
+  scenario fields the policy acts in: ``action.mode``, ``observation.mode``,
+  ``max_collaborators``, ``max_boxes`` and the mode's aligners), ``observation`` (the
+  observation keys in the flattening order with their shapes), ``action`` (``nvec`` of a
+  MultiDiscrete action, or ``shape``/``low``/``high`` of a Box one) and provenance
+  (``command``, training summary).
+
+The policy flattens the observation (keys in the stored order, each raveled), divides by
+``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per slot the argmax
+of its logits (``select``/``gate``), or the mean clipped to the bounds (Box modes).
+Because it acts in the env modes it was trained in, it declares them in
+:attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
+:class:`roco_env.wrappers.EgoEnv` merge them into the env they build (docs/learning.md).
+torch is imported when a policy is built, not with this module.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "roco_env.learned_policy/1"
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+# registered name -> (shipped weights file, the action mode that name acts in)
+SHIPPED = {"learned_select": ("learned_select.pt", "select")}
+_REQUIRED_META = ("format", "env_overrides", "observation", "action")
+
+
+def load_weights(path: str | Path) -> tuple[dict, dict]:
+    """(state_dict, metadata) of a learned-policy weights file, checked.
+
+    Never unpickles: ``torch.load(weights_only=True)``. Raises ValueError naming the file
+    for a missing or unreadable file, a wrong layout or format, and for NaN/inf tensors.
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"learned policy weights file {path} does not exist")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
+        raise ValueError(f"learned policy weights file {path} cannot be read as a "
+                         f"weights-only torch file: {exc}") from exc
+    if not isinstance(raw, dict) or not isinstance(raw.get("state_dict"), dict) \
+            or not isinstance(raw.get("metadata"), str):
+        raise ValueError(f"learned policy weights file {path} must hold a dict with "
+                         "'state_dict' (tensors) and 'metadata' (JSON text)")
+    try:
+        metadata = json.loads(raw["metadata"])
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"learned policy weights file {path}: metadata is not JSON: "
+                         f"{exc}") from exc
+    missing = [key for key in _REQUIRED_META if key not in metadata]
+    if missing:
+        raise ValueError(f"learned policy weights file {path}: metadata lacks {missing}")
+    if metadata["format"] != FORMAT:
+        raise ValueError(f"learned policy weights file {path}: format "
+                         f"{metadata['format']!r}; this version reads {FORMAT!r}")
+    state = raw["state_dict"]
+    bad = sorted(name for name, value in state.items()
+                 if not isinstance(value, torch.Tensor) or not bool(torch.isfinite(value).all()))
+    if bad:
+        raise ValueError(f"learned policy weights file {path} holds non-finite (NaN or inf) "
+                         f"or non-tensor values in {bad}")
+    return state, metadata
+
+
+class LearnedPolicy:
+    """A trained MLP acting in the env modes its weights file names (see module docstring).
+
+    weights: the weights file (default: the shipped file of ``name``); name: the
+    registered name (errors and labels); action_mode: the mode this name acts in, or
+    None to take the file's. Raises ValueError naming the file and the field when the
+    file was trained for another action mode.
+    """
+
+    keeps_state = False
+
+    def __init__(self, weights: str | None = None, *, name: str = "learned",
+                 action_mode: str | None = None) -> None:
+        import torch
+
+        if weights is not None and not isinstance(weights, str):
+            raise ValueError(f"policy {name!r}: weights must be a file path; got {weights!r}")
+        self.name = name
+        self.path = Path(weights) if weights else WEIGHTS_DIR / SHIPPED[name][0]
+        state, self.metadata = load_weights(self.path)
+        self.env_overrides: dict[str, Any] = dict(self.metadata["env_overrides"])
+        mode = self.env_overrides.get("action.mode")
+        if action_mode is not None and mode != action_mode:
+            raise ValueError(f"learned policy weights file {self.path}: action.mode is "
+                             f"{mode!r}; {name!r} acts in action.mode {action_mode!r}")
+        self._keys = [(key, tuple(shape)) for key, shape in self.metadata["observation"]]
+        size = sum(int(np.prod(shape)) for _, shape in self._keys)
+        self._scale = state["input_scale"].double().numpy()
+        if self._scale.shape != (size,) or np.any(self._scale <= 0):
+            raise ValueError(f"learned policy weights file {self.path}: input_scale must be "
+                             f"({size},) positive values for its observation keys")
+        self._clip = float(self.metadata.get("input_clip", np.inf))
+        self._net = _build_mlp(state, self.path, size)
+        self._action = self.metadata["action"]
+        self._torch = torch
+
+    def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None) -> np.ndarray:
+        flat = scaled_observation(observation, self._keys, self._scale, self._clip,
+                                  self._hint())
+        with self._torch.no_grad():
+            out = self._net(self._torch.as_tensor(flat)[None])[0]
+        out = out.double().numpy()
+        if "nvec" in self._action:  # MultiDiscrete: argmax per slot
+            splits = np.cumsum(self._action["nvec"])[:-1]
+            return np.array([int(np.argmax(part)) for part in np.split(out, splits)],
+                            dtype=np.int64)
+        low, high = np.asarray(self._action["low"]), np.asarray(self._action["high"])
+        return np.clip(out.reshape(self._action["shape"]), low, high).astype(np.float32)
+
+    def input_files(self) -> list[Path]:
+        """The weights file: sweeps hash it, so retrained weights make old results stale."""
+        return [self.path]
+
+    def _hint(self) -> str:
+        return (f"policy {self.name!r} ({self.path.name}) was trained with observation.mode="
+                f"{self.env_overrides.get('observation.mode', 'raw')!r}, max_collaborators="
+                f"{self.env_overrides.get('max_collaborators')}, max_boxes="
+                f"{self.env_overrides.get('max_boxes')}: build the env with the policy's "
+                "env_overrides (sweeps and EgoEnv do)")
+
+
+def scaled_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],
+                       scale: np.ndarray, clip: float, hint: str = "") -> np.ndarray:
+    """What the network reads: the flat observation / ``scale``, clipped to +-``clip``,
+    float32 (training and :class:`LearnedPolicy` share this function)."""
+    flat = flatten_observation(observation, keys, hint) / scale
+    return np.clip(flat, -clip, clip).astype(np.float32)
+
+
+def flatten_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],
+                        hint: str = "") -> np.ndarray:
+    """The observation's ``keys`` raveled and concatenated in order (float64), each checked
+    against its shape; a missing key or another shape is a ValueError naming it (+ hint)."""
+    parts = []
+    for key, shape in keys:
+        if not isinstance(observation, Mapping) or key not in observation:
+            raise ValueError(f"the observation has no {key!r} entry; {hint}")
+        value = np.asarray(observation[key], dtype=np.float64)
+        if value.shape != tuple(shape):
+            raise ValueError(f"observation[{key!r}] has shape {value.shape}, expected "
+                             f"{tuple(shape)}; {hint}")
+        parts.append(value.reshape(-1))
+    return np.concatenate(parts)
+
+
+def _build_mlp(state: dict, path: Path, size: int):
+    """``torch.nn.Sequential`` of the state dict's ``layers.<i>`` linears with tanh between."""
+    import torch
+
+    count = 0
+    while f"layers.{count}.weight" in state:
+        count += 1
+    if count == 0:
+        raise ValueError(f"learned policy weights file {path}: no 'layers.0.weight'")
+    modules: list = []
+    width = size
+    for index in range(count):
+        weight, bias = state[f"layers.{index}.weight"], state.get(f"layers.{index}.bias")
+        if weight.ndim != 2 or weight.shape[1] != width or bias is None \
+                or bias.shape != (weight.shape[0],):
+            raise ValueError(f"learned policy weights file {path}: layers.{index} has weight "
+                             f"{tuple(weight.shape)}, expected (*, {width}) with a matching bias")
+        linear = torch.nn.Linear(width, weight.shape[0])
+        linear.weight.data.copy_(weight.float())
+        linear.bias.data.copy_(bias.float())
+        modules += [linear, torch.nn.Tanh()]
+        width = weight.shape[0]
+    return torch.nn.Sequential(*modules[:-1]).eval()
+
+
+def learned_select(weights: str | None = None) -> LearnedPolicy:
+    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md)."""
+    return LearnedPolicy(weights, name="learned_select", action_mode="select")
+

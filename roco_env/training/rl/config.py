@@ -1,0 +1,163 @@
+"""The settings of ``roco-env train-policy``: one dataclass, the single place for defaults,
+allowed values and the command line's options (generated from it).
+
+Every field is declared with :func:`roco_env.schema.spec`; :func:`build_config` checks a
+mapping of values (unknown keys, types, ranges, choices) and the rules that tie fields
+together, raising :class:`roco_env.schema.ConfigError` naming the field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+from roco_env.scenario import OBSERVATION_MODES, list_scenarios
+from roco_env.schema import ConfigError, allowed_text, build, spec
+
+ACTION_MODES = ("correction", "residual", "select", "gate")
+NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
+REWARDS = ("ap70_gain", "ap50_gain", "ap70", "ap50")
+WHERE = "train-policy"
+
+
+@dataclass
+class PolicyTrainConfig:
+    """PPO on a curriculum of conditions (roco_env.training.rl; docs/learning.md)."""
+
+    action_mode: str = spec("select", choices=ACTION_MODES, doc="the env's action.mode")
+    observation_mode: str = spec("aligned", choices=OBSERVATION_MODES,
+                                 doc="the env's observation.mode")
+    observation_keys: list = spec([], doc="the observation entries the policy reads, in "
+                                  "the space's order (empty: all)")
+    action_base: str = spec("roco_antialias", doc="action.base: the aligner of residual and "
+                            "gate modes and of the aligned observation's diagnostics")
+    scenarios: list = spec(["urban_intersection", "parking_lot", "v2xset_like"],
+                           doc="scenarios an episode is drawn from")
+    noise_low: float = spec(0.0, low=0.0, high=20.0,
+                            doc="noise level drawn uniformly in [noise_low, noise_high]: "
+                            "sigma_t m = sigma_r deg")
+    noise_high: float = spec(2.0, low=0.0, high=20.0, doc="see noise_low")
+    density_low: float = spec(0.8, low=0.0, high=2.0, low_open=True,
+                              doc="scenario density multiplied by a factor drawn in "
+                              "[density_low, density_high] (parking_lot: fill ratio, capped at 1)")
+    density_high: float = spec(1.0, low=0.0, high=2.0, low_open=True, doc="see density_low")
+    noise_models: list = spec(["gaussian", "ar1"], doc="noise models drawn per episode")
+    max_collaborators: int = spec(5, low=1, high=32, doc="N, fixed across the curriculum")
+    max_boxes: int = spec(64, low=1, high=1024, doc="K, fixed across the curriculum")
+    episode_steps: int = spec(8, low=1, high=1000, doc="env steps per training episode")
+    reward: str = spec("ap70_gain", choices=REWARDS, doc="the env's reward")
+    total_timesteps: int = spec(9600, low=1, doc="PPO env steps in all")
+    n_steps: int = spec(320, low=1, doc="env steps per PPO rollout (a multiple of "
+                        "episode_steps, so a checkpoint falls between episodes)")
+    batch_size: int = spec(64, low=2, doc="PPO minibatch size")
+    n_epochs: int = spec(5, low=1, high=100, doc="PPO epochs per rollout")
+    learning_rate: float = spec(3e-4, low=0.0, high=1.0, low_open=True, doc="Adam step size")
+    gamma: float = spec(0.0, low=0.0, high=1.0,
+                        doc="discount: 0 for i.i.d. noise (a contextual bandit)")
+    gae_lambda: float = spec(0.95, low=0.0, high=1.0, doc="GAE lambda")
+    ent_coef: float = spec(0.01, low=0.0, high=1.0, doc="entropy bonus")
+    clip_range: float = spec(0.2, low=0.0, high=1.0, low_open=True, doc="PPO clip range")
+    net_arch: list = spec([64, 64], doc="hidden widths of the policy and value MLPs (tanh)")
+    eval_every: int = spec(1920, low=1, doc="env steps between evaluations and checkpoints "
+                           "(a multiple of n_steps)")
+    eval_noises: list = spec([0.4, 1.2, 2.0, 3.0], doc="noise levels of the held-out "
+                             "evaluation (every scenario, eval_seeds seeds each)")
+    eval_seeds: int = spec(1, low=1, high=100, doc="held-out evaluation seeds per condition")
+    seed: int = spec(0, low=0, high=2**31 - 1, doc="training seed (weights, conditions, "
+                     "episodes)")
+    threads: int = spec(1, low=1, high=64, doc="torch CPU threads")
+
+
+def build_config(values: dict[str, Any]) -> PolicyTrainConfig:
+    """A checked :class:`PolicyTrainConfig` from ``values`` (missing keys keep defaults)."""
+    config = build(PolicyTrainConfig, values, WHERE)
+    _check_lists(config)
+    _check_ties(config)
+    return config
+
+
+def _check_lists(config: PolicyTrainConfig) -> None:
+    known = list_scenarios()
+    for name in config.scenarios:
+        if name not in known:
+            raise ConfigError(f"{WHERE}: scenarios: unknown scenario {name!r}; choose from "
+                              f"{known}")
+    if not config.scenarios:
+        raise ConfigError(f"{WHERE}: scenarios must name at least one scenario")
+    if not config.noise_models or any(m not in NOISE_MODELS for m in config.noise_models):
+        raise ConfigError(f"{WHERE}: noise_models={config.noise_models!r}; each one of "
+                          f"{list(NOISE_MODELS)}")
+    if not config.net_arch or any(not isinstance(w, int) or isinstance(w, bool) or w < 1
+                                  for w in config.net_arch):
+        raise ConfigError(f"{WHERE}: net_arch={config.net_arch!r} must be positive integers")
+    if any(not isinstance(key, str) for key in config.observation_keys) or \
+            len(set(config.observation_keys)) != len(config.observation_keys):
+        raise ConfigError(f"{WHERE}: observation_keys={config.observation_keys!r} must be "
+                          "distinct entry names of the observation")
+    if not config.eval_noises or any(not isinstance(s, int | float) or isinstance(s, bool)
+                                     or not 0 <= s <= 20 for s in config.eval_noises):
+        raise ConfigError(f"{WHERE}: eval_noises={config.eval_noises!r} must be numbers in "
+                          "[0, 20]")
+
+
+def _check_ties(config: PolicyTrainConfig) -> None:
+    if config.noise_high < config.noise_low:
+        raise ConfigError(f"{WHERE}: noise_high={config.noise_high} must be >= "
+                          f"noise_low={config.noise_low}")
+    if config.density_high < config.density_low:
+        raise ConfigError(f"{WHERE}: density_high={config.density_high} must be >= "
+                          f"density_low={config.density_low}")
+    if config.n_steps % config.episode_steps:
+        raise ConfigError(f"{WHERE}: n_steps={config.n_steps} must be a multiple of "
+                          f"episode_steps={config.episode_steps}")
+    if config.eval_every % config.n_steps:
+        raise ConfigError(f"{WHERE}: eval_every={config.eval_every} must be a multiple of "
+                          f"n_steps={config.n_steps}")
+    if config.total_timesteps % config.n_steps:
+        raise ConfigError(f"{WHERE}: total_timesteps={config.total_timesteps} must be a "
+                          f"multiple of n_steps={config.n_steps}")
+    if config.batch_size > config.n_steps:
+        raise ConfigError(f"{WHERE}: batch_size={config.batch_size} must be <= "
+                          f"n_steps={config.n_steps}")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """One ``--option`` per field (``noise_low`` -> ``--noise-low``), help from its doc."""
+    hints = typing.get_type_hints(PolicyTrainConfig)
+    defaults = PolicyTrainConfig()
+    for field in dataclasses.fields(PolicyTrainConfig):
+        default = getattr(defaults, field.name)
+        meta = field.metadata
+        allowed = f"; {allowed_text(meta)}" if meta.get("choices") or \
+            meta.get("low") is not None or meta.get("high") is not None else ""
+        text = f"{meta.get('doc', '')} (default {default}{allowed})"
+        flag = "--" + field.name.replace("_", "-")
+        if hints[field.name] is list:
+            item = type(default[0]) if default else str
+            parser.add_argument(flag, nargs="+", type=item, default=None, help=text)
+        else:
+            parser.add_argument(flag, type=hints[field.name], default=None, help=text)
+
+
+def config_from_arguments(args: argparse.Namespace) -> PolicyTrainConfig:
+    """The checked config of the options given (the others keep their defaults)."""
+    given = {field.name: getattr(args, field.name)
+             for field in dataclasses.fields(PolicyTrainConfig)
+             if getattr(args, field.name, None) is not None}
+    return build_config(given)
+
+
+def command_arguments(config: PolicyTrainConfig) -> list[str]:
+    """Every field as its option: the arguments that reproduce ``config`` exactly."""
+    argv: list[str] = []
+    for field in dataclasses.fields(PolicyTrainConfig):
+        value = getattr(config, field.name)
+        flag = "--" + field.name.replace("_", "-")
+        if isinstance(value, list):
+            argv += [flag, *map(str, value)] if value else []  # empty: the default
+        else:
+            argv.append(f"{flag}={value}")
+    return argv

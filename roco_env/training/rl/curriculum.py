@@ -1,0 +1,191 @@
+"""The training curriculum: one condition per episode, drawn from the seed and its index.
+
+A :class:`Condition` (scenario, noise level, density, noise model, env seed, controlled
+agent) is a pure function of ``(config.seed, episode index)``, so a resumed run replays
+the episodes an uninterrupted run would have played. :class:`CurriculumEnv` is the
+single-agent Gymnasium env PPO trains on: each episode an :class:`~roco_env.wrappers.EgoEnv`
+of the drawn condition, its Dict observation flattened (keys in the space's order) and
+divided by a fixed per-entry scale (:func:`observation_layout`). Every condition shares
+the spaces: ``max_collaborators`` and ``max_boxes`` are fixed by the config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from roco_env.policies.learned import scaled_observation
+from roco_env.scenario import load_scenario
+from roco_env.training.rl.config import PolicyTrainConfig
+from roco_env.wrappers import EgoEnv
+
+# Training env seeds are drawn at or above this; held-out evaluation seeds lie below it
+# (EVAL_SEED_BASE...) and `roco-env compare` uses 0, 1, 2...
+TRAIN_SEED_BASE = 1_000_000
+EVAL_SEED_BASE = 500
+# The largest divisor of an observation entry (m for positions and boxes): an entry with
+# wider or open bounds maps 50 to 1; scaled values are clipped to +-INPUT_CLIP.
+SCALE_CAP = 50.0
+INPUT_CLIP = 10.0
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One episode's setting: noise ``sigma_t`` m = ``sigma_r`` deg; density None = the
+    scenario's own; ``agent_draw`` in [0, 1) picks the controlled agent by position."""
+
+    scenario: str
+    noise: float
+    density: float | None
+    noise_model: str
+    seed: int
+    agent_draw: float = 0.0
+
+
+def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
+    """The scenario fields every training and evaluation env shares (spaces, mode, reward)."""
+    overrides: dict[str, Any] = {"action.mode": config.action_mode,
+                                 "max_collaborators": config.max_collaborators,
+                                 "max_boxes": config.max_boxes, "reward": config.reward}
+    if config.observation_mode != "raw":
+        overrides["observation.mode"] = config.observation_mode
+    if config.action_mode in ("residual", "gate") or config.observation_mode == "aligned":
+        overrides["action.base"] = config.action_base
+    return overrides
+
+
+def draw_condition(config: PolicyTrainConfig, index: int) -> Condition:
+    """The ``index``-th training episode's condition (a function of the seed and index)."""
+    rng = np.random.default_rng([config.seed, index])
+    scenario = config.scenarios[int(rng.integers(len(config.scenarios)))]
+    noise = float(rng.uniform(config.noise_low, config.noise_high))
+    factor = float(rng.uniform(config.density_low, config.density_high))
+    base = load_scenario(scenario).traffic
+    density = factor * base.density
+    if base.layout == "parking_lot":  # a stall fill ratio
+        density = min(density, 1.0)
+    model = config.noise_models[int(rng.integers(len(config.noise_models)))]
+    seed = int(rng.integers(TRAIN_SEED_BASE, 2**31 - 1))
+    return Condition(scenario, noise, density, model, seed, float(rng.uniform()))
+
+
+def eval_conditions(config: PolicyTrainConfig) -> list[Condition]:
+    """The held-out evaluation: every scenario x ``eval_noises`` x ``eval_seeds`` seeds,
+    Gaussian noise, the scenario's density, the first agent as ego."""
+    return [Condition(scenario, float(noise), None, "gaussian", EVAL_SEED_BASE + seed)
+            for scenario in config.scenarios for noise in config.eval_noises
+            for seed in range(config.eval_seeds)]
+
+
+def condition_env(config: PolicyTrainConfig, condition: Condition, *,
+                  baseline: bool = False, **extra: Any) -> EgoEnv:
+    """The EgoEnv of ``condition``; ``baseline``: in ``correction`` mode with the raw
+    observation (a fixed policy's env); ``extra`` overrides fields (``fusion="none"``) or
+    passes EgoEnv arguments; lean infos (``info_level="metrics"``) unless asked."""
+    overrides = {**env_overrides(config), "sigma_t": condition.noise,
+                 "sigma_r": condition.noise, "noise_model": condition.noise_model}
+    if baseline:
+        overrides["action.mode"] = "correction"
+        overrides.pop("observation.mode", None)
+        overrides.pop("action.base", None)
+    if condition.density is not None:
+        overrides["density"] = condition.density
+    info_level = extra.pop("info_level", "metrics")
+    probe = EgoEnv(condition.scenario, max_cycles=1, info_level="none", **overrides, **extra)
+    agents = probe.env.possible_agents
+    agent = agents[min(int(condition.agent_draw * len(agents)), len(agents) - 1)]
+    probe.close()
+    return EgoEnv(condition.scenario, max_cycles=config.episode_steps, agent=agent,
+                  info_level=info_level, **overrides, **extra)
+
+
+def observation_layout(space: spaces.Dict, only: list[str] | None = None) -> \
+        tuple[list[tuple[str, tuple]], np.ndarray]:
+    """(keys with shapes in the space's order, per-entry divisor) of a Dict of Boxes;
+    ``only``: the keys to keep (empty or None: all; an unknown key is a ValueError naming
+    ``observation_keys`` and the entries).
+
+    The divisor is max(|low|, |high|) capped at :data:`SCALE_CAP` (also for open or zero
+    bounds); a non-Box entry is a ValueError naming it."""
+    unknown = sorted(set(only or ()) - set(space.spaces))
+    if unknown:
+        raise ValueError(f"train-policy: observation_keys names {unknown}, not entries of the "
+                         f"observation; choose from {list(space.spaces)}")
+    keys, scales = [], []
+    for key, box in space.spaces.items():
+        if only and key not in only:
+            continue
+        if not isinstance(box, spaces.Box):
+            raise ValueError(f"observation[{key!r}] is a {type(box).__name__}; train-policy "
+                             "flattens Box entries only")
+        keys.append((key, tuple(box.shape)))
+        bound = np.maximum(np.abs(box.low), np.abs(box.high)).astype(np.float64)
+        bound[~np.isfinite(bound) | (bound == 0) | (bound > SCALE_CAP)] = SCALE_CAP
+        scales.append(bound.reshape(-1))
+    return keys, np.concatenate(scales)
+
+
+class CurriculumEnv(gymnasium.Env):
+    """Single-agent env over the curriculum; observations flat float32 (see module doc).
+
+    ``episodes`` counts the episodes started; ``reset(seed=s)`` restarts the sequence of
+    ``config`` with seed ``s`` (index 0), ``reset()`` plays the next index. Set
+    ``episodes`` to resume a sequence.
+    """
+
+    def __init__(self, config: PolicyTrainConfig) -> None:
+        self.config = config
+        self.episodes = 0
+        self._env: EgoEnv | None = None
+        first = condition_env(config, draw_condition(config, 0))
+        self.keys, self.scale = observation_layout(first.observation_space,
+                                                   config.observation_keys)
+        first.close()
+        size = self.scale.shape[0]
+        self.observation_space = spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        self.action_space = first.action_space
+        self.condition: Condition | None = None
+        self._fresh = False  # reset and not stepped since
+
+    def resume_index(self) -> int:
+        """The episode index a resumed run starts with: the one in progress if it has not
+        been stepped (a vector env resets right after an episode ends), else the next."""
+        return self.episodes - 1 if self._fresh else self.episodes
+
+    def flat(self, observation: dict) -> np.ndarray:
+        """The observation as the policy network reads it."""
+        return scaled_observation(observation, self.keys, self.scale, INPUT_CLIP)
+
+    def reset(self, *, seed: int | None = None,
+              options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self.config = type(self.config)(**{**vars(self.config), "seed": int(seed)})
+            self.episodes = 0
+        if self._env is not None:
+            self._env.close()
+        self.condition = draw_condition(self.config, self.episodes)
+        self.episodes += 1
+        self._env = condition_env(self.config, self.condition)
+        if self._env.action_space != self.action_space:
+            raise ValueError(f"scenario {self.condition.scenario!r} gives the action space "
+                             f"{self._env.action_space}, not {self.action_space}")
+        observation, info = self._env.reset(seed=self.condition.seed)
+        self._fresh = True
+        return self.flat(observation), info
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if self._env is None:
+            raise ValueError("step() called before reset()")
+        observation, reward, terminated, truncated, info = self._env.step(action)
+        self._fresh = False
+        return self.flat(observation), reward, terminated, truncated, info
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None

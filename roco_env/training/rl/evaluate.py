@@ -1,0 +1,66 @@
+"""Held-out evaluation of a policy and of the fixed baselines on the same conditions.
+
+Every score is the mean per-step reward (the config's, e.g. AP@0.7 gain: fused AP@0.7
+minus the ego's own AP@0.7, in AP points 0..1) and the mean per-step AP@0.7 (steps with
+an undefined AP left out) of the controlled agent over :func:`eval_conditions`. The
+baselines run in ``correction`` mode with their policy (the same conditions, seeds and
+reward; selecting aligner k equals aligner k, tests/test_action_modes.py): identity,
+no fusion (``fusion="none"``), coalign, roco, roco_antialias and the oracle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from roco_env.policies import make_policy
+from roco_env.training.rl.config import PolicyTrainConfig
+from roco_env.training.rl.curriculum import Condition, condition_env, eval_conditions
+
+BASELINES = ("identity", "no_fusion", "coalign", "roco", "roco_antialias", "oracle")
+
+Act = Callable[[dict, dict], np.ndarray]
+
+
+def play(config: PolicyTrainConfig, condition: Condition, act: Act, **env_kwargs) -> \
+        tuple[list[float], list[float]]:
+    """(rewards, defined AP@0.7 values) of one episode where ``act(obs, info)`` acts."""
+    env = condition_env(config, condition, **env_kwargs)
+    try:
+        observation, info = env.reset(seed=condition.seed)
+        rewards, ap70 = [], []
+        done = False
+        while not done:
+            observation, reward, terminated, truncated, info = env.step(act(observation, info))
+            rewards.append(float(reward))
+            if info["ap70"] >= 0:
+                ap70.append(float(info["ap70"]))
+            done = terminated or truncated
+        return rewards, ap70
+    finally:
+        env.close()
+
+
+def evaluate(config: PolicyTrainConfig, make_act: Callable[[], Act],
+             **env_kwargs) -> dict[str, float]:
+    """Mean per-step reward and AP@0.7 over the held-out conditions (a fresh ``make_act()``
+    per episode: stateful policies start afresh)."""
+    rewards: list[float] = []
+    ap70: list[float] = []
+    for condition in eval_conditions(config):
+        episode_rewards, episode_ap = play(config, condition, make_act(), **env_kwargs)
+        rewards += episode_rewards
+        ap70 += episode_ap
+    return {"reward": float(np.mean(rewards)), "ap70": float(np.mean(ap70)) if ap70 else -1.0,
+            "steps": len(rewards)}
+
+
+def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
+    """One of :data:`BASELINES` on the held-out conditions."""
+    if name == "no_fusion":
+        return evaluate(config, lambda: make_policy("identity"), baseline=True, fusion="none")
+    if name not in BASELINES:
+        raise ValueError(f"baseline must be one of {list(BASELINES)}; got {name!r}")
+    kwargs = {"privileged": True} if name == "oracle" else {}
+    return evaluate(config, lambda: make_policy(name), baseline=True, **kwargs)

@@ -1,0 +1,125 @@
+"""The shipped learned policy (``learned_select``) and the learned-policy weights loader.
+
+The shipped file must match its recorded sha256 (a retrained file changes it, and the
+docs' numbers with it); every bad file is refused with an error naming the file and what
+is wrong, without unpickling anything.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+import roco_env
+from roco_env.policies import make_policy
+from roco_env.policies.learned import SHIPPED, WEIGHTS_DIR, LearnedPolicy
+from roco_env.policies.spec import merge_env_overrides
+from roco_env.sweeps.episode import run_episode
+from roco_env.sweeps.grid import Cell
+from roco_env.wrappers import EgoEnv
+
+SHIPPED_SHA256 = "270601ec264998f49cdb9438c6f564d012e64514cfe0452e8c4703023dcebaa0"
+SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
+
+
+def test_the_shipped_weights_match_their_checksum_and_size():
+    data = SHIPPED_FILE.read_bytes()
+    assert hashlib.sha256(data).hexdigest() == SHIPPED_SHA256
+    assert len(data) <= 5 * 2**20
+
+
+def test_the_shipped_policy_declares_its_modes_and_acts_by_slot():
+    policy = make_policy("learned_select")
+    assert policy.env_overrides["action.mode"] == "select"
+    assert policy.env_overrides["observation.mode"] == "aligned"
+    env = EgoEnv("v2xset_like", max_cycles=2, others="learned_select", sigma_t=1.0,
+                 sigma_r=1.0)
+    assert env.env.config.action.mode == "select"  # the others' modes, merged
+    observation, info = env.reset(seed=0)
+    action = policy(observation, info)
+    assert action.shape == (5,) and action.dtype == np.int64
+    assert env.action_space.contains(action)
+    np.testing.assert_array_equal(policy(observation, info), action)  # deterministic
+
+
+def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically():
+    cell = Cell(scenario="v2xset_like", policy="learned_select", noise=1.5, density=None,
+                seed=0, steps=2)
+    first, _ = run_episode(cell)
+    second, _ = run_episode(cell)
+    assert first["ap70"] == second["ap70"] and first["frames"] > 0
+    assert np.isnan(first["correction_share"])  # select actions are no corrections
+
+
+def write_weights(path, state=None, **metadata_changes):
+    """A copy of the shipped file with its state dict or metadata changed."""
+    raw = torch.load(SHIPPED_FILE, weights_only=True)
+    metadata = {**json.loads(raw["metadata"]), **metadata_changes}
+    torch.save({"state_dict": state or raw["state_dict"], "metadata": json.dumps(metadata)},
+               path)
+    return str(path)
+
+
+def test_non_finite_weights_are_refused_naming_the_file(tmp_path):
+    state = torch.load(SHIPPED_FILE, weights_only=True)["state_dict"]
+    state = {**state, "layers.0.weight": state["layers.0.weight"].clone()}
+    state["layers.0.weight"][0, 0] = float("nan")
+    path = write_weights(tmp_path / "nan.pt", state)
+    with pytest.raises(ValueError, match=r"nan\.pt.*non-finite.*layers\.0\.weight"):
+        make_policy("learned_select", weights=path)
+
+
+def test_weights_of_another_action_mode_are_refused_naming_the_field(tmp_path):
+    raw = json.loads(torch.load(SHIPPED_FILE, weights_only=True)["metadata"])
+    path = write_weights(tmp_path / "gate.pt",
+                         env_overrides={**raw["env_overrides"], "action.mode": "gate"})
+    with pytest.raises(ValueError, match=r"gate\.pt: action.mode is 'gate'.*'select'"):
+        make_policy("learned_select", weights=path)
+
+
+def test_an_observation_of_another_mode_or_size_is_refused_naming_the_field():
+    policy = make_policy("learned_select")
+    raw_env = roco_env.parallel_env("v2xset_like", max_cycles=1)  # raw mode, N = 4
+    observations, infos = raw_env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"observation.mode='aligned'.*max_collaborators=5"):
+        policy(observations["cav_0"], infos["cav_0"])
+    small = roco_env.parallel_env("v2xset_like", max_cycles=1, max_collaborators=3,
+                                  **{"observation.mode": "aligned"})
+    observations, _ = small.reset(seed=0)
+    with pytest.raises(ValueError, match=r"observation\['collab_mask'\] has shape \(3,\), "
+                                         r"expected \(5,\)"):
+        policy(observations["cav_0"])
+
+
+def test_a_pickled_or_malformed_file_is_refused_without_unpickling(tmp_path):
+    path = tmp_path / "evil.pt"
+    path.write_bytes(pickle.dumps({"state_dict": {}, "metadata": object()}))
+    with pytest.raises(ValueError, match="evil.pt"):
+        make_policy("learned_select", weights=str(path))
+    torch.save({"state_dict": {}, "metadata": "{}"}, tmp_path / "empty.pt")
+    with pytest.raises(ValueError, match=r"empty\.pt: metadata lacks"):
+        LearnedPolicy(str(tmp_path / "empty.pt"))
+    with pytest.raises(ValueError, match="does not exist"):
+        make_policy("learned_select", weights=str(tmp_path / "missing.pt"))
+
+
+def test_a_conflicting_env_override_names_the_field():
+    policy = make_policy("learned_select")
+    assert merge_env_overrides({"sigma_t": 1.0}, policy)["action.mode"] == "select"
+    with pytest.raises(ValueError, match=r"action.mode='select'.*action.mode='gate'"):
+        merge_env_overrides({"action.mode": "gate"}, policy, "learned_select")
+    with pytest.raises(ValueError, match="action.mode"):
+        EgoEnv("v2xset_like", others="learned_select", **{"action.mode": "correction"})
+
+
+def test_the_weights_file_is_part_of_a_sweeps_provenance():
+    """Retrained weights must make the records of the old ones stale (issue 27 item 2)."""
+    from roco_env.policies.base import policy_input_files
+
+    policy = make_policy("learned_select")
+    assert policy_input_files(policy) == (policy.path,)

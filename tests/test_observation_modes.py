@@ -1,0 +1,156 @@
+"""Observation modes (scenario section ``observation``): aligned and bev."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+from gymnasium.utils.env_checker import check_env
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+from test_conformance import make_parallel, replay_folder  # noqa: F401 - a fixture
+
+import roco_env
+from roco_env.geometry import box_corners_bev, transform_boxes
+from roco_env.observation_modes import DIAGNOSTICS, _occupancy, bev_shape
+from roco_env.scenario import ObservationConfig
+from roco_env.wrappers import EgoEnv
+
+CYCLES = 3
+NOISY = {"sigma_t": 0.8, "sigma_r": 0.8}
+COLUMN = {name: k for k, (name, *_) in enumerate(DIAGNOSTICS)}
+
+
+@pytest.mark.parametrize("mode", ["aligned", "bev"])
+@pytest.mark.parametrize("scenario", roco_env.list_scenarios())
+def test_every_observation_mode_conforms_on_every_scenario(scenario, mode,
+                                                           replay_folder):  # noqa: F811
+    overrides = {"observation.mode": mode,
+                 "action.mode": "gate" if scenario.startswith("v2x") else "correction"}
+    parallel_api_test(make_parallel(scenario, replay_folder, **overrides), num_cycles=CYCLES)
+    parallel_seed_test(lambda: make_parallel(scenario, replay_folder, **overrides),
+                       num_cycles=CYCLES)
+    ego = EgoEnv(env=make_parallel(scenario, replay_folder, **overrides))
+    check_env(ego, skip_render_check=True)
+
+
+@pytest.mark.parametrize("mode", ["aligned", "bev"])
+def test_the_spaces_of_the_new_modes_are_bounded(mode):
+    env = roco_env.parallel_env("urban_intersection", **{"observation.mode": mode})
+    for space in env.observation_space("cav_0").values():
+        assert np.isfinite(space.low).all() and np.isfinite(space.high).all()
+    if mode == "bev":
+        assert env.observation_space("cav_0")["bev"].dtype == np.uint8
+
+
+def _first_step(action_mode, base="roco", **overrides):
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2,
+                                **{"observation.mode": "aligned", "action.mode": action_mode,
+                                   "action.base": base, **NOISY, **overrides})
+    observations, infos = env.reset(seed=4)
+    return env, observations, infos
+
+
+def test_aligned_boxes_are_the_raw_boxes_moved_by_the_reported_pose():
+    env, observations, _ = _first_step("correction")
+    raw = env._observations["cav_0"]
+    view = env._frame.views[0]
+    obs = observations["cav_0"]
+    n = len(view.collaborators)
+    assert n >= 2
+    np.testing.assert_allclose(obs["collab_rel_poses"][:n], view.reported_relative,
+                               rtol=0, atol=1e-5)
+    for slot in range(n):
+        count = int(raw["collab_box_mask"][slot].sum())
+        expected = transform_boxes(raw["collab_boxes"][slot, :count], view.reported_relative[slot])
+        np.testing.assert_allclose(obs["collab_boxes"][slot, :count], expected, rtol=0, atol=1e-4)
+        assert not obs["collab_boxes"][slot, count:].any()
+
+
+def _shared_object_gaps(action_mode, base):
+    """Ego-frame centre distances (m) of cav_0's and its collaborators' boxes of one object."""
+    _, observations, infos = _first_step(action_mode, base=base)
+    obs, privileged = observations["cav_0"], infos["cav_0"]["privileged"]
+    mine = dict(zip(privileged["box_object_ids"], obs["boxes"], strict=True))
+    return [np.hypot(*(box[:2] - mine[oid][:2]))
+            for slot in range(int(obs["collab_mask"].sum()))
+            for oid, box in zip(privileged["collab_box_object_ids"][slot],
+                                obs["collab_boxes"][slot], strict=True)
+            if oid >= 0 and oid in mine]
+
+
+def test_aligned_through_the_oracle_puts_shared_objects_on_the_egos_boxes():
+    """In gate mode the boxes move through the base aligner's pose (the oracle's: the truth);
+    in correction mode through the reported one."""
+    true_gaps = _shared_object_gaps("gate", "oracle")
+    reported_gaps = _shared_object_gaps("correction", "oracle")
+    assert len(true_gaps) == len(reported_gaps) >= 5
+    assert np.median(true_gaps) < 0.5  # both views' detection noise only
+    assert np.median(reported_gaps) > 2 * np.median(true_gaps)
+
+
+def test_diagnostics_describe_the_base_aligners_call():
+    env, observations, _ = _first_step("residual")
+    obs = observations["cav_0"]
+    view = env._frame.views[0]
+    alignment = env._alignments["cav_0"]
+    rows = obs["diagnostics"]
+    n = len(view.collaborators)
+    np.testing.assert_array_equal(rows[:n, COLUMN["applied"]], alignment.result.applied[:n])
+    np.testing.assert_allclose(rows[:n, COLUMN["distance_m"]],
+                               np.hypot(*view.reported_relative[:, :2].T), rtol=1e-6)
+    np.testing.assert_array_equal(rows[:n, COLUMN["boxes"]],
+                                  [len(s) for s in view.collab_scores])
+    assert rows[:n, COLUMN["pairs"]].sum() > 0
+    paired = rows[:n, COLUMN["pairs"]] > 0
+    assert (rows[:n, COLUMN["residual_m"]][paired] < 1.0).all()  # roco's pose fits its pairs
+    assert (rows[n:] == np.where(np.arange(len(DIAGNOSTICS)) == COLUMN["statistic"], -1, 0)).all()
+
+
+def test_bev_channels_put_forward_up_and_left_left():
+    config = ObservationConfig(mode="bev", bev_range=20.0, bev_resolution=1.0)
+    h, w = bev_shape(config)
+    xs = 20.0 - (np.arange(h) + 0.5)
+    ys = 20.0 - (np.arange(w) + 0.5)
+    ahead = _occupancy(np.array([[10.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0]]), xs, ys)
+    left = _occupancy(np.array([[0.0, 10.0, 0.0, 4.0, 2.0, 1.5, 0.0]]), xs, ys)
+    rows, cols = np.nonzero(ahead)
+    assert rows.max() < h / 2 and abs(cols.mean() - (w - 1) / 2) < 1
+    rows, cols = np.nonzero(left)
+    assert cols.max() < w / 2 and abs(rows.mean() - (h - 1) / 2) < 1
+    assert ahead.sum() // 255 == 8  # 4 m x 2 m on 1 m cells
+
+
+@settings(max_examples=80, deadline=None)
+@given(x=st.floats(-25, 25), y=st.floats(-25, 25), length=st.floats(0.5, 12),
+       width=st.floats(0.5, 4), yaw=st.floats(-np.pi, np.pi))
+def test_occupancy_marks_exactly_the_cells_whose_centre_is_inside(x, y, length, width, yaw):
+    """Against shapely's point-in-polygon on every cell centre (cells on the edge skipped)."""
+    xs = 20.0 - (np.arange(40) + 0.5)
+    ys = 20.0 - (np.arange(40) + 0.5)
+    box = np.array([[x, y, 0.0, length, width, 1.5, yaw]])
+    polygon = shapely.Polygon(box_corners_bev(box)[0])
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    points = shapely.points(gx.ravel(), gy.ravel())
+    inside = shapely.contains(polygon, points).reshape(gx.shape)
+    edge = (shapely.distance(polygon.exterior, points) < 1e-9).reshape(gx.shape)
+    got = _occupancy(box, xs, ys) == 255
+    assert (got == inside)[~edge].all()
+
+
+def test_bev_observation_holds_each_collaborators_boxes():
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2,
+                                **{"observation.mode": "bev", **NOISY})
+    observations, _ = env.reset(seed=4)
+    bev = observations["cav_0"]["bev"]
+    n = int(observations["cav_0"]["collab_mask"].sum())
+    assert bev.shape[0] == env.config.max_collaborators + 1
+    assert bev[0].any() and all(bev[1 + j].any() for j in range(n))
+    assert not bev[1 + n:].any()
+    assert set(np.unique(bev)) <= {0, 255}
+
+
+def test_an_unknown_observation_mode_names_the_field():
+    with pytest.raises(ValueError, match=r"observation\.mode"):
+        roco_env.parallel_env("urban_intersection", **{"observation.mode": "pixels"})
