@@ -118,7 +118,7 @@ def test_a_conflicting_env_override_names_the_field():
 
 
 def test_the_weights_file_is_part_of_a_sweeps_provenance():
-    """Retrained weights must make the records of the old ones stale (issue 27 item 2)."""
+    """Retrained weights must make the records of the old ones stale."""
     from roco_env.policies.base import policy_input_files
 
     policy = make_policy("learned_select")

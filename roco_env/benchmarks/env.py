@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from roco_env.action_modes import Decision
 from roco_env.batched_nms import batched_nms_bev
 from roco_env.benchmarks._timing import median_seconds
 from roco_env.env import CollabPerceptionEnv
@@ -110,8 +111,9 @@ def run(quick: bool) -> list[str]:
 def _matching_line(env: CollabPerceptionEnv, repeats: int) -> str:
     """Per-ego ``frame_stats`` vs batched ``match_frames`` on the first frame's fused boxes."""
     frame = env.unwrapped._frame
-    fused = env._fuse(frame, {a: v.reported_relative
-                              for a, v in zip(env.possible_agents, frame.views, strict=True)})
+    keep_all = {a: Decision(v.reported_relative, np.ones(len(v.collaborators), dtype=bool))
+                for a, v in zip(env.possible_agents, frame.views, strict=True)}
+    fused, _ = env._fuse(frame, keep_all)
     evaluation = env.config.evaluation
     gts = ground_truths(frame.state, frame.visibility.visible,
                         [(v.agent, v.collaborators) for v in frame.views],
