@@ -24,6 +24,12 @@ from roco_env.wrappers import EgoEnv
 
 MODES = ("residual", "select", "gate")
 CYCLES = 3
+# Every shipped scenario; the default run (CI) takes a sample of them, the rest with the
+# slow tests (ROCO_SLOW=1): synthetic layouts crowded and plain, a dataset-shaped scene
+# and a replay.
+SAMPLE = ("urban_intersection", "parking_lot", "v2xset_like", "opv2v_replay")
+SCENARIOS = [pytest.param(name, marks=() if name in SAMPLE else pytest.mark.slow)
+             for name in roco_env.list_scenarios()]
 NOISY = {"sigma_t": 0.8, "sigma_r": 0.8}
 
 
@@ -55,7 +61,7 @@ def policy_driver(name):
 
 
 @pytest.mark.parametrize("mode", MODES)
-@pytest.mark.parametrize("scenario", roco_env.list_scenarios())
+@pytest.mark.parametrize("scenario", SCENARIOS)
 def test_every_mode_conforms_on_every_scenario(scenario, mode, replay_folder):  # noqa: F811
     overrides = {"action.mode": mode}
     parallel_api_test(make_parallel(scenario, replay_folder, **overrides), num_cycles=CYCLES)
