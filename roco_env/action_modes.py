@@ -82,6 +82,10 @@ class AlignerSet:
         self.specs = [_policy_spec(text, field) for text in texts]
         self.instances: dict[str, list[Callable]] = {
             agent: [spec.build() for spec in self.specs] for agent in agents}
+        # whether each aligner must see every step (it keeps state), asked once
+        self.stateful = [any(bool(getattr(instances[index], "keeps_state", False))
+                             for instances in self.instances.values())
+                         for index in range(len(self.specs))]
 
     def reset(self) -> None:
         """A new episode for every stateful instance."""
@@ -103,20 +107,18 @@ class AlignerSet:
         return Alignment(apply_correction(view.reported_relative, action[:n]),
                          None if result is previous else result)  # never a stale result
 
-    def keeps_state(self, index: int) -> bool:
-        """Whether the ``index``-th aligner must see every step (it keeps state)."""
-        return any(bool(getattr(instances[index], "keeps_state", False))
-                   for instances in self.instances.values())
-
 
 class ActionMode:
     """Base of the modes: the action space, the action check and the decision.
 
-    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``).
+    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``);
+    ``runs_aligners``: whether it runs aligners itself on the agent's observation and
+    info (else the env passes neither: building the info costs a step's time).
     """
 
     space: spaces.Space
     needs_base = False
+    runs_aligners = False
 
     def reset(self) -> None:
         """Start an episode (stateful aligners forget the last one)."""
@@ -178,6 +180,8 @@ class ResidualMode(ActionMode):
 class SelectMode(ActionMode):
     """Per slot, one of the choices' poses, or reject (index ``len(choices)``)."""
 
+    runs_aligners = True
+
     def __init__(self, config: ActionConfig, max_collaborators: int,
                  agents: Sequence[str]) -> None:
         self.n = max_collaborators
@@ -199,7 +203,7 @@ class SelectMode(ActionMode):
         for index in range(self.reject):
             chosen = picked == index
             # a stateless aligner nobody picked is not run; a stateful one sees every step
-            if chosen.any() or self.choices.keeps_state(index):
+            if chosen.any() or self.choices.stateful[index]:
                 poses = self.choices.align(agent, index, view, observation, info).corrected
                 corrected[chosen] = poses[chosen]
         return Decision(corrected, picked != self.reject)
