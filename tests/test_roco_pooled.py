@@ -88,7 +88,7 @@ def test_the_policy_corrects_small_errors_and_leaves_clean_poses_alone():
 
 
 def test_pooled_significance_is_checked_and_stateful_only_when_on():
-    assert getattr(make_policy("roco"), "keeps_state", None) is None
+    assert not make_policy("roco").keeps_state
     policy = make_policy("roco", pooled_significance=LEVEL)
     assert "collaborator" in policy.keeps_state
     for bad in ({"pooled_significance": 1.5}, {"pooled_significance": 0},

@@ -1,9 +1,12 @@
 """Alignment policies and their registry (algorithms and equations: docs/alignment.md).
 
 ``make_policy(name, **params)`` builds a registered policy; ``available_policies()``
-lists the names. A user policy is any callable ``policy(obs, info=None) -> action``;
-three ways make it a name everywhere a policy name is accepted (``make_policy``,
-``roco-env compare --policies``, ``roco-env run --policy``):
+lists the names. A user policy is any callable ``policy(obs, info=None) -> action``
+(``make_policy`` returns it as a :class:`~roco_env.policies.base.Policy`, with the
+``reset``, ``keeps_state`` and ``last_result`` it lacks given by
+:func:`~roco_env.policies.base.as_policy`); three ways make it a name everywhere a policy
+name is accepted (``make_policy``, ``roco-env compare --policies``, ``roco-env run
+--policy``):
 
 * ``"my_pkg.module:make_policy"``: an import target, ``module:factory``;
 * ``register_policy("mine", "my_pkg.module:make_policy")`` in your own code;
@@ -20,12 +23,13 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import sys
-from collections.abc import Callable
 from typing import Any
 
 from roco_env.policies.base import (
     AlignmentResult,
+    Policy,
     apply_correction,
+    as_policy,
     correction_action,
     reported_relative_poses,
 )
@@ -100,8 +104,9 @@ def registered_policies() -> dict[str, str]:
     return dict(_REGISTRY)
 
 
-def make_policy(name: str, **params: Any) -> Callable:
-    """Build the policy registered as ``name``, or imported from ``module:factory``."""
+def make_policy(name: str, **params: Any) -> Policy:
+    """Build the policy registered as ``name``, or imported from ``module:factory``; a
+    factory returning a plain callable gets the :class:`Policy` members it lacks."""
     if not isinstance(name, str):
         raise ValueError(f"make_policy: name must be a policy name (available_policies()) or "
                          f"an import target 'my_pkg.module:make_policy'; got {name!r} "
@@ -129,11 +134,13 @@ def make_policy(name: str, **params: Any) -> Callable:
         raise ValueError(f"policy {name!r}: cannot import module {module_name!r}: {exc}") from exc
     if not callable(getattr(module, factory, None)):
         raise ValueError(f"policy {name!r}: module {module_name!r} has no callable {factory!r}")
-    return getattr(module, factory)(**params)
+    return as_policy(getattr(module, factory)(**params),
+                     f"what {module_name}:{factory}() returned")
 
 
 __all__ = [
     "AlignmentResult",
+    "Policy",
     "apply_correction",
     "ENTRY_POINT_GROUP",
     "available_policies",

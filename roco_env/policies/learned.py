@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from roco_env.policies.base import StatelessPolicy
+
 FORMAT = "roco_env.learned_policy/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
@@ -78,7 +80,7 @@ def load_weights(path: str | Path) -> tuple[dict, dict]:
     return state, metadata
 
 
-class LearnedPolicy:
+class LearnedPolicy(StatelessPolicy):
     """A trained MLP acting in the env modes its weights file names (see module docstring).
 
     weights: the weights file (default: the shipped file of ``name``); name: the
@@ -86,8 +88,6 @@ class LearnedPolicy:
     None to take the file's. Raises ValueError naming the file and the field when the
     file was trained for another action mode.
     """
-
-    keeps_state = False
 
     def __init__(self, weights: str | None = None, *, name: str = "learned",
                  action_mode: str | None = None) -> None:

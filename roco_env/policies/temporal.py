@@ -30,7 +30,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import policy_input_files
+from roco_env.policies.base import AlignmentResult, Policy, as_policy, policy_input_files
 
 __all__ = ["TemporalSmoothing", "coalign_temporal", "roco_temporal"]
 
@@ -38,7 +38,8 @@ __all__ = ["TemporalSmoothing", "coalign_temporal", "roco_temporal"]
 class TemporalSmoothing:
     """``TemporalSmoothing(policy, ...)(obs, info=None) -> action (N, 3) float32``.
 
-    policy: a policy name for ``make_policy`` or a callable policy; policy_params go to
+    policy: a policy name for ``make_policy`` or a callable (a plain function becomes a
+    :class:`~roco_env.policies.base.Policy` through ``as_policy``); policy_params go to
     make_policy. process_std (3,): random-walk std per step (m, m, rad);
     measurement_std (3,): std of one inner correction (m, m, rad); max_age: steps an
     estimate survives without a measurement.
@@ -61,13 +62,12 @@ class TemporalSmoothing:
             policy = make_policy(policy, **policy_params)
         elif policy_params:
             raise ValueError("policy_params are only accepted with a policy name")
-        if not callable(policy):
-            raise ValueError(f"policy must be a policy name or a callable; got {policy!r}")
+        self.policy: Policy = as_policy(policy)
         self.q = self._std(process_std, "process_std")
         self.r = self._std(measurement_std, "measurement_std")
         if int(max_age) < 0:
             raise ValueError(f"max_age must be >= 0 steps; got {max_age}")
-        self.policy, self.max_age = policy, int(max_age)
+        self.max_age = int(max_age)
         self._filters: dict[Hashable, KalmanFilter] = {}
         self._age: dict[Hashable, int] = {}
 
@@ -79,9 +79,9 @@ class TemporalSmoothing:
         return arr
 
     @property
-    def last_result(self):
+    def last_result(self) -> AlignmentResult | None:
         """The inner policy's last AlignmentResult (None if it keeps none)."""
-        return getattr(self.policy, "last_result", None)
+        return self.policy.last_result
 
     def input_files(self) -> tuple[Path, ...]:
         """The files the inner policy declares (:class:`roco_env.policies.base.ReadsFiles`),
@@ -92,8 +92,7 @@ class TemporalSmoothing:
         """Forget every filter (call between episodes) and reset the inner policy."""
         self._filters.clear()
         self._age.clear()
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
 
     def _new_filter(self, z: np.ndarray) -> KalmanFilter:
         kf = KalmanFilter(dim_x=3, dim_z=3)
