@@ -31,6 +31,7 @@ LAYERS = (
     ("sweeps",),
     ("stress",),
     ("cli",),
+    ("testing",),  # scenes for the tests and benchmarks: nothing that runs the env uses it
     ("benchmarks",),
 )
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}

@@ -6,9 +6,9 @@ from test_roco import calibrated_scene, errors
 
 import roco_env
 from roco_env.policies import make_policy
-from roco_env.policies.constructed_scenes import pose_error, to_observation
 from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.roco import NOT_SIGNIFICANT, roco_align
+from roco_env.testing.constructed_scenes import pose_error, to_observation
 
 LEVEL = 0.9999
 

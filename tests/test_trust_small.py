@@ -72,7 +72,7 @@ def test_one_temporal_instance_keeps_each_egos_filters_apart():
 
 def test_pooled_roco_without_ids_refuses_instead_of_keying_by_slot():
     from roco_env.policies import make_policy
-    from roco_env.policies.constructed_scenes import (
+    from roco_env.testing.constructed_scenes import (
         make_scene,
         pose_error,
         random_objects,

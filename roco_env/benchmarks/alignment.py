@@ -1,7 +1,7 @@
 """Per-frame alignment latency of coalign, roco and roco_antialias
 (``python -m roco_env.benchmarks alignment``).
 
-Scenes from :func:`roco_env.policies.constructed_scenes.benchmark_scene` (seeded) with
+Scenes from :func:`roco_env.testing.constructed_scenes.benchmark_scene` (seeded) with
 (agents, objects) = (2, 20), (5, 60), (10, 200); each line gives the median time of one
 ``coalign_align`` / ``roco_align`` / ``antialias_align`` call on the same frame, the
 calls interleaved round by round, timed as CPU time of this process (other processes'
@@ -33,9 +33,9 @@ import roco_env
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.coalign import coalign_align
-from roco_env.policies.constructed_scenes import benchmark_scene, to_observation
 from roco_env.policies.roco import roco_align
 from roco_env.rollout import play_episode
+from roco_env.testing.constructed_scenes import benchmark_scene, to_observation
 
 SIZES = ((2, 20), (5, 60), (10, 200))
 ENV_POLICIES = ("identity", "coalign", "roco", "roco_antialias")
