@@ -25,7 +25,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 
 from roco_env.action_modes import ActionMode
-from roco_env.env import CollabPerceptionEnv
+from roco_env.env import DEFAULT_MAX_CYCLES, DEFAULT_SCENARIO, CollabPerceptionEnv
 from roco_env.policies import make_policy
 from roco_env.policies.base import Policy, StatelessPolicy, as_policy
 from roco_env.policies.spec import merge_env_overrides
@@ -59,8 +59,8 @@ class EgoEnv(gymnasium.Env):
     metadata = {"render_modes": list(CollabPerceptionEnv.metadata["render_modes"]),
                 "render_fps": CollabPerceptionEnv.metadata["render_fps"]}
 
-    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None, *,
+    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = DEFAULT_SCENARIO,
+                 max_cycles: int = DEFAULT_MAX_CYCLES, render_mode: str | None = None, *,
                  env: CollabPerceptionEnv | None = None, agent: str | None = None,
                  others: Callable | str | None = None, info_level: str = "full",
                  privileged: bool | None = None, evaluate_others: bool = False,
