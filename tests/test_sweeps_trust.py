@@ -21,9 +21,9 @@ from test_sweeps_sweep import _alive, _children
 from roco_env.cli import main
 from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import Cell, build_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.store import ResultsInUse, ResultStore
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 
 @pytest.fixture(autouse=True)
