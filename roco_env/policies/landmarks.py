@@ -269,7 +269,8 @@ def params_from_kwargs(cls: type, kwargs: dict, method: str):
 
     The parameter classes are frozen, so one instance serves every call with the same
     keywords (same names, types and values): aligners are called every frame with the
-    same keywords, and the type checks read the class's annotations (about 0.7 ms).
+    same keywords, and the type checks read the class's annotations (about a millisecond
+    a build: docs/performance.md).
     """
     try:
         key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))

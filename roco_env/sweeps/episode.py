@@ -16,9 +16,9 @@ Scores (docs/metrics.md), pooled over every evaluated agent and step:
   changed a filled slot's reported pose;
 * time per call: median wall time (ms) of one *warm* policy call, stored beside the
   metrics (a wall time, not reproducible): each agent's first call is left out, as it
-  includes one-off costs (numba compiling the kernels in a fresh worker: 40-500 ms
-  against 1-3 ms warm, the policy's first-use set-up); the median keeps a later
-  one-off (a kernel first needed at step k) from weighing in.
+  includes one-off costs (numba compiling the kernels in a fresh worker, the policy's
+  first-use set-up: many warm calls' worth, docs/performance.md); the median keeps a
+  later one-off (a kernel first needed at step k) from weighing in.
 """
 
 from __future__ import annotations
