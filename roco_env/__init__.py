@@ -33,6 +33,7 @@ from roco_env.scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
+from roco_env.stages import available_stages, register_stage
 
 if TYPE_CHECKING:
     from roco_env.env import CollabPerceptionEnv
@@ -43,9 +44,9 @@ ENV_ID = "roco/CollabPerception-v0"
 EGO_ENV_ID = "roco/CollabPerceptionEgo-v0"
 DEFAULT_MAX_CYCLES = 100
 
-__all__ = ["EGO_ENV_ID", "ENV_ID", "ScenarioConfig", "__version__", "env", "list_scenarios",
-           "load_scenario", "parallel_env", "save_scenario", "scenario_from_dict",
-           "scenario_to_dict"]
+__all__ = ["EGO_ENV_ID", "ENV_ID", "ScenarioConfig", "__version__", "available_stages", "env",
+           "list_scenarios", "load_scenario", "parallel_env", "register_stage", "save_scenario",
+           "scenario_from_dict", "scenario_to_dict"]
 
 
 def parallel_env(scenario: str | os.PathLike | Mapping[str, Any] | ScenarioConfig
