@@ -37,12 +37,13 @@ from roco_env.scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
+from roco_env.stages import available_stages, register_stage
 
 __version__ = '0.1.0'
 
 __all__ = ["EGO_ENV_ID", "ENV_ID", "CollabPerceptionEnv", "ScenarioConfig", "__version__",
-           "env", "list_scenarios", "load_scenario", "parallel_env", "save_scenario",
-           "scenario_from_dict", "scenario_to_dict"]
+           "available_stages", "env", "list_scenarios", "load_scenario", "parallel_env",
+           "register_stage", "save_scenario", "scenario_from_dict", "scenario_to_dict"]
 
 # Package attribute -> its one definition in roco_env/env.py.
 _FROM_ENV_MODULE = {"env": "aec_env", "parallel_env": "parallel_env",

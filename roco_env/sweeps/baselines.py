@@ -42,7 +42,7 @@ PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_
 ROCO_POOLED = "roco:pooled_significance=0.9999"
 POOLED_POLICIES = ("coalign", "roco", ROCO_POOLED)
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
-# The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
+# The realistic preset's box-centre and yaw noise (roco_env.sensing.detector.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
 DETECTOR_NOISE_X15 = {"detector.params.sigma_xy": 0.09, "detector.params.sigma_xy_per_m": 0.003,
                       "detector.params.sigma_xy_occlusion": 0.375,
