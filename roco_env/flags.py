@@ -19,7 +19,7 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from roco_env.schema import allowed_text, build
+from roco_env.schema import allowed_choices, allowed_text, build
 
 __all__ = ["SpecFlags"]
 
@@ -116,7 +116,7 @@ class SpecFlags:
         if origin in (list, tuple):
             fixed = origin is tuple and items and Ellipsis not in items
             return {"nargs": len(items) if fixed else "+", "type": items[0] if items else str}
-        choices = field.metadata.get("choices")
+        choices = allowed_choices(field.metadata)
         return {"type": origin,
                 "choices": None if choices is None else [c for c in choices if c is not None]}
 
