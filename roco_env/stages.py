@@ -38,7 +38,7 @@ Three ways make a name of your own selectable from a scenario YAML:
       [project.entry-points."roco_env.detector"]
       mine = "my_pkg.module:make"
 
-  (the factory's ``PARAMS`` attribute, as policies declare theirs, if it has one, declares its parameters);
+  (the factory's ``PARAMS`` attribute, if any, declares its parameters, as policies do);
 * nothing else: built-in names are fixed and a registration never replaces one.
 
 ``params``: a dataclass whose fields are declared with ``spec`` (checked key by key),
