@@ -15,14 +15,19 @@ name is accepted (``make_policy``, ``roco-env compare --policies``, ``roco-env r
       [project.entry-points."roco_env.policies"]
       mine = "my_pkg.module:make_policy"
 
-The factory is called with the spec's parameters and returns the callable.
+The factory is called with the spec's parameters and returns the callable. A factory
+that declares its parameters as a :func:`roco_env.schema.spec` dataclass, ``PARAMS``
+(:func:`declared_params`), has a policy spec's parameters checked against it before
+anything is built (``roco_env.policies.spec.validate_policy_spec``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.metadata
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from roco_env.policies.base import (
@@ -107,6 +112,19 @@ def registered_policies() -> dict[str, str]:
 def make_policy(name: str, **params: Any) -> Policy:
     """Build the policy registered as ``name``, or imported from ``module:factory``; a
     factory returning a plain callable gets the :class:`Policy` members it lacks."""
+    return as_policy(_factory(name)(**params), f"what {name}() returned")
+
+
+def declared_params(name: str) -> type | None:
+    """The parameter dataclass the factory of ``name`` declares as ``PARAMS`` (its fields,
+    made with :func:`roco_env.schema.spec`, are every keyword argument the factory takes), or
+    None when it declares none."""
+    declared = getattr(_factory(name), "PARAMS", None)
+    return declared if dataclasses.is_dataclass(declared) else None
+
+
+def _factory(name: str) -> Callable:
+    """The factory registered as ``name``, or imported from ``module:factory``."""
     if not isinstance(name, str):
         raise ValueError(f"make_policy: name must be a policy name (available_policies()) or "
                          f"an import target 'my_pkg.module:make_policy'; got {name!r} "
@@ -134,8 +152,7 @@ def make_policy(name: str, **params: Any) -> Policy:
         raise ValueError(f"policy {name!r}: cannot import module {module_name!r}: {exc}") from exc
     if not callable(getattr(module, factory, None)):
         raise ValueError(f"policy {name!r}: module {module_name!r} has no callable {factory!r}")
-    return as_policy(getattr(module, factory)(**params),
-                     f"what {module_name}:{factory}() returned")
+    return getattr(module, factory)
 
 
 __all__ = [
@@ -145,6 +162,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available_policies",
     "correction_action",
+    "declared_params",
     "is_import_target",
     "make_policy",
     "register_policy",
