@@ -280,7 +280,7 @@ def numpy_decide(ego, collab, reported, track, p):
     refined = []
     for start in np.concatenate(starts):
         pose, ok = refine_pose(start, ego.poses, collab.poses, collab.information,
-                               *refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
+                               refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
         if ok and not any(close(pose, other, 0.3) for other in refined):
             refined.append(pose)
     if not refined:

@@ -43,8 +43,8 @@ from roco_env.policies.hypothesis_kernels import (
     vote_peaks,
 )
 from roco_env.policies.landmarks import AlignmentInputs, require_positive, split_rows
-from roco_env.policies.pose_kernels import KERNEL_CODES
-from roco_env.policies.posegraph import _MIN_DIAG
+from roco_env.policies.pose_kernels import RefineSettings
+from roco_env.policies.posegraph import solver_settings
 
 __all__ = [
     "BoxSet",
@@ -235,15 +235,17 @@ def generate_hypotheses(
 
 def refine_terms(
     p: EvidenceParams, kernel: str | None, kernel_delta: float, min_matches: int
-) -> tuple:
-    """The refinement's settings as :func:`~roco_env.policies.pose_kernels.refine_pose`
-    takes them (module docstring, step 2): (gate m, kernel code, kernel delta, min_matches,
-    LM iteration cap, relative-decrease stop, minimum damping diagonal). Up to two rounds
-    of nearest matching within ``refine_gate`` and a robust pose solve (the second only
-    when the matches changed); a start matching fewer than ``min_matches`` boxes refines
-    to nothing."""
-    return (float(p.refine_gate), KERNEL_CODES[kernel], float(kernel_delta), int(min_matches),
-            _REFINE_ITERATIONS, _REFINE_TOLERANCE, _MIN_DIAG)
+) -> RefineSettings:
+    """The refinement's settings (module docstring, step 2) as
+    :func:`~roco_env.policies.pose_kernels.refine_pose` takes them
+    (:class:`~roco_env.policies.pose_kernels.RefineSettings`: gate m, min_matches, the
+    solver's kernel, LM iteration cap and relative-decrease stop). Up to two rounds of
+    nearest matching within ``refine_gate`` and a robust pose solve (the second only when
+    the matches changed); a start matching fewer than ``min_matches`` boxes refines to
+    nothing."""
+    return RefineSettings(float(p.refine_gate), int(min_matches),
+                          solver_settings(kernel, kernel_delta, _REFINE_ITERATIONS,
+                                          _REFINE_TOLERANCE))
 
 
 def evidence_terms(p: EvidenceParams) -> tuple:

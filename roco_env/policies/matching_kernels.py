@@ -4,17 +4,39 @@ array path). The matching's own loops (the gate search, the edge similarity, the
 assignment's index compaction) live in :mod:`roco_env.policies.pose_kernels`, next to
 the solver that RoCo's compiled matching rounds call with them: a compiled function
 calls only functions of its own module, because numba's on-disk cache notices edits to
-a function's own file only.
+a function's own file only. The map's records, which the compiled commit builds, are
+defined here (:class:`LandmarkMap`, :class:`Observations`); a collaborator's boxes are a
+:class:`~roco_env.policies.pose_kernels.AgentBoxes`.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ["committed_map", "placed_landmarks"]
+__all__ = ["LandmarkMap", "Observations", "committed_map", "placed_landmarks"]
+
+
+class LandmarkMap(NamedTuple):
+    """RoCo's landmarks: poses (L, 3) in the ego frame, pose features (5, L)
+    (``matching.pose_features``) and the covariance (L, 3, 3) of the box that created
+    each."""
+
+    poses: np.ndarray
+    features: np.ndarray
+    covariance: np.ndarray
+
+
+class Observations(NamedTuple):
+    """RoCo's observations (O,): observation o is box ``box[o]`` of agent ``agent[o]``
+    (0 = the ego) seeing landmark ``land[o]``."""
+
+    agent: np.ndarray
+    box: np.ndarray
+    land: np.ndarray
 
 
 @njit(cache=True)
@@ -40,15 +62,18 @@ def placed_landmarks(pose, own, boxes):
 
 
 @njit(cache=True)
-def committed_map(pose, own, covariance, match_land, match_box, agent, land_poses,
-                  land_features, land_covariance, obs_agent, obs_box, obs_land):
-    """RoCo's map after accepting a collaborator (``roco._commit``), in one pass: its boxes
-    own (K, 3) (its frame; covariance (K, 3, 3)) matched as match_box (P,) to the landmarks
-    match_land (P,) become observations, the unmatched ones (in increasing box order) new
-    landmarks placed by its pose (3,) (:func:`placed_landmarks`). Returns the landmark
-    poses (M', 3), features (5, M'), covariances (M', 3, 3) and the observations'
-    agent, box and landmark ids (O',): the inputs with the new rows appended, as
+def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observations):
+    """RoCo's map after accepting a collaborator (``roco._commit``), in one pass: its
+    boxes (:class:`~roco_env.policies.pose_kernels.AgentBoxes`: poses (K, 3) in its frame,
+    covariance (K, 3, 3)) matched as match_box (P,) to the landmarks match_land (P,)
+    become observations, the unmatched ones (in increasing box order) new landmarks placed
+    by its pose (3,) (:func:`placed_landmarks`). Returns the :class:`LandmarkMap` (M')
+    and the :class:`Observations` (O'): the inputs with the new rows appended, as
     ``np.concatenate`` gives them (agent: the collaborator's index)."""
+    own, covariance = boxes.poses, boxes.covariance
+    land_poses, land_features = landmarks.poses, landmarks.features
+    land_covariance = landmarks.covariance
+    obs_agent, obs_box, obs_land = observations.agent, observations.box, observations.land
     unmatched = np.ones(own.shape[0], dtype=np.bool_)
     for k in range(match_box.size):
         unmatched[match_box[k]] = False
@@ -64,11 +89,13 @@ def committed_map(pose, own, covariance, match_land, match_box, agent, land_pose
     for k in range(n_new):
         land_cov[n_land + k] = covariance[new_boxes[k]]
     size = n_obs + own.shape[0]
-    agents, boxes, lands = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64)
-    agents[:n_obs], boxes[:n_obs], lands[:n_obs] = obs_agent, obs_box, obs_land
+    agents, box_ids = np.empty(size, np.int64), np.empty(size, np.int64)
+    lands = np.empty(size, np.int64)
+    agents[:n_obs], box_ids[:n_obs], lands[:n_obs] = obs_agent, obs_box, obs_land
     agents[n_obs:] = agent
     for k in range(match_box.size):
-        boxes[n_obs + k], lands[n_obs + k] = match_box[k], match_land[k]
+        box_ids[n_obs + k], lands[n_obs + k] = match_box[k], match_land[k]
     for k in range(n_new):
-        boxes[n_obs + match_box.size + k], lands[n_obs + match_box.size + k] = new_boxes[k], n_land + k
-    return poses, features, land_cov, agents, boxes, lands
+        box_ids[n_obs + match_box.size + k] = new_boxes[k]
+        lands[n_obs + match_box.size + k] = n_land + k
+    return LandmarkMap(poses, features, land_cov), Observations(agents, box_ids, lands)
