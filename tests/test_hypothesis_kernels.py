@@ -23,6 +23,7 @@ from roco_env.policies.constructed_scenes import (
 from roco_env.policies.hypotheses import (
     EvidenceParams,
     box_set,
+    evidence_terms,
     generate_hypotheses,
     score_hypotheses,
 )
@@ -126,12 +127,8 @@ def numpy_best_gains(ego, collab, pose, p):
 
 
 def compiled_best_gains(ego, collab, pose, p):
-    return best_pair_gains(
-        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, numpy_map(pose, collab.poses),
-        collab.log_sizes, collab.var_t, collab.var_r, p.pose_slack_t**2,
-        np.deg2rad(p.pose_slack_r_deg) ** 2, 2.0 * p.size_sigma**2 if p.use_size else 0.0,
-        float(p.outlier_chi2),
-    )
+    return best_pair_gains(ego.terms, collab.terms, numpy_map(pose, collab.poses),
+                           evidence_terms(p))
 
 
 def numpy_mutual_detection(ego, collab, pose, ego_unexplained, collab_unexplained, p):

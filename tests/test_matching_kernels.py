@@ -71,7 +71,7 @@ def test_gated_pairs_match_the_dense_definition():
 def test_placed_landmarks_are_se2_compose_and_pose_features():
     from roco_env.geometry import se2_compose
     from roco_env.policies.matching import pose_features
-    from roco_env.policies.matching_kernels import placed_landmarks
+    from roco_env.policies.pose_kernels import placed_landmarks
 
     rng = np.random.default_rng(8)
     for _ in range(20):
@@ -109,8 +109,12 @@ def numpy_committed_map(pose, own, covariance, match_land, match_box, agent, lan
 
 def test_committed_map_is_the_array_path():
     from roco_env.policies.matching import pose_features
-    from roco_env.policies.matching_kernels import LandmarkMap, Observations, committed_map
-    from roco_env.policies.pose_kernels import AgentBoxes
+    from roco_env.policies.pose_kernels import (
+        AgentBoxes,
+        LandmarkMap,
+        Observations,
+        committed_map,
+    )
 
     rng = np.random.default_rng(31)
     for _ in range(30):

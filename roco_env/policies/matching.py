@@ -163,9 +163,10 @@ class StarGraphMatcher:
         )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = pose_features(boxes_own) if box_features is None else box_features
-        self._settings = params.match_settings()
+        self._settings = tuple(params.match_settings())
         # S_edge of the last candidate pairs and initial matches (reused while they stay).
-        self._cache = empty_match_cache()
+        pairs, edge = empty_match_cache()
+        self._cache = tuple(pairs), edge
 
     def match(
         self, pose: np.ndarray, tau2: float | None = None
@@ -182,7 +183,7 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        land, box, score, self._cache = scored_pairs(
+        land, box, score, (pairs, edge) = scored_pairs(
             self._land_xy,
             np.ascontiguousarray(centres, dtype=float),
             float(tau2),
@@ -191,6 +192,7 @@ class StarGraphMatcher:
             self._settings,
             self._cache,
         )
+        self._cache = tuple(pairs), edge  # plain tuples: pose_kernels' module docstring
         return land, box, score
 
 

@@ -14,19 +14,24 @@ RoCo's matching runs here too: the gate search (:func:`gated_pairs`), the edge s
 the star graphs' neighbour radius most (pair, leaf) combinations are not leaves of both
 stars, so one loop skips them), the assignment (:func:`scored_pairs`: its shortcut, or
 the Kuhn-Munkres solver of :func:`max_weight_assignment`;
-tests/test_matching_kernels.py), and a collaborator's whole match-optimise loop
-(:func:`attempt_rounds`; tests/test_roco_kernels.py compares it with a Python loop of
-the same steps). They share this module with the solver because a compiled function calls
-only functions of its own module (numba's on-disk cache notices edits to a function's
-own file only).
+tests/test_matching_kernels.py), a collaborator's whole match-optimise loop
+(:func:`attempt_rounds`; tests/test_roco_kernels.py compares it with a Python loop of the
+same steps) and the map after an accepted collaborator (:func:`committed_map`). They share
+this module with the solver because a compiled function calls only functions of its own
+module, and uses only records defined in it (numba's on-disk cache notices edits to a
+function's own file only).
 
-The kernels take their inputs as small records (``typing.NamedTuple``, which numba
-compiles as tuples with named fields) defined here once: the solver's settings
+The kernels take their inputs as small records defined here once (``typing.NamedTuple``,
+which numba compiles as tuples with named fields): the solver's settings
 (:class:`Solver`), a prior edge (:class:`PriorEdge`), the edges of a single-vertex problem
 (:class:`PoseEdges`) or of a pose graph (:class:`GraphEdges`), the matcher's settings
-(:class:`MatchSettings`), a collaborator's boxes (:class:`AgentBoxes`), the rounds'
-settings (:class:`RoundSettings`) and state (:class:`RoundState`); RoCo's map is a
-:class:`~roco_env.policies.matching_kernels.LandmarkMap`.
+(:class:`MatchSettings`), a collaborator's boxes (:class:`AgentBoxes`), RoCo's map
+(:class:`LandmarkMap`, :class:`Observations`), the rounds' settings
+(:class:`RoundSettings`) and state (:class:`RoundState`). From Python a record is passed
+as a plain tuple, ``tuple(record)``: numba types a named tuple
+argument field by field in Python on every call (about 15 us for the rounds' settings),
+a plain one in C (about 1 us); the kernels name it again on entry (``Record(*argument)``,
+free once compiled), so either form is accepted.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -40,14 +45,15 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-__all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "Linearisation",
-           "MatchSettings", "PoseEdges", "PriorEdge", "PriorTerms", "RefineSettings",
-           "RoundSettings", "RoundState", "Solver", "attempt_rounds", "compact_pairs",
-           "damped_step", "edge_similarity", "edge_similarity_sums", "evaluate_edges",
+__all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMap",
+           "Linearisation", "MatchSettings", "Observations", "PoseEdges", "PriorEdge",
+           "PriorTerms", "RefineSettings", "RoundSettings", "RoundState", "Solver",
+           "attempt_rounds", "committed_map", "compact_pairs", "damped_step",
+           "edge_similarity", "edge_similarity_sums", "empty_match_cache", "evaluate_edges",
            "gated_pairs", "inverse_covariances", "max_weight_assignment", "normal_sums",
-           "placed_centres", "pose_edges", "prior_terms", "refine_pose", "refine_starts",
-           "resume_rounds", "rotate_information", "scored_pairs", "solve_graph",
-           "solve_pose", "solve_pose_edges", "wald_statistic"]
+           "placed_centres", "placed_landmarks", "pose_edges", "prior_terms", "refine_pose",
+           "refine_starts", "resume_rounds", "rotate_information", "scored_pairs",
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -148,7 +154,8 @@ class GatedPairs(NamedTuple):
 
 class RefineSettings(NamedTuple):
     """A refinement's settings (:func:`refine_pose`): matching gate (m), the fewest
-    matched boxes a round needs, the solver's settings (:class:`Solver`)."""
+    matched boxes a round needs, the solver's settings (:class:`Solver`, or its plain
+    tuple)."""
 
     gate: float
     min_matches: int
@@ -179,22 +186,39 @@ class AgentBoxes(NamedTuple):
     reported: np.ndarray
 
 
-class RoundSettings(NamedTuple):
-    """RoCo's match-optimise rounds (:func:`attempt_rounds`): the matcher's settings
-    (:class:`MatchSettings`) and gate tau2 (m), the first round's wider gate coarse_tau2
-    (m; <= 0: none), min_matches, the round cap, the prior edges' information (3, 3), the
-    rounds' solver (:class:`Solver`), inlier_chi2, the significance fit's LM stop
-    (0: no significance test), whether an edge carries the information of box minus
-    landmark (``difference``; else the box's own), and whether the rounds pause for a
-    joint solve of the whole graph (``joint``)."""
+class LandmarkMap(NamedTuple):
+    """RoCo's landmarks: poses (L, 3) in the ego frame, pose features (5, L)
+    (``matching.pose_features``) and the covariance (L, 3, 3) of the box that created
+    each."""
 
-    match: MatchSettings
+    poses: np.ndarray
+    features: np.ndarray
+    covariance: np.ndarray
+
+
+class Observations(NamedTuple):
+    """RoCo's observations (O,): observation o is box ``box[o]`` of agent ``agent[o]``
+    (0 = the ego) seeing landmark ``land[o]``."""
+
+    agent: np.ndarray
+    box: np.ndarray
+    land: np.ndarray
+
+
+class RoundSettings(NamedTuple):
+    """RoCo's match-optimise rounds (:func:`attempt_rounds`; the matcher's and the
+    solver's settings come beside them): the matching gate tau2 (m), the first round's
+    wider gate coarse_tau2 (m; <= 0: none), min_matches, the round cap, the prior edges'
+    information (3, 3), inlier_chi2, the significance fit's LM stop (0: no significance
+    test), whether an edge carries the information of box minus landmark (``difference``;
+    else the box's own), and whether the rounds pause for a joint solve of the whole graph
+    (``joint``)."""
+
     tau2: float
     coarse_tau2: float
     min_matches: int
     rounds: int
     prior_information: np.ndarray
-    solver: Solver
     inlier_chi2: float
     fit_tolerance: float
     difference: bool
@@ -221,6 +245,7 @@ class RoundState(NamedTuple):
 def evaluate_edges(pose, edges, kernel, delta):
     """Residuals of the :class:`PoseEdges` at the pose (3,) (x m, y m, yaw rad) with the
     robust kernel (code, delta). Returns (sum of rho, :class:`Linearisation`)."""
+    edges = PoseEdges(*edges)
     land_xy, t_z, angle, info = edges.land_xy, edges.t_z, edges.angle, edges.info
     x, y, yaw = pose[0], pose[1], pose[2]
     n = land_xy.shape[0]
@@ -299,6 +324,7 @@ def normal_sums(yaw, info, point, weight, with_gradient):
     g = -Q sum w N^T Omega e, Q = blockdiag(R(yaw), 1).
     """
     c, s = math.cos(yaw), math.sin(yaw)
+    point = Linearisation(*point)
     u, info_e = point.u, point.info_e
     o = np.zeros(9)
     v0 = v1 = v2 = quad = 0.0
@@ -674,6 +700,7 @@ def solve_graph(x0, edges, free, solver):
     when an accepted step's relative cost decrease or largest component is below
     ``tolerance``. Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations,
     converged)."""
+    edges, solver = GraphEdges(*edges), Solver(*solver)
     n_agents, kernel, delta = edges.n_agents, solver.kernel, solver.delta
     n_land = x0.shape[0] - n_agents
     rows, row_start = _landmark_rows(edges, n_land)
@@ -739,6 +766,7 @@ def wald_statistic(start, landmarks, own, covariance, reported, solver):
     A = sum w J^T Omega J, B = sum w^2 J^T Omega J with w the IRLS weights at the fit:
     returns ``d^T A B^-1 A d``.
     """
+    solver = Solver(*solver)
     edges = pose_edges(landmarks, own, inverse_covariances(covariance))
     pose = solve_pose(start, edges, _no_prior(), solver)[0]
     point = evaluate_edges(pose, edges, solver.kernel, solver.delta)[1]
@@ -765,6 +793,8 @@ def refine_pose(initial, land_poses, own_poses, own_info, settings):
     second round runs only when the pairs changed. Returns (pose (3,), True), or
     (initial, False) when fewer than ``min_matches`` boxes match in a round.
     """
+    settings = RefineSettings(*settings)
+    settings = RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
     by_x = np.argsort(land_poses[:, 0])
     return _refine_sorted(initial, (land_poses, by_x, land_poses[by_x, 0]), own_poses, own_info,
                           settings)
@@ -831,7 +861,7 @@ def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, min_match
     the fields of its :class:`RefineSettings`, which callers unpack into this call); a
     start matching too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier
     result, adds none."""
-    settings = RefineSettings(gate, min_matches, solver)
+    settings = RefineSettings(gate, min_matches, Solver(*solver))
     n_peaks = peaks.shape[0]
     starts = np.empty((n_peaks + seeds.shape[0], 3))
     starts[:n_peaks] = peaks
@@ -865,6 +895,7 @@ def prior_terms(prior):
     """The :class:`PriorTerms` of the :class:`PriorEdge` identity -> agent measuring z
     (3,) with information Omega_p (3, 3), with the edge's constant Jacobian
     J_p = blockdiag(R_z^T, 1); its residual is J_p pose - J_p z, yaw wrapped."""
+    prior = PriorEdge(*prior)
     z, info_p = prior.z, prior.information
     cz, sz = math.cos(z[2]), math.sin(z[2])
     j_p = np.zeros((3, 3))
@@ -900,7 +931,7 @@ def solve_pose_edges(initial, landmarks, measurement, information, prior, solver
     measurements (E, 3), information (E, 3, 3)) and the :class:`PriorEdge` (zero
     information: no prior), whose terms (:func:`prior_terms`) are built here."""
     return solve_pose(initial, pose_edges(landmarks, measurement, information),
-                      prior_terms(prior), solver)
+                      prior_terms(prior), Solver(*solver))
 
 
 @njit(cache=True)
@@ -946,6 +977,7 @@ def edge_similarity(land, box, pairs, radius2):
     the boxes (``matching.pose_features``): the (C, 11) candidate and (11, H) leaf factors
     of ||T_pm T_qn^{-1} - I||_F^2 (``matching`` module docstring), summed by
     :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+    pairs = GatedPairs(*pairs)
     cand_p, cand_q, leaves, partner = pairs.p, pairs.q, pairs.leaves, pairs.partner
     n_cand, h = cand_p.size, leaves.size
     cand = np.empty((n_cand, 11))
@@ -1182,12 +1214,13 @@ def scored_pairs(land_xy, centres, tau2, land_features, box_features, settings, 
 
     Returns (landmark (P,), box (P,), S (P,)), sorted by landmark, and the new cache.
     """
+    settings = MatchSettings(*settings)
     pairs = gated_pairs(land_xy, centres, tau2)
     cand_p, cand_q = pairs.p, pairs.q
     score = np.empty(cand_p.size)
     for k in range(cand_p.size):
         score[k] = settings.lam * math.exp(-pairs.distance[k])
-    old, edge = cached
+    old, edge = GatedPairs(*cached[0]), cached[1]
     if settings.use_edge:
         same = old.p.size == cand_p.size and old.leaves.size == pairs.leaves.size
         for k in range(cand_p.size if same else 0):
@@ -1229,24 +1262,26 @@ def empty_match_cache():
 
 
 @njit(cache=True)
-def _matches(pose, boxes, land_xy, world, tau2, settings, cache):
+def _matches(pose, boxes, land_xy, world, tau2, match, cache):
     """One ``StarGraphMatcher.match`` of the :class:`AgentBoxes` under ``pose`` (3,) with
-    gate ``tau2`` (m) against the ``matching_kernels.LandmarkMap`` (centres land_xy (L, 2)):
-    (landmark (P,), box (P,), new cache); no landmarks or no boxes: no matches, the cache
-    kept."""
+    gate ``tau2`` (m) and the :class:`MatchSettings` against the :class:`LandmarkMap`
+    (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no landmarks or no
+    boxes: no matches, the cache kept."""
     if land_xy.shape[0] == 0 or boxes.poses.shape[0] == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty.copy(), cache
     land, box, _, cache = scored_pairs(land_xy, placed_centres(pose, boxes.poses), tau2,
-                                       world.features, boxes.features, settings.match, cache)
+                                       world.features, boxes.features, match, cache)
     return land, box, cache
 
 
 @njit(cache=True)
-def attempt_rounds(start, boxes, world, settings):
+def attempt_rounds(start, boxes, world, settings, match, solver):
     """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the pose
     estimate ``start`` (3,) (T_{j->i}): its :class:`AgentBoxes` against the
-    :class:`~roco_env.policies.matching_kernels.LandmarkMap`, with the :class:`RoundSettings`.
+    :class:`LandmarkMap`, with the :class:`RoundSettings`, the matcher's
+    :class:`MatchSettings` and the rounds' :class:`Solver` (records as plain tuples, module
+    docstring).
 
     Each round matches the boxes placed by the estimate (``StarGraphMatcher``; a first
     round with fewer than min_matches matches is redone with coarse_tau2 when it is > 0);
@@ -1267,30 +1302,32 @@ def attempt_rounds(start, boxes, world, settings):
     empty = np.zeros(0, dtype=np.int64)
     state = RoundState(start.copy(), empty, empty.copy(), False, np.zeros(0), np.zeros((0, 3)),
                        0, 0)
-    return _rounds(state, boxes, world, settings)
+    return _rounds(state, AgentBoxes(*boxes), LandmarkMap(*world), RoundSettings(*settings),
+                   MatchSettings(*match), Solver(*solver))
 
 
 @njit(cache=True)
-def resume_rounds(state, boxes, world, settings):
-    """:func:`attempt_rounds` after a pause: ``state`` is the paused one with the joint
-    solve's pose, chi2, landmarks and iterations (:class:`RoundState`)."""
-    return _rounds(state, boxes, world, settings)
+def resume_rounds(state, boxes, world, settings, match, solver):
+    """:func:`attempt_rounds` after a pause: ``state`` is the paused :class:`RoundState`
+    with the joint solve's pose, chi2, landmarks and iterations."""
+    return _rounds(RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world),
+                   RoundSettings(*settings), MatchSettings(*match), Solver(*solver))
 
 
 @njit(cache=True)
-def _rounds(state, boxes, world, settings):
-    """The rounds of :func:`attempt_rounds` from ``state`` on (arguments and result as
-    there)."""
+def _rounds(state, boxes, world, settings, match, solver):
+    """The rounds of :func:`attempt_rounds` from ``state`` on (arguments, as records, and
+    result as there)."""
     land_xy = np.ascontiguousarray(world.poses[:, :2])
     pose, match_land, match_box = state.pose, state.match_land, state.match_box
     solved, chi2, landmarks = state.solved, state.chi2, state.landmarks
     outer, iterations = state.outer, state.iterations
     cache = empty_match_cache()
     while outer < settings.rounds:
-        land, box, cache = _matches(pose, boxes, land_xy, world, settings.tau2, settings, cache)
+        land, box, cache = _matches(pose, boxes, land_xy, world, settings.tau2, match, cache)
         if outer == 0 and land.size < settings.min_matches and settings.coarse_tau2 > 0:
-            land, box, cache = _matches(pose, boxes, land_xy, world, settings.coarse_tau2,
-                                        settings, cache)
+            land, box, cache = _matches(pose, boxes, land_xy, world, settings.coarse_tau2, match,
+                                        cache)
         if outer and _same(land, match_land) and _same(box, match_box):
             break
         outer += 1
@@ -1310,17 +1347,17 @@ def _rounds(state, boxes, world, settings):
             edge_info = boxes.information[match_box]
         pose, chi2, _, _, solves, _ = solve_pose_edges(
             pose, landmarks, boxes.poses[match_box], edge_info,
-            PriorEdge(boxes.reported, settings.prior_information), settings.solver,
+            PriorEdge(boxes.reported, settings.prior_information), solver,
         )
         iterations += solves
     statistic = np.nan
     if (solved and settings.fit_tolerance > 0
             and np.count_nonzero(chi2 <= settings.inlier_chi2) >= settings.min_matches):
-        s = settings.solver
         statistic = wald_statistic(
             pose, landmarks, boxes.poses[match_box],
             boxes.covariance[match_box] + world.covariance[match_land], boxes.reported,
-            Solver(s.kernel, s.delta, s.max_iterations, settings.fit_tolerance, s.min_diag),
+            Solver(solver.kernel, solver.delta, solver.max_iterations, settings.fit_tolerance,
+                   solver.min_diag),
         )
     final = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
     return final, statistic, False
@@ -1335,3 +1372,67 @@ def _same(a, b):
         if a[k] != b[k]:
             return False
     return True
+
+
+@njit(cache=True)
+def placed_landmarks(pose, own, boxes):
+    """The agent's boxes ``own[boxes]`` (own (K, 3) in its frame, boxes (B,) indices) placed
+    in the ego frame by its pose (3,) as ``geometry.se2_compose(pose, own[boxes])`` does
+    (yaw wrapped to (-pi, pi]), with their pose features (5, B) (``matching.pose_features``:
+    x, y, x^2 + y^2, cos(yaw), sin(yaw))."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    poses = np.empty((boxes.size, 3))
+    features = np.empty((5, boxes.size))
+    for k in range(boxes.size):
+        bx, by, byaw = own[boxes[k], 0], own[boxes[k], 1], own[boxes[k], 2]
+        x = pose[0] + c * bx - s * by
+        y = pose[1] + s * bx + c * by
+        yaw = (pose[2] + byaw + math.pi) % (2.0 * math.pi) - math.pi
+        if yaw <= -math.pi:
+            yaw += 2.0 * math.pi
+        poses[k, 0], poses[k, 1], poses[k, 2] = x, y, yaw
+        features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
+        features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
+    return poses, features
+
+
+@njit(cache=True)
+def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observations):
+    """RoCo's map after accepting a collaborator (``roco._commit``), in one pass: its
+    boxes (:class:`AgentBoxes`: poses (K, 3) in its frame,
+    covariance (K, 3, 3)) matched as match_box (P,) to the landmarks match_land (P,)
+    become observations, the unmatched ones (in increasing box order) new landmarks placed
+    by its pose (3,) (:func:`placed_landmarks`). Returns the :class:`LandmarkMap` (M')
+    and the :class:`Observations` (O'): the inputs with the new rows appended, as
+    ``np.concatenate`` gives them (agent: the collaborator's index)."""
+    boxes, landmarks = AgentBoxes(*boxes), LandmarkMap(*landmarks)
+    observations = Observations(*observations)
+    own, covariance = boxes.poses, boxes.covariance
+    land_poses, land_features = landmarks.poses, landmarks.features
+    land_covariance = landmarks.covariance
+    obs_agent, obs_box, obs_land = observations.agent, observations.box, observations.land
+    unmatched = np.ones(own.shape[0], dtype=np.bool_)
+    for k in range(match_box.size):
+        unmatched[match_box[k]] = False
+    new_boxes = np.nonzero(unmatched)[0]
+    n_land, n_new, n_obs = land_poses.shape[0], new_boxes.size, obs_agent.size
+    new_poses, new_features = placed_landmarks(pose, own, new_boxes)
+    poses = np.concatenate((land_poses, new_poses))
+    features = np.empty((5, n_land + n_new))
+    features[:, :n_land] = land_features
+    features[:, n_land:] = new_features
+    land_cov = np.empty((n_land + n_new, 3, 3))
+    land_cov[:n_land] = land_covariance
+    for k in range(n_new):
+        land_cov[n_land + k] = covariance[new_boxes[k]]
+    size = n_obs + own.shape[0]
+    agents, box_ids = np.empty(size, np.int64), np.empty(size, np.int64)
+    lands = np.empty(size, np.int64)
+    agents[:n_obs], box_ids[:n_obs], lands[:n_obs] = obs_agent, obs_box, obs_land
+    agents[n_obs:] = agent
+    for k in range(match_box.size):
+        box_ids[n_obs + k], lands[n_obs + k] = match_box[k], match_land[k]
+    for k in range(n_new):
+        box_ids[n_obs + match_box.size + k] = new_boxes[k]
+        lands[n_obs + match_box.size + k] = n_land + k
+    return LandmarkMap(poses, features, land_cov), Observations(agents, box_ids, lands)

@@ -331,8 +331,8 @@ def optimize(
         np.concatenate([graph.obs_information, graph.prior_information]),
     )
     x, chi2, initial_cost, cost, iterations, converged = solve_graph(
-        np.concatenate([graph.agents, graph.landmarks]), edges, free,
-        solver_settings(kernel, kernel_delta, max_iterations, tolerance),
+        np.concatenate([graph.agents, graph.landmarks]), tuple(edges), free,
+        tuple(solver_settings(kernel, kernel_delta, max_iterations, tolerance)),
     )
     return PoseGraphResult(
         x[:na], x[na:], chi2[:n_obs], chi2[n_obs:], initial_cost, cost, iterations, converged
@@ -379,12 +379,12 @@ def optimize_pose(
         np.asarray(landmarks, dtype=float),
         np.asarray(measurement, dtype=float),
         np.asarray(information, dtype=float),
-        PriorEdge(
+        tuple(PriorEdge(
             np.zeros(3) if no_prior else np.asarray(prior, dtype=float).reshape(3),
             np.zeros((3, 3)) if no_prior
             else np.asarray(prior_information, dtype=float).reshape(3, 3),
-        ),
-        solver_settings(kernel, kernel_delta, max_iterations, tolerance),
+        )),
+        tuple(solver_settings(kernel, kernel_delta, max_iterations, tolerance)),
     )
     return PoseResult(pose, chi2, initial_cost, cost, iterations, converged)
 
@@ -423,6 +423,6 @@ def pose_hessians(
         if point is None:
             # The point's chi2 / info_e depend on the information, but the Hessian does not
             # use them, and the weights are ones (no kernel).
-            point = evaluate_edges(pose, edges, KERNEL_CODES[None], 1.0)[1]
-        hessians.append(normal_sums(pose[2], edges.info, point, point.weight, False)[0])
+            point = evaluate_edges(pose, tuple(edges), KERNEL_CODES[None], 1.0)[1]
+        hessians.append(normal_sums(pose[2], edges.info, tuple(point), point.weight, False)[0])
     return hessians

@@ -83,13 +83,15 @@ from roco_env.policies.landmarks import (
     split_rows,
 )
 from roco_env.policies.matching import MatchingParams, pose_features
-from roco_env.policies.matching_kernels import LandmarkMap, Observations, committed_map
 from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.pose_kernels import (
     AgentBoxes,
+    LandmarkMap,
+    Observations,
     RoundSettings,
     RoundState,
     attempt_rounds,
+    committed_map,
     inverse_covariances,
     resume_rounds,
 )
@@ -209,12 +211,12 @@ class RoCoParams(MatchingParams, UncertaintyParams):
 class _Map:
     """Landmarks (ego frame) with their observations, and the accepted agents' poses.
 
-    landmarks: the :class:`~roco_env.policies.matching_kernels.LandmarkMap` (poses (M, 3);
+    landmarks: the :class:`~roco_env.policies.pose_kernels.LandmarkMap` (poses (M, 3);
     the matcher's :func:`~roco_env.policies.matching.pose_features` (5, M), kept in step
     with the poses; covariance (M, 3, 3) of the box that created each landmark, in the box
     frame: an upper bound once more observations refine it, used by the significance
     test); observations: which box of which agent sees which landmark
-    (:class:`~roco_env.policies.matching_kernels.Observations`); box_features: per agent,
+    (:class:`~roco_env.policies.pose_kernels.Observations`); box_features: per agent,
     the pose features of its boxes in its own frame.
     """
 
@@ -262,27 +264,29 @@ def _prior_info(p: RoCoParams) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _round_settings(p: RoCoParams) -> RoundSettings:
-    """The :class:`~roco_env.policies.pose_kernels.RoundSettings` of ``p``, computed once
-    per parameter set: the matcher's settings and gates (m; coarse -1 = none),
-    min_matches, the round cap, the prior edges' information, the rounds' solver (LM stop
-    ``_ROUND_TOLERANCE``), inlier_chi2, the significance fit's stop (0 = no significance
-    test), whether the rounds' edges carry the information of box minus landmark
-    (``round_information``) and whether they solve the whole graph."""
-    return RoundSettings(
-        p.match_settings(),
+def _round_settings(p: RoCoParams) -> tuple[tuple, tuple, tuple]:
+    """The settings of ``p`` as :func:`~roco_env.policies.pose_kernels.attempt_rounds`
+    takes them (plain tuples), computed once per parameter set: the
+    :class:`~roco_env.policies.pose_kernels.RoundSettings` (gates m, coarse -1 = none;
+    min_matches, the round cap, the prior edges' information, inlier_chi2, the
+    significance fit's stop (0 = no significance test), whether the rounds' edges carry
+    the information of box minus landmark (``round_information``), whether they solve the
+    whole graph), the matcher's settings and the rounds' solver (LM stop
+    ``_ROUND_TOLERANCE``)."""
+    rounds = RoundSettings(
         float(p.tau2),
         -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
         int(p.min_matches),
         int(p.max_outer_iterations) if p.iterate else 1,
         _prior_info(p),
-        solver_settings(p.robust_kernel, p.kernel_delta, p.max_solver_iterations,
-                        _ROUND_TOLERANCE),
         float(p.inlier_chi2),
         _FIT_TOLERANCE if p.significance else 0.0,
         p.difference_rounds,
         bool(p.joint_every_round),
     )
+    solver = solver_settings(p.robust_kernel, p.kernel_delta, p.max_solver_iterations,
+                             _ROUND_TOLERANCE)
+    return tuple(rounds), tuple(p.match_settings()), tuple(solver)
 
 
 def _joint_solve(
@@ -355,8 +359,9 @@ def _attempt(
     significance test's statistic). When the rounds solve the whole graph, they pause
     before each solve, made here (:func:`_joint_solve`), and go on from its result."""
     settings = _round_settings(p)
-    state, statistic, paused = attempt_rounds(np.array(start, dtype=float), boxes,
-                                              world.landmarks, settings)
+    boxes, landmarks = tuple(boxes), tuple(world.landmarks)
+    state, statistic, paused = attempt_rounds(np.array(start, dtype=float), boxes, landmarks,
+                                              *settings)
     joint = None
     while paused:
         joint = _joint_solve(inputs, world, p, state, agent)
@@ -367,7 +372,7 @@ def _attempt(
             landmarks=solution.landmarks[np.searchsorted(shared, state.match_land)],
             iterations=state.iterations + solution.iterations,
         )
-        state, statistic, paused = resume_rounds(state, boxes, world.landmarks, settings)
+        state, statistic, paused = resume_rounds(tuple(state), boxes, landmarks, *settings)
     return _Attempt(state, None if np.isnan(statistic) else float(statistic), joint)
 
 
@@ -433,8 +438,8 @@ def _commit(world: _Map, agent: int, att: _Attempt, boxes: AgentBoxes) -> None:
     world.agent_poses[agent] = state.pose
     # Matched boxes become observations, the others new landmarks (one compiled pass).
     world.landmarks, world.observations = committed_map(
-        state.pose, state.match_land, state.match_box, boxes, agent, world.landmarks,
-        world.observations,
+        state.pose, state.match_land, state.match_box, tuple(boxes), agent,
+        tuple(world.landmarks), tuple(world.observations),
     )
 
 
