@@ -138,7 +138,7 @@ def test_committed_map_is_the_array_path():
         landmarks, observations = committed_map(
             pose, match_land, match_box, boxes, agent,
             LandmarkMap(land, features, land_covariance), Observations(obs_agent, obs_box, obs_land))
-        assert isinstance(landmarks, LandmarkMap) and isinstance(observations, Observations)
+        landmarks, observations = LandmarkMap(*landmarks), Observations(*observations)
         for got, expected in zip((*landmarks, *observations), numpy_committed_map(*args),
                                  strict=True):
             assert got.dtype == expected.dtype

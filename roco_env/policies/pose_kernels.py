@@ -31,7 +31,9 @@ which numba compiles as tuples with named fields): the solver's settings
 as a plain tuple, ``tuple(record)``: numba types a named tuple
 argument field by field in Python on every call (about 15 us for the rounds' settings),
 a plain one in C (about 1 us); the kernels name it again on entry (``Record(*argument)``,
-free once compiled), so either form is accepted.
+free once compiled), so either form is accepted. The other way, a named tuple is boxed by
+calling its class (about 3 us), so the rounds and the commit, called per collaborator,
+return their records as plain tuples (:func:`_plain`) for the caller to name.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -43,7 +45,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core.imputils import impl_ret_borrowed
+from numba.extending import intrinsic
 
 __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMap",
            "Linearisation", "MatchSettings", "Observations", "PoseEdges", "PriorEdge",
@@ -241,6 +245,19 @@ class RoundState(NamedTuple):
     iterations: int
 
 
+@intrinsic
+def _plain(typingctx, record):
+    """The fields of a record (a named tuple) as a plain tuple: the same value, typed as
+    a tuple, so that it is boxed in C when returned to Python."""
+    if not isinstance(record, types.BaseNamedTuple):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return impl_ret_borrowed(context, builder, signature.return_type, args[0])
+
+    return types.Tuple(record.types)(record), codegen
+
+
 @njit(cache=True)
 def evaluate_edges(pose, edges, kernel, delta):
     """Residuals of the :class:`PoseEdges` at the pose (3,) (x m, y m, yaw rad) with the
@@ -404,7 +421,7 @@ def damped_step(hess, grad, lam, min_diag):
 
 @njit(cache=True)
 def _wrap(angle):
-    """Wrap to [-pi, pi) as ``posegraph._wrap_scalar`` (Python's float ``%``)."""
+    """Wrap to [-pi, pi) as ``posegraph._wrap`` (float ``%``: fmod with numpy's sign fix-up)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -1297,7 +1314,7 @@ def attempt_rounds(start, boxes, world, settings, match, solver):
     fit_tolerance > 0, also the significance test's statistic (:func:`wald_statistic` with
     the covariance of box minus landmark, LM stop fit_tolerance); else nan.
 
-    Returns (:class:`RoundState`, statistic, paused for a joint solve).
+    Returns (:class:`RoundState` as a plain tuple, statistic, paused for a joint solve).
     """
     empty = np.zeros(0, dtype=np.int64)
     state = RoundState(start.copy(), empty, empty.copy(), False, np.zeros(0), np.zeros((0, 3)),
@@ -1338,7 +1355,7 @@ def _rounds(state, boxes, world, settings, match, solver):
         if settings.joint:
             paused = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer,
                                 iterations)
-            return paused, np.nan, True
+            return _plain(paused), np.nan, True
         landmarks = world.poses[match_land]
         if settings.difference:
             edge_info = inverse_covariances(boxes.covariance[match_box]
@@ -1360,7 +1377,7 @@ def _rounds(state, boxes, world, settings, match, solver):
                    solver.min_diag),
         )
     final = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
-    return final, statistic, False
+    return _plain(final), statistic, False
 
 
 @njit(cache=True)
@@ -1403,7 +1420,7 @@ def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observat
     covariance (K, 3, 3)) matched as match_box (P,) to the landmarks match_land (P,)
     become observations, the unmatched ones (in increasing box order) new landmarks placed
     by its pose (3,) (:func:`placed_landmarks`). Returns the :class:`LandmarkMap` (M')
-    and the :class:`Observations` (O'): the inputs with the new rows appended, as
+    and the :class:`Observations` (O') as plain tuples: the inputs with the new rows appended, as
     ``np.concatenate`` gives them (agent: the collaborator's index)."""
     boxes, landmarks = AgentBoxes(*boxes), LandmarkMap(*landmarks)
     observations = Observations(*observations)
@@ -1435,4 +1452,5 @@ def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observat
     for k in range(n_new):
         box_ids[n_obs + match_box.size + k] = new_boxes[k]
         lands[n_obs + match_box.size + k] = n_land + k
-    return LandmarkMap(poses, features, land_cov), Observations(agents, box_ids, lands)
+    return (_plain(LandmarkMap(poses, features, land_cov)),
+            _plain(Observations(agents, box_ids, lands)))

@@ -23,8 +23,8 @@ fixed), which is what makes per-frame alignment take milliseconds.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -59,12 +59,14 @@ ROBUST_KERNELS = ("huber", "cauchy")
 _MIN_DIAG = 1e-9  # keeps Marquardt damping positive for vertices with no constraint
 
 
+@lru_cache(maxsize=64)
 def solver_settings(
     kernel: str | None, kernel_delta: float, max_iterations: int, tolerance: float
 ) -> Solver:
     """The compiled solvers' :class:`~roco_env.policies.pose_kernels.Solver` record:
     kernel None (least squares), "huber" or "cauchy" with its width kernel_delta (whitened
-    units), the cap on linearisations and the stop tolerance (:func:`optimize`)."""
+    units), the cap on linearisations and the stop tolerance (:func:`optimize`); built
+    once per setting."""
     return Solver(KERNEL_CODES[kernel], float(kernel_delta), int(max_iterations),
                   float(tolerance), _MIN_DIAG)
 
@@ -284,12 +286,6 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
     """Wrap to [-pi, pi) (cheaper than geometry.wrap_angle; the end point is irrelevant
     to residuals and retractions)."""
     return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
-
-
-def _wrap_scalar(angle: float) -> float:
-    """:func:`_wrap` of one float without numpy's per-call overhead (Python's float ``%``
-    is fmod with numpy's sign fix-up, so the result is the same to the bit)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def optimize(

@@ -362,6 +362,7 @@ def _attempt(
     boxes, landmarks = tuple(boxes), tuple(world.landmarks)
     state, statistic, paused = attempt_rounds(np.array(start, dtype=float), boxes, landmarks,
                                               *settings)
+    state = RoundState(*state)
     joint = None
     while paused:
         joint = _joint_solve(inputs, world, p, state, agent)
@@ -373,6 +374,7 @@ def _attempt(
             iterations=state.iterations + solution.iterations,
         )
         state, statistic, paused = resume_rounds(tuple(state), boxes, landmarks, *settings)
+        state = RoundState(*state)
     return _Attempt(state, None if np.isnan(statistic) else float(statistic), joint)
 
 
@@ -437,10 +439,11 @@ def _commit(world: _Map, agent: int, att: _Attempt, boxes: AgentBoxes) -> None:
     state = att.state
     world.agent_poses[agent] = state.pose
     # Matched boxes become observations, the others new landmarks (one compiled pass).
-    world.landmarks, world.observations = committed_map(
+    landmarks, observations = committed_map(
         state.pose, state.match_land, state.match_box, tuple(boxes), agent,
         tuple(world.landmarks), tuple(world.observations),
     )
+    world.landmarks, world.observations = LandmarkMap(*landmarks), Observations(*observations)
 
 
 def checked_params(cls: type, kwargs: dict, method: str):
