@@ -1,5 +1,6 @@
 """Shared test setup and helpers: headless plotting, the `slow` marker policy,
-hand-built scenes for the sensing tests and a stand-in sweep cell for the bench tests.
+hand-built scenes for the sensing tests, a stand-in sweep cell for the bench tests, and
+the references compiled kernels are compared with (to rounding; RoCo's assignment).
 
 Tests marked ``@pytest.mark.slow`` run only when ROCO_SLOW=1; the default run
 (and CI) keeps a representative fast sample so the suite stays well under ten
@@ -16,6 +17,7 @@ import matplotlib
 import numpy as np
 import pytest
 from hypothesis import settings
+from scipy.optimize import linear_sum_assignment
 
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import ok_record
@@ -140,3 +142,20 @@ def assert_equal_to_rounding(got, expected, rtol: float = 1e-12, err_msg: str = 
     finite = np.abs(expected[np.isfinite(expected)])
     atol = rtol * max(1.0, float(finite.max(initial=0.0)))
     np.testing.assert_allclose(got, expected, rtol=rtol, atol=atol, err_msg=err_msg)
+
+
+def kuhn_munkres_matches(cand_p, cand_q, score, tau1: float):
+    """RoCo's assignment by scipy, the reference of the compiled one
+    (``pose_kernels.scored_pairs``): the maximum-weight one-to-one assignment over the
+    candidate pairs (landmark cand_p, box cand_q, sorted by landmark) with scores (C,),
+    0 elsewhere; assigned candidate pairs with S >= tau1 are the matches (landmark (P,),
+    box (P,), S (P,)), always by the solver (the compiled one takes a shortcut)."""
+    rows, row_idx = np.unique(cand_p, return_inverse=True)
+    cols, col_idx = np.unique(cand_q, return_inverse=True)
+    weights = np.zeros((rows.size, cols.size))
+    weights[row_idx, col_idx] = score
+    valid = np.zeros_like(weights, dtype=bool)
+    valid[row_idx, col_idx] = True
+    r, c = linear_sum_assignment(weights, maximize=True)
+    keep = valid[r, c] & (weights[r, c] >= tau1)
+    return rows[r[keep]], cols[c[keep]], weights[r[keep], c[keep]]

@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from roco_env.policies.hypotheses import (
     EvidenceParams,
     box_set,
+    evidence_terms,
     generate_hypotheses,
     score_hypotheses,
 )
@@ -126,12 +127,8 @@ def numpy_best_gains(ego, collab, pose, p):
 
 
 def compiled_best_gains(ego, collab, pose, p):
-    return best_pair_gains(
-        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, numpy_map(pose, collab.poses),
-        collab.log_sizes, collab.var_t, collab.var_r, p.pose_slack_t**2,
-        np.deg2rad(p.pose_slack_r_deg) ** 2, 2.0 * p.size_sigma**2 if p.use_size else 0.0,
-        float(p.outlier_chi2),
-    )
+    return best_pair_gains(ego.terms, collab.terms, numpy_map(pose, collab.poses),
+                           evidence_terms(p))
 
 
 def numpy_mutual_detection(ego, collab, pose, ego_unexplained, collab_unexplained, p):
@@ -280,7 +277,7 @@ def numpy_decide(ego, collab, reported, track, p):
     refined = []
     for start in np.concatenate(starts):
         pose, ok = refine_pose(start, ego.poses, collab.poses, collab.information,
-                               *refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
+                               refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches))
         if ok and not any(close(pose, other, 0.3) for other in refined):
             refined.append(pose)
     if not refined:

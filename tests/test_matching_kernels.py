@@ -6,11 +6,12 @@ CPU-specific SIMD versions on AVX-512 machines, an ulp off libm's that numba cal
 
 import numpy as np
 import pytest
-from conftest import assert_equal_to_rounding
+from conftest import assert_equal_to_rounding, kuhn_munkres_matches
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from roco_env.policies.hypothesis_kernels import close_pairs
-from roco_env.policies.pose_kernels import compact_pairs
+from roco_env.policies.pose_kernels import compact_pairs, max_weight_assignment
 
 
 def test_compact_pairs_is_np_unique_with_inverse():
@@ -70,7 +71,7 @@ def test_gated_pairs_match_the_dense_definition():
 def test_placed_landmarks_are_se2_compose_and_pose_features():
     from roco_env.geometry import se2_compose
     from roco_env.policies.matching import pose_features
-    from roco_env.policies.matching_kernels import placed_landmarks
+    from roco_env.policies.pose_kernels import placed_landmarks
 
     rng = np.random.default_rng(8)
     for _ in range(20):
@@ -108,7 +109,12 @@ def numpy_committed_map(pose, own, covariance, match_land, match_box, agent, lan
 
 def test_committed_map_is_the_array_path():
     from roco_env.policies.matching import pose_features
-    from roco_env.policies.matching_kernels import committed_map
+    from roco_env.policies.pose_kernels import (
+        AgentBoxes,
+        LandmarkMap,
+        Observations,
+        committed_map,
+    )
 
     rng = np.random.default_rng(31)
     for _ in range(30):
@@ -125,7 +131,16 @@ def test_committed_map_is_the_array_path():
             rng.normal(size=(n_land, 3, 3)), rng.integers(0, 9, n_obs), rng.integers(0, 40, n_obs),
             rng.integers(0, max(n_land, 1), n_obs),
         )
-        for got, expected in zip(committed_map(*args), numpy_committed_map(*args), strict=True):
+        (pose, own, covariance, match_land, match_box, agent, land, features, land_covariance,
+         obs_agent, obs_box, obs_land) = args
+        boxes = AgentBoxes(own, np.zeros_like(covariance), covariance, pose_features(own),
+                           np.zeros(3))
+        landmarks, observations = committed_map(
+            pose, match_land, match_box, boxes, agent,
+            LandmarkMap(land, features, land_covariance), Observations(obs_agent, obs_box, obs_land))
+        landmarks, observations = LandmarkMap(*landmarks), Observations(*observations)
+        for got, expected in zip((*landmarks, *observations), numpy_committed_map(*args),
+                                 strict=True):
             assert got.dtype == expected.dtype
             if got.dtype.kind == "f":  # placed poses, features; covariances copied as they are
                 assert_equal_to_rounding(got, expected)
@@ -133,24 +148,47 @@ def test_committed_map_is_the_array_path():
                 np.testing.assert_array_equal(got, expected)
 
 
+def _edge_similarity_reference(land, box, cand_p, cand_q, leaves, partner):
+    """S_edge (C,) of the candidate pairs from the pose features (5, L) / (5, K) by the
+    dense bilinear form (every leaf a star's leaf, no radius): the (C, 11) candidate and
+    (11, H) leaf factors of ||T_pm T_qn^{-1} - I||_F^2 (matching's module docstring) as
+    numpy products, the leaf of p itself and the pairs whose q is the leaf's partner left
+    out of the mean."""
+    px, py, p2, pc, ps = land[:, cand_p]
+    qx, qy, q2, qc, qs = box[:, cand_q]
+    cand = np.stack([np.ones_like(px), pc * qc + ps * qs, ps * qc - pc * qs, px, py, p2,
+                     qx, qy, q2, px * qx + py * qy, py * qx - px * qy], axis=1)
+    mx, my, m2, mc, ms = land[:, leaves]
+    nx, ny, n2, nc, ns = box[:, partner]
+    cu, su = mc * nc + ms * ns, ms * nc - mc * ns
+    rot_n_x, rot_n_y = cu * nx - su * ny, su * nx + cu * ny
+    rot_m_x, rot_m_y = mx * cu + my * su, my * cu - mx * su
+    leaf = np.stack([4.0 + m2 + n2 - 2.0 * (mx * rot_n_x + my * rot_n_y), -4.0 * cu, -4.0 * su,
+                     2.0 * (rot_n_x - mx), 2.0 * (rot_n_y - my), np.ones_like(mx),
+                     2.0 * (rot_m_x - nx), 2.0 * (rot_m_y - ny), np.ones_like(mx), -2.0 * cu,
+                     -2.0 * su])
+    usable = (leaves[None, :] != cand_p[:, None]) & (partner[None, :] != cand_q[:, None])
+    norm2 = np.zeros((cand_p.size, leaves.size))
+    for i in range(11):  # the compiled loop's order (a matrix product may sum otherwise)
+        norm2 += cand[:, i, None] * leaf[None, i, :]
+    terms = np.exp(-np.sqrt(np.maximum(norm2, 0.0)))
+    return np.where(usable, terms, 0.0).sum(axis=1) / np.maximum(usable.sum(axis=1), 1)
+
+
 @pytest.mark.parametrize("terms", [(True, True), (True, False), (False, True)])
 def test_scored_pairs_match_the_array_path(terms):
     """Gate, S = lam S_dis + S_edge (all boxes leaves; cached S_edge reused) and the
-    assignment shortcut, against gated_pairs + np.exp + the features' edge similarity + matching._assign."""
-    from roco_env.policies.matching import (
-        MatchingParams,
-        _assign,
-        _edge_similarity_from_features,
-        pose_features,
-    )
-    from roco_env.policies.pose_kernels import gated_pairs, scored_pairs
+    assignment (its shortcut and Kuhn-Munkres), against gated_pairs + np.exp + the dense
+    edge similarity + scipy's assignment."""
+    from roco_env.policies.matching import MatchingParams, pose_features
+    from roco_env.policies.pose_kernels import empty_match_cache, gated_pairs, scored_pairs
 
     use_distance, use_edge = terms
     p = MatchingParams(use_distance_similarity=use_distance, use_edge_similarity=use_edge,
-                       lam=1.0 if use_distance else 0.0)
+                       lam=1.0 if use_distance else 0.0, neighbor_radius=None)
+    settings = p.match_settings()
     rng = np.random.default_rng(12)
-    empty = np.zeros(0, dtype=np.int64)
-    cache = (empty, empty, empty, empty, np.zeros(0))
+    cache = empty_match_cache()
     shortcuts = 0
     for trial in range(30):
         lands = np.column_stack([rng.uniform(-120, 120, (40, 2)), rng.uniform(-3, 3, 40)])
@@ -158,27 +196,43 @@ def test_scored_pairs_match_the_array_path(terms):
         centres = np.ascontiguousarray(own[:, :2] + rng.normal(0, 0.2, 2))
         tau2 = 3.0 if trial % 3 else 8.0  # the wide gate gives several candidates per box
         for _ in range(2):  # the second call reuses the cached S_edge
-            assigned, land, box, score, cand_p, cand_q, cand_score, cache = scored_pairs(
-                np.ascontiguousarray(lands[:, :2]), centres, tau2, p.lam if use_distance else 0.0,
-                use_edge, pose_features(lands), pose_features(own), -1.0,
-                p.similarity_threshold, cache)
+            land, box, score, cache = scored_pairs(
+                np.ascontiguousarray(lands[:, :2]), centres, tau2, pose_features(lands),
+                pose_features(own), settings, cache)
         ref_p, ref_q, dis, leaves, partner = gated_pairs(np.ascontiguousarray(lands[:, :2]),
                                                          centres, tau2)
-        expected = p.lam * np.exp(-dis) if use_distance else 0.0
+        expected = p.lam * np.exp(-dis) if use_distance else np.zeros(ref_p.size)
         if use_edge:
-            expected = expected + _edge_similarity_from_features(
-                pose_features(lands), pose_features(own), ref_p, ref_q, leaves, partner, None)
-        np.testing.assert_array_equal(cand_p, ref_p)
-        np.testing.assert_array_equal(cand_q, ref_q)
-        assert_equal_to_rounding(cand_score, expected)
-        if assigned:
-            shortcuts += 1
-            want_land, want_box, want_score = _assign(ref_p, ref_q, expected,
-                                                      p.similarity_threshold)
-            np.testing.assert_array_equal(land, want_land)
-            np.testing.assert_array_equal(box, want_box)
-            assert_equal_to_rounding(score, want_score)
+            expected = expected + _edge_similarity_reference(
+                pose_features(lands), pose_features(own), ref_p, ref_q, leaves, partner)
+        want_land, want_box, want_score = kuhn_munkres_matches(ref_p, ref_q, expected,
+                                                               p.similarity_threshold)
+        np.testing.assert_array_equal(land, want_land)
+        np.testing.assert_array_equal(box, want_box)
+        assert_equal_to_rounding(score, want_score)
+        shortcuts += np.unique(ref_p).size == ref_p.size and np.unique(ref_q).size == ref_q.size
     assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_max_weight_assignment_is_scipys(ties):
+    """scipy's linear_sum_assignment(maximize=True) to the index, on wide, tall and square
+    matrices; with ties: few distinct values, zero rows and columns, constant blocks."""
+    rng = np.random.default_rng(40 + ties)
+    for trial in range(300):
+        shape = tuple(int(v) for v in rng.integers(1, 13, 2))
+        if ties:
+            weights = rng.integers(0, 3, shape).astype(float) * rng.choice([0.5, 1.0])
+            weights[rng.random(shape[0]) < 0.2] = 0.0
+            if trial % 5 == 0:
+                weights[:] = 1.0
+        else:
+            weights = rng.uniform(0.0, 2.0, shape)
+            weights[rng.random(shape) < 0.5] = 0.0  # the matcher's non-candidates
+        rows, cols = max_weight_assignment(weights)
+        want_rows, want_cols = linear_sum_assignment(weights, maximize=True)
+        np.testing.assert_array_equal(rows, want_rows, err_msg=f"{weights}")
+        np.testing.assert_array_equal(cols, want_cols, err_msg=f"{weights}")
 
 
 def test_close_pairs_keep_ties_and_the_radius_edge_of_the_dense_scan():

@@ -1,27 +1,84 @@
 """The compiled (numba) Levenberg-Marquardt loops of roco_env.policies.pose_kernels
 against the array (numpy) path they replaced: the same poses, costs, per-edge chi2 and
 iteration counts, on random graphs with and without priors, every kernel and another
-fixed vertex, and on single-vertex problems with correlated information."""
+fixed vertex, and on single-vertex problems with correlated information (the
+single-vertex loop against a Python loop over the compiled linearisation,
+:class:`_PoseProblem`)."""
+
+import math
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_relative
-from roco_env.policies.pose_kernels import KERNEL_CODES, damped_step, refine_pose, wald_statistic
+from roco_env.policies.pose_kernels import (
+    KERNEL_CODES,
+    PriorEdge,
+    RefineSettings,
+    damped_step,
+    evaluate_edges,
+    normal_sums,
+    pose_edges,
+    prior_terms,
+    refine_pose,
+    wald_statistic,
+)
 from roco_env.policies.posegraph import (
     _MIN_DIAG,
     PoseGraph,
     _measurement_offset,
-    _PoseProblem,
     _residuals_jacobian,
     _wrap,
-    _wrap_scalar,
     optimize,
     optimize_pose,
     pose_hessians,
     robust_kernel,
+    solver_settings,
 )
+
+
+def _wrap_scalar(angle):
+    """``posegraph._wrap`` of one float (Python's float ``%`` is fmod with numpy's sign
+    fix-up: the same value to the bit)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class _PoseProblem:
+    """One agent vertex observing fixed landmarks (and an optional prior edge from the
+    fixed identity vertex), linearised by the compiled pieces (evaluate_edges, normal_sums,
+    prior_terms) for the Python LM loop below: the reference of the compiled loop."""
+
+    def __init__(self, landmarks, measurement, information, prior, prior_information, kernel,
+                 delta):
+        self.kernel_code, self.delta = KERNEL_CODES[kernel], float(delta)
+        self.edges = pose_edges(np.asarray(landmarks, dtype=float),
+                                np.asarray(measurement, dtype=float),
+                                np.asarray(information, dtype=float))
+        self.prior = None
+        if prior is not None:
+            self.prior = prior_terms(PriorEdge(np.asarray(prior, dtype=float).reshape(3),
+                                               np.asarray(prior_information, dtype=float)))
+
+    def evaluate(self, pose):
+        """(robust cost, linearisation point: chi2 first) at ``pose`` (3,)."""
+        rho_sum, point = evaluate_edges(np.asarray(pose, dtype=float), self.edges,
+                                        self.kernel_code, self.delta)
+        cost, e_p = rho_sum, None
+        if self.prior is not None:
+            e_p = self.prior.jacobian @ pose - self.prior.offset
+            e_p[2] = _wrap_scalar(float(e_p[2]))
+            cost += float(e_p @ self.prior.information @ e_p)
+        return cost, (point.chi2, float(pose[2]), point, e_p)
+
+    def normal_equations(self, point):
+        """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
+        _, yaw, lin, e_p = point
+        hess, grad = normal_sums(yaw, self.edges.info, lin, lin.weight, True)
+        if e_p is not None:
+            hess = hess + self.prior.hessian
+            grad = grad + self.prior.weighted.T @ e_p
+        return hess, grad
 
 
 def _levenberg_marquardt(x, evaluate, normal_equations, propose, max_iterations, tolerance):
@@ -207,8 +264,8 @@ def test_compiled_wald_statistic_matches_the_numpy_path(kernel):
         d = fit.pose - reported
         d[2] = _wrap_scalar(float(d[2]))
         expected = (bread @ d) @ np.linalg.solve(meat, bread @ d)
-        statistic = wald_statistic(start, lands, own, covariance, reported, KERNEL_CODES[kernel],
-                                   2.0, 1000, 1e-6, _MIN_DIAG)
+        statistic = wald_statistic(start, lands, own, covariance, reported,
+                                   solver_settings(kernel, 2.0, 1000, 1e-6))
         assert np.isclose(statistic, expected, rtol=1e-9, atol=1e-9)
 
 
@@ -261,8 +318,8 @@ def test_compiled_refinement_matches_the_numpy_path(kernel):
         start = truth + rng.normal(size=3) * [0.6, 0.6, 0.01]
         gate, min_matches = 1.0, 3 if trial % 4 else 40  # every 4th: too few matches
         expected = _numpy_refine(start, lands, own, info, gate, kernel, min_matches)
-        pose, ok = refine_pose(start, lands, own, info, gate, KERNEL_CODES[kernel], 2.0,
-                               min_matches, 50, 1e-4, _MIN_DIAG)
+        pose, ok = refine_pose(start, lands, own, info, RefineSettings(
+            gate, min_matches, solver_settings(kernel, 2.0, 50, 1e-4)))
         assert ok == (expected is not None)
         if ok:
             np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-9)
@@ -286,8 +343,8 @@ def test_compiled_refinement_pairs_ties_with_the_lowest_index():
         info = np.tile(np.diag([25.0, 25.0, 400.0]), (30, 1, 1))
         start = truth + rng.normal(size=3) * [0.3, 0.3, 0.01]
         expected = _numpy_refine(start, lands, own, info, 1.0, "cauchy", 3, _dense_nearest)
-        pose, ok = refine_pose(start, lands, own, info, 1.0, KERNEL_CODES["cauchy"], 2.0, 3, 50,
-                               1e-4, _MIN_DIAG)
+        pose, ok = refine_pose(start, lands, own, info, RefineSettings(
+            1.0, 3, solver_settings("cauchy", 2.0, 50, 1e-4)))
         assert ok == (expected is not None)
         if ok:
             np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-9)

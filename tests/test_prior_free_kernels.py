@@ -12,7 +12,13 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from roco_env.policies.prior_free import _associate, axial_difference, fit_se2
-from roco_env.policies.prior_free_kernels import inlier_counts, matching_pairs
+from roco_env.policies.prior_free_kernels import (
+    Gates,
+    PairInvariants,
+    Placement,
+    inlier_counts,
+    matching_pairs,
+)
 
 YAW_GATE = np.deg2rad(10.0)
 
@@ -92,8 +98,9 @@ def test_inlier_counts_match_the_kd_tree_path(seed):
     own = ego[rng.choice(60, 24, replace=False)] + rng.normal(0, [0.5, 0.5, 0.1], (24, 3))
     poses = np.vstack([np.zeros(3), np.column_stack(
         [rng.normal(0, 2, (199, 2)), rng.normal(0, 0.05, 199)])])
-    got = inlier_counts(poses[:, 0].copy(), poses[:, 1].copy(), np.cos(poses[:, 2]),
-                        np.sin(poses[:, 2]), poses[:, 2].copy(), ego, own, 1.5, YAW_GATE)
+    placement = Placement(poses[:, 0].copy(), poses[:, 1].copy(), np.cos(poses[:, 2]),
+                          np.sin(poses[:, 2]), poses[:, 2].copy())
+    got = inlier_counts(placement, ego, own, Gates(1.5, YAW_GATE))
     want = numpy_inlier_counts(poses, ego, own, 1.5, YAW_GATE)
     np.testing.assert_array_equal(got, want)
     assert want.max() > 10 > want.min()  # the poses span hits and misses
@@ -105,7 +112,8 @@ def test_matching_pairs_match_the_searchsorted_path(yaw_tol):
     elen, clen = rng.uniform(4, 80, 500), rng.uniform(4, 80, 200)
     erel, ebear, crel, cbear = (rng.uniform(-np.pi, np.pi, n) for n in (500, 500, 200, 200))
     order = np.argsort(elen)
-    got = matching_pairs(elen[order], order, clen, erel, ebear, crel, cbear, 0.6, yaw_tol)
+    got = matching_pairs(PairInvariants(elen, erel, ebear), order,
+                         PairInvariants(clen, crel, cbear), Gates(0.6, yaw_tol))
     lo = np.searchsorted(elen[order], clen - 0.6, "left")
     hi = np.searchsorted(elen[order], clen + 0.6, "right")
     counts = hi - lo

@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.optimize import linear_sum_assignment
+from conftest import kuhn_munkres_matches
 
 from roco_env.geometry import se2_compose
 from roco_env.metrics import matching_precision_recall, relative_pose_error
@@ -14,11 +14,11 @@ from roco_env.policies.coalign import coalign_align
 from roco_env.policies.matching import (
     MatchingParams,
     StarGraphMatcher,
-    _assign,
-    _edge_similarity,
     edge_consistency,
     match_star_graphs,
+    pose_features,
 )
+from roco_env.policies.pose_kernels import GatedPairs, edge_similarity
 from roco_env.policies.roco import roco_align
 from roco_env.testing.constructed_scenes import (
     make_scene,
@@ -309,7 +309,11 @@ def test_vectorised_edge_similarity_matches_the_definition(radius):
     dis = np.hypot(lands[:, None, 0] - ego[None, :, 0], lands[:, None, 1] - ego[None, :, 1])
     gated = dis <= params.tau2
     cand_p, cand_q = np.nonzero(gated)
-    fast = _edge_similarity(lands, own, dis, gated, cand_p, cand_q, params)
+    leaves = np.nonzero(gated.any(axis=1))[0]  # landmarks m with an initial match
+    partner = np.argmin(np.where(gated[leaves], dis[leaves], np.inf), axis=1)  # n = A(m)
+    pairs = GatedPairs(cand_p, cand_q, dis[gated], leaves, partner)
+    fast = edge_similarity(pose_features(lands), pose_features(own), pairs,
+                           -1.0 if radius is None else radius**2)
 
     def rel(a, b):  # pose of b in the frame of a
         c, s = np.cos(a[2]), np.sin(a[2])
@@ -406,18 +410,23 @@ def test_matcher_rounds_agree_with_fresh_matching():
 
 
 def test_assignment_shortcut_agrees_with_kuhn_munkres():
+    """The compiled matcher's shortcut (pose_kernels.scored_pairs): when every landmark and
+    every box has a single candidate and every score is > 0, Kuhn-Munkres takes every pair,
+    so the pairs with S >= tau1 are its matches."""
     rng = np.random.default_rng(7)
+    singles = 0
     for trial in range(60):
         n = int(rng.integers(1, 10))
         cand_p = np.sort(rng.choice(15, n, replace=trial % 2 == 0))  # odd trials: one-to-one
         cand_q = rng.permutation(15)[:n] if trial % 2 else rng.integers(0, 15, n)
         pairs = np.unique(np.column_stack([cand_p, cand_q]), axis=0)
         cand_p, cand_q = pairs[:, 0], pairs[:, 1]
+        if np.unique(cand_p).size < cand_p.size or np.unique(cand_q).size < cand_q.size:
+            continue
+        singles += 1
         score = rng.uniform(0.05, 2.0, cand_p.size)
-        weights = np.zeros((15, 15))
-        weights[cand_p, cand_q] = score
-        r, c = linear_sum_assignment(weights, maximize=True)
-        keep = weights[r, c] >= 0.5  # scores are > 0: only candidate pairs pass
-        land, box, s = _assign(cand_p, cand_q, score, 0.5)
-        assert land.tolist() == r[keep].tolist() and box.tolist() == c[keep].tolist()
-        assert np.array_equal(s, weights[r[keep], c[keep]])
+        keep = score >= 0.5
+        land, box, s = kuhn_munkres_matches(cand_p, cand_q, score, 0.5)
+        assert land.tolist() == cand_p[keep].tolist() and box.tolist() == cand_q[keep].tolist()
+        assert np.array_equal(s, score[keep])
+    assert singles >= 30

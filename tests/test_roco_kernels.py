@@ -1,10 +1,14 @@
-"""RoCo's compiled matching rounds (pose_kernels.attempt_rounds) against the Python loop
-they replace (roco._attempt_loop), and the compiled box placement against numpy's.
+"""RoCo's compiled match-optimise rounds (pose_kernels.attempt_rounds, paused for the
+joint solves of ``joint_every_round``) against a Python loop of the same steps, and the
+compiled box placement against numpy's.
 
-Matches, flags and iteration counts compare exactly; float results (poses, chi2,
-landmarks, the significance statistic) to rounding (``assert_equal_to_rounding``: numpy's
-exp / sin / cos / BLAS are CPU-specific SIMD versions on AVX-512 machines, an ulp off the
-libm functions that numba calls)."""
+The loop (:func:`_python_rounds`) matches with the same matcher, solves with
+``optimize_pose`` (or RoCo's joint solve) and computes the significance statistic with
+``wald_statistic``: what the compiled rounds replace is the loop, its stopping rules and
+bookkeeping. Matches, flags and iteration counts compare exactly; float results (poses,
+chi2, landmarks, the significance statistic) to rounding (``assert_equal_to_rounding``:
+numpy's exp / sin / cos / BLAS are CPU-specific SIMD versions on AVX-512 machines, an ulp
+off the libm functions that numba calls)."""
 
 import numpy as np
 import pytest
@@ -12,7 +16,16 @@ from conftest import assert_equal_to_rounding
 
 from roco_env.policies import roco
 from roco_env.policies.landmarks import prepare_inputs, split_rows
-from roco_env.policies.pose_kernels import placed_centres
+from roco_env.policies.matching import StarGraphMatcher
+from roco_env.policies.pose_kernels import (
+    AgentBoxes,
+    RoundState,
+    compact_pairs,
+    gated_pairs,
+    placed_centres,
+    wald_statistic,
+)
+from roco_env.policies.posegraph import optimize_pose, solver_settings
 from roco_env.policies.roco import RoCoParams
 from roco_env.testing.constructed_scenes import (
     benchmark_scene,
@@ -31,30 +44,81 @@ def _scenes():
     agents = np.array([[0.0, 3.5, 0.0], [14.0, 3.5, 0.1], [-9.0, 10.5, 3.0]])
     yield make_scene(lot, agents, [pose_error(1.6, 0.3, np.pi), pose_error(3.0, 1.0, 0.5)],
                      sensor_range=30.0, noise=(0.05, 0.05, 0.01), rng=rng)
-    # Identical cars 2.5 m apart without jitter: ties that need the full assignment.
+    yield _tie_lot()
+
+
+def _tie_lot():
+    """Identical cars 2.5 m apart without jitter: ties that need the full assignment."""
     lot = parking_rows(2, 24, origin=(-30.0, 0.0))
-    yield make_scene(lot, agents[:2], [pose_error(1.3, 0.2, 0.0)], sensor_range=30.0)
+    agents = np.array([[0.0, 3.5, 0.0], [14.0, 3.5, 0.1]])
+    return make_scene(lot, agents, [pose_error(1.3, 0.2, 0.0)], sensor_range=30.0)
 
 
-def _attempts(scene, p, monkeypatch):
-    """(compiled, Python loop, whether the compiled one handed over to the loop, its
-    arguments) attempts of every collaborator, in RoCo's order, the map growing with each
-    accepted one as in roco_solve."""
-    handovers = []
-    python_loop = roco._attempt_loop
-    monkeypatch.setattr(roco, "_attempt_loop", lambda *a: handovers.append(a) or python_loop(*a))
+def _python_rounds(inputs, world, agent, p, start):
+    """``roco._attempt`` round by round in Python: its :class:`RoundState`, statistic (None
+    when not computed) and last joint solve, as ``roco._Attempt``."""
+    landmarks_map = world.landmarks
+    matcher = StarGraphMatcher(landmarks_map.poses, inputs.poses[agent], p,
+                               landmarks_map.features, world.box_features[agent])
+    empty = np.zeros(0, dtype=np.int64)
+    pose, match_land, match_box = np.array(start, dtype=float), empty, empty
+    solved, chi2, landmarks, outer, iterations, joint = False, None, None, 0, 0, None
+    for _ in range(p.max_outer_iterations if p.iterate else 1):
+        land, box, _ = matcher.match(pose)
+        if not outer and land.size < p.min_matches and p.coarse_tau2 is not None:
+            land, box, _ = matcher.match(pose, tau2=p.coarse_tau2)
+        if outer and np.array_equal(land, match_land) and np.array_equal(box, match_box):
+            break
+        outer += 1
+        match_land, match_box = land, box
+        solved = land.size >= p.min_matches
+        if not solved:
+            break
+        state = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer,
+                           iterations)
+        own = inputs.poses[agent][match_box]
+        if p.joint_every_round:
+            joint = roco._joint_solve(inputs, world, p, state, agent)
+            solution, _, shared = joint
+            pose, chi2 = solution.agents[-1], solution.obs_chi2[-own.shape[0]:]
+            landmarks = solution.landmarks[np.searchsorted(shared, match_land)]
+            iterations += solution.iterations
+            continue
+        landmarks = landmarks_map.poses[match_land]
+        fit = optimize_pose(pose, landmarks, own, roco._round_information(inputs, world, agent,
+                                                                          state, p),
+                            inputs.reported[agent - 1], roco._prior_info(p),
+                            kernel=p.robust_kernel, kernel_delta=p.kernel_delta,
+                            max_iterations=p.max_solver_iterations,
+                            tolerance=roco._ROUND_TOLERANCE)
+        pose, chi2, iterations = fit.pose, fit.chi2, iterations + fit.iterations
+    statistic = None
+    if solved and p.significance and np.count_nonzero(chi2 <= p.inlier_chi2) >= p.min_matches:
+        covariance = inputs.all_covariance[inputs.offsets[agent] + match_box]
+        statistic = float(wald_statistic(
+            pose, landmarks, inputs.poses[agent][match_box],
+            covariance + landmarks_map.covariance[match_land], inputs.reported[agent - 1],
+            solver_settings(p.robust_kernel, p.kernel_delta, p.max_solver_iterations,
+                            roco._FIT_TOLERANCE)))
+    state = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+    return roco._Attempt(state, statistic, joint)
+
+
+def _attempts(scene, p):
+    """(compiled, Python loop) attempts of every collaborator, in RoCo's order, the map
+    growing with each accepted one as in roco_solve."""
     inputs = prepare_inputs(*scene.args(), p)
     covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = roco._Map(inputs, covariance[0])
     for agent in range(1, inputs.n_collaborators + 1):
+        boxes = AgentBoxes(inputs.poses[agent], inputs.information[agent], covariance[agent],
+                           world.box_features[agent], inputs.reported[agent - 1])
         start = inputs.reported[agent - 1]
-        handovers.clear()
-        compiled = roco._attempt(inputs, world, agent, p, start, covariance)
-        handed_over = bool(handovers)
-        loop = python_loop(inputs, world, agent, p, np.array(start, dtype=float))
-        yield compiled, loop, handed_over, (inputs, world, agent, covariance)
-        if not roco._rejection(inputs, world, agent, loop, p, covariance):
-            roco._commit(inputs, world, agent, loop, covariance[agent])
+        compiled = roco._attempt(inputs, world, agent, p, start, boxes)
+        loop = _python_rounds(inputs, world, agent, p, start)
+        yield compiled, loop
+        if not roco._rejection(inputs, world, agent, loop, p)[0]:
+            roco._commit(world, agent, loop, boxes)
 
 
 PARAMS = [RoCoParams(), RoCoParams(iterate=False), RoCoParams(coarse_tau2=None),
@@ -62,46 +126,51 @@ PARAMS = [RoCoParams(), RoCoParams(iterate=False), RoCoParams(coarse_tau2=None),
           RoCoParams(robust_kernel="huber"), RoCoParams(robust_kernel=None),
           RoCoParams(use_edge_similarity=False), RoCoParams(use_distance_similarity=False),
           RoCoParams(neighbor_radius=None), RoCoParams(tau2=1.0, min_matches=5),
-          RoCoParams(round_information="box")]
+          RoCoParams(round_information="box"), RoCoParams(joint_every_round=True),
+          RoCoParams(joint_every_round=True, significance=None)]
 
 
 @pytest.mark.parametrize("p", PARAMS, ids=range(len(PARAMS)))
-def test_compiled_rounds_are_the_python_loop(p, monkeypatch):
-    fields = ("pose", "match_land", "match_box", "solved", "chi2", "landmarks", "outer", "solver")
+def test_compiled_rounds_are_the_python_loop(p):
     rounded = ("pose", "chi2", "landmarks")
     compared = tested = 0
     for scene in _scenes():
-        for compiled, loop, handed_over, args in _attempts(scene, p, monkeypatch):
-            for name in fields:
-                got, expected = getattr(compiled, name), getattr(loop, name)
+        for compiled, loop in _attempts(scene, p):
+            for name in RoundState._fields:
+                got, expected = getattr(compiled.state, name), getattr(loop.state, name)
                 if expected is None:  # no solve: the loop leaves chi2 / landmarks unset
-                    assert name in ("chi2", "landmarks") and not loop.solved
+                    assert name in ("chi2", "landmarks") and not loop.state.solved
                     continue
                 assert np.asarray(got).dtype == np.asarray(expected).dtype, name
                 if name in rounded:
                     assert_equal_to_rounding(got, expected, err_msg=name)
                 else:
                     np.testing.assert_array_equal(got, expected, err_msg=name)
-            compared += loop.solved
-            # The significance statistic, computed by the compiled rounds when the test runs.
-            inliers = loop.solved and np.count_nonzero(loop.chi2 <= p.inlier_chi2) >= p.min_matches
-            if inliers and p.significance and not handed_over:
-                assert_equal_to_rounding(compiled.statistic,
-                                         roco._correction_statistic(*args[:3], loop, p, args[3]))
+            compared += loop.state.solved
+            assert (compiled.statistic is None) == (loop.statistic is None)
+            if loop.statistic is not None:
+                assert_equal_to_rounding(compiled.statistic, loop.statistic)
                 tested += 1
-            else:
-                assert compiled.statistic is None
+            assert (compiled.joint is None) == (loop.joint is None)
+            if loop.joint is not None:  # the solve a commit stores
+                for got, expected in zip(compiled.joint[1:], loop.joint[1:], strict=True):
+                    np.testing.assert_array_equal(got, expected)
+                assert_equal_to_rounding(compiled.joint[0].landmarks, loop.joint[0].landmarks)
     assert compared >= 10 and (tested >= 5 or not p.significance)
 
 
-def test_rounds_needing_the_full_assignment_run_the_python_loop(monkeypatch):
-    """The tie-heavy lot needs Kuhn-Munkres: the compiled rounds hand over to the loop."""
-    scene = list(_scenes())[-1]
-    handed_over = []
-    for compiled, expected, handover, _ in _attempts(scene, RoCoParams(), monkeypatch):
-        assert_equal_to_rounding(compiled.pose, expected.pose)
-        handed_over.append(handover)
-    assert handed_over == [True]
+def test_rounds_needing_the_full_assignment_stay_compiled():
+    """The tie-heavy lot's first matching has landmarks with several candidate boxes: the
+    compiled rounds run Kuhn-Munkres themselves, with the Python loop's result."""
+    scene, p = _tie_lot(), RoCoParams()
+    inputs = prepare_inputs(*scene.args(), p)
+    centres = placed_centres(inputs.reported[0], inputs.poses[1])
+    pairs = gated_pairs(np.ascontiguousarray(inputs.poses[0][:, :2]), centres, p.tau2)
+    assert not compact_pairs(pairs.p, pairs.q)[4]
+    (compiled, loop), = _attempts(scene, p)
+    assert compiled.state.solved and loop.state.solved
+    assert_equal_to_rounding(compiled.state.pose, loop.state.pose)
+    np.testing.assert_array_equal(compiled.state.match_box, loop.state.match_box)
 
 
 def test_placed_centres_are_numpys_placement_to_rounding():

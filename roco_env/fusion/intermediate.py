@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections, kept_items
-from roco_env.fusion.warp_kernels import warp_gate_max_into, warp_max_into
+from roco_env.fusion.warp_kernels import Gate, Warp, warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.features import zero_padded
 from roco_env.sensing.grid import affine_theta
@@ -100,20 +100,20 @@ def fuse_on_canvas(features: torch.Tensor, egos: Sequence[int],
     own = own.contiguous(memory_format=torch.channels_last)
     cells = own.permute(0, 2, 3, 1).numpy()
     sources = features.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).numpy()
-    warp = (sources, affine_theta(shifted, grid, window), np.asarray(rows), np.asarray(owner),
-            first, window.W)
+    warp = tuple(Warp(sources, affine_theta(shifted, grid, window), np.asarray(rows),
+                      np.asarray(owner), first, window.W))
     if gate is None:
         def fuse_band(band: np.ndarray) -> None:
-            warp_max_into(cells, *warp, band)
+            warp_max_into(cells, warp, band)
     else:
-        weights = gate.cell_weights()
-        if weights[0].shape[0] != 3 * features.shape[1]:  # the compiled pass trusts it
-            raise ValueError(f"the fusion gate reads {weights[0].shape[0] // 3} channels; the "
-                             f"maps have {features.shape[1]}")
-        before = cells.copy()
+        weights = Gate(*gate.cell_weights())
+        if weights.w_in.shape[0] != 3 * features.shape[1]:  # the compiled pass trusts it
+            raise ValueError(f"the fusion gate reads {weights.w_in.shape[0] // 3} channels; "
+                             f"the maps have {features.shape[1]}")
+        before, weights = cells.copy(), tuple(weights)
 
         def fuse_band(band: np.ndarray) -> None:
-            warp_gate_max_into(cells, before, *warp, band, *weights)
+            warp_gate_max_into(cells, before, warp, band, weights)
     bands = _row_bands(cells.shape[1], threads)
     if len(bands) == 1:
         fuse_band(bands[0])

@@ -20,70 +20,107 @@ shipped detector's maps, which reach about 9; tested against the torch path,
 ``band``, so :func:`~roco_env.fusion.intermediate.fuse_on_canvas` runs bands in
 threads; every cell sees the maps in the same order, so the result does not depend on
 the thread count.
+
+The kernels take the maps to warp as a :class:`Warp` record and the gate's weights as a
+:class:`Gate` (``typing.NamedTuple``, defined here, with every function of this module the
+compiled code calls: numba's on-disk cache notices edits to a function's own file only);
+from Python a record is passed as a plain tuple, ``tuple(record)``, which numba types in
+C, and named again on entry.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ["warp_gate_max_into", "warp_max_into"]
+__all__ = ["Gate", "Warp", "warp_gate_max_into", "warp_max_into"]
+
+
+class Warp(NamedTuple):
+    """The maps to warp: features (N, h, w, C) float32, channels last, the source maps;
+    theta (K, 2, 3): ``affine_grid`` matrices mapping normalised coordinates of a
+    ``width``-column window of the canvas (all its rows) to normalised source coordinates;
+    map k is source ``rows[k]`` (K,), maxed into canvas ``owner[k]`` (K,) at columns
+    first[k] .. first[k] + width (first (K,))."""
+
+    features: np.ndarray
+    theta: np.ndarray
+    rows: np.ndarray
+    owner: np.ndarray
+    first: np.ndarray
+    width: int
+
+
+class Gate(NamedTuple):
+    """A fusion gate's per-cell weights (``FusionGate.cell_weights``): the weight of warped
+    cell v beside own cell o is sigmoid(b_out + w_out . relu(b_in + [o, v, |o - v|] @
+    w_in)), with w_in (3 C, hidden), b_in (hidden,), w_out (hidden,) float32 and b_out a
+    float."""
+
+    w_in: np.ndarray
+    b_in: np.ndarray
+    w_out: np.ndarray
+    b_out: float
+
+
+class _Scratch(NamedTuple):
+    """The gate's work arrays for a row of cells: hidden units x cells, per cell one
+    channel of the two cells and their difference, and the weights."""
+
+    hidden: np.ndarray
+    mine: np.ndarray
+    theirs: np.ndarray
+    difference: np.ndarray
+    weights: np.ndarray
 
 
 @njit(cache=True, nogil=True)
-def warp_max_into(canvas, features, theta, rows, owner, first, width, band):  # pragma: no cover
-    """Max each warped map into its ego's canvas map, in place.
+def warp_max_into(canvas, warp, band):  # pragma: no cover
+    """Max each warped map of the :class:`Warp` into its ego's canvas map, in place.
 
-    canvas (E, H, Wc, C) float32, channels last: the egos' maps (written);
-    features (N, h, w, C) float32, channels last: the source maps; theta (K, 2, 3):
-    ``affine_grid`` matrices mapping normalised coordinates of a ``width``-column window
-    of the canvas (all H rows) to normalised source coordinates; map k is source
-    ``rows[k]``, maxed into canvas ``owner[k]`` at columns first[k] .. first[k] + width;
-    band (start, stop): the canvas rows this call writes (calls on disjoint bands may
-    run at once in threads: the kernel releases the GIL).
+    canvas (E, H, Wc, C) float32, channels last: the egos' maps (written); band (start,
+    stop): the canvas rows this call writes (calls on disjoint bands may run at once in
+    threads: the kernel releases the GIL).
     """
     no_vector = np.zeros(0, dtype=np.float32)
-    _fuse(canvas, canvas, features, theta, rows, owner, first, width, band,
-          np.zeros((0, 0), dtype=np.float32), no_vector, no_vector, 0.0, False)
+    no_gate = Gate(np.zeros((0, 0), dtype=np.float32), no_vector, no_vector, 0.0)
+    _fuse(canvas, canvas, Warp(*warp), band, no_gate, False)
 
 
 @njit(cache=True, nogil=True)
-def warp_gate_max_into(canvas, own, features, theta, rows, owner, first, width, band,
-                       w_in, b_in, w_out, b_out):  # pragma: no cover
-    """:func:`warp_max_into` with every warped cell weighed by a fusion gate first.
+def warp_gate_max_into(canvas, own, warp, band, gate):  # pragma: no cover
+    """:func:`warp_max_into` with every warped cell weighed by a fusion :class:`Gate`
+    first.
 
     own (E, H, Wc, C) float32: the egos' maps before any maximum (what the gate reads;
     not ``canvas``, which is written). Every map must be non-negative (the encoder's
-    maps are: ReLU), as the skipped cells assume. The gate's weight of warped cell v beside own cell
-    o is sigmoid(b_out + w_out . relu(b_in + [o, v, |o - v|] @ w_in)), with
-    w_in (3 C, hidden), b_in (hidden,), w_out (hidden,) float32 and b_out a float.
+    maps are: ReLU), as the skipped cells assume.
     """
-    _fuse(canvas, own, features, theta, rows, owner, first, width, band,
-          w_in, b_in, w_out, b_out, True)
+    _fuse(canvas, own, Warp(*warp), band, Gate(*gate), True)
 
 
 @njit(cache=True, nogil=True)
-def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
-          w_in, b_in, w_out, b_out, gated):  # pragma: no cover
-    """The loop of both kernels (their arguments); ``gated`` turns the gate on.
+def _fuse(canvas, own, warp, band, gate, gated):  # pragma: no cover
+    """The loop of both kernels (their arguments, the records named); ``gated`` turns the
+    gate on.
 
     Without the gate each warped cell is maxed in as it is sampled. With it, one canvas
     row of one map at a time: the cells the map reaches and could lift are sampled first,
     then the gate runs on all of them at once (its inner loops over the cells, which the
     compiler vectorises), then their weighted values are maxed in."""
+    features, theta, rows, owner, first, width = (warp.features, warp.theta, warp.rows,
+                                                  warp.owner, warp.first, warp.width)
     out_h = canvas.shape[1]
     h, w, n_ch = features.shape[1], features.shape[2], features.shape[3]
     values = np.empty((width, n_ch), dtype=np.float32)  # the row's sampled cells
     cols = np.empty(width, dtype=np.int64)
-    # The gate's work arrays: hidden units x cells; per cell, one channel of the two
-    # cells and their difference; the weights.
-    hidden = np.empty((b_in.shape[0], width), dtype=np.float32)
-    mine_ch = np.empty(width, dtype=np.float32)
-    theirs_ch = np.empty(width, dtype=np.float32)
-    difference = np.empty(width, dtype=np.float32)
-    weights = np.empty(width, dtype=np.float32)
+    scratch = _Scratch(np.empty((gate.b_in.shape[0], width), dtype=np.float32),
+                       np.empty(width, dtype=np.float32), np.empty(width, dtype=np.float32),
+                       np.empty(width, dtype=np.float32), np.empty(width, dtype=np.float32))
+    weights = scratch.weights
     for k in range(theta.shape[0]):
         src = features[rows[k]]
         dst = canvas[owner[k]]
@@ -112,8 +149,7 @@ def _fuse(canvas, own, features, theta, rows, owner, first, width, band,
                     cols[n] = col
                     n += 1
             if n:  # the gated cells of the row, weighed together
-                _gate_cells(mine[i], values, cols, n, w_in, b_in, w_out, b_out, hidden,
-                            mine_ch, theirs_ch, difference, weights)
+                _gate_cells(mine[i], values, cols, n, gate, scratch)
                 for m in range(n):
                     _max_into(dst[i, cols[m]], values[m], weights[m])
 
@@ -173,12 +209,15 @@ def _bilinear(src, x, y, value):  # pragma: no cover
 
 
 @njit(cache=True)
-def _gate_cells(mine_row, values, cols, n, w_in, b_in, w_out, b_out, hidden, a, b, d,
-                logit):  # pragma: no cover
-    """The fusion gate's weights, written to logit[:n], of the n cells values[:n] (C each)
-    beside the ego's cells mine_row[cols[:n]]; hidden (H, >= n), a, b and d (>= n) are
-    scratch. The same operations in the same order per cell as a cell at a time, but every
-    inner loop runs over the cells."""
+def _gate_cells(mine_row, values, cols, n, gate, scratch):  # pragma: no cover
+    """The fusion :class:`Gate`'s weights, written to scratch.weights[:n], of the n cells
+    values[:n] (C each) beside the ego's cells mine_row[cols[:n]]; the other
+    :class:`_Scratch` arrays (hidden (H, >= n), the rest (>= n)) are work space. The same
+    operations in the same order per cell as a cell at a time, but every inner loop runs
+    over the cells."""
+    w_in, b_in, w_out, b_out = gate.w_in, gate.b_in, gate.w_out, gate.b_out
+    hidden, a, b, d, logit = (scratch.hidden, scratch.mine, scratch.theirs, scratch.difference,
+                              scratch.weights)
     n_ch, n_hidden = values.shape[1], b_in.shape[0]
     for u in range(n_hidden):
         hidden[u, :n] = b_in[u]

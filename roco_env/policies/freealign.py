@@ -49,7 +49,12 @@ from roco_env.policies.prior_free import (
     distinct_top,
     fit_se2,
 )
-from roco_env.policies.prior_free_kernels import descriptor_similarity, grow_subgraph
+from roco_env.policies.prior_free_kernels import (
+    Gates,
+    NodeGraph,
+    descriptor_similarity,
+    grow_subgraph,
+)
 from roco_env.schema import spec
 
 __all__ = ["FreeAlignParams", "FreeAlignPolicy", "common_subgraph", "freealign_align",
@@ -117,10 +122,12 @@ def common_subgraph(ego_d: np.ndarray, own_d: np.ndarray, seed: tuple[int, int],
     """
     ego_yaw, own_yaw, yaw_tol = headings if headings is not None else (
         np.zeros(ego_d.shape[0]), np.zeros(own_d.shape[0]), -1.0)
-    return grow_subgraph(np.ascontiguousarray(ego_d, dtype=float),
-                         np.ascontiguousarray(own_d, dtype=float), int(seed[0]), int(seed[1]),
-                         float(tol), np.ascontiguousarray(ego_yaw, dtype=float),
-                         np.ascontiguousarray(own_yaw, dtype=float), float(yaw_tol),
+    ego = NodeGraph(np.ascontiguousarray(ego_d, dtype=float),
+                    np.ascontiguousarray(ego_yaw, dtype=float))
+    own = NodeGraph(np.ascontiguousarray(own_d, dtype=float),
+                    np.ascontiguousarray(own_yaw, dtype=float))
+    return grow_subgraph(tuple(ego), tuple(own), (int(seed[0]), int(seed[1])),
+                         tuple(Gates(float(tol), float(yaw_tol))),
                          -1 if max_nodes is None else int(max_nodes))
 
 

@@ -32,19 +32,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
 from roco_env.policies.hypothesis_kernels import (
+    BoxTerms,
+    EvidenceSettings,
+    VoteSettings,
     hypothesis_scores,
     rotation_votes,
     translation_votes,
     vote_peaks,
 )
 from roco_env.policies.landmarks import AlignmentInputs, require_positive, split_rows
-from roco_env.policies.pose_kernels import KERNEL_CODES
-from roco_env.policies.posegraph import _MIN_DIAG
+from roco_env.policies.pose_kernels import RefineSettings
+from roco_env.policies.posegraph import solver_settings
 
 __all__ = [
     "BoxSet",
@@ -135,6 +138,13 @@ class BoxSet:
     var_r: np.ndarray
     range: float
 
+    @cached_property
+    def terms(self) -> tuple:
+        """These boxes as the compiled evidence takes them: the
+        :class:`~roco_env.policies.hypothesis_kernels.BoxTerms`, as a plain tuple."""
+        return tuple(BoxTerms(self.poses, self.log_sizes, self.var_t, self.var_r,
+                              float(self.range)))
+
 
 def _box_arrays(
     boxes: np.ndarray, poses: np.ndarray, information: np.ndarray, xy_covariance: np.ndarray
@@ -186,19 +196,21 @@ def _reach(distance: np.ndarray) -> float:
 
 
 @lru_cache(maxsize=16)
-def _vote_terms(p: EvidenceParams) -> tuple:
-    """The vote settings of ``p`` (read-only: shared by every call with ``p``): rotation
-    search half-width and 0.25 deg cell (rad), its bin count and pair radius (m); the
-    translation grid's pair radius (m), search half-width (m), cell (m) and cells per
-    axis; 2 size_sigma^2 (0 = sizes not used); the heading std weighing the translation
-    votes (3 deg, in rad); the peaks' suppression radius (cells^2)."""
+def _vote_settings(p: EvidenceParams) -> VoteSettings:
+    """The vote settings of ``p`` (:class:`~roco_env.policies.hypothesis_kernels.VoteSettings`,
+    computed once per parameter set): rotation search half-width
+    and 0.25 deg cell (rad), its bin count and pair radius (m); the translation grid's pair
+    radius (m), search half-width (m), cell (m) and cells per axis; 2 size_sigma^2 (0 =
+    sizes not used); the heading std weighing the translation votes (3 deg, in rad); the
+    peaks' suppression radius (cells^2), max_hypotheses and vote_floor."""
     half, cell = np.deg2rad(p.search_yaw_deg), np.deg2rad(0.25)
-    return (
-        half, cell, int(np.ceil(2 * half / cell)), float(p.search_radius + 2.0),
+    return VoteSettings(
+        float(half), float(cell), int(np.ceil(2 * half / cell)), float(p.search_radius + 2.0),
         float(p.search_radius * np.sqrt(2.0)), float(p.search_radius), float(p.vote_bin),
         int(np.ceil(2 * p.search_radius / p.vote_bin)),
-        2.0 * p.size_sigma**2 if p.use_size else 0.0, np.deg2rad(3.0),
+        2.0 * p.size_sigma**2 if p.use_size else 0.0, float(np.deg2rad(3.0)),
         (1.25 / p.vote_bin) ** 2,  # lattice pitches (2.5 m) stay apart
+        int(p.max_hypotheses), float(p.vote_floor),
     )
 
 
@@ -213,46 +225,44 @@ def generate_hypotheses(
     over neighbouring cells); peaks are taken in decreasing vote order, above
     ``vote_floor`` of the strongest, away from the earlier ones. The votes and the peak
     scan are compiled loops (:mod:`roco_env.policies.hypothesis_kernels`)."""
-    half, cell, bins, rotation_radius, radius, search, vote_bin, n, size_den, yaw_sigma, \
-        suppress = _vote_terms(p)
-    votes, n_pairs = rotation_votes(
-        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, reported, rotation_radius,
-        size_den, half, cell, bins,
-    )
+    settings = _vote_settings(p)
+    votes = tuple(settings)
+    counts, n_pairs = rotation_votes(ego.terms, collab.terms, reported, votes)
     if n_pairs == 0:
         return np.zeros((0, 3))
-    smooth = np.convolve(votes, _SMOOTHING, mode="same")
+    smooth = np.convolve(counts, _SMOOTHING, mode="same")
     peak = int(np.argmax(smooth))  # the first maximum: smooth[peak] is smooth.max()
+    half, cell = settings.half, settings.cell
     rotation = -half + (peak + 0.5) * cell if smooth[peak] > 0 else 0.0
     rotated = reported + np.array([0.0, 0.0, rotation])
-    grid = translation_votes(
-        ego.poses, ego.log_sizes, collab.poses, collab.log_sizes, rotated, radius, search,
-        vote_bin, n, size_den, yaw_sigma,
-    )
-    return vote_peaks(grid, np.argsort(-grid, axis=None), int(p.max_hypotheses),
-                      float(p.vote_floor), suppress, rotated, vote_bin, search)
+    grid = translation_votes(ego.terms, collab.terms, rotated, votes)
+    return vote_peaks(grid, np.argsort(-grid, axis=None), rotated, votes)
 
 
 def refine_terms(
     p: EvidenceParams, kernel: str | None, kernel_delta: float, min_matches: int
-) -> tuple:
-    """The refinement's settings as :func:`~roco_env.policies.pose_kernels.refine_pose`
-    takes them (module docstring, step 2): (gate m, kernel code, kernel delta, min_matches,
-    LM iteration cap, relative-decrease stop, minimum damping diagonal). Up to two rounds
-    of nearest matching within ``refine_gate`` and a robust pose solve (the second only
-    when the matches changed); a start matching fewer than ``min_matches`` boxes refines
-    to nothing."""
-    return (float(p.refine_gate), KERNEL_CODES[kernel], float(kernel_delta), int(min_matches),
-            _REFINE_ITERATIONS, _REFINE_TOLERANCE, _MIN_DIAG)
+) -> RefineSettings:
+    """The refinement's settings (module docstring, step 2) as
+    :func:`~roco_env.policies.pose_kernels.refine_pose` takes them
+    (:class:`~roco_env.policies.pose_kernels.RefineSettings`: gate m, min_matches, the
+    solver's kernel, LM iteration cap and relative-decrease stop, a plain tuple as the
+    compiled call takes it). Up to two rounds of
+    nearest matching within ``refine_gate`` and a robust pose solve (the second only when
+    the matches changed); a start matching fewer than ``min_matches`` boxes refines to
+    nothing."""
+    solver = solver_settings(kernel, kernel_delta, _REFINE_ITERATIONS, _REFINE_TOLERANCE)
+    return RefineSettings(float(p.refine_gate), int(min_matches), tuple(solver))
 
 
 def evidence_terms(p: EvidenceParams) -> tuple:
-    """The evidence settings as :func:`~roco_env.policies.hypothesis_kernels.hypothesis_scores`
-    takes them: (pose slack variances m^2 and rad^2, 2 size_sigma^2 (0 = sizes not used),
-    outlier_chi2, free_space_penalty, use_free_space, use_mutual_detection)."""
-    return (float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2),
-            2.0 * p.size_sigma**2 if p.use_size else 0.0, float(p.outlier_chi2),
-            float(p.free_space_penalty), bool(p.use_free_space), bool(p.use_mutual_detection))
+    """The evidence settings as the compiled evidence takes them
+    (:class:`~roco_env.policies.hypothesis_kernels.EvidenceSettings` as a plain tuple):
+    pose slack variances m^2 and rad^2, 2 size_sigma^2 (0 = sizes not used), outlier_chi2,
+    free_space_penalty, use_free_space, use_mutual_detection."""
+    return tuple(EvidenceSettings(
+        float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2),
+        2.0 * p.size_sigma**2 if p.use_size else 0.0, float(p.outlier_chi2),
+        float(p.free_space_penalty), bool(p.use_free_space), bool(p.use_mutual_detection)))
 
 
 def score_hypotheses(
@@ -271,8 +281,5 @@ def score_hypotheses(
     collaborator box explains (nobody detects itself), and a collaborator box where it
     puts the ego.
     """
-    return hypothesis_scores(
-        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
-        collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
-        np.ascontiguousarray(poses, dtype=float), *evidence_terms(p),
-    )
+    return hypothesis_scores(ego.terms, collab.terms, np.ascontiguousarray(poses, dtype=float),
+                             evidence_terms(p))

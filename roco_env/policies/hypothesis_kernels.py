@@ -11,23 +11,82 @@ array path's arithmetic in the same order: the votes are accumulated pair by pai
 array path, and the evidence sums the selected gains with numpy's pairwise summation
 (:func:`pairwise_sum`), so the results are those of the array path to the bit
 (tests/test_hypothesis_kernels.py keeps that path as the reference). Poses are (x m, y m,
-yaw rad); boxes as in :class:`~roco_env.policies.hypotheses.BoxSet`.
+yaw rad).
 
-Every compiled function here calls only functions of this module: numba's on-disk cache
-recompiles a function when its own file changes, not when a callee in another file does.
+The kernels take an agent's boxes as a :class:`BoxTerms` record, the evidence settings as
+an :class:`EvidenceSettings` and the votes' as a :class:`VoteSettings`
+(``typing.NamedTuple``, compiled as tuples with named fields); from Python a record is
+passed as a plain tuple, ``tuple(record)``, which numba types in C (a named tuple it types
+field by field in Python, about 1 us per field and call), and named again on entry.
+
+Every compiled function here calls only functions and records of this module: numba's
+on-disk cache recompiles a function when its own file changes, not when a callee in
+another file does.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ["best_pair_gains", "close_pairs", "decision_margin", "hypothesis_scores",
-           "pairwise_sum", "rotation_votes", "translation_votes", "vote_peaks"]
+__all__ = ["BoxTerms", "EvidenceSettings", "VoteSettings", "best_pair_gains", "close_pairs",
+           "decision_margin", "hypothesis_scores", "pairwise_sum", "rotation_votes",
+           "translation_votes", "vote_peaks"]
 
 _HALF_PI = math.pi / 2
+
+
+class BoxTerms(NamedTuple):
+    """One agent's boxes as the evidence reads them (``hypotheses.BoxSet``): poses (K, 3)
+    in its own frame, log sizes (K, 3) (l, w, h), var_t (K,) the mean of the centre's x
+    and y variances (m^2), var_r (K,) the heading variance (rad^2), and ``range`` (m) the
+    radius of its observed disk."""
+
+    poses: np.ndarray
+    log_sizes: np.ndarray
+    var_t: np.ndarray
+    var_r: np.ndarray
+    range: float
+
+
+class EvidenceSettings(NamedTuple):
+    """The evidence's settings (``hypotheses.evidence_terms``): the pose slack variances
+    slack_t (m^2) and slack_r (rad^2), 2 size_sigma^2 (0: sizes not used), outlier_chi2,
+    free_space_penalty, and the switches of the free-space and mutual-detection terms."""
+
+    slack_t: float
+    slack_r: float
+    size_denominator: float
+    outlier_chi2: float
+    free_space_penalty: float
+    use_free_space: bool
+    use_mutual_detection: bool
+
+
+class VoteSettings(NamedTuple):
+    """The votes' settings (``hypotheses._vote_settings``): the rotation search's
+    half-width ``half`` and cell (rad), its bin count and pair radius (m); the translation
+    grid's pair radius (m), search half-width (m), cell ``vote_bin`` (m) and cells per
+    axis; 2 size_sigma^2 (0: sizes not used); the heading std weighing the translation
+    votes (rad); the peaks' suppression radius (cells^2), the most peaks kept and the
+    share of the strongest vote a peak needs."""
+
+    half: float
+    cell: float
+    bins: int
+    rotation_radius: float
+    radius: float
+    search_radius: float
+    vote_bin: float
+    cells: int
+    size_denominator: float
+    yaw_sigma: float
+    suppress: float
+    max_hypotheses: int
+    vote_floor: float
 
 
 @njit(cache=True)
@@ -73,16 +132,22 @@ def close_pairs(a_xy, b_xy, radius):
 
 
 @njit(cache=True)
-def best_pair_gains(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, mapped, col_log_sizes,
-                    col_var_t, col_var_r, slack_t, slack_r, size_denominator, outlier_chi2):
+def best_pair_gains(ego, collab, mapped, evidence):
     """Per box, the largest gain ``outlier_chi2 - chi2`` of its pairs with the other set's
     boxes (0 without a pair that gains): (collaborator boxes (K1,), ego boxes (K0,)).
 
-    chi2 of ego box i and collaborator box j (mapped (K1, 3) into the ego frame):
-    |t_i - t_j|^2 / (var_t_i + var_t_j + slack_t) + half-turn yaw difference^2 /
-    (var_r_i + var_r_j + slack_r) + (size_denominator > 0) |log size difference|^2 /
-    size_denominator; every pair is visited
-    (no radius: a pair beyond it cannot gain)."""
+    chi2 of ego box i and collaborator box j (the :class:`BoxTerms` ego and collab, the
+    collaborator's poses mapped (K1, 3) into the ego frame): |t_i - t_j|^2 / (var_t_i +
+    var_t_j + slack_t) + half-turn yaw difference^2 / (var_r_i + var_r_j + slack_r) +
+    (size_denominator > 0) |log size difference|^2 / size_denominator (the
+    :class:`EvidenceSettings`); every pair is visited (no radius: a pair beyond it cannot
+    gain)."""
+    ego, collab, evidence = BoxTerms(*ego), BoxTerms(*collab), EvidenceSettings(*evidence)
+    ego_poses, ego_log_sizes, ego_var_t, ego_var_r = (ego.poses, ego.log_sizes, ego.var_t,
+                                                      ego.var_r)
+    col_log_sizes, col_var_t, col_var_r = collab.log_sizes, collab.var_t, collab.var_r
+    slack_t, slack_r, outlier_chi2 = evidence.slack_t, evidence.slack_r, evidence.outlier_chi2
+    size_denominator = evidence.size_denominator
     n_ego, n_col = ego_poses.shape[0], mapped.shape[0]
     forward = np.zeros(n_col)
     backward = np.zeros(n_ego)
@@ -195,33 +260,40 @@ def _size_weight(ego_log_sizes, col_log_sizes, i, j, size_denominator):
 
 
 @njit(cache=True)
-def rotation_votes(ego_poses, ego_log_sizes, col_poses, col_log_sizes, reported, radius,
-                   size_denominator, half, cell, bins):
-    """Weighted votes (bins,) of the heading differences (modulo pi) of the box pairs whose
-    centres lie within ``radius`` m under the reported pose (3,): bin of
-    ``(dyaw + half) / cell`` (last bin for the upper edge), pairs with |dyaw| > half left
-    out, each weighted by its size likelihood; and the number of pairs within the radius
-    (0: nothing to vote). size_denominator: 2 size_sigma^2, 0 = sizes not used."""
-    mapped = _mapped(reported, col_poses)
+def rotation_votes(ego, collab, reported, votes):
+    """Weighted votes (bins,) of the heading differences (modulo pi) of the box pairs
+    (:class:`BoxTerms` ego and collab) whose centres lie within ``rotation_radius`` m under
+    the reported pose (3,): bin of ``(dyaw + half) / cell`` (last bin for the upper edge),
+    pairs with |dyaw| > half left out, each weighted by its size likelihood; and the number
+    of pairs within the radius (0: nothing to vote). votes: :class:`VoteSettings`."""
+    ego, collab, votes = BoxTerms(*ego), BoxTerms(*collab), VoteSettings(*votes)
+    ego_poses, ego_log_sizes, col_log_sizes = ego.poses, ego.log_sizes, collab.log_sizes
+    half, cell, bins, size_denominator = votes.half, votes.cell, votes.bins, votes.size_denominator
+    radius = votes.rotation_radius
+    mapped = _mapped(reported, collab.poses)
     first, second = close_pairs(ego_poses[:, :2], mapped[:, :2], radius)
-    votes = np.zeros(bins)
+    counts = np.zeros(bins)
     for k in range(first.size):
         i, j = first[k], second[k]
         dyaw = _half_turn(ego_poses[i, 2] - mapped[j, 2])
         if abs(dyaw) <= half:
             weight = _size_weight(ego_log_sizes, col_log_sizes, i, j, size_denominator)
-            votes[min(np.int64((dyaw + half) / cell), bins - 1)] += weight
-    return votes, first.size
+            counts[min(np.int64((dyaw + half) / cell), bins - 1)] += weight
+    return counts, first.size
 
 
 @njit(cache=True)
-def translation_votes(ego_poses, ego_log_sizes, col_poses, col_log_sizes, rotated, radius,
-                      search_radius, vote_bin, cells, size_denominator, yaw_sigma):
+def translation_votes(ego, collab, rotated, votes):
     """3x3-box-smoothed grid (cells, cells) of the centre offsets (ego minus collaborator,
-    within ``search_radius`` m per axis) of the box pairs within ``radius`` m under the
-    rotated pose (3,), ``vote_bin`` m cells; each pair weighted by its size likelihood and
-    exp(-(dyaw / yaw_sigma)^2 / 2) of its heading difference modulo pi (rad)."""
-    mapped = _mapped(rotated, col_poses)
+    within ``search_radius`` m per axis) of the box pairs (:class:`BoxTerms` ego and
+    collab) within ``radius`` m under the rotated pose (3,), ``vote_bin`` m cells; each pair
+    weighted by its size likelihood and exp(-(dyaw / yaw_sigma)^2 / 2) of its heading
+    difference modulo pi (rad). votes: :class:`VoteSettings`."""
+    ego, collab, votes = BoxTerms(*ego), BoxTerms(*collab), VoteSettings(*votes)
+    ego_poses, ego_log_sizes, col_log_sizes = ego.poses, ego.log_sizes, collab.log_sizes
+    radius, search_radius, vote_bin = votes.radius, votes.search_radius, votes.vote_bin
+    cells, size_denominator, yaw_sigma = votes.cells, votes.size_denominator, votes.yaw_sigma
+    mapped = _mapped(rotated, collab.poses)
     first, second = close_pairs(ego_poses[:, :2], mapped[:, :2], radius)
     padded = np.zeros((cells + 2, cells + 2))
     for k in range(first.size):
@@ -251,20 +323,23 @@ def translation_votes(ego_poses, ego_log_sizes, col_poses, col_log_sizes, rotate
 
 
 @njit(cache=True)
-def vote_peaks(smooth, order, max_hypotheses, vote_floor, suppress, rotated, vote_bin,
-               search_radius):
+def vote_peaks(smooth, order, rotated, votes):
     """Hypotheses (H, 3) at the peaks of the smoothed translation votes (cells, cells):
     cells in ``order`` (decreasing votes, as ``np.argsort(-smooth, axis=None)`` gives them)
     until ``max_hypotheses`` are found or the votes fall to ``vote_floor`` of the
-    strongest (or 0); a cell within ``suppress`` (cells^2) of an earlier peak is skipped.
-    Each peak moves the rotated pose (3,) by its cell centre's offset (m)."""
+    strongest (or 0); a cell within ``suppress`` (cells^2) of an earlier peak is skipped
+    (:class:`VoteSettings`). Each peak moves the rotated pose (3,) by its cell centre's
+    offset (m)."""
+    votes = VoteSettings(*votes)
+    max_hypotheses, vote_floor, suppress = votes.max_hypotheses, votes.vote_floor, votes.suppress
+    vote_bin, search_radius = votes.vote_bin, votes.search_radius
     cells = smooth.shape[1]
-    votes = smooth.ravel()
+    flat_votes = smooth.ravel()
     floor = max(vote_floor * smooth.max(), 0.0)
     peaks = np.empty((max_hypotheses, 2), dtype=np.int64)
     count = 0
     for flat in order:
-        if count == max_hypotheses or votes[flat] <= floor:
+        if count == max_hypotheses or flat_votes[flat] <= floor:
             break
         a, b = flat // cells, flat % cells
         apart = True
@@ -282,9 +357,12 @@ def vote_peaks(smooth, order, max_hypotheses, vote_floor, suppress, rotated, vot
 
 
 @njit(cache=True)
-def _mutual_gain(poses, var_t, var_r, target, unexplained, slack_t, slack_r, outlier_chi2):
-    """Largest gain ``outlier_chi2 - chi2`` (>= 0) of the unexplained boxes (poses (K, 3))
-    as a detection of the vehicle at ``target`` (3,) (heading modulo pi)."""
+def _mutual_gain(boxes, target, unexplained, evidence):
+    """Largest gain ``outlier_chi2 - chi2`` (>= 0) of the unexplained boxes (a
+    :class:`BoxTerms`; ``unexplained`` (K,)) as a detection of the vehicle at ``target``
+    (3,) (heading modulo pi)."""
+    poses, var_t, var_r = boxes.poses, boxes.var_t, boxes.var_r
+    slack_t, slack_r, outlier_chi2 = evidence.slack_t, evidence.slack_r, evidence.outlier_chi2
     best = 0.0
     for k in range(poses.shape[0]):
         dx, dy = poses[k, 0] - target[0], poses[k, 1] - target[1]
@@ -296,16 +374,15 @@ def _mutual_gain(poses, var_t, var_r, target, unexplained, slack_t, slack_r, out
 
 
 @njit(cache=True)
-def hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, col_poses,
-                      col_log_sizes, col_var_t, col_var_r, col_range, poses, slack_t, slack_r,
-                      size_denominator, outlier_chi2, free_space_penalty, use_free_space,
-                      use_mutual_detection):
-    """Evidence (H,) of each hypothesis pose (H, 3) (``hypotheses.score_hypotheses``):
-    the gains of the collaborator's boxes inside the ego's observed disk (radius
-    ``ego_range`` m) under every hypothesis, with free space the ego's boxes inside the
-    collaborator's disk (gains minus ``free_space_penalty`` per unexplained box), with
-    mutual detection the two direct detections' gains. slack_t (m^2) / slack_r (rad^2):
-    the pose slack variances; size_denominator: 2 size_sigma^2, 0 = sizes not used."""
+def hypothesis_scores(ego, collab, poses, evidence):
+    """Evidence (H,) of each hypothesis pose (H, 3) (``hypotheses.score_hypotheses``;
+    :class:`BoxTerms` ego and collab, :class:`EvidenceSettings`): the gains of the
+    collaborator's boxes inside the ego's observed disk (radius ``ego.range`` m) under
+    every hypothesis, with free space the ego's boxes inside the collaborator's disk (gains
+    minus ``free_space_penalty`` per unexplained box), with mutual detection the two direct
+    detections' gains."""
+    ego, collab, evidence = BoxTerms(*ego), BoxTerms(*collab), EvidenceSettings(*evidence)
+    ego_poses, col_poses, ego_range, col_range = ego.poses, collab.poses, ego.range, collab.range
     n_col, n_ego, n_hyp = col_poses.shape[0], ego_poses.shape[0], poses.shape[0]
     forward_set = np.ones(n_col, dtype=np.bool_)
     backward_set = np.ones(n_ego, dtype=np.bool_)
@@ -320,18 +397,14 @@ def hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
     selected = np.empty(max(n_col, n_ego))
     for h in range(n_hyp):
         pose = poses[h]
-        forward, backward = best_pair_gains(
-            ego_poses, ego_log_sizes, ego_var_t, ego_var_r, _mapped(pose, col_poses),
-            col_log_sizes, col_var_t, col_var_r, slack_t, slack_r, size_denominator,
-            outlier_chi2,
-        )
+        forward, backward = best_pair_gains(ego, collab, _mapped(pose, col_poses), evidence)
         count = 0
         for j in range(n_col):
             if forward_set[j]:
                 selected[count] = forward[j]
                 count += 1
         scores[h] = pairwise_sum(selected, 0, count)
-        if use_free_space:
+        if evidence.use_free_space:
             count = unexplained = 0
             for i in range(n_ego):
                 if backward_set[i]:
@@ -339,17 +412,15 @@ def hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
                     count += 1
                     unexplained += backward[i] == 0
             scores[h] += pairwise_sum(selected, 0, count)
-            scores[h] -= free_space_penalty * float(unexplained)
-        if use_mutual_detection:
+            scores[h] -= evidence.free_space_penalty * float(unexplained)
+        if evidence.use_mutual_detection:
             c, s = math.cos(pose[2]), math.sin(pose[2])
             inverse = np.array([-c * pose[0] - s * pose[1], s * pose[0] - c * pose[1], -pose[2]])
             total = 0.0
             if n_ego:
-                total += _mutual_gain(ego_poses, ego_var_t, ego_var_r, pose, backward == 0,
-                                      slack_t, slack_r, outlier_chi2)
+                total += _mutual_gain(ego, pose, backward == 0, evidence)
             if n_col:
-                total += _mutual_gain(col_poses, col_var_t, col_var_r, inverse, forward == 0,
-                                      slack_t, slack_r, outlier_chi2)
+                total += _mutual_gain(collab, inverse, forward == 0, evidence)
             scores[h] += total
     return scores
 
@@ -375,21 +446,20 @@ def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, c
                     col_log_sizes, col_var_t, col_var_r, col_range, poses, reported, track,
                     use_track, score, priors, distinct):
     """Step 2-3 of ``roco_env.policies.antialias`` for one collaborator's refined hypotheses
-    (H, 3), H >= 1: their evidence (:func:`hypothesis_scores` with ``score`` = its
-    (slack_t, slack_r, size_denominator, outlier_chi2, free_space_penalty, use_free_space,
-    use_mutual_detection)) minus the prior terms of the reported pose (3,) and, with
-    ``use_track``, of the track's prediction ``track`` (3,), ``priors`` = their variances
-    (m^2, rad^2, m^2, rad^2). Two poses are distinct when farther apart than ``distinct``
-    = (m, rad).
+    (H, 3), H >= 1: their evidence (:func:`hypothesis_scores` of the ego's and the
+    collaborator's boxes, given field by field as :class:`BoxTerms` holds them, with the
+    :class:`EvidenceSettings` ``score``) minus the prior terms of the reported pose (3,)
+    and, with ``use_track``, of the track's prediction ``track`` (3,), ``priors`` = their
+    variances (m^2, rad^2, m^2, rad^2). Two poses are distinct when farther apart than
+    ``distinct`` = (m, rad). (Its caller, ``antialias._decide``, passes the boxes' arrays
+    one by one.)
 
     Returns (index of the best hypothesis, its score minus the best distinct one's, 0
     without a distinct one).
     """
-    slack_t, slack_r, size_denominator, outlier_chi2, penalty, free_space, mutual = score
-    scores = hypothesis_scores(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range,
-                               col_poses, col_log_sizes, col_var_t, col_var_r, col_range, poses,
-                               slack_t, slack_r, size_denominator, outlier_chi2, penalty,
-                               free_space, mutual)
+    ego = BoxTerms(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range)
+    collab = BoxTerms(col_poses, col_log_sizes, col_var_t, col_var_r, col_range)
+    scores = hypothesis_scores(ego, collab, poses, score)
     count = poses.shape[0]
     for h in range(count):
         scores[h] -= _prior_chi2(poses[h], reported, priors[0], priors[1])

@@ -23,11 +23,17 @@ frame with the current pose estimate):
    S (maximum 1 + lambda); with a term switched off (ablation) the bar is scaled by the
    remaining terms' maximum (:attr:`MatchingParams.similarity_threshold`).
 
-The gate search and the (candidate pair x matched leaf) sums of S_edge are compiled
-loops (:mod:`roco_env.policies.pose_kernels`). :class:`StarGraphMatcher` serves the
-re-matching rounds of one collaborator against one landmark set: per-box
-features are computed once, and S_edge is reused while the candidate pairs and
-the initial matches stay the same (it does not depend on the pose otherwise).
+A matching is one compiled call (:func:`~roco_env.policies.pose_kernels.scored_pairs`):
+the gate search, the (candidate pair x matched leaf) sums of S_edge and the assignment
+(scipy's Kuhn-Munkres algorithm, step for step, when a landmark or a box has several
+candidates). S_edge is a sum over the leaves of products of a candidate factor and a leaf
+factor: with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own frame), u_m = yaw_m -
+yaw_n and v_pq = yaw_p - yaw_q, ``||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) +
+|d_pm|^2 + |d_qn|^2 - 2 d_pm^T R(u_m) d_qn``, every term a (C, 11) by (11, H) product of
+:func:`pose_features`. :class:`StarGraphMatcher` serves the re-matching rounds of one
+collaborator against one landmark set: per-box features are computed once, and S_edge is
+reused while the candidate pairs and the initial matches stay the same (it does not
+depend on the pose otherwise).
 """
 
 from __future__ import annotations
@@ -35,11 +41,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from roco_env.policies.pose_kernels import (
-    compact_pairs,
-    edge_similarity,
+    MatchSettings,
+    empty_match_cache,
     placed_centres,
     scored_pairs,
 )
@@ -90,12 +95,13 @@ class MatchingParams:
         remaining = float(self.use_edge_similarity) + self.lam * float(self.use_distance_similarity)
         return self.tau1 * remaining / (1.0 + self.lam)
 
-    def kernel_terms(self) -> tuple[float, bool, float, float]:
-        """The settings as :func:`~roco_env.policies.pose_kernels.scored_pairs` takes
-        them: weight of S_dis (0 = not used), use of S_edge, squared star-graph radius
-        (m^2; -1 = no radius) and the bar on S (:attr:`similarity_threshold`)."""
+    def match_settings(self) -> MatchSettings:
+        """The settings as the compiled matching takes them
+        (:class:`~roco_env.policies.pose_kernels.MatchSettings`): weight of S_dis (0 = not
+        used), use of S_edge, squared star-graph radius (m^2; -1 = no radius) and the bar
+        on S (:attr:`similarity_threshold`)."""
         radius = self.neighbor_radius
-        return (
+        return MatchSettings(
             float(self.lam) if self.use_distance_similarity else 0.0,
             bool(self.use_edge_similarity),
             -1.0 if radius is None else float(radius) ** 2,
@@ -151,9 +157,10 @@ class StarGraphMatcher:
         )
         self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
         self._box_features = pose_features(boxes_own) if box_features is None else box_features
-        self._terms = params.kernel_terms()
+        self._settings = tuple(params.match_settings())
         # S_edge of the last candidate pairs and initial matches (reused while they stay).
-        self._cache = (_EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0))
+        pairs, edge = empty_match_cache()
+        self._cache = tuple(pairs), edge
 
     def match(
         self, pose: np.ndarray, tau2: float | None = None
@@ -170,22 +177,17 @@ class StarGraphMatcher:
         """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
         if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
             return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        lam, use_edge, radius2, tau1 = self._terms
-        assigned, land, box, score, cand_p, cand_q, cand_score, self._cache = scored_pairs(
+        land, box, score, (pairs, edge) = scored_pairs(
             self._land_xy,
             np.ascontiguousarray(centres, dtype=float),
             float(tau2),
-            lam,
-            use_edge,
             self._land_features,
             self._box_features,
-            radius2,
-            tau1,
+            self._settings,
             self._cache,
         )
-        if assigned:
-            return land, box, score
-        return _assign(cand_p, cand_q, cand_score, tau1)
+        self._cache = tuple(pairs), edge  # plain tuples: pose_kernels' module docstring
+        return land, box, score
 
 
 def match_star_graphs(
@@ -199,73 +201,3 @@ def match_star_graphs(
     """
     matcher = StarGraphMatcher(landmarks, boxes_own, params)
     return matcher.match_centres(np.asarray(boxes_ego)[:, :2], params.tau2)
-
-
-def _assign(
-    cand_p: np.ndarray, cand_q: np.ndarray, score: np.ndarray, tau1: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Maximum-weight one-to-one assignment (Kuhn-Munkres) over the candidate pairs
-    (sorted by p); assigned pairs with S < tau1 are dropped.
-
-    When every landmark and every box has a single candidate and every score is > 0, the
-    unique optimum takes all pairs, so the solver is skipped (the usual sparse scene).
-    """
-    rows, row_idx, cols, col_idx, single = compact_pairs(cand_p, cand_q)
-    if single and np.all(score > 0):
-        keep = score >= tau1
-        return cand_p[keep], cand_q[keep], score[keep]
-    weights = np.zeros((rows.size, cols.size))
-    weights[row_idx, col_idx] = score
-    valid = np.zeros_like(weights, dtype=bool)
-    valid[row_idx, col_idx] = True
-    r, c = linear_sum_assignment(weights, maximize=True)
-    keep = valid[r, c] & (weights[r, c] >= tau1)
-    return rows[r[keep]], cols[c[keep]], weights[r[keep], c[keep]]
-
-
-def _edge_similarity(
-    landmarks: np.ndarray,
-    boxes_own: np.ndarray,
-    dis: np.ndarray,
-    gated: np.ndarray,
-    cand_p: np.ndarray,
-    cand_q: np.ndarray,
-    params: MatchingParams,
-) -> np.ndarray:
-    """S_edge for every candidate pair (C,) via the initial-match table A (gated: dis <= tau2)."""
-    leaves = np.nonzero(gated.any(axis=1))[0]  # landmarks m with an initial match
-    partner = np.argmin(np.where(gated[leaves], dis[leaves], np.inf), axis=1)  # n = A(m)
-    return _edge_similarity_from_features(
-        pose_features(landmarks),
-        pose_features(boxes_own),
-        cand_p,
-        cand_q,
-        leaves,
-        partner,
-        params.neighbor_radius,
-    )
-
-
-def _edge_similarity_from_features(
-    land: np.ndarray,
-    box: np.ndarray,
-    cand_p: np.ndarray,
-    cand_q: np.ndarray,
-    leaves: np.ndarray,
-    partner: np.ndarray,
-    neighbor_radius: float | None,
-) -> np.ndarray:
-    """S_edge (C,) from :func:`pose_features` of the landmarks and the boxes.
-
-    ||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) + |d_pm|^2 + |d_qn|^2
-    - 2 d_pm^T R(u_m) d_qn, with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own
-    frame), u_m = yaw_m - yaw_n and v_pq = yaw_p - yaw_q. Every term is a product of a
-    candidate feature and a leaf feature: (C, 11) and (11, H) factors, built and summed per
-    usable (pair, leaf) in :func:`~roco_env.policies.pose_kernels.edge_similarity`
-    (pairs outside either star, ``neighbor_radius``, are skipped; None = no radius).
-    """
-    radius2 = -1.0 if neighbor_radius is None else float(neighbor_radius) ** 2
-    return edge_similarity(
-        np.ascontiguousarray(land), np.ascontiguousarray(box), cand_p, cand_q, leaves, partner,
-        radius2,
-    )

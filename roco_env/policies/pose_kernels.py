@@ -10,16 +10,30 @@ problem (:func:`solve_pose`) and of the joint graph with its Schur complement
 results of tests/test_roco_reference.py still hold).
 
 RoCo's matching runs here too: the gate search (:func:`gated_pairs`), the edge similarity
-(:func:`edge_similarity`; :func:`~roco_env.policies.matching._edge_similarity_from_features`
-scores every candidate pair against every matched leaf; with the star graphs' neighbour
-radius most (pair, leaf) combinations are not leaves of both stars, so one loop that skips
-them costs a fraction of the dense (C x H) array passes, results agreeing to rounding),
-the assignment's index compaction and shortcut (:func:`scored_pairs`;
-tests/test_matching_kernels.py), and a collaborator's whole match-optimise loop
-(:func:`attempt_rounds`; tests/test_roco_kernels.py compares it with the Python loop of
-``roco._attempt_loop``). They share this module with the solver because a compiled
-function calls only functions of its own module (numba's on-disk cache notices edits to
-a function's own file only).
+(:func:`edge_similarity`: every candidate pair scored against every matched leaf; with
+the star graphs' neighbour radius most (pair, leaf) combinations are not leaves of both
+stars, so one loop skips them), the assignment (:func:`scored_pairs`: its shortcut, or
+the Kuhn-Munkres solver of :func:`max_weight_assignment`;
+tests/test_matching_kernels.py), a collaborator's whole match-optimise loop
+(:func:`attempt_rounds`; tests/test_roco_kernels.py compares it with a Python loop of the
+same steps) and the map after an accepted collaborator (:func:`committed_map`). They share
+this module with the solver because a compiled function calls only functions of its own
+module, and uses only records defined in it (numba's on-disk cache notices edits to a
+function's own file only).
+
+The kernels take their inputs as small records defined here once (``typing.NamedTuple``,
+which numba compiles as tuples with named fields): the solver's settings
+(:class:`Solver`), a prior edge (:class:`PriorEdge`), the edges of a single-vertex problem
+(:class:`PoseEdges`) or of a pose graph (:class:`GraphEdges`), the matcher's settings
+(:class:`MatchSettings`), a collaborator's boxes (:class:`AgentBoxes`), RoCo's map
+(:class:`LandmarkMap`, :class:`Observations`), the rounds' settings
+(:class:`RoundSettings`) and state (:class:`RoundState`). From Python a record is passed
+as a plain tuple, ``tuple(record)``: numba types a named tuple
+argument field by field in Python on every call (about 15 us for the rounds' settings),
+a plain one in C (about 1 us); the kernels name it again on entry (``Record(*argument)``,
+free once compiled), so either form is accepted. The other way, a named tuple is boxed by
+calling its class (about 3 us), so the rounds and the commit, called per collaborator,
+return their records as plain tuples (:func:`_plain`) for the caller to name.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -28,27 +42,229 @@ Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core.imputils import impl_ret_borrowed
+from numba.extending import intrinsic
 
-__all__ = ["KERNEL_CODES", "attempt_rounds", "compact_pairs", "damped_step", "edge_similarity",
-           "edge_similarity_sums", "evaluate_edges", "gated_pairs", "inverse_covariances",
-           "normal_sums", "placed_centres", "refine_pose", "refine_starts", "rotate_information",
-           "scored_pairs", "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
+__all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMap",
+           "Linearisation", "MatchSettings", "Observations", "PoseEdges", "PriorEdge",
+           "PriorTerms", "RefineSettings", "RoundSettings", "RoundState", "Solver",
+           "attempt_rounds", "committed_map", "compact_pairs", "damped_step",
+           "edge_similarity", "edge_similarity_sums", "empty_match_cache", "evaluate_edges",
+           "gated_pairs", "inverse_covariances", "max_weight_assignment", "normal_sums",
+           "placed_centres", "placed_landmarks", "pose_edges", "prior_terms", "refine_pose",
+           "refine_starts", "resume_rounds", "rotate_information", "scored_pairs",
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
 
-@njit(cache=True)
-def evaluate_edges(x, y, yaw, land_xy, t_z, angle, info, kernel, delta):
-    """Residuals of E edges at the pose (x m, y m, yaw rad).
+class Solver(NamedTuple):
+    """Levenberg-Marquardt settings: the robust kernel's code (:data:`KERNEL_CODES`) and
+    delta (whitened units), the cap on linearisations, the stop on an accepted step's
+    relative cost decrease or largest component, and the smallest damping diagonal."""
 
-    land_xy (E, 2), t_z (E, 2): landmark centres and measurement translations; angle (E,):
-    landmark yaw minus measured yaw; info (E, 3, 3): per-edge information in the rotated
-    residual frame. Returns (sum of rho, chi2 (E,), u (E, 2) = R(-yaw)(t_l - t),
-    Omega e (E, 3), IRLS weight (E,)).
-    """
+    kernel: int
+    delta: float
+    max_iterations: int
+    tolerance: float
+    min_diag: float
+
+
+class PriorEdge(NamedTuple):
+    """A prior edge from the fixed identity vertex (the ego) to the agent: measurement
+    z (3,) (x m, y m, yaw rad) and information (3, 3) (zeros: no prior)."""
+
+    z: np.ndarray
+    information: np.ndarray
+
+
+class PriorTerms(NamedTuple):
+    """The constant terms of a :class:`PriorEdge` (:func:`prior_terms`): its Jacobian
+    J_p = blockdiag(R_z^T, 1) (3, 3), offset J_p z (3,), information Omega_p (3, 3),
+    hessian J_p^T Omega_p J_p (3, 3) and weighted Jacobian Omega_p J_p (3, 3); the
+    residual is J_p pose - offset, yaw wrapped."""
+
+    jacobian: np.ndarray
+    offset: np.ndarray
+    information: np.ndarray
+    hessian: np.ndarray
+    weighted: np.ndarray
+
+
+class PoseEdges(NamedTuple):
+    """E observation edges of one agent vertex to fixed landmarks (:func:`pose_edges`):
+    landmark centres land_xy (E, 2), measured translations t_z (E, 2), landmark yaw minus
+    measured yaw ``angle`` (E,) and the information ``info`` (E, 3, 3) in the rotated
+    residual frame (:func:`rotate_information`)."""
+
+    land_xy: np.ndarray
+    t_z: np.ndarray
+    angle: np.ndarray
+    info: np.ndarray
+
+
+class Linearisation(NamedTuple):
+    """Per-edge terms of :class:`PoseEdges` at a pose (:func:`evaluate_edges`): chi2 (E,),
+    u (E, 2) = R(-yaw)(t_l - t), info_e (E, 3) = Omega e, IRLS weight (E,)."""
+
+    chi2: np.ndarray
+    u: np.ndarray
+    info_e: np.ndarray
+    weight: np.ndarray
+
+
+class GraphEdges(NamedTuple):
+    """The edges of a pose graph (:func:`solve_graph`): vertices 0 .. n_agents - 1 are
+    agents, the rest landmarks; the first n_obs edges observe landmark ``to_v`` (a
+    landmark index) from agent ``from_v``, the others are priors agent -> agent;
+    measurement yaw meas_yaw (E,), R_z^T t_z meas_offset (E, 2), information (E, 3, 3)."""
+
+    n_agents: int
+    n_obs: int
+    from_v: np.ndarray
+    to_v: np.ndarray
+    meas_yaw: np.ndarray
+    meas_offset: np.ndarray
+    info: np.ndarray
+
+
+class NormalEquations(NamedTuple):
+    """Blocks of a pose graph's normal equations: H_aa (3N, 3N), H_al (3N, 3M), the
+    block-diagonal H_ll (M, 3, 3), g_a (3N,), g_l (M, 3)."""
+
+    h_aa: np.ndarray
+    h_al: np.ndarray
+    h_ll: np.ndarray
+    g_a: np.ndarray
+    g_l: np.ndarray
+
+
+class GatedPairs(NamedTuple):
+    """The gate's pairs of a matching (:func:`gated_pairs`): candidate pairs of landmark
+    p (C,) and box q (C,) with their centre distance (C,, m), and the initial matches:
+    the landmarks with a box within the gate (leaves (H,)) and their nearest box
+    (partner (H,))."""
+
+    p: np.ndarray
+    q: np.ndarray
+    distance: np.ndarray
+    leaves: np.ndarray
+    partner: np.ndarray
+
+
+class RefineSettings(NamedTuple):
+    """A refinement's settings (:func:`refine_pose`): matching gate (m), the fewest
+    matched boxes a round needs, the solver's settings (:class:`Solver`, or its plain
+    tuple)."""
+
+    gate: float
+    min_matches: int
+    solver: Solver
+
+
+class MatchSettings(NamedTuple):
+    """``matching.StarGraphMatcher``'s settings (:func:`scored_pairs`): weight ``lam`` of
+    S_dis (0: not used), whether S_edge is used, the squared star-graph radius radius2
+    (m^2; < 0: no radius) and the bar tau1 on S."""
+
+    lam: float
+    use_edge: bool
+    radius2: float
+    tau1: float
+
+
+class AgentBoxes(NamedTuple):
+    """One collaborator's boxes as RoCo's rounds use them: poses (K, 3) in its own frame,
+    information (K, 3, 3) and covariance (K, 3, 3) in the box frame, pose features (5, K)
+    (``matching.pose_features``), and its reported pose (3,) (the prior edge's
+    measurement)."""
+
+    poses: np.ndarray
+    information: np.ndarray
+    covariance: np.ndarray
+    features: np.ndarray
+    reported: np.ndarray
+
+
+class LandmarkMap(NamedTuple):
+    """RoCo's landmarks: poses (L, 3) in the ego frame, pose features (5, L)
+    (``matching.pose_features``) and the covariance (L, 3, 3) of the box that created
+    each."""
+
+    poses: np.ndarray
+    features: np.ndarray
+    covariance: np.ndarray
+
+
+class Observations(NamedTuple):
+    """RoCo's observations (O,): observation o is box ``box[o]`` of agent ``agent[o]``
+    (0 = the ego) seeing landmark ``land[o]``."""
+
+    agent: np.ndarray
+    box: np.ndarray
+    land: np.ndarray
+
+
+class RoundSettings(NamedTuple):
+    """RoCo's match-optimise rounds (:func:`attempt_rounds`; the matcher's and the
+    solver's settings come beside them): the matching gate tau2 (m), the first round's
+    wider gate coarse_tau2 (m; <= 0: none), min_matches, the round cap, the prior edges'
+    information (3, 3), inlier_chi2, the significance fit's LM stop (0: no significance
+    test), whether an edge carries the information of box minus landmark (``difference``;
+    else the box's own), and whether the rounds pause for a joint solve of the whole graph
+    (``joint``)."""
+
+    tau2: float
+    coarse_tau2: float
+    min_matches: int
+    rounds: int
+    prior_information: np.ndarray
+    inlier_chi2: float
+    fit_tolerance: float
+    difference: bool
+    joint: bool
+
+
+class RoundState(NamedTuple):
+    """Where a collaborator's rounds stand: its pose estimate (3,), matched landmark ids
+    and box indices (P,), whether the last matching had min_matches, the matched edges'
+    chi2 (P,) and landmarks (P, 3) at the estimate, the rounds run and the solver's
+    iterations so far."""
+
+    pose: np.ndarray
+    match_land: np.ndarray
+    match_box: np.ndarray
+    solved: bool
+    chi2: np.ndarray
+    landmarks: np.ndarray
+    outer: int
+    iterations: int
+
+
+@intrinsic
+def _plain(typingctx, record):
+    """The fields of a record (a named tuple) as a plain tuple: the same value, typed as
+    a tuple, so that it is boxed in C when returned to Python."""
+    if not isinstance(record, types.BaseNamedTuple):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return impl_ret_borrowed(context, builder, signature.return_type, args[0])
+
+    return types.Tuple(record.types)(record), codegen
+
+
+@njit(cache=True)
+def evaluate_edges(pose, edges, kernel, delta):
+    """Residuals of the :class:`PoseEdges` at the pose (3,) (x m, y m, yaw rad) with the
+    robust kernel (code, delta). Returns (sum of rho, :class:`Linearisation`)."""
+    edges = PoseEdges(*edges)
+    land_xy, t_z, angle, info = edges.land_xy, edges.t_z, edges.angle, edges.info
+    x, y, yaw = pose[0], pose[1], pose[2]
     n = land_xy.shape[0]
     c, s = math.cos(yaw), math.sin(yaw)
     chi2 = np.empty(n)
@@ -85,7 +301,7 @@ def evaluate_edges(x, y, yaw, land_xy, t_z, angle, info, kernel, delta):
             ratio = q / d2
             total += d2 * math.log1p(ratio)
             weight[k] = 1.0 / (1.0 + ratio)
-    return total, chi2, u, info_e, weight
+    return total, Linearisation(chi2, u, info_e, weight)
 
 
 @njit(cache=True)
@@ -115,13 +331,18 @@ def rotate_information(info, meas_yaw):
 
 
 @njit(cache=True)
-def normal_sums(c, s, u, info, info_e, weight, with_gradient):
-    """Gauss-Newton Hessian (3, 3) and gradient (3,) of the weighted edges (the gradient is
-    zeros unless ``with_gradient``), in the (x, y, yaw) coordinates of the pose.
+def normal_sums(yaw, info, point, weight, with_gradient):
+    """Gauss-Newton Hessian (3, 3) and gradient (3,) of the edges with information info
+    (E, 3, 3) (rotated residual frame) linearised at ``point`` (:class:`Linearisation`
+    at the pose's yaw, rad), each weighted by weight (E,) (the gradient is zeros unless
+    ``with_gradient``), in the (x, y, yaw) coordinates of the pose.
 
     With m = (-u_y, u_x): inner = sum w N^T Omega N (N = I + m e3^T), H = Q inner Q^T,
-    g = -Q sum w N^T Omega e, Q = blockdiag(R(yaw), 1), c/s = cos/sin(yaw).
+    g = -Q sum w N^T Omega e, Q = blockdiag(R(yaw), 1).
     """
+    c, s = math.cos(yaw), math.sin(yaw)
+    point = Linearisation(*point)
+    u, info_e = point.u, point.info_e
     o = np.zeros(9)
     v0 = v1 = v2 = quad = 0.0
     g0 = g1 = g2 = 0.0
@@ -200,62 +421,54 @@ def damped_step(hess, grad, lam, min_diag):
 
 @njit(cache=True)
 def _wrap(angle):
-    """Wrap to [-pi, pi) as ``posegraph._wrap_scalar`` (Python's float ``%``)."""
+    """Wrap to [-pi, pi) as ``posegraph._wrap`` (float ``%``: fmod with numpy's sign fix-up)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @njit(cache=True)
-def _pose_cost(pose, land_xy, t_z, angle, info, kernel, delta, prior):
+def _pose_cost(pose, edges, prior, solver):
     """Robust cost and linearisation point at ``pose`` (3,): :func:`evaluate_edges` plus
-    the quadratic prior edge (posegraph._PoseProblem.evaluate; a zero-information prior,
-    :func:`_no_prior`, adds exact zeros). Returns (cost, chi2, u, info_e, weight, prior
+    the quadratic prior edge (:class:`PriorTerms`; a zero-information prior,
+    :func:`_no_prior`, adds exact zeros). Returns (cost, :class:`Linearisation`, prior
     residual (3,))."""
-    yaw = pose[2]
-    cost, chi2, u, info_e, weight = evaluate_edges(
-        pose[0], pose[1], yaw, land_xy, t_z, angle, info, kernel, delta
-    )
+    cost, point = evaluate_edges(pose, edges, solver.kernel, solver.delta)
     e_p = np.empty(3)
-    j_p, offset, info_p = prior[0], prior[1], prior[2]
+    j_p, offset, info_p = prior.jacobian, prior.offset, prior.information
     for r in range(3):
         e_p[r] = j_p[r, 0] * pose[0] + j_p[r, 1] * pose[1] + j_p[r, 2] * pose[2] - offset[r]
     e_p[2] = _wrap(e_p[2])
     quad = 0.0
     for b in range(3):
         quad += (e_p[0] * info_p[0, b] + e_p[1] * info_p[1, b] + e_p[2] * info_p[2, b]) * e_p[b]
-    return cost + quad, chi2, u, info_e, weight, e_p
+    return cost + quad, point, e_p
 
 
 @njit(cache=True)
-def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_iterations,
-               tolerance, min_diag):
+def solve_pose(initial, edges, prior, solver):
     """Levenberg-Marquardt of one agent vertex against fixed landmarks: the loop of
-    :func:`solve_graph` with ``posegraph._PoseProblem``'s linearisation (same stopping
-    rules, same arithmetic per edge).
+    :func:`solve_graph` with the single vertex's linearisation (same stopping rules, same
+    arithmetic per edge).
 
-    initial (3,) pose; edges as :func:`evaluate_edges`; prior: the prior edge's terms
-    (:func:`prior_terms`; :func:`_no_prior` for none: its zeros change nothing). Returns
-    (pose (3,), chi2 (E,) at it, initial cost, cost, iterations, converged).
+    initial (3,) pose; edges: :class:`PoseEdges`; prior: the prior edge's
+    :class:`PriorTerms` (:func:`_no_prior` for none: its zeros change nothing); solver:
+    :class:`Solver`. Returns (pose (3,), chi2 (E,) at it, initial cost, cost, iterations,
+    converged).
     """
     x = initial.copy()
-    cost, chi2, u, info_e, weight, e_p = _pose_cost(
-        x, land_xy, t_z, angle, info, kernel, delta, prior
-    )
+    cost, point, e_p = _pose_cost(x, edges, prior, solver)
+    weighted = prior.weighted
     initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
-    while iterations < max_iterations and not converged:
+    while iterations < solver.max_iterations and not converged:
         iterations += 1
-        hess, grad = normal_sums(
-            math.cos(x[2]), math.sin(x[2]), u, info, info_e, weight, True
-        )
-        hess += prior[3]
+        hess, grad = normal_sums(x[2], edges.info, point, point.weight, True)
+        hess += prior.hessian
         for r in range(3):
-            grad[r] += prior[4][0, r] * e_p[0] + prior[4][1, r] * e_p[1] + prior[4][2, r] * e_p[2]
+            grad[r] += weighted[0, r] * e_p[0] + weighted[1, r] * e_p[1] + weighted[2, r] * e_p[2]
         while True:
-            step_delta, step = damped_step(hess, grad, lam, min_diag)
+            step_delta, step = damped_step(hess, grad, lam, solver.min_diag)
             trial = x + step_delta
             trial[2] = _wrap(trial[2])
-            t_cost, t_chi2, t_u, t_info_e, t_weight, t_e_p = _pose_cost(
-                trial, land_xy, t_z, angle, info, kernel, delta, prior
-            )
+            t_cost, t_point, t_e_p = _pose_cost(trial, edges, prior, solver)
             if t_cost <= cost:
                 break
             lam *= 10.0
@@ -265,18 +478,20 @@ def solve_pose(initial, land_xy, t_z, angle, info, kernel, delta, prior, max_ite
         if converged:
             break
         decrease = cost - t_cost
-        x, cost = trial, t_cost
-        chi2, u, info_e, weight, e_p = t_chi2, t_u, t_info_e, t_weight, t_e_p
+        x, cost, point, e_p = trial, t_cost, t_point, t_e_p
         lam = max(lam / 10.0, 1e-12)
-        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
-    return x, chi2, initial_cost, cost, iterations, converged
+        converged = decrease <= solver.tolerance * max(cost, 1e-300) or step <= solver.tolerance
+    return x, point.chi2, initial_cost, cost, iterations, converged
 
 
 @njit(cache=True)
-def _graph_cost(x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta):
-    """Robust cost of the pose graph at the vertices x (V, 3) (agents, then landmarks) and
-    per edge: e (E, 3), chi2 (E,), IRLS weight (E,; 1 on prior edges), and the Jacobian
-    terms c, s, w_x, w_y (E,) of ``Z^{-1} T_a^{-1} T_b`` (``posegraph._residuals``)."""
+def _graph_cost(x, edges, kernel, delta):
+    """Robust cost of the pose graph's :class:`GraphEdges` at the vertices x (V, 3)
+    (agents, then landmarks) with the robust kernel (code, delta), and per edge: e (E, 3),
+    chi2 (E,), IRLS weight (E,; 1 on prior edges), and the Jacobian terms c, s, w_x, w_y
+    (E,) of ``Z^{-1} T_a^{-1} T_b`` (``posegraph._residuals``)."""
+    n_agents, n_obs, from_v, to_v = edges.n_agents, edges.n_obs, edges.from_v, edges.to_v
+    meas_yaw, meas_offset, info = edges.meas_yaw, edges.meas_offset, edges.info
     n = from_v.size
     e = np.empty((n, 3))
     chi2 = np.empty(n)
@@ -318,11 +533,14 @@ def _graph_cost(x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, k
 
 
 @njit(cache=True)
-def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms):
-    """H_aa (3N, 3N), H_al (3N, 3M), block-diagonal H_ll (M, 3, 3), g_a (3N,), g_l (M, 3)
-    of the weighted edges: each edge adds J^T w Omega J and J^T w Omega e, J = [J_a | J_b]
+def _graph_normal_equations(edges, n_land, e, weight, terms):
+    """:class:`NormalEquations` of the weighted :class:`GraphEdges` with M = n_land
+    landmarks, from their residuals e (E, 3), weights (E,) and Jacobian terms (E, 4)
+    (:func:`_graph_cost`): each edge adds J^T w Omega J and J^T w Omega e, J = [J_a | J_b]
     (3, 6) its Jacobian; rows/columns 3-5 belong to the landmark (observation edges) or
     to the second agent (prior edges)."""
+    n_agents, n_obs, from_v, to_v, info = (edges.n_agents, edges.n_obs, edges.from_v,
+                                           edges.to_v, edges.info)
     h_aa = np.zeros((3 * n_agents, 3 * n_agents))
     h_al = np.zeros((3 * n_agents, 3 * n_land))
     h_ll = np.zeros((n_land, 3, 3))
@@ -369,7 +587,7 @@ def _graph_normal_equations(n_agents, n_land, from_v, to_v, info, n_obs, e, weig
                     h_aa[a + i, b + j] += block[i, 3 + j]
                     h_aa[b + i, a + j] += block[3 + i, j]
                     h_aa[b + i, b + j] += block[3 + i, 3 + j]
-    return h_aa, h_al, h_ll, g_a, g_l
+    return NormalEquations(h_aa, h_al, h_ll, g_a, g_l)
 
 
 @njit(cache=True)
@@ -393,12 +611,14 @@ def _inverse3(a, out):
 
 
 @njit(cache=True)
-def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag):
-    """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) with Marquardt
-    damping ``lam``; the landmarks are eliminated by the Schur complement and the agents
-    not in ``free`` (coordinate indices) stay fixed. H_al's block column of landmark m is
-    zero outside the coordinate rows ``rows[row_start[m]:row_start[m + 1]]`` (those of
-    the agents observing it), so only those rows are visited."""
+def _graph_step(normal, rows, row_start, free, lam, min_diag):
+    """LM step (d_agents (3N,), d_landmarks (M, 3), max |component|) of the
+    :class:`NormalEquations` with Marquardt damping ``lam``; the landmarks are eliminated
+    by the Schur complement and the agents not in ``free`` (coordinate indices) stay fixed.
+    H_al's block column of landmark m is zero outside the coordinate rows
+    ``rows[row_start[m]:row_start[m + 1]]`` (those of the agents observing it), so only
+    those rows are visited."""
+    h_aa, h_al, h_ll, g_a, g_l = normal.h_aa, normal.h_al, normal.h_ll, normal.g_a, normal.g_l
     n_a, n_land = h_aa.shape[0], h_ll.shape[0]
     damped = h_aa.copy()
     for i in range(n_a):
@@ -466,9 +686,11 @@ def _graph_step(h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
 
 
 @njit(cache=True)
-def _landmark_rows(n_agents, n_land, from_v, to_v, n_obs):
-    """Per landmark, the coordinate rows (3 per agent, agents in increasing order) of the
-    agents observing it, as CSR (rows, start (M + 1,))."""
+def _landmark_rows(edges, n_land):
+    """Per landmark (n_land of them), the coordinate rows (3 per agent, agents in
+    increasing order) of the agents observing it in the :class:`GraphEdges`, as CSR
+    (rows, start (M + 1,))."""
+    n_agents, n_obs, from_v, to_v = edges.n_agents, edges.n_obs, edges.from_v, edges.to_v
     sees = np.zeros((n_land, n_agents), dtype=np.bool_)
     for k in range(n_obs):
         sees[to_v[k], from_v[k]] = True
@@ -486,41 +708,33 @@ def _landmark_rows(n_agents, n_land, from_v, to_v, n_obs):
 
 
 @njit(cache=True)
-def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, free, kernel,
-                delta, max_iterations, tolerance, min_diag):
+def solve_graph(x0, edges, free, solver):
     """Levenberg-Marquardt on a pose graph (``posegraph.optimize``): vertices x0 (V, 3),
-    agents first then landmarks; E edges, the first ``n_obs`` observations (agent
-    ``from_v`` -> landmark ``to_v``, a landmark index), then priors (agent -> agent);
-    measurement yaw (E,), R_z^T t_z (E, 2), information (E, 3, 3); ``free``: coordinate
-    indices of the agents that move. Starts with lam = 1e-4; an accepted step (cost not
-    raised) divides lam by 10, a rejected one multiplies it by 10 until 1e12 (no
-    progress: converged); stops after ``max_iterations`` linearisations, or when an
-    accepted step's relative cost decrease or largest component is below ``tolerance``.
-    Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations, converged)."""
+    agents first then landmarks, joined by the :class:`GraphEdges`; ``free``: coordinate
+    indices of the agents that move; solver: :class:`Solver`. Starts with lam = 1e-4; an
+    accepted step (cost not raised) divides lam by 10, a rejected one multiplies it by 10
+    until 1e12 (no progress: converged); stops after ``max_iterations`` linearisations, or
+    when an accepted step's relative cost decrease or largest component is below
+    ``tolerance``. Returns (x (V, 3), chi2 (E,), initial cost, cost, iterations,
+    converged)."""
+    edges, solver = GraphEdges(*edges), Solver(*solver)
+    n_agents, kernel, delta = edges.n_agents, solver.kernel, solver.delta
     n_land = x0.shape[0] - n_agents
-    rows, row_start = _landmark_rows(n_agents, n_land, from_v, to_v, n_obs)
+    rows, row_start = _landmark_rows(edges, n_land)
     x = x0.copy()
-    cost, e, chi2, weight, terms = _graph_cost(
-        x, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
-    )
+    cost, e, chi2, weight, terms = _graph_cost(x, edges, kernel, delta)
     initial_cost, lam, iterations, converged = cost, 1e-4, 0, False
-    while iterations < max_iterations and not converged:
+    while iterations < solver.max_iterations and not converged:
         iterations += 1
-        h_aa, h_al, h_ll, g_a, g_l = _graph_normal_equations(
-            n_agents, n_land, from_v, to_v, info, n_obs, e, weight, terms
-        )
+        normal = _graph_normal_equations(edges, n_land, e, weight, terms)
         while True:
-            d_a, d_l, step = _graph_step(
-                h_aa, h_al, h_ll, g_a, g_l, rows, row_start, free, lam, min_diag
-            )
+            d_a, d_l, step = _graph_step(normal, rows, row_start, free, lam, solver.min_diag)
             trial = x.copy()
             for v in range(x.shape[0]):
                 for i in range(3):
                     trial[v, i] += d_a[3 * v + i] if v < n_agents else d_l[v - n_agents, i]
                 trial[v, 2] = _wrap(trial[v, 2])
-            t_cost, t_e, t_chi2, t_weight, t_terms = _graph_cost(
-                trial, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, kernel, delta
-            )
+            t_cost, t_e, t_chi2, t_weight, t_terms = _graph_cost(trial, edges, kernel, delta)
             if t_cost <= cost:
                 break
             lam *= 10.0
@@ -532,7 +746,7 @@ def solve_graph(x0, n_agents, from_v, to_v, meas_yaw, meas_offset, info, n_obs, 
         decrease = cost - t_cost
         x, cost, e, chi2, weight, terms = trial, t_cost, t_e, t_chi2, t_weight, t_terms
         lam = max(lam / 10.0, 1e-12)
-        converged = decrease <= tolerance * max(cost, 1e-300) or step <= tolerance
+        converged = decrease <= solver.tolerance * max(cost, 1e-300) or step <= solver.tolerance
     return x, chi2, initial_cost, cost, iterations, converged
 
 
@@ -547,61 +761,70 @@ def inverse_covariances(covariance):
 
 
 @njit(cache=True)
-def wald_statistic(start, landmarks, own, covariance, reported, kernel, delta, max_iterations,
-                   tolerance, min_diag):
+def pose_edges(landmarks, measurement, information):
+    """:class:`PoseEdges` of E edges as given: fixed landmarks (E, 3), measurements
+    (E, 3) (the landmarks in the agent's frame) and information (E, 3, 3) (box frame)."""
+    return PoseEdges(np.ascontiguousarray(landmarks[:, :2]),
+                     np.ascontiguousarray(measurement[:, :2]),
+                     landmarks[:, 2] - measurement[:, 2],
+                     rotate_information(np.ascontiguousarray(information),
+                                        np.ascontiguousarray(measurement[:, 2])))
+
+
+@njit(cache=True)
+def wald_statistic(start, landmarks, own, covariance, reported, solver):
     """Robust Wald statistic of a correction (RoCo's significance test).
 
     The agent pose is fitted from ``start`` (3,) to its P edges alone (no prior): fixed
     landmarks (P, 3), its boxes ``own`` (P, 3) in its frame, each edge with the
     information ``covariance^-1`` (covariance (P, 3, 3) in the box frame), the robust
-    kernel and the LM rules of :func:`solve_pose`; then ``d = fit - reported`` (yaw
-    wrapped) is weighed by the sandwich ``A^-1 B A^-1``, A = sum w J^T Omega J,
-    B = sum w^2 J^T Omega J with w the IRLS weights at the fit: returns ``d^T A B^-1 A d``.
+    kernel and the LM rules of :func:`solve_pose` (solver: :class:`Solver`); then
+    ``d = fit - reported`` (yaw wrapped) is weighed by the sandwich ``A^-1 B A^-1``,
+    A = sum w J^T Omega J, B = sum w^2 J^T Omega J with w the IRLS weights at the fit:
+    returns ``d^T A B^-1 A d``.
     """
-    info = rotate_information(inverse_covariances(covariance), np.ascontiguousarray(own[:, 2]))
-    land_xy = np.ascontiguousarray(landmarks[:, :2])
-    t_z = np.ascontiguousarray(own[:, :2])
-    angle = landmarks[:, 2] - own[:, 2]
-    pose = solve_pose(start, land_xy, t_z, angle, info, kernel, delta, _no_prior(), max_iterations,
-                      tolerance, min_diag)[0]
-    _, _, u, info_e, weight = evaluate_edges(
-        pose[0], pose[1], pose[2], land_xy, t_z, angle, info, kernel, delta
-    )
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    bread = normal_sums(c, s, u, info, info_e, weight, False)[0]
-    meat = normal_sums(c, s, u, info, info_e, weight * weight, False)[0]
+    solver = Solver(*solver)
+    edges = pose_edges(landmarks, own, inverse_covariances(covariance))
+    pose = solve_pose(start, edges, _no_prior(), solver)[0]
+    point = evaluate_edges(pose, edges, solver.kernel, solver.delta)[1]
+    weight = point.weight
+    bread = normal_sums(pose[2], edges.info, point, weight, False)[0]
+    meat = normal_sums(pose[2], edges.info, point, weight * weight, False)[0]
     d = pose - reported
     d[2] = _wrap(d[2])
     ad = bread @ d
-    solved = damped_step(meat, -ad, 0.0, min_diag)[0]  # B^-1 A d
+    solved = damped_step(meat, -ad, 0.0, solver.min_diag)[0]  # B^-1 A d
     return ad[0] * solved[0] + ad[1] * solved[1] + ad[2] * solved[2]
 
 
 @njit(cache=True)
-def refine_pose(initial, land_poses, own_poses, own_info, gate, kernel, delta, min_matches,
-                max_iterations, tolerance, min_diag):
+def refine_pose(initial, land_poses, own_poses, own_info, settings):
     """Up to two rounds of nearest-centre matching and a robust single-vertex solve (the
     refinement of roco_antialias's hypotheses, :func:`refine_starts`).
 
     Each round maps the agent's boxes own_poses (K, 3) (its frame) into the landmarks'
     frame with the current pose (initial (3,) first), pairs every box with its nearest
-    landmark (land_poses (L, 3); lowest index among equal distances) closer than
-    ``gate`` m, and solves the pose from those pairs (boxes' information own_info (K, 3, 3),
-    no prior; LM rules of :func:`solve_pose`). The second round runs only when the pairs
-    changed. Returns (pose (3,), True), or (initial, False) when fewer than
-    ``min_matches`` boxes match in a round.
+    landmark (land_poses (L, 3); lowest index among equal distances) closer than the
+    gate, and solves the pose from those pairs (boxes' information own_info (K, 3, 3),
+    no prior; LM rules of :func:`solve_pose`); settings: :class:`RefineSettings`. The
+    second round runs only when the pairs changed. Returns (pose (3,), True), or
+    (initial, False) when fewer than ``min_matches`` boxes match in a round.
     """
+    settings = RefineSettings(*settings)
+    settings = RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
     by_x = np.argsort(land_poses[:, 0])
-    return _refine_sorted(initial, land_poses, by_x, land_poses[by_x, 0], own_poses, own_info,
-                          gate, kernel, delta, min_matches, max_iterations, tolerance, min_diag)
+    return _refine_sorted(initial, (land_poses, by_x, land_poses[by_x, 0]), own_poses, own_info,
+                          settings)
 
 
 @njit(cache=True)
-def _refine_sorted(initial, land_poses, by_x, sorted_x, own_poses, own_info, gate, kernel,
-                   delta, min_matches, max_iterations, tolerance, min_diag):
-    """:func:`refine_pose` with the landmarks' order by x (by_x (L,)) and their sorted x
-    (L,) given: only landmarks within the gate in x (with a margin far above rounding) can
-    be nearer than the gate; ties go to the lowest index, as in a scan."""
+def _refine_sorted(initial, sorted_land, own_poses, own_info, settings):
+    """:func:`refine_pose` with the landmarks given as (poses (L, 3), their order by x
+    (L,), their sorted x (L,)): only landmarks within the gate in x (with a margin far
+    above rounding) can be nearer than the gate; ties go to the lowest index, as in a
+    scan."""
+    land_poses, by_x, sorted_x = sorted_land
+    gate, min_matches = settings.gate, settings.min_matches
     pose = initial.copy()
     n_own, n_land = own_poses.shape[0], land_poses.shape[0]
     if min(n_own, n_land) < min_matches:
@@ -631,13 +854,8 @@ def _refine_sorted(initial, land_poses, by_x, sorted_x, own_poses, own_info, gat
             break
         previous[:] = nearest
         box = np.nonzero(nearest >= 0)[0]
-        land = nearest[box]
-        own = own_poses[box]
-        landmarks = land_poses[land]
-        info = rotate_information(np.ascontiguousarray(own_info[box]), np.ascontiguousarray(own[:, 2]))
-        pose = solve_pose(pose, np.ascontiguousarray(landmarks[:, :2]),
-                          np.ascontiguousarray(own[:, :2]), landmarks[:, 2] - own[:, 2], info,
-                          kernel, delta, _no_prior(), max_iterations, tolerance, min_diag)[0]
+        edges = pose_edges(land_poses[nearest[box]], own_poses[box], own_info[box])
+        pose = solve_pose(pose, edges, _no_prior(), settings.solver)[0]
     return pose, True
 
 
@@ -652,13 +870,15 @@ def _close(a, b, tolerance):
 
 
 @njit(cache=True)
-def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, kernel, delta,
-                  min_matches, max_iterations, tolerance, min_diag):
+def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, min_matches, solver):
     """The refined hypotheses (R, 3) of one collaborator (``roco_env.policies.antialias``,
     step 1): the vote peaks (H, 3), then each seed (S, 3) (the reported pose, a track's
     prediction) unless within 0.5 m / 0.5 deg of a peak (it would refine to the same
-    pose), refined in turn by :func:`refine_pose` (arguments as there); a start matching
-    too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier result, adds none."""
+    pose), refined in turn by :func:`refine_pose` (arguments as there; the last three are
+    the fields of its :class:`RefineSettings`, which callers unpack into this call); a
+    start matching too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier
+    result, adds none."""
+    settings = RefineSettings(gate, min_matches, Solver(*solver))
     n_peaks = peaks.shape[0]
     starts = np.empty((n_peaks + seeds.shape[0], 3))
     starts[:n_peaks] = peaks
@@ -671,13 +891,11 @@ def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, kernel, d
             starts[n_starts] = seeds[k]
             n_starts += 1
     by_x = np.argsort(land_poses[:, 0])
-    sorted_x = land_poses[by_x, 0]
+    sorted_land = (land_poses, by_x, land_poses[by_x, 0])
     refined = np.empty((n_starts, 3))
     count = 0
     for k in range(n_starts):
-        pose, ok = _refine_sorted(starts[k], land_poses, by_x, sorted_x, own_poses, own_info,
-                                  gate, kernel, delta, min_matches, max_iterations, tolerance,
-                                  min_diag)
+        pose, ok = _refine_sorted(starts[k], sorted_land, own_poses, own_info, settings)
         if not ok:
             continue
         duplicate = False
@@ -690,11 +908,12 @@ def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, kernel, d
 
 
 @njit(cache=True)
-def prior_terms(z, info_p):
-    """Constant terms of the prior edge identity -> agent measuring z (3,) with
-    information info_p (3, 3): (J_p, J_p z, Omega_p, J_p^T Omega_p J_p, Omega_p J_p), with
-    the edge's constant Jacobian J_p = blockdiag(R_z^T, 1); its residual is
-    J_p pose - J_p z, yaw wrapped."""
+def prior_terms(prior):
+    """The :class:`PriorTerms` of the :class:`PriorEdge` identity -> agent measuring z
+    (3,) with information Omega_p (3, 3), with the edge's constant Jacobian
+    J_p = blockdiag(R_z^T, 1); its residual is J_p pose - J_p z, yaw wrapped."""
+    prior = PriorEdge(*prior)
+    z, info_p = prior.z, prior.information
     cz, sz = math.cos(z[2]), math.sin(z[2])
     j_p = np.zeros((3, 3))
     j_p[0, 0], j_p[0, 1], j_p[1, 0], j_p[1, 1], j_p[2, 2] = cz, sz, -sz, cz, 1.0
@@ -714,40 +933,35 @@ def prior_terms(z, info_p):
     for a in range(3):
         for b in range(3):
             hess[a, b] = jt_ip[a, 0] * j_p[0, b] + jt_ip[a, 1] * j_p[1, b] + jt_ip[a, 2] * j_p[2, b]
-    return j_p, offset, info_p.copy(), hess, ip_jp
+    return PriorTerms(j_p, offset, info_p.copy(), hess, ip_jp)
 
 
 @njit(cache=True)
 def _no_prior():
     """:func:`prior_terms` of a prior edge with zero information (no prior)."""
-    return prior_terms(np.zeros(3), np.zeros((3, 3)))
+    return prior_terms(PriorEdge(np.zeros(3), np.zeros((3, 3))))
 
 
 @njit(cache=True)
-def solve_pose_edges(initial, landmarks, measurement, information, prior_z, prior_info, kernel,
-                     delta, max_iterations, tolerance, min_diag):
-    """:func:`solve_pose` from the edges as given: landmarks (E, 3), measurements (E, 3)
-    (the landmarks in the agent's frame), information (E, 3, 3), and the prior edge's
-    measurement prior_z (3,) and information prior_info (3, 3) (zeros: no prior); the
-    per-edge terms and the prior's (:func:`prior_terms`) are built here."""
-    land_xy = np.ascontiguousarray(landmarks[:, :2])
-    t_z = np.ascontiguousarray(measurement[:, :2])
-    angle = landmarks[:, 2] - measurement[:, 2]
-    info = rotate_information(np.ascontiguousarray(information),
-                              np.ascontiguousarray(measurement[:, 2]))
-    return solve_pose(initial, land_xy, t_z, angle, info, kernel, delta,
-                      prior_terms(prior_z, prior_info), max_iterations, tolerance, min_diag)
+def solve_pose_edges(initial, landmarks, measurement, information, prior, solver):
+    """:func:`solve_pose` from the edges as given (:func:`pose_edges`: landmarks (E, 3),
+    measurements (E, 3), information (E, 3, 3)) and the :class:`PriorEdge` (zero
+    information: no prior), whose terms (:func:`prior_terms`) are built here."""
+    return solve_pose(initial, pose_edges(landmarks, measurement, information),
+                      prior_terms(prior), Solver(*solver))
 
 
 @njit(cache=True)
-def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2):
-    """S_edge (C,): mean over usable leaves h of exp(-sqrt(max(cand[c] . leaf[:, h], 0))).
+def edge_similarity_sums(cand, leaf, pairs, centres, radius2):
+    """S_edge (C,) of the :class:`GatedPairs`: mean over usable leaves h of
+    exp(-sqrt(max(cand[c] . leaf[:, h], 0))).
 
     cand (C, 11) / leaf (11, H): the bilinear factors of ||T_pm T_qn^{-1} - I||_F^2;
     a leaf is usable for candidate c when it is neither p nor q's partner, and (radius2
     >= 0) both centre offsets are within the radius: centres (C, 4) = (p_x, p_y, q_x,
     q_y) and leaf rows 11-14 of ``leaf`` hold (m_x, m_y, n_x, n_y). 0 without a usable leaf.
     """
+    cand_p, cand_q, leaves, partner = pairs.p, pairs.q, pairs.leaves, pairs.partner
     n_cand, n_leaf = cand.shape[0], leaf.shape[1]
     out = np.empty(n_cand)
     for c in range(n_cand):
@@ -773,13 +987,15 @@ def edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, r
 
 
 @njit(cache=True)
-def edge_similarity(land, box, cand_p, cand_q, leaves, partner, radius2):
-    """S_edge (C,) of the candidate pairs (cand_p landmark, cand_q box) given the initial
-    matches (leaves (H,) landmarks m, partner (H,) their boxes n = A(m)), from the pose
-    features (5, L) / (5, K) (x, y, x^2 + y^2, cos yaw, sin yaw) of the landmarks and the
-    boxes: the (C, 11) candidate and (11, H) leaf factors of
-    ``matching._edge_similarity_from_features`` (the same arithmetic element by element),
-    summed by :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+def edge_similarity(land, box, pairs, radius2):
+    """S_edge (C,) of the candidate pairs of the :class:`GatedPairs` (landmark p, box q)
+    given their initial matches (landmarks m = leaves, boxes n = partner = A(m)), from the
+    pose features (5, L) / (5, K) (x, y, x^2 + y^2, cos yaw, sin yaw) of the landmarks and
+    the boxes (``matching.pose_features``): the (C, 11) candidate and (11, H) leaf factors
+    of ||T_pm T_qn^{-1} - I||_F^2 (``matching`` module docstring), summed by
+    :func:`edge_similarity_sums`; radius2 < 0: no neighbour radius."""
+    pairs = GatedPairs(*pairs)
+    cand_p, cand_q, leaves, partner = pairs.p, pairs.q, pairs.leaves, pairs.partner
     n_cand, h = cand_p.size, leaves.size
     cand = np.empty((n_cand, 11))
     centres = np.empty((n_cand, 4))
@@ -810,7 +1026,7 @@ def edge_similarity(land, box, cand_p, cand_q, leaves, partner, radius2):
         leaf[5, k] = leaf[8, k] = 1.0
         leaf[9, k], leaf[10, k] = -2.0 * cu, -2.0 * su
         leaf[11, k], leaf[12, k], leaf[13, k], leaf[14, k] = mx, my, nx, ny
-    return edge_similarity_sums(cand, leaf, cand_p, cand_q, leaves, partner, centres, radius2)
+    return edge_similarity_sums(cand, leaf, pairs, centres, radius2)
 
 
 @njit(cache=True)
@@ -820,9 +1036,10 @@ def gated_pairs(land_xy, centres, tau2):
     land_xy (L, 2), centres (K, 2) in the ego frame; distance = sqrt(dx^2 + dy^2).
     Returns (p (C,), q (C,), distance (C,)) of the pairs with distance <= tau2 in row-major
     (p, then q) order, and (leaves (H,), partner (H,)): every landmark whose nearest box
-    (lowest index among equal distances) is within the gate, with that box. A pair whose
-    |dx| or |dy| alone exceeds the gate (by more than rounding) is skipped unmeasured; the
-    boxes are sorted by x once, so each landmark scans only its window in x.
+    (lowest index among equal distances) is within the gate, with that box, as
+    :class:`GatedPairs`. A pair whose |dx| or |dy| alone exceeds the gate (by more than
+    rounding) is skipped unmeasured; the boxes are sorted by x once, so each landmark scans
+    only its window in x.
     """
     n_land, n_box = land_xy.shape[0], centres.shape[0]
     reach = tau2 * (1.0 + 1e-12)
@@ -869,7 +1086,8 @@ def gated_pairs(land_xy, centres, tau2):
         if best <= tau2:
             leaves[h], partner[h] = p, best_q
             h += 1
-    return cand_p[:k].copy(), cand_q[:k].copy(), dis[:k].copy(), leaves[:h], partner[:h]
+    return GatedPairs(cand_p[:k].copy(), cand_q[:k].copy(), dis[:k].copy(), leaves[:h],
+                      partner[:h])
 
 
 @njit(cache=True)
@@ -927,131 +1145,239 @@ def placed_centres(pose, own):
 
 
 @njit(cache=True)
-def scored_pairs(land_xy, centres, tau2, lam, use_edge, land_features, box_features, radius2,
-                 tau1, cached):
-    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
-    (:func:`gated_pairs`) scored S = lam * S_dis (lam = 0: no distance term) + S_edge
-    (with ``use_edge``, :func:`edge_similarity`; reused from ``cached`` = (cand_p, cand_q,
-    leaves, partner, S_edge) of an earlier call when the pairs and the initial matches
-    are the same), and the assignment's shortcut: when every landmark and every box has a
-    single candidate and every score is > 0, the pairs with S >= tau1 are the assignment.
+def max_weight_assignment(weights):
+    """Maximum-weight one-to-one assignment of the rows and columns of ``weights`` (R, Q):
+    (rows (min(R, Q),) increasing, their columns), as
+    ``scipy.optimize.linear_sum_assignment(weights, maximize=True)`` gives it, ties
+    included: its shortest augmenting path algorithm (Crouse 2016) on the negated weights,
+    transposed when there are fewer columns than rows, step for step."""
+    transpose = weights.shape[1] < weights.shape[0]
+    cost = -np.ascontiguousarray(weights.T) if transpose else -weights
+    n_rows, n_cols = cost.shape
+    u, v = np.zeros(n_rows), np.zeros(n_cols)
+    shortest = np.empty(n_cols)
+    path = np.full(n_cols, -1, dtype=np.int64)
+    col4row = np.full(n_rows, -1, dtype=np.int64)
+    row4col = np.full(n_cols, -1, dtype=np.int64)
+    seen_rows = np.empty(n_rows, dtype=np.bool_)
+    seen_cols = np.empty(n_cols, dtype=np.bool_)
+    remaining = np.empty(n_cols, dtype=np.int64)
+    for current in range(n_rows):
+        # The shortest augmenting path from row ``current`` to a free column (the sink).
+        min_val = 0.0
+        n_remaining = n_cols
+        for it in range(n_cols):
+            remaining[it] = n_cols - it - 1  # reversed: a constant matrix gives the identity
+        seen_rows[:] = False
+        seen_cols[:] = False
+        shortest[:] = np.inf
+        sink, i = -1, current
+        while sink == -1:
+            index, lowest = -1, np.inf
+            seen_rows[i] = True
+            for it in range(n_remaining):
+                j = remaining[it]
+                r = min_val + cost[i, j] - u[i] - v[j]
+                if r < shortest[j]:
+                    path[j] = i
+                    shortest[j] = r
+                # Among equally short ones, a free column (a new sink) wins.
+                if shortest[j] < lowest or (shortest[j] == lowest and row4col[j] == -1):
+                    lowest = shortest[j]
+                    index = it
+            min_val = lowest
+            if min_val == np.inf:
+                raise ValueError("infeasible assignment")
+            j = remaining[index]
+            if row4col[j] == -1:
+                sink = j
+            else:
+                i = row4col[j]
+            seen_cols[j] = True
+            n_remaining -= 1
+            remaining[index] = remaining[n_remaining]
+        # Update the duals, then augment along the path.
+        u[current] += min_val
+        for i in range(n_rows):
+            if seen_rows[i] and i != current:
+                u[i] += min_val - shortest[col4row[i]]
+        for j in range(n_cols):
+            if seen_cols[j]:
+                v[j] -= min_val - shortest[j]
+        j = sink
+        while True:
+            i = path[j]
+            row4col[j] = i
+            col4row[i], j = j, col4row[i]
+            if i == current:
+                break
+    if transpose:
+        order = np.argsort(col4row)
+        return col4row[order], order
+    return np.arange(n_rows), col4row
 
-    Returns (assigned?, landmark (P,), box (P,), S (P,) of the assignment when the
-    shortcut applies (else empty), then the candidates (cand_p, cand_q, S) for the full
-    assignment, and the new cache (cand_p, cand_q, leaves, partner, S_edge)).
+
+@njit(cache=True)
+def scored_pairs(land_xy, centres, tau2, land_features, box_features, settings, cached):
+    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    (:func:`gated_pairs`, gate tau2 m) scored S = lam * S_dis + S_edge (settings:
+    :class:`MatchSettings`; with ``use_edge``, :func:`edge_similarity` from the pose
+    features (5, L) / (5, K), reused from ``cached`` = (:class:`GatedPairs`, S_edge) of an
+    earlier call when the pairs and the initial matches are the same), then the
+    maximum-weight one-to-one assignment, whose pairs with S >= tau1 are the matches. When
+    every landmark and every box has a single candidate and every score is > 0, the
+    assignment takes every pair (the usual sparse scene); else
+    :func:`max_weight_assignment` over the candidates (0 elsewhere).
+
+    Returns (landmark (P,), box (P,), S (P,)), sorted by landmark, and the new cache.
     """
-    cand_p, cand_q, dis, leaves, partner = gated_pairs(land_xy, centres, tau2)
+    settings = MatchSettings(*settings)
+    pairs = gated_pairs(land_xy, centres, tau2)
+    cand_p, cand_q = pairs.p, pairs.q
     score = np.empty(cand_p.size)
     for k in range(cand_p.size):
-        score[k] = lam * math.exp(-dis[k])
-    edge = cached[4]
-    if use_edge:
-        old_p, old_q, old_leaves, old_partner = cached[0], cached[1], cached[2], cached[3]
-        same = old_p.size == cand_p.size and old_leaves.size == leaves.size
+        score[k] = settings.lam * math.exp(-pairs.distance[k])
+    old, edge = GatedPairs(*cached[0]), cached[1]
+    if settings.use_edge:
+        same = old.p.size == cand_p.size and old.leaves.size == pairs.leaves.size
         for k in range(cand_p.size if same else 0):
-            same = same and old_p[k] == cand_p[k] and old_q[k] == cand_q[k]
-        for k in range(leaves.size if same else 0):
-            same = same and old_leaves[k] == leaves[k] and old_partner[k] == partner[k]
+            same = same and old.p[k] == cand_p[k] and old.q[k] == cand_q[k]
+        for k in range(pairs.leaves.size if same else 0):
+            same = same and old.leaves[k] == pairs.leaves[k] and old.partner[k] == pairs.partner[k]
         if not same:
-            edge = edge_similarity(land_features, box_features, cand_p, cand_q, leaves, partner,
-                                   radius2)
+            edge = edge_similarity(land_features, box_features, pairs, settings.radius2)
         for k in range(cand_p.size):
             score[k] = score[k] + edge[k]
-    single = compact_pairs(cand_p, cand_q)[4]
+    cache = (pairs, edge)
+    rows, row_idx, cols, col_idx, single = compact_pairs(cand_p, cand_q)
     for k in range(cand_p.size):
         single = single and score[k] > 0
-    kept = np.zeros(cand_p.size, dtype=np.bool_)
     if single:
-        for k in range(cand_p.size):
-            kept[k] = score[k] >= tau1
-    return (single, cand_p[kept], cand_q[kept], score[kept], cand_p, cand_q, score,
-            (cand_p, cand_q, leaves, partner, edge))
+        kept = score >= settings.tau1
+        return cand_p[kept], cand_q[kept], score[kept], cache
+    weights = np.zeros((rows.size, cols.size))
+    valid = np.zeros((rows.size, cols.size), dtype=np.bool_)
+    for k in range(cand_p.size):
+        weights[row_idx[k], col_idx[k]] = score[k]
+        valid[row_idx[k], col_idx[k]] = True
+    r, c = max_weight_assignment(weights)
+    kept = np.zeros(r.size, dtype=np.bool_)
+    for k in range(r.size):
+        kept[k] = valid[r[k], c[k]] and weights[r[k], c[k]] >= settings.tau1
+    r, c = r[kept], c[kept]
+    matched = np.empty(r.size)
+    for k in range(r.size):
+        matched[k] = weights[r[k], c[k]]
+    return rows[r], cols[c], matched, cache
 
 
 @njit(cache=True)
-def _matches(pose, own_poses, land_xy, tau2, lam, use_edge, land_features, box_features,
-             radius2, tau1, cache):
-    """One ``StarGraphMatcher.match`` under ``pose`` (3,) with gate ``tau2`` (m) when the
-    assignment's shortcut applies: (shortcut applied?, landmark (P,), box (P,), new cache);
-    no landmarks or no boxes: no matches, the cache kept."""
-    if land_xy.shape[0] == 0 or own_poses.shape[0] == 0:
-        return True, cache[0][:0].copy(), cache[0][:0].copy(), cache
-    single, land, box, _, _, _, _, cache = scored_pairs(
-        land_xy, placed_centres(pose, own_poses), tau2, lam, use_edge, land_features,
-        box_features, radius2, tau1, cache,
-    )
-    return single, land, box, cache
+def empty_match_cache():
+    """A :func:`scored_pairs` cache that matches no later call."""
+    empty = np.zeros(0, dtype=np.int64)
+    return GatedPairs(empty, empty.copy(), np.zeros(0), empty.copy(), empty.copy()), np.zeros(0)
 
 
 @njit(cache=True)
-def attempt_rounds(start, own_poses, own_info, own_cov, land_poses, land_features, land_cov,
-                   box_features, prior_z, prior_info, tau2, coarse_tau2, lam, use_edge, radius2,
-                   tau1, min_matches, rounds, kernel, delta, max_iterations, tolerance, min_diag,
-                   inlier_chi2, fit_tolerance, difference):
-    """RoCo's match-optimise rounds for one collaborator (``roco._attempt`` with per-round
-    single-vertex solves).
+def _matches(pose, boxes, land_xy, world, tau2, match, cache):
+    """One ``StarGraphMatcher.match`` of the :class:`AgentBoxes` under ``pose`` (3,) with
+    gate ``tau2`` (m) and the :class:`MatchSettings` against the :class:`LandmarkMap`
+    (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no landmarks or no
+    boxes: no matches, the cache kept."""
+    if land_xy.shape[0] == 0 or boxes.poses.shape[0] == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty.copy(), cache
+    land, box, _, cache = scored_pairs(land_xy, placed_centres(pose, boxes.poses), tau2,
+                                       world.features, boxes.features, match, cache)
+    return land, box, cache
 
-    start (3,): first pose estimate T_{j->i}; own_poses (K, 3) / own_info (K, 3, 3) /
-    own_cov (K, 3, 3): its boxes (its frame), their information and covariance;
-    land_poses (L, 3) / land_cov (L, 3, 3): the map's landmarks (ego frame) and their
-    covariance; land_features (5, L) / box_features (5, K): the pose features; prior_z
-    (3,) / prior_info (3, 3): the prior edge (reported pose). Matching settings as
-    ``StarGraphMatcher`` (tau2, coarse_tau2 m, coarse_tau2 <= 0: no coarse gate; lam = 0:
-    no distance term); at most ``rounds`` rounds; solver settings as
-    :func:`solve_pose_edges`. difference: each round's edges carry the information of box
-    minus landmark, ``(own_cov + land_cov)^-1`` (the landmark held fixed has the error of
-    the box that created it); else the box's own_info alone.
 
-    When the rounds end solved with at least ``min_matches`` edges of chi2 <=
-    ``inlier_chi2`` and ``fit_tolerance`` > 0, also the significance test's statistic
-    (``roco._correction_statistic``: :func:`wald_statistic`
-    with the covariance of box minus landmark, LM stop ``fit_tolerance``); else nan.
+@njit(cache=True)
+def attempt_rounds(start, boxes, world, settings, match, solver):
+    """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the pose
+    estimate ``start`` (3,) (T_{j->i}): its :class:`AgentBoxes` against the
+    :class:`LandmarkMap`, with the :class:`RoundSettings`, the matcher's
+    :class:`MatchSettings` and the rounds' :class:`Solver` (records as plain tuples, module
+    docstring).
 
-    Returns (done, pose (3,), landmark ids (P,), box ids (P,), solved, chi2 (P,),
-    landmarks (P, 3), rounds run, solver iterations, statistic); done = False when a
-    round's matching needs the full assignment (the rest is then meaningless).
+    Each round matches the boxes placed by the estimate (``StarGraphMatcher``; a first
+    round with fewer than min_matches matches is redone with coarse_tau2 when it is > 0);
+    the rounds stop when a matching repeats the previous one, has fewer than min_matches
+    pairs, or after ``rounds``. Otherwise the round solves the pose: the single vertex
+    against the fixed landmarks (:func:`solve_pose_edges`: the prior edge from the reported
+    pose, each edge with the information of box minus landmark, ``(own_cov +
+    land_cov)^-1``, when ``difference`` (the landmark held fixed has the error of the box
+    that created it), else the box's own), or, when ``joint``, the caller's joint solve of
+    the whole graph: the rounds then pause before it (:func:`resume_rounds` goes on).
+
+    When the rounds end solved with at least min_matches edges of chi2 <= inlier_chi2 and
+    fit_tolerance > 0, also the significance test's statistic (:func:`wald_statistic` with
+    the covariance of box minus landmark, LM stop fit_tolerance); else nan.
+
+    Returns (:class:`RoundState` as a plain tuple, statistic, paused for a joint solve).
     """
     empty = np.zeros(0, dtype=np.int64)
-    cache = (empty, empty.copy(), empty.copy(), empty.copy(), np.zeros(0))
-    land_xy = np.ascontiguousarray(land_poses[:, :2])
-    pose = start.copy()
-    match_land, match_box = empty.copy(), empty.copy()
-    chi2, landmarks = np.zeros(0), np.zeros((0, 3))
-    solved, outer, solver = False, 0, 0
-    for _ in range(rounds):
-        single, land, box, cache = _matches(pose, own_poses, land_xy, tau2, lam, use_edge,
-                                            land_features, box_features, radius2, tau1, cache)
-        if single and outer == 0 and land.size < min_matches and coarse_tau2 > 0:
-            single, land, box, cache = _matches(pose, own_poses, land_xy, coarse_tau2, lam,
-                                                use_edge, land_features, box_features, radius2,
-                                                tau1, cache)
-        if not single:
-            return (False, pose, match_land, match_box, solved, chi2, landmarks, outer, solver,
-                    np.nan)
+    state = RoundState(start.copy(), empty, empty.copy(), False, np.zeros(0), np.zeros((0, 3)),
+                       0, 0)
+    return _rounds(state, AgentBoxes(*boxes), LandmarkMap(*world), RoundSettings(*settings),
+                   MatchSettings(*match), Solver(*solver))
+
+
+@njit(cache=True)
+def resume_rounds(state, boxes, world, settings, match, solver):
+    """:func:`attempt_rounds` after a pause: ``state`` is the paused :class:`RoundState`
+    with the joint solve's pose, chi2, landmarks and iterations."""
+    return _rounds(RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world),
+                   RoundSettings(*settings), MatchSettings(*match), Solver(*solver))
+
+
+@njit(cache=True)
+def _rounds(state, boxes, world, settings, match, solver):
+    """The rounds of :func:`attempt_rounds` from ``state`` on (arguments, as records, and
+    result as there)."""
+    land_xy = np.ascontiguousarray(world.poses[:, :2])
+    pose, match_land, match_box = state.pose, state.match_land, state.match_box
+    solved, chi2, landmarks = state.solved, state.chi2, state.landmarks
+    outer, iterations = state.outer, state.iterations
+    cache = empty_match_cache()
+    while outer < settings.rounds:
+        land, box, cache = _matches(pose, boxes, land_xy, world, settings.tau2, match, cache)
+        if outer == 0 and land.size < settings.min_matches and settings.coarse_tau2 > 0:
+            land, box, cache = _matches(pose, boxes, land_xy, world, settings.coarse_tau2, match,
+                                        cache)
         if outer and _same(land, match_land) and _same(box, match_box):
             break
         outer += 1
         match_land, match_box = land, box
-        solved = land.size >= min_matches
+        solved = land.size >= settings.min_matches
         if not solved:
             break
-        landmarks = land_poses[match_land]
-        if difference:
-            edge_info = inverse_covariances(own_cov[match_box] + land_cov[match_land])
+        if settings.joint:
+            paused = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer,
+                                iterations)
+            return _plain(paused), np.nan, True
+        landmarks = world.poses[match_land]
+        if settings.difference:
+            edge_info = inverse_covariances(boxes.covariance[match_box]
+                                            + world.covariance[match_land])
         else:
-            edge_info = own_info[match_box]
-        pose, chi2, _, _, iterations, _ = solve_pose_edges(
-            pose, landmarks, own_poses[match_box], edge_info, prior_z, prior_info,
-            kernel, delta, max_iterations, tolerance, min_diag,
+            edge_info = boxes.information[match_box]
+        pose, chi2, _, _, solves, _ = solve_pose_edges(
+            pose, landmarks, boxes.poses[match_box], edge_info,
+            PriorEdge(boxes.reported, settings.prior_information), solver,
         )
-        solver += iterations
+        iterations += solves
     statistic = np.nan
-    if solved and fit_tolerance > 0 and np.count_nonzero(chi2 <= inlier_chi2) >= min_matches:
+    if (solved and settings.fit_tolerance > 0
+            and np.count_nonzero(chi2 <= settings.inlier_chi2) >= settings.min_matches):
         statistic = wald_statistic(
-            pose, landmarks, own_poses[match_box], own_cov[match_box] + land_cov[match_land],
-            prior_z, kernel, delta, max_iterations, fit_tolerance, min_diag,
+            pose, landmarks, boxes.poses[match_box],
+            boxes.covariance[match_box] + world.covariance[match_land], boxes.reported,
+            Solver(solver.kernel, solver.delta, solver.max_iterations, settings.fit_tolerance,
+                   solver.min_diag),
         )
-    return True, pose, match_land, match_box, solved, chi2, landmarks, outer, solver, statistic
+    final = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+    return _plain(final), statistic, False
 
 
 @njit(cache=True)
@@ -1063,3 +1389,68 @@ def _same(a, b):
         if a[k] != b[k]:
             return False
     return True
+
+
+@njit(cache=True)
+def placed_landmarks(pose, own, boxes):
+    """The agent's boxes ``own[boxes]`` (own (K, 3) in its frame, boxes (B,) indices) placed
+    in the ego frame by its pose (3,) as ``geometry.se2_compose(pose, own[boxes])`` does
+    (yaw wrapped to (-pi, pi]), with their pose features (5, B) (``matching.pose_features``:
+    x, y, x^2 + y^2, cos(yaw), sin(yaw))."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    poses = np.empty((boxes.size, 3))
+    features = np.empty((5, boxes.size))
+    for k in range(boxes.size):
+        bx, by, byaw = own[boxes[k], 0], own[boxes[k], 1], own[boxes[k], 2]
+        x = pose[0] + c * bx - s * by
+        y = pose[1] + s * bx + c * by
+        yaw = (pose[2] + byaw + math.pi) % (2.0 * math.pi) - math.pi
+        if yaw <= -math.pi:
+            yaw += 2.0 * math.pi
+        poses[k, 0], poses[k, 1], poses[k, 2] = x, y, yaw
+        features[0, k], features[1, k], features[2, k] = x, y, x * x + y * y
+        features[3, k], features[4, k] = math.cos(yaw), math.sin(yaw)
+    return poses, features
+
+
+@njit(cache=True)
+def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observations):
+    """RoCo's map after accepting a collaborator (``roco._commit``), in one pass: its
+    boxes (:class:`AgentBoxes`: poses (K, 3) in its frame,
+    covariance (K, 3, 3)) matched as match_box (P,) to the landmarks match_land (P,)
+    become observations, the unmatched ones (in increasing box order) new landmarks placed
+    by its pose (3,) (:func:`placed_landmarks`). Returns the :class:`LandmarkMap` (M')
+    and the :class:`Observations` (O') as plain tuples: the inputs with the new rows appended, as
+    ``np.concatenate`` gives them (agent: the collaborator's index)."""
+    boxes, landmarks = AgentBoxes(*boxes), LandmarkMap(*landmarks)
+    observations = Observations(*observations)
+    own, covariance = boxes.poses, boxes.covariance
+    land_poses, land_features = landmarks.poses, landmarks.features
+    land_covariance = landmarks.covariance
+    obs_agent, obs_box, obs_land = observations.agent, observations.box, observations.land
+    unmatched = np.ones(own.shape[0], dtype=np.bool_)
+    for k in range(match_box.size):
+        unmatched[match_box[k]] = False
+    new_boxes = np.nonzero(unmatched)[0]
+    n_land, n_new, n_obs = land_poses.shape[0], new_boxes.size, obs_agent.size
+    new_poses, new_features = placed_landmarks(pose, own, new_boxes)
+    poses = np.concatenate((land_poses, new_poses))
+    features = np.empty((5, n_land + n_new))
+    features[:, :n_land] = land_features
+    features[:, n_land:] = new_features
+    land_cov = np.empty((n_land + n_new, 3, 3))
+    land_cov[:n_land] = land_covariance
+    for k in range(n_new):
+        land_cov[n_land + k] = covariance[new_boxes[k]]
+    size = n_obs + own.shape[0]
+    agents, box_ids = np.empty(size, np.int64), np.empty(size, np.int64)
+    lands = np.empty(size, np.int64)
+    agents[:n_obs], box_ids[:n_obs], lands[:n_obs] = obs_agent, obs_box, obs_land
+    agents[n_obs:] = agent
+    for k in range(match_box.size):
+        box_ids[n_obs + k], lands[n_obs + k] = match_box[k], match_land[k]
+    for k in range(n_new):
+        box_ids[n_obs + match_box.size + k] = new_boxes[k]
+        lands[n_obs + match_box.size + k] = n_land + k
+    return (_plain(LandmarkMap(poses, features, land_cov)),
+            _plain(Observations(agents, box_ids, lands)))

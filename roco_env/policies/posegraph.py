@@ -23,17 +23,19 @@ fixed), which is what makes per-frame alignment take milliseconds.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from roco_env.policies.pose_kernels import (
     KERNEL_CODES,
+    GraphEdges,
+    PriorEdge,
+    Solver,
     evaluate_edges,
     normal_sums,
-    prior_terms,
-    rotate_information,
+    pose_edges,
     solve_graph,
     solve_pose_edges,
 )
@@ -50,10 +52,23 @@ __all__ = [
     "pose_hessian",
     "pose_hessians",
     "robust_kernel",
+    "solver_settings",
 ]
 
 ROBUST_KERNELS = ("huber", "cauchy")
 _MIN_DIAG = 1e-9  # keeps Marquardt damping positive for vertices with no constraint
+
+
+@lru_cache(maxsize=64)
+def solver_settings(
+    kernel: str | None, kernel_delta: float, max_iterations: int, tolerance: float
+) -> Solver:
+    """The compiled solvers' :class:`~roco_env.policies.pose_kernels.Solver` record:
+    kernel None (least squares), "huber" or "cauchy" with its width kernel_delta (whitened
+    units), the cap on linearisations and the stop tolerance (:func:`optimize`); built
+    once per setting."""
+    return Solver(KERNEL_CODES[kernel], float(kernel_delta), int(max_iterations),
+                  float(tolerance), _MIN_DIAG)
 
 
 @dataclass(frozen=True)
@@ -273,12 +288,6 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
     return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
 
 
-def _wrap_scalar(angle: float) -> float:
-    """:func:`_wrap` of one float without numpy's per-call overhead (Python's float ``%``
-    is fmod with numpy's sign fix-up, so the result is the same to the bit)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def optimize(
     graph: PoseGraph,
     fixed: int = 0,
@@ -307,23 +316,20 @@ def optimize(
     free = np.arange(3 * na)
     free = free[(free < 3 * fixed) | (free >= 3 * fixed + 3)]
     meas = np.concatenate([graph.obs_measurement, graph.prior_measurement])
-    x, chi2, initial_cost, cost, iterations, converged = solve_graph(
-        np.concatenate([graph.agents, graph.landmarks]),
+    n_obs = graph.obs_agent.size
+    edges = GraphEdges(
         na,
+        n_obs,
         np.concatenate([graph.obs_agent, graph.prior_from]),
         np.concatenate([graph.obs_landmark, graph.prior_to]),
         np.ascontiguousarray(meas[:, 2]),
         _measurement_offset(meas),
         np.concatenate([graph.obs_information, graph.prior_information]),
-        graph.obs_agent.size,
-        free,
-        KERNEL_CODES[kernel],
-        float(kernel_delta),
-        int(max_iterations),
-        float(tolerance),
-        _MIN_DIAG,
     )
-    n_obs = graph.obs_agent.size
+    x, chi2, initial_cost, cost, iterations, converged = solve_graph(
+        np.concatenate([graph.agents, graph.landmarks]), tuple(edges), free,
+        tuple(solver_settings(kernel, kernel_delta, max_iterations, tolerance)),
+    )
     return PoseGraphResult(
         x[:na], x[na:], chi2[:n_obs], chi2[n_obs:], initial_cost, cost, iterations, converged
     )
@@ -340,81 +346,6 @@ class PoseResult:
     cost: float
     iterations: int
     converged: bool
-
-
-class _PoseProblem:
-    """One agent vertex observing fixed landmarks (and an optional prior edge from a fixed
-    identity vertex), linearised by the compiled loops of
-    :mod:`roco_env.policies.pose_kernels` (:func:`pose_hessians` evaluates it;
-    :func:`optimize_pose` runs the same terms inside the compiled solver).
-
-    Each observation residual is ``e = C e~`` with ``C = blockdiag(R(-yaw_z), 1)`` and
-    ``e~ = (R(-yaw) (t_l - t) - t_z, wrap(yaw_l - yaw_z - yaw))``, so the per-edge
-    information is rotated once, ``Omega' = C^T Omega C``. The Jacobian of ``e~`` is
-    ``-N Q^T`` with ``Q = blockdiag(R(yaw), 1)`` shared by all edges and
-    ``N = I + m e3^T``, ``m = (-e~_y', e~_x', 0)`` built from ``u = R(-yaw)(t_l - t)``;
-    hence ``H = Q (sum w N^T Omega' N) Q^T`` and ``g = -Q sum w N^T Omega' e~``, summed
-    in one pass over the edges.
-    """
-
-    def __init__(
-        self, landmarks, measurement, information, prior, prior_information, kernel, delta
-    ):
-        self.kernel, self.delta = kernel, delta
-        self.kernel_code = KERNEL_CODES[kernel]
-        self.land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
-        self.t_z = np.ascontiguousarray(measurement[:, :2], dtype=float)
-        self.angle = np.ascontiguousarray(landmarks[:, 2] - measurement[:, 2], dtype=float)
-        self._meas_yaw = np.ascontiguousarray(measurement[:, 2], dtype=float)
-        self.set_information(information)
-        self.prior = None
-        if prior is not None:
-            # The prior edge identity -> agent has the constant Jacobian J_p =
-            # blockdiag(R_z^T, 1) and residual J_p pose - (R_z^T t_z, yaw_z), yaw wrapped.
-            self.prior = prior_terms(
-                np.asarray(prior, dtype=float).reshape(3),
-                np.asarray(prior_information, dtype=float).reshape(3, 3),
-            )
-
-    def evaluate(self, pose: np.ndarray) -> tuple[float, tuple]:
-        """(robust cost, linearisation point) at ``pose`` (3,); the point starts with the
-        per-edge chi2 (E,) and is what :meth:`normal_equations` takes."""
-        yaw = float(pose[2])
-        rho_sum, chi2, u, info_e, weight = evaluate_edges(
-            float(pose[0]), float(pose[1]), yaw, self.land_xy, self.t_z, self.angle,
-            self.info, self.kernel_code, float(self.delta),
-        )
-        cost = rho_sum
-        e_p = None
-        if self.prior is not None:
-            j_p, offset, info_p = self.prior[:3]
-            e_p = j_p @ pose - offset
-            e_p[2] = _wrap_scalar(float(e_p[2]))
-            cost += float(e_p @ info_p @ e_p)
-        return cost, (chi2, math.cos(yaw), math.sin(yaw), u, info_e, weight, e_p)
-
-    def set_information(self, information: np.ndarray) -> None:
-        """Replace the per-edge information (E, 3, 3), rotated to ``C^T Omega C``."""
-        self.info = rotate_information(
-            np.ascontiguousarray(information, dtype=float), self._meas_yaw
-        )
-
-    def hessian(self, point: tuple) -> np.ndarray:
-        """H (3, 3) of :meth:`normal_equations`, without the gradient."""
-        _, c, s, u, info_e, weight, e_p = point
-        hess = normal_sums(c, s, u, self.info, info_e, weight, False)[0]
-        return hess + self.prior[3] if e_p is not None else hess
-
-    def normal_equations(self, point: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """(H (3, 3), g (3,)) at a point from :meth:`evaluate`."""
-        _, c, s, u, info_e, weight, e_p = point
-        hess, grad = normal_sums(c, s, u, self.info, info_e, weight, True)
-        if e_p is not None:
-            hess = hess + self.prior[3]
-            grad = grad + self.prior[4].T @ e_p
-        return hess, grad
-
-
 
 
 def optimize_pose(
@@ -444,13 +375,12 @@ def optimize_pose(
         np.asarray(landmarks, dtype=float),
         np.asarray(measurement, dtype=float),
         np.asarray(information, dtype=float),
-        np.zeros(3) if no_prior else np.asarray(prior, dtype=float).reshape(3),
-        np.zeros((3, 3)) if no_prior else np.asarray(prior_information, dtype=float).reshape(3, 3),
-        KERNEL_CODES[kernel],
-        float(kernel_delta),
-        int(max_iterations),
-        float(tolerance),
-        _MIN_DIAG,
+        tuple(PriorEdge(
+            np.zeros(3) if no_prior else np.asarray(prior, dtype=float).reshape(3),
+            np.zeros((3, 3)) if no_prior
+            else np.asarray(prior_information, dtype=float).reshape(3, 3),
+        )),
+        tuple(solver_settings(kernel, kernel_delta, max_iterations, tolerance)),
     )
     return PoseResult(pose, chi2, initial_cost, cost, iterations, converged)
 
@@ -474,13 +404,21 @@ def pose_hessians(
 ) -> list[np.ndarray]:
     """:func:`pose_hessian` for several per-edge informations (each (E, 3, 3)) at one pose
     over the same edges (e.g. a robust sandwich's bread and meat): the geometry is shared,
-    each Hessian is computed exactly as :func:`pose_hessian` computes it."""
-    problem = _PoseProblem(landmarks, measurement, informations[0], None, None, None, 1.0)
-    # The point's chi2 / info_e depend on the information, but the Hessian does not use
-    # them, and the weights are ones (no kernel).
-    point = problem.evaluate(np.asarray(pose, dtype=float))[1]
-    hessians = [problem.hessian(point)]
-    for information in informations[1:]:
-        problem.set_information(information)
-        hessians.append(problem.hessian(point))
+    each Hessian is computed exactly as :func:`pose_hessian` computes it (one pass over the
+    edges, :func:`~roco_env.policies.pose_kernels.normal_sums`: with ``H = Q (sum N^T
+    Omega' N) Q^T``, ``Q = blockdiag(R(yaw), 1)``, ``N = I + m e3^T`` from the landmark
+    offsets in the agent's frame and ``Omega' = C^T Omega C`` the information rotated
+    into the residual frame, ``C = blockdiag(R(-yaw_z), 1)``)."""
+    pose = np.asarray(pose, dtype=float).reshape(3)
+    landmarks = np.asarray(landmarks, dtype=float)
+    measurement = np.asarray(measurement, dtype=float)
+    hessians = []
+    point = None
+    for information in informations:
+        edges = pose_edges(landmarks, measurement, np.asarray(information, dtype=float))
+        if point is None:
+            # The point's chi2 / info_e depend on the information, but the Hessian does not
+            # use them, and the weights are ones (no kernel).
+            point = evaluate_edges(pose, tuple(edges), KERNEL_CODES[None], 1.0)[1]
+        hessians.append(normal_sums(pose[2], edges.info, tuple(point), point.weight, False)[0])
     return hessians

@@ -58,6 +58,8 @@ from roco_env.policies.landmarks import (
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
 from roco_env.policies.prior_free_kernels import (
+    Gates,
+    Placement,
     fit_se2_kernel,
     gated_pairs,
     refine_rounds,
@@ -164,9 +166,10 @@ def _associate(
     if ego.shape[0] == 0 or own.shape[0] == 0:
         return _EMPTY, _EMPTY, np.zeros(0)
     yaw = float(pose[2])
-    rows, cols, dist2, one_to_one = gated_pairs(
-        float(pose[0]), float(pose[1]), float(np.cos(yaw)), float(np.sin(yaw)), yaw, ego, own,
-        float(gate), -1.0 if yaw_gate is None else float(yaw_gate))
+    placement = Placement(float(pose[0]), float(pose[1]), float(np.cos(yaw)), float(np.sin(yaw)),
+                          yaw)
+    gates = Gates(float(gate), -1.0 if yaw_gate is None else float(yaw_gate))
+    rows, cols, dist2, one_to_one = gated_pairs(tuple(placement), ego, own, tuple(gates))
     if one_to_one:
         return rows, cols, np.sqrt(dist2)
     cost = np.full((ego.shape[0], own.shape[0]), 1e6)
@@ -196,25 +199,19 @@ def support(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
 
 def refine_pose(pose: np.ndarray, ego: np.ndarray, own: np.ndarray,
                 p: PriorFreeParams) -> np.ndarray:
-    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit
-    (compiled while the associations are one-to-one; a round whose boxes compete runs
-    here with the Hungarian assignment)."""
+    """``refine_iterations`` rounds of association within ``refine_gate`` + Kabsch fit, in
+    compiled rounds (:func:`~roco_env.policies.prior_free_kernels.refine_rounds`) that
+    pause at a round whose boxes compete: its association is the Hungarian assignment made
+    here (:func:`_associate`), with which they go on."""
     pose = np.asarray(pose, dtype=float).copy()
     gate, yaw_gate = float(p.refine_gate), float(np.deg2rad(p.inlier_yaw_deg))
-    remaining = int(p.refine_iterations)
-    while remaining > 0:
-        pose, done, competing = refine_rounds(pose, ego, own, gate, yaw_gate, remaining)
-        remaining -= done
-        if not competing:
-            break
+    gates = tuple(Gates(gate, yaw_gate))
+    pose, done, paused = refine_rounds(pose, ego, own, gates, int(p.refine_iterations), None)
+    remaining = int(p.refine_iterations) - done
+    while paused:
         e, o, _ = _associate(pose, ego, own, gate, yaw_gate)
-        remaining -= 1
-        if e.size < 2:
-            break
-        new = fit_se2(own[o, :2], ego[e, :2])
-        if np.abs(new - pose).max() <= 1e-6:
-            break
-        pose = new
+        pose, done, paused = refine_rounds(pose, ego, own, gates, remaining, (e, o))
+        remaining -= done
     return pose
 
 

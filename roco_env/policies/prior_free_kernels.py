@@ -7,18 +7,64 @@ Poses are (x, y, yaw) in metres and radians; the callers pass cos / sin of the
 rotations computed by numpy, so the mapped centres are the numpy path's to the bit.
 The numpy formulations they replace are checked against them in
 tests/test_prior_free_kernels.py.
+
+Their inputs come as small records defined here (``typing.NamedTuple``): the gates of an
+association (:class:`Gates`), poses with the cos / sin of their yaws
+(:class:`Placement`), a set of box pairs' invariants (:class:`PairInvariants`) and a
+graph of boxes (:class:`NodeGraph`). From Python a record is passed as a plain tuple,
+``tuple(record)``, which numba types in C (a named tuple it types field by field in
+Python, about 1 us per field and call), and named again on entry. Every compiled function
+here calls only functions and records of this module (numba's on-disk cache notices edits
+to a function's own file only).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ["axial_within", "descriptor_similarity", "fit_se2_kernel", "gated_pairs",
-           "grow_subgraph", "inlier_counts", "matching_pairs", "odist_scores",
-           "refine_rounds", "suppress"]
+__all__ = ["Gates", "NodeGraph", "PairInvariants", "Placement", "axial_within",
+           "descriptor_similarity", "fit_se2_kernel", "gated_pairs", "grow_subgraph",
+           "inlier_counts", "matching_pairs", "odist_scores", "refine_rounds", "suppress"]
+
+
+class Gates(NamedTuple):
+    """How close two boxes must be: ``distance`` (m) and ``yaw`` (rad, modulo pi; < 0: no
+    heading gate)."""
+
+    distance: float
+    yaw: float
+
+
+class Placement(NamedTuple):
+    """SE(2) poses that place boxes: x, y (m), the cos and sin of the yaw (computed by
+    numpy, so the placed centres are the numpy path's to the bit) and the yaw (rad);
+    floats for one pose, (H,) arrays for H."""
+
+    x: np.ndarray
+    y: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
+    yaw: np.ndarray
+
+
+class PairInvariants(NamedTuple):
+    """Pairs of one agent's boxes (P,): centre distance (m), relative heading and the
+    bearing of the second box seen from the first (rad)."""
+
+    length: np.ndarray
+    relative: np.ndarray
+    bearing: np.ndarray
+
+
+class NodeGraph(NamedTuple):
+    """One agent's boxes as a graph: centre distances (M, M) (m) and headings (M,) (rad)."""
+
+    distances: np.ndarray
+    yaw: np.ndarray
 
 
 @njit(cache=True)
@@ -29,15 +75,18 @@ def axial_within(a: float, b: float, gate: float) -> bool:
 
 
 @njit(cache=True)
-def gated_pairs(tx, ty, c, s, yaw, ego, own, gate, yaw_gate):
-    """Box pairs within the gates under the pose (tx, ty, yaw) with c = cos(yaw),
-    s = sin(yaw): ego box i and own box k mapped by the pose within ``gate`` m, and
-    (``yaw_gate`` >= 0) headings within ``yaw_gate`` rad modulo pi.
+def gated_pairs(pose, ego, own, gates):
+    """Box pairs within the :class:`Gates` under the pose (a :class:`Placement` of one
+    pose): ego box i and own box k mapped by the pose within ``gates.distance`` m, and
+    (``gates.yaw`` >= 0) headings within ``gates.yaw`` rad modulo pi.
 
     ego (M, 3), own (K, 3) box poses. Returns (ego index (P,), own index (P,), squared
     distance (P,), one_to_one) in row-major (ego, then own) order; one_to_one tells
     whether no box appears twice.
     """
+    pose, gates = Placement(*pose), Gates(*gates)
+    tx, ty, c, s, yaw = pose.x, pose.y, pose.cos, pose.sin, pose.yaw
+    gate, yaw_gate = gates.distance, gates.yaw
     m, k = ego.shape[0], own.shape[0]
     x = np.empty(k)
     y = np.empty(k)
@@ -73,11 +122,14 @@ def gated_pairs(tx, ty, c, s, yaw, ego, own, gate, yaw_gate):
 
 
 @njit(cache=True)
-def inlier_counts(tx, ty, c, s, yaw, ego, own, gate, yaw_gate):
-    """Inliers (H,) per hypothesis (tx, ty, yaw with c = cos(yaw), s = sin(yaw), each
-    (H,)): own boxes (K, 3) whose mapped centre has its nearest ego box (M, 3) within
-    ``gate`` m (the lowest index among equally near ones) and that box's heading within
-    ``yaw_gate`` rad modulo pi. Not one-to-one: the usual RANSAC score."""
+def inlier_counts(poses, ego, own, gates):
+    """Inliers (H,) per hypothesis (a :class:`Placement` of H poses): own boxes (K, 3)
+    whose mapped centre has its nearest ego box (M, 3) within ``gates.distance`` m (the
+    lowest index among equally near ones) and that box's heading within ``gates.yaw`` rad
+    modulo pi. Not one-to-one: the usual RANSAC score."""
+    poses, gates = Placement(*poses), Gates(*gates)
+    tx, ty, c, s, yaw = poses.x, poses.y, poses.cos, poses.sin, poses.yaw
+    gate, yaw_gate = gates.distance, gates.yaw
     order = np.argsort(ego[:, 0])
     ex = ego[order, 0]
     gate2 = gate * gate
@@ -133,15 +185,20 @@ def fit_se2_kernel(src, dst, w):
 
 
 @njit(cache=True)
-def matching_pairs(elen_sorted, order, clen, erel, ebear, crel, cbear, tol, yaw_tol):
+def matching_pairs(ego, order, own, tolerance):
     """RANSAC's consistent samples: (ego pair index (S,), own pair index (S,)) of every
-    ego pair whose length is within ``tol`` m of an own pair's, and (``yaw_tol`` >= 0)
-    whose relative heading and bearing agree within ``yaw_tol`` rad modulo pi.
+    ego pair whose length is within ``tolerance.distance`` m of an own pair's, and
+    (``tolerance.yaw`` >= 0) whose relative heading and bearing agree within
+    ``tolerance.yaw`` rad modulo pi (a :class:`Gates`).
 
-    elen_sorted (E,): ego pair lengths sorted, ``order`` (E,) their pair indices;
-    clen (C,), erel / ebear (E,), crel / cbear (C,). Order: by own pair, then by ego
-    length (the order of a searchsorted range per own pair).
+    ego (E,) / own (C,): the :class:`PairInvariants`; ``order`` (E,): the ego pairs by
+    increasing length. Order: by own pair, then by ego length (the order of a
+    searchsorted range per own pair).
     """
+    ego, own, tolerance = PairInvariants(*ego), PairInvariants(*own), Gates(*tolerance)
+    elen_sorted, erel, ebear = ego.length[order], ego.relative, ego.bearing
+    clen, crel, cbear = own.length, own.relative, own.bearing
+    tol, yaw_tol = tolerance.distance, tolerance.yaw
     ego_idx = []
     own_idx = []
     for j in range(clen.size):
@@ -180,17 +237,22 @@ def descriptor_similarity(ego_desc, own_desc, tol):
 
 
 @njit(cache=True)
-def grow_subgraph(ego_d, own_d, i, k, tol, ego_yaw, own_yaw, yaw_tol, max_nodes):
+def grow_subgraph(ego, own, seed, tolerance, max_nodes):
     """FreeAlign's greedy common-subgraph growth from the seed pair (i, k) (see
     :func:`roco_env.policies.freealign.common_subgraph`).
 
-    ego_d (M, M), own_d (K, K): centre distance matrices (m). Candidate pairs (r, c),
-    r != i, c != k, with |ego_d[i, r] - own_d[k, c]| <= ``tol`` and (``yaw_tol`` >= 0)
-    headings relative to the seed's within ``yaw_tol`` rad modulo pi, are taken in
-    order of that error (stable: row-major among equals); a pair joins when its
-    distances to every node already accepted agree within ``tol`` and it reuses no box.
-    ``max_nodes`` < 0: no limit. Returns (ego nodes, own nodes), seed first.
+    ego / own: the :class:`NodeGraph` of the ego's (M) and the collaborator's (K) boxes.
+    Candidate pairs (r, c), r != i, c != k, with |ego_d[i, r] - own_d[k, c]| <=
+    ``tolerance.distance`` m and (``tolerance.yaw`` >= 0) headings relative to the seed's
+    within ``tolerance.yaw`` rad modulo pi, are taken in order of that error (stable:
+    row-major among equals); a pair joins when its distances to every node already
+    accepted agree within the distance tolerance and it reuses no box. ``max_nodes`` < 0:
+    no limit. Returns (ego nodes, own nodes), seed first.
     """
+    ego, own, tolerance = NodeGraph(*ego), NodeGraph(*own), Gates(*tolerance)
+    ego_d, ego_yaw, own_d, own_yaw = ego.distances, ego.yaw, own.distances, own.yaw
+    i, k = seed
+    tol, yaw_tol = tolerance.distance, tolerance.yaw
     rows_l = []
     cols_l = []
     errs_l = []
@@ -273,22 +335,27 @@ def odist_scores(ego_local, own_local, ego_dir, own_dir, inv_r2, cos_gate):
 
 
 @njit(cache=True)
-def refine_rounds(pose, ego, own, gate, yaw_gate, rounds):
-    """Up to ``rounds`` rounds of association (:func:`gated_pairs`) + SE(2) fit of the
-    associated centres from ``pose`` (3,), as long as every association is one-to-one.
+def refine_rounds(pose, ego, own, gates, rounds, assigned):
+    """Up to ``rounds`` rounds of association (:func:`gated_pairs` with the
+    :class:`Gates`) + SE(2) fit of the associated centres from ``pose`` (3,).
 
     Stops when fewer than 2 pairs associate, when the fit moves the pose by at most
-    1e-6 in every component (the pose is kept), or at a round whose boxes compete for
-    each other (they need the Hungarian assignment the caller makes). Returns (pose,
-    rounds completed, whether it stopped at competing boxes).
+    1e-6 in every component (the pose is kept), or pauses at a round whose boxes compete
+    for each other: the caller makes the Hungarian assignment under the returned pose and
+    goes on with it as ``assigned`` = (ego index (P,), own index (P,)), the first round's
+    association (None: associate here). Returns (pose, rounds completed, paused at
+    competing boxes).
     """
     pose = pose.copy()
     for done in range(rounds):
         yaw = pose[2]
-        rows, cols, _, one_to_one = gated_pairs(pose[0], pose[1], math.cos(yaw),
-                                                math.sin(yaw), yaw, ego, own, gate, yaw_gate)
-        if not one_to_one:
-            return pose, done, True
+        if assigned is not None and done == 0:
+            rows, cols = assigned
+        else:
+            rows, cols, _, one_to_one = gated_pairs(
+                (pose[0], pose[1], math.cos(yaw), math.sin(yaw), yaw), ego, own, gates)
+            if not one_to_one:
+                return pose, done, True
         if rows.size < 2:
             return pose, done + 1, False
         src = np.empty((rows.size, 2))

@@ -48,7 +48,13 @@ from roco_env.policies.prior_free import (
     content_seed,
     distinct_top,
 )
-from roco_env.policies.prior_free_kernels import inlier_counts, matching_pairs
+from roco_env.policies.prior_free_kernels import (
+    Gates,
+    PairInvariants,
+    Placement,
+    inlier_counts,
+    matching_pairs,
+)
 from roco_env.schema import spec
 
 __all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_search"]
@@ -113,16 +119,18 @@ def ransac_search(ego_boxes: np.ndarray, p: RansacParams) -> Proposer:
     ego = ego_boxes[:, [0, 1, 6]]
     ea, eb, elen, erel, ebear, eang = _pairs(ego, True, p)
     order = np.argsort(elen)
-    elen_sorted = elen[order]
+    ego_pairs = tuple(PairInvariants(elen, erel, ebear))
     yaw_tol = float(np.deg2rad(p.yaw_tolerance_deg)) if p.use_yaw_invariants else -1.0
+    tolerance = tuple(Gates(float(p.pair_tolerance), yaw_tol))
+    inlier_gates = tuple(Gates(float(p.inlier_distance), float(np.deg2rad(p.inlier_yaw_deg))))
 
     def propose(own_boxes: np.ndarray) -> np.ndarray:
         own = own_boxes[:, [0, 1, 6]]
         ca, cb, clen, crel, cbear, cang = _pairs(own, False, p)
         if elen.size == 0 or clen.size == 0:
             return np.zeros((0, 3))
-        ego_idx, own_idx = matching_pairs(elen_sorted, order, clen, erel, ebear, crel, cbear,
-                                          float(p.pair_tolerance), yaw_tol)
+        ego_idx, own_idx = matching_pairs(ego_pairs, order,
+                                          tuple(PairInvariants(clen, crel, cbear)), tolerance)
         if ego_idx.size == 0:
             return np.zeros((0, 3))
         if ego_idx.size > p.max_hypotheses:
@@ -138,8 +146,7 @@ def ransac_search(ego_boxes: np.ndarray, p: RansacParams) -> Proposer:
         scored = own
         if p.score_boxes is not None and own.shape[0] > p.score_boxes:
             scored = own[np.linspace(0, own.shape[0] - 1, int(p.score_boxes)).astype(int)]
-        scores = inlier_counts(tx, ty, c, s, theta, ego, scored, float(p.inlier_distance),
-                               float(np.deg2rad(p.inlier_yaw_deg)))
+        scores = inlier_counts(tuple(Placement(tx, ty, c, s, theta)), ego, scored, inlier_gates)
         poses = np.column_stack([tx, ty, theta])
         top = distinct_top(poses, scores.astype(float), p.max_candidates, p)
         return poses[top]

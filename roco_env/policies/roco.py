@@ -82,23 +82,26 @@ from roco_env.policies.landmarks import (
     prior_information,
     split_rows,
 )
-from roco_env.policies.matching import MatchingParams, StarGraphMatcher, pose_features
-from roco_env.policies.matching_kernels import committed_map
+from roco_env.policies.matching import MatchingParams, pose_features
 from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.pose_kernels import (
-    KERNEL_CODES,
+    AgentBoxes,
+    LandmarkMap,
+    Observations,
+    RoundSettings,
+    RoundState,
     attempt_rounds,
+    committed_map,
     inverse_covariances,
-    solve_pose_edges,
-    wald_statistic,
+    resume_rounds,
 )
 from roco_env.policies.posegraph import (
-    _MIN_DIAG,
     ROBUST_KERNELS,
     PoseGraphResult,
     edge_chi2,
     optimize,
     robust_kernel,
+    solver_settings,
 )
 from roco_env.schema import spec
 
@@ -198,56 +201,48 @@ class RoCoParams(MatchingParams, UncertaintyParams):
 class _Map:
     """Landmarks (ego frame) with their observations, and the accepted agents' poses.
 
-    covariance (M, 3, 3): of the box that created each landmark, in the box frame (an
-    upper bound once more observations refine it; used by the significance test);
-    features (5, M): the matcher's :func:`~roco_env.policies.matching.pose_features`;
-    box_features: per agent, those of its boxes in its own frame.
+    landmarks: the :class:`~roco_env.policies.pose_kernels.LandmarkMap` (poses (M, 3);
+    the matcher's :func:`~roco_env.policies.matching.pose_features` (5, M), kept in step
+    with the poses; covariance (M, 3, 3) of the box that created each landmark, in the box
+    frame: an upper bound once more observations refine it, used by the significance
+    test); observations: which box of which agent sees which landmark
+    (:class:`~roco_env.policies.pose_kernels.Observations`); box_features: per agent,
+    the pose features of its boxes in its own frame.
     """
 
     def __init__(self, inputs: AlignmentInputs, ego_covariance: np.ndarray):
-        ego_poses = inputs.poses[0]
-        self.poses = ego_poses.copy()
-        self.features = pose_features(self.poses)  # kept in step with poses for matching
+        ego_poses = inputs.poses[0].copy()
+        self.landmarks = LandmarkMap(ego_poses, pose_features(ego_poses), ego_covariance.copy())
         # Every agent's boxes' features in its own frame (fixed), computed in one pass.
         self.box_features = [
             features.T for features in split_rows(pose_features(inputs.all_poses).T, inputs.offsets)
         ]
-        self.covariance = ego_covariance.copy()
         count = ego_poses.shape[0]
-        self.obs_agent = np.zeros(count, dtype=np.int64)
-        self.obs_box = np.arange(count)
-        self.obs_land = np.arange(count)
+        self.observations = Observations(np.zeros(count, dtype=np.int64), np.arange(count),
+                                         np.arange(count))
         self.agent_poses: dict[int, np.ndarray] = {0: np.zeros(3)}
 
     def shared(self, extra_land: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Landmark ids seen by >= 2 agents once ``extra_land`` gets one more observation,
         and which of the stored observations are of those landmarks (bool mask)."""
-        counts = np.bincount(self.obs_land, minlength=self.poses.shape[0])
+        land = self.observations.land
+        counts = np.bincount(land, minlength=self.landmarks.poses.shape[0])
         counts[extra_land] += 1
         is_shared = counts >= 2
-        return np.nonzero(is_shared)[0], is_shared[self.obs_land]
+        return np.nonzero(is_shared)[0], is_shared[land]
 
 
 @dataclass
 class _Attempt:
-    """State of one collaborator's match-optimise rounds.
+    """One collaborator's match-optimise rounds: where they ended
+    (:class:`~roco_env.policies.pose_kernels.RoundState`: pose, matches, their chi2 and
+    landmarks, rounds and solver iterations), the significance test's statistic (None
+    when the rounds did not compute it) and, when the rounds solve the whole graph, the
+    last joint solve (result, agent ids, shared landmark ids)."""
 
-    pose: current estimate; match_land/match_box: matched landmark ids and box indices;
-    chi2 (P,) and landmarks (P, 3): its matched edges at the estimate; joint: the joint
-    solve (result, agent ids, shared landmark ids) when rounds solve the whole graph;
-    statistic: the significance test's, when the compiled rounds computed it.
-    """
-
-    pose: np.ndarray
-    match_land: np.ndarray
-    match_box: np.ndarray
-    solved: bool = False
-    chi2: np.ndarray | None = None
-    landmarks: np.ndarray | None = None
-    joint: tuple[PoseGraphResult, np.ndarray, np.ndarray] | None = None
-    outer: int = 0
-    solver: int = 0
+    state: RoundState
     statistic: float | None = None
+    joint: tuple[PoseGraphResult, np.ndarray, np.ndarray] | None = None
 
 
 @lru_cache(maxsize=16)
@@ -259,59 +254,60 @@ def _prior_info(p: RoCoParams) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _round_terms(p: RoCoParams) -> tuple:
-    """The settings of ``p`` as :func:`~roco_env.policies.pose_kernels.attempt_rounds` takes
-    them after the reported pose, computed once per parameter set: the prior edges'
-    information, the gates (m; coarse -1 = none), the matching's kernel terms, min_matches,
-    the round cap, the solver's settings, inlier_chi2 and the significance fit's stop
-    (0 = no significance test), and whether the rounds' edges carry the information of box
-    minus landmark (``round_information``)."""
-    return (
-        _prior_info(p),
+def _round_settings(p: RoCoParams) -> tuple[tuple, tuple, tuple]:
+    """The settings of ``p`` as :func:`~roco_env.policies.pose_kernels.attempt_rounds`
+    takes them (plain tuples), computed once per parameter set: the
+    :class:`~roco_env.policies.pose_kernels.RoundSettings` (gates m, coarse -1 = none;
+    min_matches, the round cap, the prior edges' information, inlier_chi2, the
+    significance fit's stop (0 = no significance test), whether the rounds' edges carry
+    the information of box minus landmark (``round_information``), whether they solve the
+    whole graph), the matcher's settings and the rounds' solver (LM stop
+    ``_ROUND_TOLERANCE``)."""
+    rounds = RoundSettings(
         float(p.tau2),
         -1.0 if p.coarse_tau2 is None else float(p.coarse_tau2),
-        *p.kernel_terms(),
         int(p.min_matches),
         int(p.max_outer_iterations) if p.iterate else 1,
-        KERNEL_CODES[p.robust_kernel],
-        float(p.kernel_delta),
-        int(p.max_solver_iterations),
-        _ROUND_TOLERANCE,
-        _MIN_DIAG,
+        _prior_info(p),
         float(p.inlier_chi2),
         _FIT_TOLERANCE if p.significance else 0.0,
         p.difference_rounds,
+        bool(p.joint_every_round),
     )
+    solver = solver_settings(p.robust_kernel, p.kernel_delta, p.max_solver_iterations,
+                             _ROUND_TOLERANCE)
+    return tuple(rounds), tuple(p.match_settings()), tuple(solver)
 
 
 def _joint_solve(
     inputs: AlignmentInputs,
     world: _Map,
     p: RoCoParams,
-    att: _Attempt | None = None,
+    state: RoundState | None = None,
     agent: int = 0,
 ) -> tuple[PoseGraphResult, np.ndarray, np.ndarray]:
-    """Optimise the map's agents (+ ``agent`` at ``att.pose`` with its matches, when an
-    attempt is given) and every landmark seen by >= 2 agents.
+    """Optimise the map's agents (+ ``agent`` at ``state.pose`` with its matches, when a
+    round state is given) and every landmark seen by >= 2 agents.
 
     Returns (result, agent ids, landmark ids) (vertex order = id order, extra agent last).
     """
     known = sorted(world.agent_poses)
     poses = [world.agent_poses[a] for a in known]
-    match_land = world.obs_land[:0] if att is None else att.match_land
-    match_box = world.obs_box[:0] if att is None else att.match_box
-    if att is not None:
-        known, poses = [*known, agent], [*poses, att.pose]
+    observed = world.observations
+    match_land = observed.land[:0] if state is None else state.match_land
+    match_box = observed.box[:0] if state is None else state.match_box
+    if state is not None:
+        known, poses = [*known, agent], [*poses, state.pose]
     shared, keep = world.shared(match_land)
-    obs_agent = np.concatenate([world.obs_agent[keep], np.full(match_land.size, agent)])
-    obs_box = np.concatenate([world.obs_box[keep], match_box])
-    obs_land = np.searchsorted(shared, np.concatenate([world.obs_land[keep], match_land]))
+    obs_agent = np.concatenate([observed.agent[keep], np.full(match_land.size, agent)])
+    obs_box = np.concatenate([observed.box[keep], match_box])
+    obs_land = np.searchsorted(shared, np.concatenate([observed.land[keep], match_land]))
     agent_ids = np.array(known)
     graph = landmark_graph(
         inputs,
         agent_ids,
         np.stack(poses),
-        world.poses[shared],
+        world.landmarks.poses[shared],
         obs_agent,
         obs_box,
         obs_land,
@@ -328,46 +324,15 @@ def _joint_solve(
 
 
 def _round_information(
-    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
+    inputs: AlignmentInputs, world: _Map, agent: int, state: RoundState, p: RoCoParams
 ) -> np.ndarray:
     """Information (P, 3, 3) of the collaborator's matched edges as its rounds weigh them
     (module docstring, step 3): ``(Sigma_box + Sigma_landmark)^-1`` when
     :attr:`RoCoParams.difference_rounds`, else the box's own."""
     if p.difference_rounds:
-        box_covariance = inputs.all_covariance[inputs.offsets[agent] + att.match_box]
-        return inverse_covariances(box_covariance + world.covariance[att.match_land])
-    return inputs.information[agent][att.match_box]
-
-
-def _optimise_round(
-    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, p: RoCoParams
-) -> None:
-    """One pose update for the collaborator from its current matches (in place)."""
-    own = inputs.poses[agent][att.match_box]
-    if p.joint_every_round:
-        att.joint = _joint_solve(inputs, world, p, att, agent)
-        solution, _, shared = att.joint
-        att.pose = solution.agents[-1]
-        att.chi2 = solution.obs_chi2[-own.shape[0] :]
-        att.landmarks = solution.landmarks[np.searchsorted(shared, att.match_land)]
-        att.solver += solution.iterations
-        return
-    att.landmarks = world.poses[att.match_land]
-    # optimize_pose's compiled solver, called directly (the inputs are already checked).
-    att.pose, att.chi2, _, _, iterations, _ = solve_pose_edges(
-        att.pose,
-        att.landmarks,
-        own,
-        _round_information(inputs, world, agent, att, p),
-        inputs.reported[agent - 1],
-        _prior_info(p),
-        KERNEL_CODES[p.robust_kernel],
-        float(p.kernel_delta),
-        int(p.max_solver_iterations),
-        _ROUND_TOLERANCE,
-        _MIN_DIAG,
-    )
-    att.solver += iterations
+        box_covariance = inputs.all_covariance[inputs.offsets[agent] + state.match_box]
+        return inverse_covariances(box_covariance + world.landmarks.covariance[state.match_land])
+    return inputs.information[agent][state.match_box]
 
 
 def _attempt(
@@ -376,61 +341,31 @@ def _attempt(
     agent: int,
     p: RoCoParams,
     start: np.ndarray,
-    covariance: list[np.ndarray],
+    boxes: AgentBoxes,
 ) -> _Attempt:
-    """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring),
-    starting from the pose estimate ``start`` (3,), covariance: every agent's box
-    covariances: in one compiled call (:func:`~roco_env.policies.pose_kernels.attempt_rounds`,
-    which also computes the significance test's statistic) unless the rounds solve the
-    whole graph or a matching needs the full assignment (:func:`_attempt_loop`)."""
-    pose = np.array(start, dtype=float)
-    if p.joint_every_round:
-        return _attempt_loop(inputs, world, agent, p, pose)
-    done, pose, land, box, solved, chi2, landmarks, outer, solver, statistic = attempt_rounds(
-        pose,
-        inputs.poses[agent],
-        inputs.information[agent],
-        covariance[agent],
-        world.poses,
-        world.features,
-        world.covariance,
-        world.box_features[agent],
-        inputs.reported[agent - 1],
-        *_round_terms(p),
-    )
-    if not done:
-        return _attempt_loop(inputs, world, agent, p, np.array(start, dtype=float))
-    statistic = None if np.isnan(statistic) else float(statistic)
-    return _Attempt(pose, land, box, solved, chi2, landmarks, None, outer, solver, statistic)
-
-
-def _attempt_loop(
-    inputs: AlignmentInputs, world: _Map, agent: int, p: RoCoParams, start: np.ndarray
-) -> _Attempt:
-    """:func:`_attempt` round by round in Python (any matching, joint solves per round)."""
-    matcher = StarGraphMatcher(
-        world.poses, inputs.poses[agent], p, world.features, world.box_features[agent]
-    )
-    empty = np.zeros(0, dtype=np.int64)
-    att = _Attempt(start, empty, empty)
-    rounds = p.max_outer_iterations if p.iterate else 1
-    for _ in range(rounds):
-        land, box, _ = matcher.match(att.pose)
-        if not att.outer and land.size < p.min_matches and p.coarse_tau2 is not None:
-            land, box, _ = matcher.match(att.pose, tau2=p.coarse_tau2)
-        if (
-            att.outer
-            and np.array_equal(land, att.match_land)
-            and np.array_equal(box, att.match_box)
-        ):
-            break
-        att.outer += 1
-        att.match_land, att.match_box = land, box
-        att.solved = land.size >= p.min_matches
-        if not att.solved:
-            break
-        _optimise_round(inputs, world, agent, att, p)
-    return att
+    """Match-optimise rounds for one collaborator (steps 1-4 of the module docstring; its
+    boxes: ``boxes``), starting from the pose estimate ``start`` (3,), in one compiled call
+    (:func:`~roco_env.policies.pose_kernels.attempt_rounds`, which also computes the
+    significance test's statistic). When the rounds solve the whole graph, they pause
+    before each solve, made here (:func:`_joint_solve`), and go on from its result."""
+    settings = _round_settings(p)
+    boxes, landmarks = tuple(boxes), tuple(world.landmarks)
+    state, statistic, paused = attempt_rounds(np.array(start, dtype=float), boxes, landmarks,
+                                              *settings)
+    state = RoundState(*state)
+    joint = None
+    while paused:
+        joint = _joint_solve(inputs, world, p, state, agent)
+        solution, _, shared = joint
+        state = state._replace(
+            pose=solution.agents[-1].copy(),
+            chi2=solution.obs_chi2[-state.match_box.size:].copy(),
+            landmarks=solution.landmarks[np.searchsorted(shared, state.match_land)],
+            iterations=state.iterations + solution.iterations,
+        )
+        state, statistic, paused = resume_rounds(tuple(state), boxes, landmarks, *settings)
+        state = RoundState(*state)
+    return _Attempt(state, None if np.isnan(statistic) else float(statistic), joint)
 
 
 @lru_cache(maxsize=16)
@@ -439,59 +374,27 @@ def _significance_threshold(significance: float) -> float:
     return float(chi2_distribution.ppf(significance, 3))
 
 
-def _correction_statistic(
-    inputs: AlignmentInputs,
-    world: _Map,
-    agent: int,
-    att: _Attempt,
-    p: RoCoParams,
-    covariance: list[np.ndarray],
-) -> float:
-    """Wald statistic (module docstring) of the collaborator's correction: its pose is
-    re-fitted to its matched edges alone with the box-difference information and the
-    kernel, and ``d = fitted - reported`` is weighed by the inverse of its sandwich
-    covariance ``A^-1 B A^-1`` (A = sum w J^T Omega J, B = sum w^2 J^T Omega J, w the
-    IRLS weights at the fit); chi-square with 3 dof when the reported pose is right.
-    Computed in one compiled pass (:func:`~roco_env.policies.pose_kernels.wald_statistic`),
-    unless the compiled rounds already did."""
-    if att.statistic is not None:
-        return att.statistic
-    own = inputs.poses[agent][att.match_box]
-    return float(
-        wald_statistic(
-            att.pose,
-            att.landmarks,
-            own,
-            covariance[agent][att.match_box] + world.covariance[att.match_land],
-            inputs.reported[agent - 1],
-            KERNEL_CODES[p.robust_kernel],
-            float(p.kernel_delta),
-            int(p.max_solver_iterations),
-            _FIT_TOLERANCE,
-            _MIN_DIAG,
-        )
-    )
-
-
 def _rejection(
     inputs: AlignmentInputs,
     world: _Map,
     agent: int,
     att: _Attempt,
     p: RoCoParams,
-    covariance: list[np.ndarray],
     waived: bool = False,
 ) -> tuple[str, float]:
     """Why the do-no-harm rule rejects the attempt ("" when it is accepted) and the
-    significance test's statistic (NaN when not computed). ``waived``: the statistic is
-    computed but does not decide (:mod:`roco_env.policies.pooled`)."""
-    if not att.solved:
-        return f"{att.match_land.size} matches < min_matches={p.min_matches}", np.nan
-    inliers = int(np.count_nonzero(att.chi2 <= p.inlier_chi2))
+    significance test's statistic (NaN when not computed; the compiled rounds compute it,
+    module docstring: the Wald statistic of the collaborator's pose re-fitted to its
+    matched edges alone). ``waived``: the statistic is computed but does not decide
+    (:mod:`roco_env.policies.pooled`)."""
+    state = att.state
+    if not state.solved:
+        return f"{state.match_land.size} matches < min_matches={p.min_matches}", np.nan
+    inliers = int(np.count_nonzero(state.chi2 <= p.inlier_chi2))
     if inliers < p.min_matches:
         return f"{inliers} inlier matches < min_matches={p.min_matches}", np.nan
     if p.significance:
-        statistic = _correction_statistic(inputs, world, agent, att, p, covariance)
+        statistic = att.statistic
         threshold = _significance_threshold(p.significance)
         if not (statistic > threshold or waived):
             return (
@@ -499,11 +402,11 @@ def _rejection(
                 f"(chi2 3 dof, significance={p.significance})"
             ), statistic
         return "", statistic
-    own = inputs.poses[agent][att.match_box]
-    info = _round_information(inputs, world, agent, att, p)  # as att.chi2's edges were
+    own = inputs.poses[agent][state.match_box]
+    info = _round_information(inputs, world, agent, state, p)  # as state.chi2's edges were
     reported = inputs.reported[agent - 1]
-    chi2_reported = edge_chi2(np.broadcast_to(reported, own.shape), att.landmarks, own, info)
-    cost_optimised = robust_kernel(att.chi2, p.robust_kernel, p.kernel_delta)[0].sum()
+    chi2_reported = edge_chi2(np.broadcast_to(reported, own.shape), state.landmarks, own, info)
+    cost_optimised = robust_kernel(state.chi2, p.robust_kernel, p.kernel_delta)[0].sum()
     cost_reported = robust_kernel(chi2_reported, p.robust_kernel, p.kernel_delta)[0].sum()
     if not cost_optimised < cost_reported:
         return "optimised pose does not explain the boxes better than the reported one", np.nan
@@ -514,24 +417,23 @@ def _store_joint(world: _Map, joint: tuple[PoseGraphResult, np.ndarray, np.ndarr
     solution, agent_ids, shared = joint
     for vertex, agent_id in enumerate(agent_ids):
         world.agent_poses[int(agent_id)] = solution.agents[vertex]
-    world.poses[shared] = solution.landmarks
-    world.features[:, shared] = pose_features(solution.landmarks)
+    world.landmarks.poses[shared] = solution.landmarks
+    world.landmarks.features[:, shared] = pose_features(solution.landmarks)
 
 
-def _commit(
-    inputs: AlignmentInputs, world: _Map, agent: int, att: _Attempt, covariance: np.ndarray
-) -> None:
-    """Accept the attempt: store optimised poses, observations and new landmarks."""
+def _commit(world: _Map, agent: int, att: _Attempt, boxes: AgentBoxes) -> None:
+    """Accept the attempt of the collaborator ``agent`` (its boxes: ``boxes``): store
+    optimised poses, observations and new landmarks."""
     if att.joint is not None:
         _store_joint(world, att.joint)
-    world.agent_poses[agent] = att.pose
+    state = att.state
+    world.agent_poses[agent] = state.pose
     # Matched boxes become observations, the others new landmarks (one compiled pass).
-    (world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
-     world.obs_land) = committed_map(
-        att.pose, inputs.poses[agent], covariance, att.match_land, att.match_box, agent,
-        world.poses, world.features, world.covariance, world.obs_agent, world.obs_box,
-        world.obs_land,
+    landmarks, observations = committed_map(
+        state.pose, state.match_land, state.match_box, tuple(boxes), agent,
+        tuple(world.landmarks), tuple(world.observations),
     )
+    world.landmarks, world.observations = LandmarkMap(*landmarks), Observations(*observations)
 
 
 # The name roco_antialias imports: the parameters are checked, and memoised, by
@@ -593,6 +495,11 @@ def roco_solve(
     covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
+    boxes = [None] + [
+        AgentBoxes(inputs.poses[a], inputs.information[a], covariance[a], world.box_features[a],
+                   inputs.reported[a - 1])
+        for a in range(1, n + 1)
+    ]
     reasons = {j: "" for j in range(n)}
     statistics = np.full(n, np.nan)
     outer = solver = 0
@@ -605,12 +512,12 @@ def roco_solve(
         if not has_boxes[agent]:
             reasons[agent - 1] = "no boxes"
             continue
-        att = _attempt(inputs, world, agent, p, start[agent - 1], covariance)
-        outer, solver = outer + att.outer, solver + att.solver
+        att = _attempt(inputs, world, agent, p, start[agent - 1], boxes[agent])
+        outer, solver = outer + att.state.outer, solver + att.state.iterations
         reasons[agent - 1], statistics[agent - 1] = _rejection(
-            inputs, world, agent, att, p, covariance, agent - 1 in waived)
+            inputs, world, agent, att, p, agent - 1 in waived)
         if not reasons[agent - 1]:
-            _commit(inputs, world, agent, att, covariance[agent])
+            _commit(world, agent, att, boxes[agent])
             accepted_since_joint = True
             # The map grew: collaborators that failed earlier get one more try.
             failed = [a for a in range(1, agent) if reasons[a - 1] and a not in retried]
@@ -626,13 +533,14 @@ def roco_solve(
     for j in np.nonzero(applied)[0]:
         corrected[j] = world.agent_poses[j + 1]
     shared, keep = world.shared(np.zeros(0, dtype=np.int64))
+    observed = world.observations
     return AlignmentResult(
         corrected=corrected,
         applied=applied,
         matched_pairs=pairs_from_observations(
-            world.obs_agent[keep], world.obs_box[keep], world.obs_land[keep]
+            observed.agent[keep], observed.box[keep], observed.land[keep]
         ),
-        landmarks=world.poses[shared],
+        landmarks=world.landmarks.poses[shared],
         outer_iterations=outer,
         solver_iterations=solver,
         reason="; ".join(f"slot {j}: {r}" for j, r in reasons.items() if r),

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roco_env.sensing.grid import BevGrid, cell_polar
-from roco_env.sensing.lidar_kernels import bin_points
+from roco_env.sensing.lidar_kernels import Cells, CellSums, bin_points
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState
 
@@ -157,11 +157,12 @@ def lidar_rasters(scans: Sequence[LidarScan], ray_ranges: np.ndarray,
     total = np.zeros((n, grid.H * grid.W))
     top = np.zeros((n, grid.H * grid.W))  # highest point per cell, 0 when none is above 0
     offset_x, offset_y = np.zeros((n, grid.H * grid.W)), np.zeros((n, grid.H * grid.W))
+    cells = tuple(Cells(float(grid.x_range[0]), float(grid.y_range[0]), float(grid.resolution),
+                        int(grid.H), int(grid.W)))
     for k, scan in enumerate(scans):
         bin_points(np.asarray(scan.x, dtype=float), np.asarray(scan.y, dtype=float),
-                   np.asarray(scan.z, dtype=float), grid.x_range[0], grid.y_range[0],
-                   grid.resolution, grid.H, grid.W, count[k], total[k], top[k], offset_x[k],
-                   offset_y[k])
+                   np.asarray(scan.z, dtype=float), cells,
+                   tuple(CellSums(count[k], total[k], top[k], offset_x[k], offset_y[k])))
     per_cell = np.maximum(count, 1)
     out = np.empty((n, len(LIDAR_CHANNELS), grid.H, grid.W), dtype=np.float32)
     out[:, 0] = np.log1p(count).reshape(n, grid.H, grid.W)
