@@ -1,0 +1,223 @@
+"""Which directions of a collaborator's relative pose the shared boxes determine.
+
+Some scenes cannot fix every component of T_{j->i} (x m, y m, yaw rad, ego frame): a
+row of cars 2.5 m apart fits the ego's boxes as well one stall over, a queue of evenly
+spaced cars on a straight road as well one car along the road. :func:`diagnose` tells,
+for a chosen pose ``pose`` of collaborator j among candidate poses (in roco_antialias: the
+decision's refined hypotheses, i.e. the vote peaks within ``search_radius`` of the
+reported pose, the reported pose and the track's prediction), which directions are
+*undetermined*:
+
+1. **Spectrum (local).** Every collaborator box mapped by ``pose`` is paired with the
+   nearest ego box within ``refine_gate`` (m). The pairs' Fisher information of the pose,
+   ``A = sum J^T W J`` (position residual with variance ``v_p + v_q + pose_slack_t^2``,
+   heading residual with ``w_p + w_q + pose_slack_r^2``, as the evidence weighs them;
+   J the residual's derivative in (x, y, yaw)), is taken in *scaled* coordinates
+   ``z = (x / distinct_t, y / distinct_t, yaw / distinct_r)``: an eigen-direction with
+   eigenvalue < 1 is pinned to worse than one scale unit (std > ``distinct_t`` m or
+   ``distinct_r_deg`` deg) and is undetermined. Fewer than ``min_matches`` pairs
+   determine nothing.
+2. **Rivals (global).** Each candidate pose h (the refined hypotheses) distinct from
+   ``pose`` (more than ``distinct_t`` m or ``distinct_r_deg`` deg away) whose score is
+   within ``min_margin`` of the pose's, ``E(h) - c(h) >= E(pose) - c(pose) - min_margin``
+   (E the evidence of :func:`~roco_env.policies.hypotheses.score_hypotheses`, chi2 units;
+   c any prior other than the reported pose's, e.g. a temporal track's), explains the
+   boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Only
+   the candidates are compared: an alias the search did not reach (in roco_antialias,
+   farther than ``search_radius`` from the reported pose) goes unnoticed.
+3. **Subspace.** The undetermined directions are the low-information eigenvectors of
+   step 1, then the rivals' displacements in scaled coordinates, largest first, each
+   adding its component orthogonal to the directions so far when that component is
+   longer than 1 (one ``distinct_t`` m / ``distinct_r_deg`` deg: a smaller one is the
+   same direction up to the refinement's noise). The determined directions are the
+   orthogonal complement.
+
+The rule and its thresholds use the aligner's own settings (no new knob): the rival
+margin is the decision's ``min_margin`` (20 chi2 units: a likelihood ratio of e^10), the
+scale is the distinctness of two hypotheses (1 m, 1 deg), the pairing gate the
+refinement's (1 m).
+
+:meth:`Ambiguity.projected` turns a correction into its determined part (the reported
+pose is kept along the undetermined directions) and :meth:`Ambiguity.significant`
+applies a Wald test to it with the pairs' information.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_distribution
+
+from roco_env.geometry import se2_compose, wrap_angle
+from roco_env.policies.hypotheses import BoxSet, EvidenceParams, score_hypotheses
+
+__all__ = ["Ambiguity", "diagnose", "pair_information"]
+
+
+@dataclass(frozen=True)
+class Ambiguity:
+    """The diagnosis of one collaborator's pose (module docstring).
+
+    pose (3,): the diagnosed T_{j->i} (x m, y m, yaw rad); scale (3,): the scaled
+    coordinates' units (m, m, rad); undetermined (k, 3): orthonormal basis of the
+    undetermined directions in scaled coordinates (k = 0: fully determined, 3: nothing
+    determined); information (3, 3): the pairs' information of the pose in scaled
+    coordinates; matches: the pairs; rivals (R, 3): the candidate poses that explain the
+    boxes nearly as well.
+    """
+
+    pose: np.ndarray
+    scale: np.ndarray
+    undetermined: np.ndarray
+    information: np.ndarray
+    matches: int
+    rivals: np.ndarray
+
+    @property
+    def determined(self) -> int:
+        """How many directions the boxes determine (0-3)."""
+        return 3 - self.undetermined.shape[0]
+
+    def projected(self, reported: np.ndarray) -> np.ndarray:
+        """The pose (3,) that keeps ``reported`` (3,) along the undetermined directions and
+        takes :attr:`pose` along the determined ones (the correction ``pose - reported``,
+        yaw wrapped, projected onto the determined subspace in scaled coordinates)."""
+        reported = np.asarray(reported, dtype=float)
+        delta = (self.pose - reported) / self.scale
+        delta[2] = wrap_angle(self.pose[2] - reported[2]) / self.scale[2]
+        delta -= self.undetermined.T @ (self.undetermined @ delta)
+        pose = reported + delta * self.scale
+        pose[2] = wrap_angle(pose[2])
+        return pose
+
+    def statistic(self, reported: np.ndarray) -> float:
+        """Wald statistic of the determined part of the correction (chi-square with
+        :attr:`determined` dof when ``reported`` is right along the determined
+        directions): the correction's coordinates a in an orthonormal basis B of the
+        determined subspace, weighed by the inverse of their covariance ``B^T A^-1 B``
+        (A = :attr:`information`, restricted to its determined eigen-directions). NaN when
+        nothing is determined."""
+        if self.determined == 0:
+            return float("nan")
+        basis = _complement(self.undetermined)
+        delta = (self.projected(reported) - np.asarray(reported, dtype=float))
+        delta[2] = wrap_angle(delta[2])
+        coords = basis @ (delta / self.scale)
+        values, vectors = np.linalg.eigh(self.information)
+        kept = values >= 1.0
+        along = basis @ vectors[:, kept]
+        covariance = (along / values[kept]) @ along.T
+        return float(coords @ np.linalg.solve(covariance, coords))
+
+    def significant(self, reported: np.ndarray, significance: float | None) -> bool:
+        """Whether the determined part of the correction is beyond the estimation noise:
+        :meth:`statistic` > ``chi2.ppf(significance, determined)``; ``significance`` None
+        or 0 = any correction counts; never when nothing is determined."""
+        if self.determined == 0:
+            return False
+        if not significance:
+            return True
+        threshold = chi2_distribution.ppf(significance, self.determined)
+        return bool(self.statistic(reported) > threshold)
+
+    def describe(self) -> str:
+        """The undetermined directions in words, e.g. ``"undetermined along (0.98, 0.17)"``
+        (a translation direction in the ego frame), ``"nothing determined"``."""
+        if self.determined == 0:
+            return "nothing determined"
+        parts = []
+        for direction in self.undetermined:
+            if abs(direction[2]) > 0.5:
+                parts.append("yaw")
+            else:
+                unit = direction[:2] / np.hypot(*direction[:2])
+                parts.append(f"({unit[0]:.2f}, {unit[1]:.2f})")
+        return "undetermined along " + ", ".join(parts)
+
+
+def pair_information(
+    ego: BoxSet, collab: BoxSet, pose: np.ndarray, gate: float, slack: tuple[float, float]
+) -> tuple[np.ndarray, int]:
+    """Information (3, 3) of T_{j->i} = ``pose`` (x m, y m, yaw rad) from the pairs of each
+    collaborator box (mapped by ``pose``) with its nearest ego box within ``gate`` m, and the
+    number of pairs. A pair's position residual has variance ``v_p + v_q + slack[0]`` (m^2)
+    in x and y, its heading residual ``w_p + w_q + slack[1]`` (rad^2) (the boxes' variances
+    of :class:`~roco_env.policies.hypotheses.BoxSet`, slack the pose slack's)."""
+    if ego.poses.shape[0] == 0 or collab.poses.shape[0] == 0:
+        return np.zeros((3, 3)), 0
+    mapped = se2_compose(np.asarray(pose, dtype=float), collab.poses)
+    distance = np.hypot(mapped[:, None, 0] - ego.poses[None, :, 0],
+                        mapped[:, None, 1] - ego.poses[None, :, 1])
+    nearest = np.argmin(distance, axis=1)
+    paired = distance[np.arange(mapped.shape[0]), nearest] <= gate
+    q, p = np.nonzero(paired)[0], nearest[paired]
+    w_t = 1.0 / (ego.var_t[p] + collab.var_t[q] + slack[0])
+    w_r = 1.0 / (ego.var_r[p] + collab.var_r[q] + slack[1])
+    # d(mapped centre)/d yaw: the centre's offset from the collaborator's origin, turned by 90°.
+    lever = np.column_stack([-(mapped[q, 1] - pose[1]), mapped[q, 0] - pose[0]])
+    info = np.zeros((3, 3))
+    info[0, 0] = info[1, 1] = w_t.sum()
+    info[0, 2] = info[2, 0] = (w_t * lever[:, 0]).sum()
+    info[1, 2] = info[2, 1] = (w_t * lever[:, 1]).sum()
+    info[2, 2] = (w_t * (lever**2).sum(axis=1)).sum() + w_r.sum()
+    return info, int(q.size)
+
+
+def _complement(basis: np.ndarray) -> np.ndarray:
+    """Orthonormal rows (3 - k, 3) spanning the complement of the orthonormal rows
+    ``basis`` (k, 3)."""
+    if basis.shape[0] == 0:
+        return np.eye(3)
+    _, _, vt = np.linalg.svd(basis, full_matrices=True)
+    return vt[basis.shape[0]:]
+
+
+def diagnose(
+    ego: BoxSet,
+    collab: BoxSet,
+    candidates: np.ndarray,
+    best: int,
+    p: EvidenceParams,
+    *,
+    margin: float,
+    distinct: tuple[float, float],
+    min_matches: int,
+    penalty: np.ndarray | None = None,
+) -> Ambiguity:
+    """The undetermined directions of collaborator j's pose ``candidates[best]`` (module
+    docstring).
+
+    ego / collab: the agents' boxes (:class:`~roco_env.policies.hypotheses.BoxSet`);
+    candidates (H, 3): the refined hypotheses (T_{j->i}, x m, y m, yaw rad), the diagnosed
+    pose among them; p: the evidence's settings (``refine_gate`` pairs the boxes, the pose
+    slack weighs the pairs); margin (chi2 units): how close a rival's score must come;
+    distinct (m, rad): when two poses differ, and the units of the scaled coordinates;
+    min_matches: the fewest pairs that determine anything; penalty (H,): prior terms
+    (chi2 units) of the candidates other than the reported pose's (e.g. a track's),
+    subtracted from their evidence (None: none).
+    """
+    candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)
+    pose = candidates[best]
+    scale = np.array([distinct[0], distinct[0], distinct[1]], dtype=float)
+    slack = (float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2))
+    information, matches = pair_information(ego, collab, pose, float(p.refine_gate), slack)
+    information = information * np.outer(scale, scale)
+    if matches < min_matches:
+        return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0])
+    values, vectors = np.linalg.eigh(information)
+    directions = [vectors[:, k] for k in range(3) if values[k] < 1.0]
+    offset = (candidates - pose) / scale
+    offset[:, 2] = wrap_angle(candidates[:, 2] - pose[2]) / scale[2]
+    score = score_hypotheses(ego, collab, candidates, p)
+    if penalty is not None:
+        score = score - np.asarray(penalty, dtype=float)
+    rival = (score >= score[best] - margin) & (
+        (np.hypot(offset[:, 0], offset[:, 1]) > 1.0) | (np.abs(offset[:, 2]) > 1.0))
+    steps = offset[rival]
+    for step in steps[np.argsort(-np.linalg.norm(steps, axis=1), kind="stable")]:
+        rest = step - sum(((d @ step) * d for d in directions), np.zeros(3))
+        if len(directions) < 3 and np.linalg.norm(rest) > 1.0:
+            directions.append(rest / np.linalg.norm(rest))
+    undetermined = np.array(directions).reshape(-1, 3)
+    return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival])
