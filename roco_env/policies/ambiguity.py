@@ -13,10 +13,11 @@ reported pose, the reported pose and the track's prediction), which directions a
    ``A = sum J^T W J`` (position residual with variance ``v_p + v_q + pose_slack_t^2``,
    heading residual with ``w_p + w_q + pose_slack_r^2``, as the evidence weighs them;
    J the residual's derivative in (x, y, yaw)), is taken in *scaled* coordinates
-   ``z = (x / distinct_t, y / distinct_t, yaw / distinct_r)``: an eigen-direction with
-   eigenvalue < 1 is pinned to worse than one scale unit (std > ``distinct_t`` m or
-   ``distinct_r_deg`` deg) and is undetermined. Fewer than ``min_matches`` pairs
-   determine nothing.
+   ``z = (x / distinct_t, y / distinct_t, yaw / distinct_r)``. From its inverse, the pose's
+   covariance: the yaw is undetermined when its marginal variance exceeds 1 (std >
+   ``distinct_r_deg`` deg), a translation direction when it is an eigen-direction of the
+   translation's marginal covariance with variance > 1 (std > ``distinct_t`` m). Fewer
+   than ``min_matches`` pairs determine nothing.
 2. **Rivals (global).** Each candidate pose h (the refined hypotheses) distinct from
    ``pose`` (more than ``distinct_t`` m or ``distinct_r_deg`` deg away) whose score is
    within ``min_margin`` of the pose's, ``E(h) - c(h) >= E(pose) - c(pose) - min_margin``
@@ -25,12 +26,20 @@ reported pose, the reported pose and the track's prediction), which directions a
    boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Only
    the candidates are compared: an alias the search did not reach (in roco_antialias,
    farther than ``search_radius`` from the reported pose) goes unnoticed.
-3. **Subspace.** The undetermined directions are the low-information eigenvectors of
-   step 1, then the rivals' displacements in scaled coordinates, largest first, each
-   adding its component orthogonal to the directions so far when that component is
-   longer than 1 (one ``distinct_t`` m / ``distinct_r_deg`` deg: a smaller one is the
-   same direction up to the refinement's noise). The determined directions are the
-   orthogonal complement.
+3. **Subspace.** Translations and the yaw are kept apart (a direction mixing metres and
+   degrees would trade a heading error for a position error): the undetermined
+   translation directions are those of step 1, then the rivals' shifts, largest first,
+   each adding its part orthogonal to the directions so far when that part is longer than
+   ``distinct_t`` m (a shorter one is the same direction up to the refinement's noise);
+   the yaw is undetermined after step 1 or when a rival turns by more than
+   ``distinct_r_deg`` deg. The determined directions are the orthogonal complement.
+4. **Margin of the determined part.** With every prior in the score (the reported pose's
+   too), ``S(h) = E(h) - c(h) - prior(h)``: the best score among the candidates whose
+   offset from the pose, projected onto the determined directions, is not distinct
+   (within the thresholds above), minus the best among the others (0 without any), as
+   the decision's margin is taken. A pose whose determined part wins by less than
+   ``min_margin`` is not trusted there either (a poorly matched hypothesis far from the
+   reported pose scores below 0).
 
 The rule and its thresholds use the aligner's own settings (no new knob): the rival
 margin is the decision's ``min_margin`` (20 chi2 units: a likelihood ratio of e^10), the
@@ -64,7 +73,9 @@ class Ambiguity:
     undetermined directions in scaled coordinates (k = 0: fully determined, 3: nothing
     determined); information (3, 3): the pairs' information of the pose in scaled
     coordinates; matches: the pairs; rivals (R, 3): the candidate poses that explain the
-    boxes nearly as well.
+    boxes nearly as well; margin: how decisively the candidates' scores (priors included)
+    pick the pose's determined part (chi2 units, step 4 of the module docstring; NaN when
+    nothing is determined).
     """
 
     pose: np.ndarray
@@ -73,6 +84,7 @@ class Ambiguity:
     information: np.ndarray
     matches: int
     rivals: np.ndarray
+    margin: float = float("nan")
 
     @property
     def determined(self) -> int:
@@ -184,6 +196,7 @@ def diagnose(
     distinct: tuple[float, float],
     min_matches: int,
     penalty: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
 ) -> Ambiguity:
     """The undetermined directions of collaborator j's pose ``candidates[best]`` (module
     docstring).
@@ -195,7 +208,8 @@ def diagnose(
     distinct (m, rad): when two poses differ, and the units of the scaled coordinates;
     min_matches: the fewest pairs that determine anything; penalty (H,): prior terms
     (chi2 units) of the candidates other than the reported pose's (e.g. a track's),
-    subtracted from their evidence (None: none).
+    subtracted from their evidence (None: none); prior (H,): the reported pose's prior
+    terms (chi2 units), used only for :attr:`Ambiguity.margin` (None: none).
     """
     candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)
     pose = candidates[best]
@@ -205,19 +219,44 @@ def diagnose(
     information = information * np.outer(scale, scale)
     if matches < min_matches:
         return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0])
-    values, vectors = np.linalg.eigh(information)
-    directions = [vectors[:, k] for k in range(3) if values[k] < 1.0]
+    # Step 1: the pairs' marginal covariance (scaled; the information is positive definite
+    # once a pair exists: every pair measures the heading).
+    covariance = np.linalg.inv(information)
+    values, vectors = np.linalg.eigh(covariance[:2, :2])
+    moves = [vectors[:, k] for k in range(2) if values[k] > 1.0]
+    yaw_open = bool(covariance[2, 2] > 1.0)
+    # Step 2: the rivals.
     offset = (candidates - pose) / scale
     offset[:, 2] = wrap_angle(candidates[:, 2] - pose[2]) / scale[2]
     score = score_hypotheses(ego, collab, candidates, p)
     if penalty is not None:
         score = score - np.asarray(penalty, dtype=float)
-    rival = (score >= score[best] - margin) & (
-        (np.hypot(offset[:, 0], offset[:, 1]) > 1.0) | (np.abs(offset[:, 2]) > 1.0))
-    steps = offset[rival]
-    for step in steps[np.argsort(-np.linalg.norm(steps, axis=1), kind="stable")]:
-        rest = step - sum(((d @ step) * d for d in directions), np.zeros(3))
-        if len(directions) < 3 and np.linalg.norm(rest) > 1.0:
-            directions.append(rest / np.linalg.norm(rest))
-    undetermined = np.array(directions).reshape(-1, 3)
-    return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival])
+    rival = (score >= score[best] - margin) & _distinct(offset)
+    # Step 3: translation directions (largest rival shift first) and the yaw axis.
+    shifts = offset[rival, :2]
+    for shift in shifts[np.argsort(-np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]:
+        rest = shift - sum(((m @ shift) * m for m in moves), np.zeros(2))
+        if len(moves) < 2 and np.hypot(*rest) > 1.0:
+            moves.append(rest / np.hypot(*rest))
+    yaw_open = yaw_open or bool(np.any(np.abs(offset[rival, 2]) > 1.0))
+    directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
+    undetermined = np.array(directions, dtype=float).reshape(-1, 3)
+    total = score if prior is None else score - np.asarray(prior, dtype=float)
+    return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
+                     _determined_margin(offset, undetermined, total))
+
+
+def _distinct(offset: np.ndarray) -> np.ndarray:
+    """Offsets (H, 3) in scaled coordinates that are distinct: more than one unit in
+    translation or in yaw (bool (H,))."""
+    return (np.hypot(offset[:, 0], offset[:, 1]) > 1.0) | (np.abs(offset[:, 2]) > 1.0)
+
+
+def _determined_margin(offset: np.ndarray, undetermined: np.ndarray, total: np.ndarray) -> float:
+    """Step 4 of the module docstring: offsets (H, 3) of the candidates from the pose (scaled
+    coordinates), the undetermined basis (k, 3), the candidates' scores (H,)."""
+    if undetermined.shape[0] == 3:
+        return float("nan")
+    other = _distinct(offset - (offset @ undetermined.T) @ undetermined)
+    runner_up = total[other].max() if other.any() else 0.0
+    return float(total[~other].max() - runner_up)

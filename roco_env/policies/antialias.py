@@ -185,7 +185,8 @@ def _decide(
     if p.use_ambiguity:
         penalty = None if track is None else _prior_chi2(poses, centre, priors[2], priors[3])
         ambiguity = diagnose(ego, collab, poses, int(best), p, margin=p.min_margin,
-                             distinct=distinct, min_matches=p.min_matches, penalty=penalty)
+                             distinct=distinct, min_matches=p.min_matches, penalty=penalty,
+                             prior=_prior_chi2(poses, reported, priors[0], priors[1]))
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
@@ -211,6 +212,8 @@ def _kept_out(
         return f"{ambiguity.describe()}, reported pose kept", None
     pronoun = "it" if ambiguity.determined == 2 else "them"
     note = f"{ambiguity.describe()}, reported pose kept along {pronoun}"
+    if not ambiguity.margin >= p.min_margin:
+        return f"{note} and elsewhere (margin {ambiguity.margin:.1f} < {p.min_margin:g})", None
     if not ambiguity.significant(reported, p.significance):
         return f"{note}; the determined part is not significant", None
     return note, ambiguity.projected(reported)
