@@ -21,7 +21,7 @@ from roco_env.policies.constructed_scenes import (
     pose_error,
     to_observation,
 )
-from roco_env.policies.hypotheses import box_sets
+from roco_env.policies.hypotheses import box_sets, score_hypotheses
 from roco_env.policies.landmarks import prepare_inputs
 
 CAR = np.array([0.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0])
@@ -120,12 +120,13 @@ def box_sets_of(scene):
 
 
 def diagnose_truth(scene, unc=None):
-    """:func:`diagnose` of the true pose alone, with the decision's settings."""
+    """:func:`diagnose` of the true pose alone (no prior), with the decision's settings."""
     if unc is not None:
         scene.ego_unc[:], scene.collab_unc[0][:] = unc, unc
     ego, collab = box_sets_of(scene)
     p = AntiAliasParams()
-    return diagnose(ego, collab, scene.true[:1], 0, p, margin=p.min_margin,
+    evidence = score_hypotheses(ego, collab, scene.true[:1], p)
+    return diagnose(ego, collab, scene.true[:1], 0, evidence, evidence, p, margin=p.min_margin,
                     distinct=(p.distinct_t, np.deg2rad(p.distinct_r_deg)),
                     min_matches=p.min_matches)
 

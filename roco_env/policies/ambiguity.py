@@ -58,10 +58,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from roco_env.geometry import se2_compose, wrap_angle
-from roco_env.policies.hypotheses import BoxSet, EvidenceParams, score_hypotheses
+from roco_env.geometry import wrap_angle
+from roco_env.policies.hypotheses import BoxSet, EvidenceParams, evidence_terms
+from roco_env.policies.hypothesis_kernels import pair_information
 
-__all__ = ["Ambiguity", "diagnose", "pair_information"]
+__all__ = ["Ambiguity", "diagnose"]
 
 
 @dataclass(frozen=True)
@@ -107,19 +108,15 @@ class Ambiguity:
         """Wald statistic of the determined part of the correction (chi-square with
         :attr:`determined` dof when ``reported`` is right along the determined
         directions): the correction's coordinates a in an orthonormal basis B of the
-        determined subspace, weighed by the inverse of their covariance ``B^T A^-1 B``
-        (A = :attr:`information`, restricted to its determined eigen-directions). NaN when
-        nothing is determined."""
+        determined subspace, weighed by the inverse of their covariance ``B A^-1 B^T``
+        (A = :attr:`information`). NaN when nothing is determined."""
         if self.determined == 0:
             return float("nan")
         basis = _complement(self.undetermined)
         delta = (self.projected(reported) - np.asarray(reported, dtype=float))
         delta[2] = wrap_angle(delta[2])
         coords = basis @ (delta / self.scale)
-        values, vectors = np.linalg.eigh(self.information)
-        kept = values >= 1.0
-        along = basis @ vectors[:, kept]
-        covariance = (along / values[kept]) @ along.T
+        covariance = basis @ np.linalg.inv(self.information) @ basis.T
         return float(coords @ np.linalg.solve(covariance, coords))
 
     def significant(self, reported: np.ndarray, significance: float | None) -> bool:
@@ -148,34 +145,6 @@ class Ambiguity:
         return "undetermined along " + ", ".join(parts)
 
 
-def pair_information(
-    ego: BoxSet, collab: BoxSet, pose: np.ndarray, gate: float, slack: tuple[float, float]
-) -> tuple[np.ndarray, int]:
-    """Information (3, 3) of T_{j->i} = ``pose`` (x m, y m, yaw rad) from the pairs of each
-    collaborator box (mapped by ``pose``) with its nearest ego box within ``gate`` m, and the
-    number of pairs. A pair's position residual has variance ``v_p + v_q + slack[0]`` (m^2)
-    in x and y, its heading residual ``w_p + w_q + slack[1]`` (rad^2) (the boxes' variances
-    of :class:`~roco_env.policies.hypotheses.BoxSet`, slack the pose slack's)."""
-    if ego.poses.shape[0] == 0 or collab.poses.shape[0] == 0:
-        return np.zeros((3, 3)), 0
-    mapped = se2_compose(np.asarray(pose, dtype=float), collab.poses)
-    distance = np.hypot(mapped[:, None, 0] - ego.poses[None, :, 0],
-                        mapped[:, None, 1] - ego.poses[None, :, 1])
-    nearest = np.argmin(distance, axis=1)
-    paired = distance[np.arange(mapped.shape[0]), nearest] <= gate
-    q, p = np.nonzero(paired)[0], nearest[paired]
-    w_t = 1.0 / (ego.var_t[p] + collab.var_t[q] + slack[0])
-    w_r = 1.0 / (ego.var_r[p] + collab.var_r[q] + slack[1])
-    # d(mapped centre)/d yaw: the centre's offset from the collaborator's origin, turned by 90°.
-    lever = np.column_stack([-(mapped[q, 1] - pose[1]), mapped[q, 0] - pose[0]])
-    info = np.zeros((3, 3))
-    info[0, 0] = info[1, 1] = w_t.sum()
-    info[0, 2] = info[2, 0] = (w_t * lever[:, 0]).sum()
-    info[1, 2] = info[2, 1] = (w_t * lever[:, 1]).sum()
-    info[2, 2] = (w_t * (lever**2).sum(axis=1)).sum() + w_r.sum()
-    return info, int(q.size)
-
-
 def _complement(basis: np.ndarray) -> np.ndarray:
     """Orthonormal rows (3 - k, 3) spanning the complement of the orthonormal rows
     ``basis`` (k, 3)."""
@@ -190,60 +159,75 @@ def diagnose(
     collab: BoxSet,
     candidates: np.ndarray,
     best: int,
+    rival_score: np.ndarray,
+    score: np.ndarray,
     p: EvidenceParams,
     *,
     margin: float,
     distinct: tuple[float, float],
     min_matches: int,
-    penalty: np.ndarray | None = None,
-    prior: np.ndarray | None = None,
 ) -> Ambiguity:
     """The undetermined directions of collaborator j's pose ``candidates[best]`` (module
     docstring).
 
     ego / collab: the agents' boxes (:class:`~roco_env.policies.hypotheses.BoxSet`);
     candidates (H, 3): the refined hypotheses (T_{j->i}, x m, y m, yaw rad), the diagnosed
-    pose among them; p: the evidence's settings (``refine_gate`` pairs the boxes, the pose
-    slack weighs the pairs); margin (chi2 units): how close a rival's score must come;
-    distinct (m, rad): when two poses differ, and the units of the scaled coordinates;
-    min_matches: the fewest pairs that determine anything; penalty (H,): prior terms
-    (chi2 units) of the candidates other than the reported pose's (e.g. a track's),
-    subtracted from their evidence (None: none); prior (H,): the reported pose's prior
-    terms (chi2 units), used only for :attr:`Ambiguity.margin` (None: none).
+    pose among them; rival_score (H,): their evidence
+    (:func:`~roco_env.policies.hypotheses.score_hypotheses`) minus every prior term but the
+    reported pose's (e.g. a track's), chi2 units: finds the rivals; score (H,): minus the
+    reported pose's too (:attr:`Ambiguity.margin`); p: the evidence's settings
+    (``refine_gate`` pairs the boxes, the pose slack weighs the pairs); margin (chi2
+    units): how close a rival's score must come; distinct (m, rad): when two poses differ,
+    and the units of the scaled coordinates; min_matches: the fewest pairs that determine
+    anything.
     """
     candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)
     pose = candidates[best]
     scale = np.array([distinct[0], distinct[0], distinct[1]], dtype=float)
-    slack = (float(p.pose_slack_t**2), float(np.deg2rad(p.pose_slack_r_deg) ** 2))
-    information, matches = pair_information(ego, collab, pose, float(p.refine_gate), slack)
-    information = information * np.outer(scale, scale)
+    information, matches = pair_information(
+        ego.poses, ego.var_t, ego.var_r, collab.poses, collab.var_t, collab.var_r, pose,
+        float(p.refine_gate), *evidence_terms(p)[:2])
+    information *= np.outer(scale, scale)
     if matches < min_matches:
         return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0])
-    # Step 1: the pairs' marginal covariance (scaled; the information is positive definite
-    # once a pair exists: every pair measures the heading).
-    covariance = np.linalg.inv(information)
-    values, vectors = np.linalg.eigh(covariance[:2, :2])
-    moves = [vectors[:, k] for k in range(2) if values[k] > 1.0]
-    yaw_open = bool(covariance[2, 2] > 1.0)
-    # Step 2: the rivals.
+    # Step 1: the spectrum; step 2: the rivals.
+    moves, yaw_open = _spectrum(information)
     offset = (candidates - pose) / scale
-    offset[:, 2] = wrap_angle(candidates[:, 2] - pose[2]) / scale[2]
-    score = score_hypotheses(ego, collab, candidates, p)
-    if penalty is not None:
-        score = score - np.asarray(penalty, dtype=float)
-    rival = (score >= score[best] - margin) & _distinct(offset)
+    offset[:, 2] = wrap_angle(offset[:, 2] * scale[2]) / scale[2]
+    rival = (rival_score >= rival_score[best] - margin) & _distinct(offset)
     # Step 3: translation directions (largest rival shift first) and the yaw axis.
-    shifts = offset[rival, :2]
-    for shift in shifts[np.argsort(-np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]:
-        rest = shift - sum(((m @ shift) * m for m in moves), np.zeros(2))
-        if len(moves) < 2 and np.hypot(*rest) > 1.0:
-            moves.append(rest / np.hypot(*rest))
-    yaw_open = yaw_open or bool(np.any(np.abs(offset[rival, 2]) > 1.0))
+    if rival.any():
+        shifts = offset[rival, :2]
+        for shift in shifts[np.argsort(-np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]:
+            rest = shift - sum(((m @ shift) * m for m in moves), np.zeros(2))
+            if len(moves) < 2 and np.hypot(*rest) > 1.0:
+                moves.append(rest / np.hypot(*rest))
+        yaw_open = yaw_open or np.abs(offset[rival, 2]).max() > 1.0
     directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
     undetermined = np.array(directions, dtype=float).reshape(-1, 3)
-    total = score if prior is None else score - np.asarray(prior, dtype=float)
     return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
-                     _determined_margin(offset, undetermined, total))
+                     _determined_margin(offset, undetermined, score))
+
+
+def _spectrum(information: np.ndarray) -> tuple[list[np.ndarray], bool]:
+    """Step 1 of the module docstring: the translation directions (unit (2,) each) and
+    whether the yaw has a marginal variance > 1 under the scaled ``information`` (3, 3).
+
+    The pairs' information has the form [[a, 0, b], [0, a, c], [b, c, d]] (a > 0 once a pair
+    exists), so its inverse is known in closed form: the yaw's variance is 1 / s with the
+    Schur complement s = d - (b^2 + c^2) / a (>= the headings' information > 0), the
+    translation's covariance I / a + v v^T / (a^2 s) with v = (b, c): variance 1 / a across
+    v and 1 / a + |v|^2 / (a^2 s) along it."""
+    a, b, c, d = information[0, 0], information[0, 2], information[1, 2], information[2, 2]
+    lever = float(np.hypot(b, c))
+    schur = d - lever**2 / a
+    if 1.0 / a > 1.0:
+        moves = [np.array([1.0, 0.0]), np.array([0.0, 1.0])]
+    elif lever > 0 and 1.0 / a + lever**2 / (a**2 * schur) > 1.0:
+        moves = [np.array([b, c]) / lever]
+    else:
+        moves = []
+    return moves, bool(schur < 1.0)
 
 
 def _distinct(offset: np.ndarray) -> np.ndarray:

@@ -163,7 +163,8 @@ def _decide(
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
     0.3 deg of an earlier one is dropped); evidence, priors and margin in another
     (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`); then the best one's
-    diagnosis (step 4), the track's prior subtracted from the candidates' evidence."""
+    diagnosis (step 4) from those scores: rivals by the scores without the reported
+    pose's prior (the track's kept), the determined part's margin with it."""
     refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
@@ -176,26 +177,17 @@ def _decide(
     poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
     if poses.shape[0] == 0:
         return Decision(None, float("nan"), 0)
-    best, margin = decision_margin(
+    best, margin, scores, unreported = decision_margin(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
         poses, reported, centre, track is not None, evidence, priors, distinct,
     )
     ambiguity = None
     if p.use_ambiguity:
-        penalty = None if track is None else _prior_chi2(poses, centre, priors[2], priors[3])
-        ambiguity = diagnose(ego, collab, poses, int(best), p, margin=p.min_margin,
-                             distinct=distinct, min_matches=p.min_matches, penalty=penalty,
-                             prior=_prior_chi2(poses, reported, priors[0], priors[1]))
+        ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
+                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches)
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
-
-
-def _prior_chi2(poses: np.ndarray, centre: np.ndarray, var_t: float, var_r: float) -> np.ndarray:
-    """Mahalanobis distance (H,) of poses (H, 3) from ``centre`` (3,) with variances var_t
-    (m^2) in translation and var_r (rad^2) in yaw (the decision's prior terms)."""
-    d = poses - centre
-    return (d[:, 0] ** 2 + d[:, 1] ** 2) / var_t + wrap_angle(d[:, 2]) ** 2 / var_r
 
 
 def _kept_out(
