@@ -26,13 +26,9 @@ from roco_env.policies.hypotheses import (
     generate_hypotheses,
     score_hypotheses,
 )
-from roco_env.policies.hypothesis_kernels import (
-    best_pair_gains,
-    close_pairs,
-    pair_information,
-    pairwise_sum,
-)
+from roco_env.policies.hypothesis_kernels import best_pair_gains, close_pairs, pairwise_sum
 from roco_env.policies.landmarks import UncertaintyParams, prepare_inputs
+from roco_env.policies.pose_kernels import pair_information
 
 
 def numpy_map(pose, poses):
@@ -333,7 +329,7 @@ def test_decisions_match_the_python_path(with_track):
 
 
 def numpy_pair_information(ego, collab, pose, gate, slack_t, slack_r):
-    """The array path of hypothesis_kernels.pair_information: (information (3, 3), pairs)."""
+    """The array path of pose_kernels.pair_information: (information (3, 3), pairs)."""
     if ego.poses.shape[0] == 0:
         return np.zeros((3, 3)), 0
     mapped = numpy_map(pose, collab.poses)

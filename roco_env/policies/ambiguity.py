@@ -60,7 +60,7 @@ from scipy.stats import chi2 as chi2_distribution
 
 from roco_env.geometry import wrap_angle
 from roco_env.policies.hypotheses import BoxSet, EvidenceParams, evidence_terms
-from roco_env.policies.hypothesis_kernels import pair_information
+from roco_env.policies.pose_kernels import pair_information
 
 __all__ = ["Ambiguity", "diagnose"]
 

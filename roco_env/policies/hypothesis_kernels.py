@@ -25,8 +25,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["best_pair_gains", "close_pairs", "decision_margin", "hypothesis_scores",
-           "pair_information", "pairwise_sum", "rotation_votes", "translation_votes",
-           "vote_peaks"]
+           "pairwise_sum", "rotation_votes", "translation_votes", "vote_peaks"]
 
 _HALF_PI = math.pi / 2
 
@@ -409,50 +408,3 @@ def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, c
             runner_up = scores[h] if not found else max(runner_up, scores[h])
             found = True
     return best, scores[best] - runner_up, scores, unreported
-
-
-@njit(cache=True)
-def pair_information(ego_poses, ego_var_t, ego_var_r, col_poses, col_var_t, col_var_r, pose,
-                     gate, slack_t, slack_r):
-    """Information (3, 3) of the pose T_{j->i} (3,) (x m, y m, yaw rad) from the pairs of
-    each collaborator box (col_poses (K1, 3) in its frame, mapped by ``pose``) with its
-    nearest ego box (ego_poses (K0, 3); lowest index among equal distances) closer than
-    ``gate`` m, and the number of pairs (``roco_env.policies.ambiguity``, step 1).
-
-    A pair's position residual has variance ``ego_var_t + col_var_t + slack_t`` (m^2) in x
-    and y, its heading residual ``ego_var_r + col_var_r + slack_r`` (rad^2); the centre's
-    derivative in yaw is its offset from the collaborator's origin turned by 90 degrees.
-    Only the ego boxes within the gate in x (with a margin far above rounding) are
-    measured: they are sorted by x once."""
-    n_ego, n_col = ego_poses.shape[0], col_poses.shape[0]
-    info = np.zeros((3, 3))
-    if n_ego == 0:
-        return info, 0
-    mapped = _mapped(pose, col_poses)
-    by_x = np.argsort(ego_poses[:, 0])
-    sorted_x = ego_poses[by_x, 0]
-    reach = gate * (1.0 + 1e-6)
-    count = 0
-    for q in range(n_col):
-        x, y = mapped[q, 0], mapped[q, 1]
-        best, best_p = gate, -1
-        for k in range(np.searchsorted(sorted_x, x - reach), n_ego):
-            if sorted_x[k] > x + reach:
-                break
-            p = by_x[k]
-            d = math.sqrt((ego_poses[p, 0] - x) ** 2 + (ego_poses[p, 1] - y) ** 2)
-            if d < best or (d == best and 0 <= p < best_p):
-                best, best_p = d, p
-        if best_p < 0:
-            continue
-        w_t = 1.0 / (ego_var_t[best_p] + col_var_t[q] + slack_t)
-        w_r = 1.0 / (ego_var_r[best_p] + col_var_r[q] + slack_r)
-        lever_x, lever_y = -(y - pose[1]), x - pose[0]
-        info[0, 0] += w_t
-        info[0, 2] += w_t * lever_x
-        info[1, 2] += w_t * lever_y
-        info[2, 2] += w_t * (lever_x * lever_x + lever_y * lever_y) + w_r
-        count += 1
-    info[1, 1] = info[0, 0]
-    info[2, 0], info[2, 1] = info[0, 2], info[1, 2]
-    return info, count
