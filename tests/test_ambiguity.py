@@ -154,19 +154,42 @@ def test_spectrum_boxes_on_the_collaborator_with_vague_headings_leave_the_yaw_op
     assert vague.describe() == "undetermined along yaw"
 
 
-def basis(k: int, seed: int) -> np.ndarray:
-    return np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))[0].T[:k]
+def test_open_yaw_keeps_the_reported_yaw_and_corrects_the_translation():
+    """The same boxes, the collaborator reported 0.5 m and 2 deg off: the boxes pin the
+    translation (they sit at the collaborator: no lever), not the yaw, which stays
+    reported."""
+    objects = np.tile(CAR, (3, 1))
+    objects[:, :2] = [[10.3, 0.0], [9.8, 0.3], [9.9, -0.3]]
+    scene = make_scene(objects, np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]),
+                       [pose_error(0.5, 2.0, 1.0)], sigma=(0.1, 0.1, 1.0))
+    result, decisions = antialias_align(*scene.args())
+    assert decisions[0].ambiguity.describe() == "undetermined along yaw"
+    assert result.applied[0]
+    assert np.hypot(*(result.corrected[0, :2] - scene.true[0, :2])) < 0.01
+    assert result.corrected[0, 2] == pytest.approx(scene.reported[0, 2])
+
+
+def open_directions(moves: int, angle: float, yaw: bool) -> np.ndarray:
+    """An undetermined basis as :func:`diagnose` builds it: ``moves`` (0-2) translation
+    directions starting at ``angle`` (rad), then the yaw axis when ``yaw``."""
+    rows = [[np.cos(angle + k * np.pi / 2), np.sin(angle + k * np.pi / 2), 0.0]
+            for k in range(moves)]
+    return np.array(rows + [[0.0, 0.0, 1.0]] * yaw).reshape(-1, 3)
 
 
 poses = st.tuples(st.floats(-30, 30), st.floats(-30, 30), st.floats(-3.1, 3.1)).map(np.array)
 
 
 @settings(max_examples=100, deadline=None)
-@given(k=st.integers(0, 3), seed=st.integers(0, 2**16), pose=poses, reported=poses)
-def test_projection_keeps_the_reported_pose_along_the_undetermined_directions(k, seed, pose,
-                                                                              reported):
+@given(moves=st.integers(0, 2), angle=st.floats(-np.pi, np.pi), yaw=st.booleans(), pose=poses,
+       reported=poses)
+def test_projection_keeps_the_reported_pose_along_the_undetermined_directions(moves, angle, yaw,
+                                                                              pose, reported):
+    """Pairs centred on the collaborator (no lever): the projected pose is the reported one
+    along the open directions and the diagnosed one along the others."""
     scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
-    ambiguity = Ambiguity(pose, scale, basis(k, seed), np.eye(3) * 100.0, 10, np.zeros((0, 3)))
+    undetermined = open_directions(moves, angle, yaw)
+    ambiguity = Ambiguity(pose, scale, undetermined, np.eye(3) * 100.0, 10, np.zeros((0, 3)))
 
     def scaled(a, b):
         d = a - b
@@ -174,10 +197,31 @@ def test_projection_keeps_the_reported_pose_along_the_undetermined_directions(k,
         return d / scale
 
     projected = ambiguity.projected(reported)
-    kept, taken = ambiguity.undetermined, basis(3, seed)[k:]
-    np.testing.assert_allclose(kept @ scaled(projected, reported), 0.0, atol=1e-6)
+    taken = np.array([*open_directions(2, angle, False)[moves:], *[[0.0, 0.0, 1.0]] * (not yaw)])
+    taken = taken.reshape(-1, 3)
+    np.testing.assert_allclose(undetermined @ scaled(projected, reported), 0.0, atol=1e-6)
     np.testing.assert_allclose(taken @ scaled(projected, pose), 0.0, atol=1e-6)
-    assert ambiguity.determined == 3 - k
+    assert ambiguity.determined == 3 - moves - yaw and ambiguity.yaw_open == yaw
+
+
+def test_open_yaw_turns_the_pose_about_the_pairs_centroid():
+    """Pairs centred 20 m ahead of the collaborator and the yaw open: the applied pose has
+    the reported yaw and keeps the boxes' centroid where the diagnosed pose puts it."""
+    scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
+    a, lever = 30.0, np.array([20.0, 0.0])  # m; A_xθ = -a y, A_yθ = a x (scaled by 1 m/deg)
+    information = np.array([[a, 0.0, 0.0], [0.0, a, a * lever[0]], [0.0, a * lever[0], 0.0]])
+    information[:, 2] *= scale[2]
+    information[2, :] *= scale[2]
+    information[2, 2] = 0.5
+    pose, reported = np.array([1.0, 2.0, 0.3]), np.array([0.0, 0.0, 0.25])
+    ambiguity = Ambiguity(pose, scale, open_directions(0, 0.0, True), information, 10,
+                          np.zeros((0, 3)))
+    projected = ambiguity.projected(reported)
+    centroid = pose[:2] + lever
+    assert projected[2] == pytest.approx(0.25)
+    assert np.hypot(*(projected[:2] - centroid)) == pytest.approx(np.hypot(*(pose[:2] - centroid)))
+    back = np.array([[np.cos(0.05), -np.sin(0.05)], [np.sin(0.05), np.cos(0.05)]])
+    np.testing.assert_allclose(back @ (projected[:2] - centroid), pose[:2] - centroid, atol=1e-9)
 
 
 def test_wald_statistic_weighs_the_determined_part():

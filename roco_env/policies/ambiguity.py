@@ -46,9 +46,17 @@ margin is the decision's ``min_margin`` (20 chi2 units: a likelihood ratio of e^
 scale is the distinctness of two hypotheses (1 m, 1 deg), the pairing gate the
 refinement's (1 m).
 
-:meth:`Ambiguity.projected` turns a correction into its determined part (the reported
-pose is kept along the undetermined directions) and :meth:`Ambiguity.significant`
-applies a Wald test to it with the pairs' information.
+5. **What may be applied** (:meth:`Ambiguity.projected`). The open translation
+   directions keep the reported pose; every rival shifted along them shares the pose's
+   determined part. An open yaw keeps the reported yaw, and the translation follows the
+   pose turned to it about the pairs' (information-weighted) centroid: the boxes pin
+   their centroid, and a turn about it moves the collaborator's origin by the turn times
+   its distance, so the fitted translation holds only with the fitted yaw (turning about
+   the centroid is the translation's estimate given the yaw). A translation direction
+   the pairs themselves pin poorly (step 1) is tied to the rest of the fit in ways a
+   turn does not undo: then, as when nothing is determined, the reported pose is kept
+   (:attr:`Ambiguity.applicable`). :meth:`Ambiguity.significant` tests the applied part
+   with the pairs' information (Wald).
 """
 
 from __future__ import annotations
@@ -76,7 +84,8 @@ class Ambiguity:
     coordinates; matches: the pairs; rivals (R, 3): the candidate poses that explain the
     boxes nearly as well; margin: how decisively the candidates' scores (priors included)
     pick the pose's determined part (chi2 units, step 4 of the module docstring; NaN when
-    nothing is determined).
+    nothing is determined); weak_translation: step 1 left a translation direction open
+    (the pairs themselves pin it poorly).
     """
 
     pose: np.ndarray
@@ -86,37 +95,70 @@ class Ambiguity:
     matches: int
     rivals: np.ndarray
     margin: float = float("nan")
+    weak_translation: bool = False
 
     @property
     def determined(self) -> int:
         """How many directions the boxes determine (0-3)."""
         return 3 - self.undetermined.shape[0]
 
+    @property
+    def yaw_open(self) -> bool:
+        """Whether the yaw is undetermined."""
+        return bool((np.abs(self.undetermined[:, 2]) > 0.5).any())
+
+    @property
+    def applicable(self) -> bool:
+        """Whether a determined part may be applied (module docstring, step 5): some
+        direction is determined and every open translation direction is one a rival is
+        shifted along (step 2), not one the pairs themselves pin poorly (step 1)."""
+        return self.determined > 0 and not self.weak_translation
+
     def projected(self, reported: np.ndarray) -> np.ndarray:
         """The pose (3,) that keeps ``reported`` (3,) along the undetermined directions and
-        takes :attr:`pose` along the determined ones (the correction ``pose - reported``,
-        yaw wrapped, projected onto the determined subspace in scaled coordinates)."""
+        takes the diagnosed pose's determined part (step 5): with the yaw open, the pose
+        turned to the reported yaw about the pairs' centroid (the translation given the
+        yaw); then the translation's offset from the reported one without its components
+        along the open translation directions."""
         reported = np.asarray(reported, dtype=float)
-        delta = (self.pose - reported) / self.scale
-        delta[2] = wrap_angle(self.pose[2] - reported[2]) / self.scale[2]
-        delta -= self.undetermined.T @ (self.undetermined @ delta)
-        pose = reported + delta * self.scale
-        pose[2] = wrap_angle(pose[2])
+        pose = self.pose.copy()
+        if self.yaw_open:
+            turn = wrap_angle(reported[2] - pose[2])
+            centre = pose[:2] + self._centroid_offset()
+            c, s = np.cos(turn), np.sin(turn)
+            pose[:2] = centre + np.array([[c, -s], [s, c]]) @ (pose[:2] - centre)
+            pose[2] = reported[2]
+        moves = self.undetermined[np.abs(self.undetermined[:, 2]) <= 0.5, :2]
+        shift = pose[:2] - reported[:2]
+        pose[:2] = reported[:2] + shift - moves.T @ (moves @ shift)
         return pose
 
+    def _centroid_offset(self) -> np.ndarray:
+        """The pairs' information-weighted centroid (2,) (m, ego frame) relative to the
+        diagnosed pose's position: (A_yθ, -A_xθ) / A_xx in metres (the centres' levers
+        about the collaborator's origin, :func:`~roco_env.policies.pose_kernels.pair_information`)."""
+        info = self.information
+        return np.array([info[1, 2], -info[0, 2]]) / info[0, 0] * (self.scale[0] / self.scale[2])
+
     def statistic(self, reported: np.ndarray) -> float:
-        """Wald statistic of the determined part of the correction (chi-square with
+        """Wald statistic of the applied determined part (chi-square with
         :attr:`determined` dof when ``reported`` is right along the determined
         directions): the correction's coordinates a in an orthonormal basis B of the
-        determined subspace, weighed by the inverse of their covariance ``B A^-1 B^T``
-        (A = :attr:`information`). NaN when nothing is determined."""
+        determined subspace (scaled), weighed by the inverse of their covariance
+        ``B C B^T``, C the inverse of :attr:`information` (the yaw's row and column left
+        out when the yaw is open: the translation is then estimated given the reported
+        yaw). NaN when nothing is determined."""
         if self.determined == 0:
             return float("nan")
+        reported = np.asarray(reported, dtype=float)
         basis = _complement(self.undetermined)
-        delta = (self.projected(reported) - np.asarray(reported, dtype=float))
+        delta = self.projected(reported) - reported
         delta[2] = wrap_angle(delta[2])
         coords = basis @ (delta / self.scale)
-        covariance = basis @ np.linalg.inv(self.information) @ basis.T
+        kept = [0, 1] if self.yaw_open else [0, 1, 2]
+        inverse = np.zeros((3, 3))
+        inverse[np.ix_(kept, kept)] = np.linalg.inv(self.information[np.ix_(kept, kept)])
+        covariance = basis @ inverse @ basis.T
         return float(coords @ np.linalg.solve(covariance, coords))
 
     def significant(self, reported: np.ndarray, significance: float | None) -> bool:
@@ -189,9 +231,11 @@ def diagnose(
         float(p.refine_gate), *evidence_terms(p)[:2])
     information *= np.outer(scale, scale)
     if matches < min_matches:
-        return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0])
+        return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0],
+                         weak_translation=True)
     # Step 1: the spectrum; step 2: the rivals.
     moves, yaw_open = _spectrum(information)
+    weak_translation = bool(moves)
     offset = (candidates - pose) / scale
     offset[:, 2] = wrap_angle(offset[:, 2] * scale[2]) / scale[2]
     rival = (rival_score >= rival_score[best] - margin) & _distinct(offset)
@@ -206,7 +250,7 @@ def diagnose(
     directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
     undetermined = np.array(directions, dtype=float).reshape(-1, 3)
     return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
-                     _determined_margin(offset, undetermined, score))
+                     _determined_margin(offset, undetermined, score), weak_translation)
 
 
 def _spectrum(information: np.ndarray) -> tuple[list[np.ndarray], bool]:

@@ -22,11 +22,12 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    (:func:`~roco_env.policies.ambiguity.diagnose`): which directions of the pose the boxes
    (and the track) determine without the reported pose's prior. A hypothesis that wins
    only thanks to that prior (a lattice alias, a shift along an evenly spaced queue) is
-   not trusted: the collaborator is left out of RoCo and its pose keeps the reported one
-   along the undetermined directions and takes the best hypothesis along the determined
-   ones, when that part of the correction is significant (a Wald test with the pairs'
-   information at RoCo's ``significance``); with nothing determined it keeps the
-   reported pose.
+   not trusted: the collaborator is left out of RoCo, and its pose keeps the reported one
+   along the undetermined directions and takes the best hypothesis's determined part
+   (:meth:`~roco_env.policies.ambiguity.Ambiguity.projected`), if that part wins by
+   ``min_margin`` and is significant (a Wald test with the pairs' information at RoCo's
+   ``significance``); with nothing determined, or a translation the pairs themselves pin
+   poorly, it keeps the reported pose.
 
 RoCo (unchanged, with all its parameters: the prior edges and the significance test still
 refer to the reported poses) then matches and solves the joint pose graph from those
@@ -200,7 +201,7 @@ def _kept_out(
     if ambiguity is None or ambiguity.determined == 3:
         note = f"ambiguous (margin {decision.margin:.1f} < {p.min_margin:g}), reported pose kept"
         return note, None
-    if ambiguity.determined == 0:
+    if not ambiguity.applicable:
         return f"{ambiguity.describe()}, reported pose kept", None
     pronoun = "it" if ambiguity.determined == 2 else "them"
     note = f"{ambiguity.describe()}, reported pose kept along {pronoun}"
