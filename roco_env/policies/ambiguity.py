@@ -14,10 +14,13 @@ reported pose, the reported pose and the track's prediction), which directions a
    heading residual with ``w_p + w_q + pose_slack_r^2``, as the evidence weighs them;
    J the residual's derivative in (x, y, yaw)), is taken in *scaled* coordinates
    ``z = (x / distinct_t, y / distinct_t, yaw / distinct_r)``. From its inverse, the pose's
-   covariance: the yaw is undetermined when its marginal variance exceeds 1 (std >
-   ``distinct_r_deg`` deg), a translation direction when it is an eigen-direction of the
-   translation's marginal covariance with variance > 1 (std > ``distinct_t`` m). Fewer
-   than ``min_matches`` pairs determine nothing.
+   covariance: the yaw is undetermined when its marginal std exceeds the hypotheses'
+   rotation search (``search_yaw_deg``, 8 deg), a translation direction when the
+   translation's marginal std along it exceeds their translation search
+   (``search_radius``, 7 m): the pairs leave it as open as the search itself. (A fit that
+   pins the yaw to 1.5 deg still beats a reported yaw 3-5 deg off: a tighter rule,
+   std > ``distinct_r_deg``, kept such reported yaws in the stress search's traffic jams
+   and made 1% of the poses worse.) Fewer than ``min_matches`` pairs determine nothing.
 2. **Rivals (global).** Each candidate pose h (the refined hypotheses) distinct from
    ``pose`` (more than ``distinct_t`` m or ``distinct_r_deg`` deg away) whose score is
    within ``min_margin`` of the pose's, ``E(h) - c(h) >= E(pose) - c(pose) - min_margin``
@@ -218,7 +221,8 @@ def diagnose(
     (:func:`~roco_env.policies.hypotheses.score_hypotheses`) minus every prior term but the
     reported pose's (e.g. a track's), chi2 units: finds the rivals; score (H,): minus the
     reported pose's too (:attr:`Ambiguity.margin`); p: the evidence's settings
-    (``refine_gate`` pairs the boxes, the pose slack weighs the pairs); margin (chi2
+    (``refine_gate`` pairs the boxes, the pose slack weighs the pairs, the search's
+    ``search_radius`` / ``search_yaw_deg`` bound the spectrum's stds); margin (chi2
     units): how close a rival's score must come; distinct (m, rad): when two poses differ,
     and the units of the scaled coordinates; min_matches: the fewest pairs that determine
     anything.
@@ -234,7 +238,8 @@ def diagnose(
         return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0],
                          weak_translation=True)
     # Step 1: the spectrum; step 2: the rivals.
-    moves, yaw_open = _spectrum(information)
+    limits = ((p.search_radius / scale[0]) ** 2, (np.deg2rad(p.search_yaw_deg) / scale[2]) ** 2)
+    moves, yaw_open = _spectrum(information, limits)
     weak_translation = bool(moves)
     offset = (candidates - pose) / scale
     offset[:, 2] = wrap_angle(offset[:, 2] * scale[2]) / scale[2]
@@ -253,9 +258,12 @@ def diagnose(
                      _determined_margin(offset, undetermined, score), weak_translation)
 
 
-def _spectrum(information: np.ndarray) -> tuple[list[np.ndarray], bool]:
-    """Step 1 of the module docstring: the translation directions (unit (2,) each) and
-    whether the yaw has a marginal variance > 1 under the scaled ``information`` (3, 3).
+def _spectrum(
+    information: np.ndarray, limits: tuple[float, float]
+) -> tuple[list[np.ndarray], bool]:
+    """Step 1 of the module docstring: the translation directions (unit (2,) each) along
+    which the marginal variance under the scaled ``information`` (3, 3) exceeds
+    ``limits[0]``, and whether the yaw's exceeds ``limits[1]`` (scaled units squared).
 
     The pairs' information has the form [[a, 0, b], [0, a, c], [b, c, d]] (a > 0 once a pair
     exists), so its inverse is known in closed form: the yaw's variance is 1 / s with the
@@ -265,13 +273,13 @@ def _spectrum(information: np.ndarray) -> tuple[list[np.ndarray], bool]:
     a, b, c, d = information[0, 0], information[0, 2], information[1, 2], information[2, 2]
     lever = float(np.hypot(b, c))
     schur = d - lever**2 / a
-    if 1.0 / a > 1.0:
+    if 1.0 / a > limits[0]:
         moves = [np.array([1.0, 0.0]), np.array([0.0, 1.0])]
-    elif lever > 0 and 1.0 / a + lever**2 / (a**2 * schur) > 1.0:
+    elif lever > 0 and 1.0 / a + lever**2 / (a**2 * schur) > limits[0]:
         moves = [np.array([b, c]) / lever]
     else:
         moves = []
-    return moves, bool(schur < 1.0)
+    return moves, bool(1.0 / schur > limits[1])
 
 
 def _distinct(offset: np.ndarray) -> np.ndarray:
