@@ -64,6 +64,6 @@ def test_antialias_ablation_switches_every_component_off():
 
     own = {f.name for f in fields(AntiAliasParams)} - {f.name for f in fields(RoCoParams)}
     switches = {name for name in own if name.startswith("use_")}
-    assert len(switches) == 5
+    assert len(switches) == 6
     policies = set(experiment("ablation_antialias").policies)
     assert {f"roco_antialias:{s}=false" for s in switches} | {"roco", "roco_antialias"} == policies

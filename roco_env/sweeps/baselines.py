@@ -31,7 +31,7 @@ BUILTIN = ("identity", "coalign", "roco", "oracle")
 WITH_ANTIALIAS = ("identity", "coalign", "roco", "roco_antialias", "oracle")
 ANTIALIAS_NOISE = (0.0, 0.4, 0.8, 1.2, 1.5)
 ANTIALIAS_SWITCHES = ("use_hypotheses", "use_size", "use_free_space", "use_mutual_detection",
-                      "use_track")
+                      "use_track", "use_ambiguity")
 LARGE_NOISE = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
 ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback",
           "oracle")
