@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +31,7 @@ CASES = (
 )
 
 
-def _feed(digest: "hashlib._Hash", value: object) -> None:
+def _feed(digest: Any, value: object) -> None:
     """Every number, array and text of ``value`` (nested dicts by sorted key) into the digest."""
     if isinstance(value, dict):
         for key in sorted(value, key=str):
