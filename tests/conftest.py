@@ -1,5 +1,6 @@
 """Shared test setup and helpers: headless plotting, the `slow` marker policy,
-hand-built scenes for the sensing tests and a stand-in sweep cell for the bench tests.
+hand-built scenes for the sensing tests, a stand-in sweep cell for the bench tests,
+stages registered for one test and digests of whole episodes.
 
 Tests marked ``@pytest.mark.slow`` run only when ROCO_SLOW=1; the default run
 (and CI) keeps a representative fast sample so the suite stays well under ten
@@ -7,16 +8,20 @@ minutes on a 2-core machine. Test modules take the helpers from here
 (``from conftest import car, make_state``), never from one another.
 """
 
+import hashlib
 import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
 import pytest
 from hypothesis import settings
 
+import roco_env
+from roco_env import stages
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import ok_record
 from roco_env.traffic.state import WorldState
@@ -39,6 +44,21 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def registered():
+    """Registers stages (``registered(kind, name, factory, params)``) that are forgotten
+    after the test."""
+    added: list[tuple[str, str]] = []
+
+    def register(kind, name, factory, params=None):
+        roco_env.register_stage(kind, name, factory, params)
+        added.append((kind, name))
+
+    yield register
+    for kind, name in added:
+        stages.unregister_stage(kind, name)
 
 
 def run_python(code: str) -> str:
@@ -140,3 +160,35 @@ def assert_equal_to_rounding(got, expected, rtol: float = 1e-12, err_msg: str = 
     finite = np.abs(expected[np.isfinite(expected)])
     atol = rtol * max(1.0, float(finite.max(initial=0.0)))
     np.testing.assert_allclose(got, expected, rtol=rtol, atol=atol, err_msg=err_msg)
+
+
+def _feed(digest: Any, value: object) -> None:
+    """Every number, array and text of ``value`` (nested dicts by sorted key) into the digest."""
+    if isinstance(value, dict):
+        for key in sorted(value, key=str):
+            digest.update(str(key).encode())
+            _feed(digest, value[key])
+    elif isinstance(value, (list, tuple)):
+        digest.update(f"[{len(value)}".encode())
+        for item in value:
+            _feed(digest, item)
+    elif isinstance(value, (np.ndarray, np.generic, float, int, bool)):
+        array = np.asarray(value)
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    else:
+        digest.update(repr(value).encode())
+
+
+def episode_digest(scenario: str, overrides: dict, seed: int, steps: int) -> str:
+    """sha256 of a seeded episode's observations, rewards and infos (zero actions in the
+    correction mode, the first choice in select mode)."""
+    env = roco_env.parallel_env(scenario, max_cycles=steps, **overrides)
+    digest = hashlib.sha256()
+    observations, infos = env.reset(seed=seed)
+    _feed(digest, [observations, infos])
+    while env.agents:
+        actions = {a: np.zeros(env.action_space(a).shape, dtype=env.action_space(a).dtype)
+                   for a in env.agents}
+        _feed(digest, env.step(actions))
+    return digest.hexdigest()

@@ -7,10 +7,9 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_network_off import episode_digest
+from conftest import episode_digest
 
 import roco_env
-from roco_env import stages
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
 from roco_env.comm.delay import OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
@@ -19,20 +18,6 @@ from roco_env.scenario import MESSAGE_HEADER_BYTES, ScenarioError, load_scenario
 
 SCENE = "highway_dense"
 DT = 0.1  # highway_dense's traffic.dt
-
-
-@pytest.fixture
-def registered():
-    """Stages registered by a test are forgotten after it."""
-    added: list[tuple[str, str]] = []
-
-    def register(kind, name, factory, params=None):
-        roco_env.register_stage(kind, name, factory, params)
-        added.append((kind, name))
-
-    yield register
-    for kind, name in added:
-        stages.unregister_stage(kind, name)
 
 
 def _frames(steps: int, seed: int = 4, **overrides) -> list:

@@ -10,15 +10,11 @@ Regenerate (only for a deliberate, documented change of results) with
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import pytest
-
-import roco_env
+from conftest import episode_digest
 
 RECORD = Path(__file__).parent / "data" / "network_off.json"
 # (scenario, overrides, seed, steps): an RSU crossing, a dense highway, the realistic
@@ -29,38 +25,6 @@ CASES = (
     ("crowded_intersection", {"noise_model": "ar1", "cavs": 3}, 1, 3),
     ("v2x_crossroad", {"action.mode": "select"}, 2, 3),
 )
-
-
-def _feed(digest: Any, value: object) -> None:
-    """Every number, array and text of ``value`` (nested dicts by sorted key) into the digest."""
-    if isinstance(value, dict):
-        for key in sorted(value, key=str):
-            digest.update(str(key).encode())
-            _feed(digest, value[key])
-    elif isinstance(value, (list, tuple)):
-        digest.update(f"[{len(value)}".encode())
-        for item in value:
-            _feed(digest, item)
-    elif isinstance(value, (np.ndarray, np.generic, float, int, bool)):
-        array = np.asarray(value)
-        digest.update(f"{array.dtype}{array.shape}".encode())
-        digest.update(np.ascontiguousarray(array).tobytes())
-    else:
-        digest.update(repr(value).encode())
-
-
-def episode_digest(scenario: str, overrides: dict, seed: int, steps: int) -> str:
-    """sha256 of a seeded episode's observations, rewards and infos (zero actions in the
-    correction mode, the first choice in select mode)."""
-    env = roco_env.parallel_env(scenario, max_cycles=steps, **overrides)
-    digest = hashlib.sha256()
-    observations, infos = env.reset(seed=seed)
-    _feed(digest, [observations, infos])
-    while env.agents:
-        actions = {a: np.zeros(env.action_space(a).shape, dtype=env.action_space(a).dtype)
-                   for a in env.agents}
-        _feed(digest, env.step(actions))
-    return digest.hexdigest()
 
 
 def _key(case: tuple) -> str:

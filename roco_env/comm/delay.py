@@ -94,27 +94,24 @@ class NoDelay:
 class FixedDelay:
     """``fixed``: ``delay_ms`` for every message."""
 
+    params = FixedDelayParams
+
     def __init__(self, delay_ms: float) -> None:
         self.delay_s = delay_ms / 1000.0
 
     @classmethod
     def from_config(cls, config: CommConfig) -> FixedDelay:
-        return cls(_params(FixedDelayParams, config).delay_ms)
+        return cls(_params(cls.params, config).delay_ms)
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:
         return np.full(len(payload_bytes), self.delay_s)
 
 
-class UniformDelay:
+class UniformDelay(FixedDelay):
     """``uniform``: U(0, ``delay_ms``) per message."""
 
-    def __init__(self, delay_ms: float) -> None:
-        self.delay_s = delay_ms / 1000.0
-
-    @classmethod
-    def from_config(cls, config: CommConfig) -> UniformDelay:
-        return cls(_params(UniformDelayParams, config).delay_ms)
+    params = UniformDelayParams
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:
