@@ -40,10 +40,10 @@ class SummaryRow:
     after: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def flat(self) -> dict:
-        """Plain dict for CSV/JSON (no samples)."""
+        """Plain dict for CSV/JSON (no samples; each override a column of its own)."""
         return {"scenario": self.scenario, "density": self.density, "noise": self.noise,
                 "policy": self.policy, "steps": self.steps, "seeds": self.seeds,
-                "failed": self.failed, **self.metrics}
+                "failed": self.failed, **self.overrides, **self.metrics}
 
 
 def _value(metrics: dict, key: str) -> float:

@@ -79,6 +79,7 @@ class Experiment:
     steps: int = 40
     densities: tuple[float | None, ...] = (None,)
     overrides: dict[str, Scalar] = field(default_factory=lambda: dict(PROTOCOL))
+    grid: dict[str, tuple[Scalar, ...]] = field(default_factory=dict)
 
     def cells(self, smoke: bool = False, seeds: int | None = None,
               steps: int | None = None) -> list[Cell]:
@@ -89,7 +90,7 @@ class Experiment:
         seeds, steps = seeds or self.seeds, steps or self.steps
         overrides = {**self.overrides, **(SMOKE["overrides"] if smoke else {})}
         return build_grid(self.scenarios, self.noises, self.policies, list(range(seeds)), steps,
-                          densities=self.densities, overrides=overrides)
+                          densities=self.densities, overrides=overrides, axes=self.grid)
 
     def command(self, out: str) -> str:
         """The equivalent ``roco-env compare`` command line."""
@@ -101,6 +102,8 @@ class Experiment:
             words += ["--density", *(format_scalar(float(d)) for d in self.densities)]
         for key, value in self.overrides.items():
             words += ["--set", f"{key}={format_scalar(value)}"]
+        for key, values in self.grid.items():
+            words += ["--grid", f"{key}={','.join(map(format_scalar, values))}"]
         words += ["--out", f"{out}/{self.name}", "--title", self.name]
         return shlex.join(words)
 

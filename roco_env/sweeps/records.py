@@ -86,6 +86,8 @@ class RecordMetrics:
     success1_before: float | None = _share()
     success2_before: float | None = _share()
     success3_before: float | None = _share()
+    worse_share: float | None = _share("pairs whose correction added > 0.5 m of translation "
+                                       "error")
     match_precision: float | None = _share()
     match_recall: float | None = _share()
     correction_share: float | None = _share()
