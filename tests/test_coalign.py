@@ -195,7 +195,8 @@ def test_released_yaw_variance_in_the_policy_reads_the_ego_world_yaw():
     obs["pose"][2] = np.pi / 2
     assert np.abs(policy(obs)).max() > 0.1  # the same boxes in a turned world frame
     assert np.abs(make_policy("coalign")(obs)).max() > 0.1
-    with pytest.raises(ValueError, match=r"yaw_variance must be one of \['circular', 'released'\]"):
+    with pytest.raises(ValueError, match=r"coalign: yaw_variance='np.var' is not allowed; choose "
+                                         r"one of \['circular', 'released'\]"):
         make_policy("coalign", yaw_variance="np.var")
 
 

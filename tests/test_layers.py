@@ -16,7 +16,7 @@ PACKAGE = Path(roco_env.__file__).parent
 # Bottom to top, as docs/architecture.md draws them; modules of one layer may import
 # each other. ``__init__`` (the package's entry points) sits on top of env.
 LAYERS = (
-    ("schema", "stages"),
+    ("schema", "stages", "flags"),
     ("scenario",),
     ("geometry", "batched_nms"),
     ("traffic",),

@@ -296,9 +296,10 @@ def test_gilbert_elliott_losses_come_in_bursts_at_the_asked_rate():
     assert abs(lost.mean() - 0.2) < 0.02
     starts = np.flatnonzero(np.diff(lost.astype(int)) == 1)
     assert abs(lost.sum() / starts.size - 4.0) < 0.4  # mean burst length
-    with pytest.raises(ScenarioError, match="burst_length"):
-        roco_env.parallel_env(SCENE, loss="gilbert_elliott", loss_rate=0.9,
-                              **{"comm.loss_params.burst_length": 2.0})
+    with pytest.raises(ScenarioError, match="loss_rate=0.9 cannot be reached with comm.loss_params"
+                                            ".burst_length=2.0"):
+        load_scenario(SCENE, loss="gilbert_elliott", loss_rate=0.9,
+                      **{"comm.loss_params.burst_length": 2.0})
 
 
 @pytest.mark.parametrize("overrides, names", [

@@ -55,6 +55,16 @@ class GilbertElliottParams:
     burst_length: float = spec(3.0, low=1.0, high=1e6,
                                doc="mean number of messages a loss burst lasts")
 
+    def __post_init__(self) -> None:
+        """The rule joining the two: a good spell lasts at least one message."""
+        if self.loss_rate > self.burst_length / (1.0 + self.burst_length):
+            raise ConfigError(
+                f"comm.loss_params.loss_rate={self.loss_rate!r} cannot be reached with "
+                f"comm.loss_params.burst_length={self.burst_length!r}: a good spell lasts at "
+                "least one message, so the loss rate is at most burst_length / (burst_length "
+                f"+ 1) = {self.burst_length / (1.0 + self.burst_length):.4g}; lengthen the "
+                "bursts or lower the rate")
+
 
 class NoLoss:
     """``none``: every message arrives."""
@@ -90,13 +100,7 @@ class GilbertElliottLoss:
     """``gilbert_elliott``: a two-state chain per link (module docstring)."""
 
     def __init__(self, loss_rate: float, burst_length: float) -> None:
-        if loss_rate > burst_length / (1.0 + burst_length):
-            raise ConfigError(
-                f"comm: comm.loss_params.loss_rate={loss_rate!r} cannot be reached with "
-                f"comm.loss_params.burst_length={burst_length!r}: a good spell lasts at least "
-                f"one message, so the loss rate is at most burst_length / (burst_length + 1) "
-                f"= {burst_length / (1.0 + burst_length):.4g}; lengthen the bursts or lower "
-                "the rate")
+        GilbertElliottParams(loss_rate, burst_length)  # the rule joining the two
         self.loss_rate = loss_rate
         self.recover = 1.0 / burst_length  # P(bad -> good)
         self.fail = loss_rate * self.recover / (1.0 - loss_rate)  # P(good -> bad)

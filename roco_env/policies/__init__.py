@@ -12,11 +12,15 @@ three ways make it a name everywhere a policy name is accepted (``make_policy``,
       [project.entry-points."roco_env.policies"]
       mine = "my_pkg.module:make_policy"
 
-The factory is called with the spec's parameters and returns the callable.
+The factory is called with the spec's parameters and returns the callable. A factory
+that declares its parameters as a :func:`roco_env.schema.spec` dataclass, ``PARAMS``
+(:func:`declared_params`), has a policy spec's parameters checked against it before
+anything is built (``roco_env.policies.spec.validate_policy_spec``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.metadata
 import sys
@@ -102,6 +106,19 @@ def registered_policies() -> dict[str, str]:
 
 def make_policy(name: str, **params: Any) -> Callable:
     """Build the policy registered as ``name``, or imported from ``module:factory``."""
+    return _factory(name)(**params)
+
+
+def declared_params(name: str) -> type | None:
+    """The parameter dataclass the factory of ``name`` declares as ``PARAMS`` (its fields,
+    made with :func:`roco_env.schema.spec`, are every keyword argument the factory takes), or
+    None when it declares none."""
+    declared = getattr(_factory(name), "PARAMS", None)
+    return declared if dataclasses.is_dataclass(declared) else None
+
+
+def _factory(name: str) -> Callable:
+    """The factory registered as ``name``, or imported from ``module:factory``."""
     if not isinstance(name, str):
         raise ValueError(f"make_policy: name must be a policy name (available_policies()) or "
                          f"an import target 'my_pkg.module:make_policy'; got {name!r} "
@@ -129,7 +146,7 @@ def make_policy(name: str, **params: Any) -> Callable:
         raise ValueError(f"policy {name!r}: cannot import module {module_name!r}: {exc}") from exc
     if not callable(getattr(module, factory, None)):
         raise ValueError(f"policy {name!r}: module {module_name!r} has no callable {factory!r}")
-    return getattr(module, factory)(**params)
+    return getattr(module, factory)
 
 
 __all__ = [
@@ -138,6 +155,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available_policies",
     "correction_action",
+    "declared_params",
     "is_import_target",
     "make_policy",
     "register_policy",

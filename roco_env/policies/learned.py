@@ -26,10 +26,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -188,7 +191,16 @@ def _build_mlp(state: dict, path: Path, size: int):
     return torch.nn.Sequential(*modules[:-1]).eval()
 
 
-def learned_select(weights: str | None = None) -> LearnedPolicy:
-    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md)."""
+@dataclass(frozen=True)
+class LearnedSelectParams:
+    """The parameter of ``learned_select``."""
+
+    weights: str | None = spec(None, doc="weights file (None: the shipped one)")
+
+
+def learned_select(**params: Any) -> LearnedPolicy:
+    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md);
+    params: the fields of :class:`LearnedSelectParams`."""
+    weights = build(LearnedSelectParams, params, "learned_select").weights
     return LearnedPolicy(weights, name="learned_select", action_mode="select")
 
