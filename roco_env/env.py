@@ -58,7 +58,7 @@ INFO_LEVELS = ("full", "metrics", "none")
 METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
                     "rejected", "evaluated", "evaluated_collaborators", "agent",
                     "collaborators", "n_collaborators", "time", "bytes_sent", "bytes_received",
-                    "messages_lost")
+                    "messages_lost", "compensated")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -148,7 +148,8 @@ class CollabPerceptionEnv(ParallelEnv):
     ``rejected`` (N,) bool by slot of the scored frame. With the network stage on, also
     ``time`` (s since reset), ``bytes_sent`` (the bytes of the messages the agent sent,
     one per link, lost ones included), ``bytes_received`` (of the messages that reached
-    it) and ``messages_lost`` (of those sent to it), all of the observation's step.
+    it) and ``messages_lost`` (of those sent to it), all of the observation's step, and
+    ``compensated`` (``comm.compensation: track``: the slots' boxes are moved to now).
     ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose

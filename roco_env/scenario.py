@@ -204,6 +204,8 @@ MESSAGE_HEADER_BYTES = 44
 # How a message carries a feature map (roco_env.comm.payload): every cell or only the
 # non-zero ones (with their indices), as 32- or 16-bit floats.
 FEATURE_CODECS: tuple[str, ...] = ("dense_f32", "dense_f16", "sparse_f32", "sparse_f16")
+# What the receiving ego does about a late message's moving boxes (roco_env.comm.network).
+COMPENSATIONS: tuple[str, ...] = ("none", "track")
 
 
 @dataclass
@@ -231,6 +233,10 @@ class CommConfig:
                                    "before the receiving ego's, in [0, 500]")
     max_age_ms: float = _spec(1000.0, low=0.0, high=60000.0, low_open=True,
                               doc="an ego drops a collaborator's message older than this, ms")
+    compensation: str = _spec("none", choices=COMPENSATIONS,
+                              doc="none: each slot's boxes as sent; track: the ego tracks each "
+                              "collaborator's boxes over its messages and moves them to its "
+                              "own time, for alignment and fusion")
 
 
 @dataclass

@@ -41,6 +41,7 @@ MODELS = (
     {"loss": "gilbert_elliott", "loss_rate": 0.3},
     {"comm.budget_bytes": 400},
     {"comm.sensor_offset_ms": {"cav_1": 40.0}},
+    {"delay": "fixed", "delay_ms": 200, "comm.compensation": "track"},
 )
 
 
@@ -321,6 +322,7 @@ def test_gilbert_elliott_losses_come_in_bursts_at_the_asked_rate():
      ["comm.sensor_offset_ms", "fusion.method='late'"]),
     ({"comm.max_age_ms": 0}, ["comm.max_age_ms=0"]),
     ({"comm.feature_codec": "jpeg"}, ["comm.feature_codec='jpeg'", "sparse_f16"]),
+    ({"comm.compensation": "magic"}, ["comm.compensation='magic'", "'track'"]),
 ])
 def test_bad_comm_input_names_the_field(overrides, names):
     with pytest.raises(ScenarioError) as info:

@@ -7,7 +7,10 @@ communication range it is, one message per link, cut to ``comm.budget_bytes`` by
 (``comm.delay``) and whether it is lost (``comm.loss``); it reaches the ego at the
 first frame at or after its arrival. The ego holds the newest scan it has received from
 each collaborator (an older one arriving later, out of order, is dropped) and drops one
-older than ``comm.max_age_ms``. An ego's collaborator slots are the agents in its
+older than ``comm.max_age_ms``. With ``comm.compensation: track`` the ego tracks each
+collaborator's boxes over its messages (:class:`roco_env.comm.tracking.KeyedTracks`,
+from the reported poses: no truth) and moves them along their velocities to its own
+time, for alignment and fusion alike. An ego's collaborator slots are the agents in its
 communication range now, nearest first, whose scan it holds, at most
 ``max_collaborators``. The ground truth stays the ego's present.
 
@@ -35,6 +38,7 @@ import numpy as np
 from roco_env.comm.delay import DelayModel, frames_late
 from roco_env.comm.loss import LossModel
 from roco_env.comm.payload import fit_budget
+from roco_env.comm.tracking import KeyedTracks, TrackingParams, moved_boxes
 from roco_env.scenario import CommConfig, ScenarioConfig
 from roco_env.schema import ConfigError
 from roco_env.sensing import AgentDetections, select_collaborators
@@ -90,18 +94,22 @@ class Delivery:
 class NetworkStats:
     """One step's traffic per agent: time (s since reset); bytes_sent (A,) of the messages
     it sent this step (one per link, lost ones included); bytes_received (A,) of the
-    messages that reached it this step; messages_lost (A,) of those sent to it this step."""
+    messages that reached it this step; messages_lost (A,) of those sent to it this step;
+    compensated: whether the slots' boxes were moved to the ego's time
+    (``comm.compensation: track``)."""
 
     time: float
     bytes_sent: np.ndarray
     bytes_received: np.ndarray
     messages_lost: np.ndarray
+    compensated: bool = False
 
     def info(self, agent: int) -> dict:
         """Agent ``agent``'s info entries."""
         return {"time": self.time, "bytes_sent": int(self.bytes_sent[agent]),
                 "bytes_received": int(self.bytes_received[agent]),
-                "messages_lost": int(self.messages_lost[agent])}
+                "messages_lost": int(self.messages_lost[agent]),
+                "compensated": self.compensated}
 
 
 def _stage(kind: str, config: CommConfig) -> Any:
@@ -134,6 +142,7 @@ class Network:
         self.frame_s = config.traffic.dt
         self.max_collaborators = config.max_collaborators
         self.sends_maps = config.fusion.method == "intermediate"
+        self.tracks = KeyedTracks(TrackingParams()) if comm.compensation == "track" else None
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
         self._pending: list[tuple[int, int, Scan]] = []  # (arrival step, receiver, scan)
         self._held: dict[tuple[int, int], Scan] = {}  # (receiver, sender) -> newest scan
@@ -142,6 +151,8 @@ class Network:
         """Start an episode: every buffer emptied, the delay and loss streams from ``rng``."""
         self._rngs = tuple(rng.spawn(2))
         self.loss.reset()
+        if self.tracks is not None:
+            self.tracks.reset()
         self._pending.clear()
         self._held.clear()
 
@@ -196,7 +207,21 @@ class Network:
         inbox = [[Delivery(self._held[(i, j)], now - self._held[(i, j)].time, (i, j) in arrived)
                   for j in in_range[i] if (i, j) in self._held][: self.max_collaborators]
                  for i in range(n_agents)]
-        return inbox, NetworkStats(now, bytes_sent, bytes_received, messages_lost)
+        if self.tracks is not None:
+            inbox = [[self._compensated(i, d) for d in received]
+                     for i, received in enumerate(inbox)]
+        return inbox, NetworkStats(now, bytes_sent, bytes_received, messages_lost,
+                                   self.tracks is not None)
+
+    def _compensated(self, receiver: int, delivery: Delivery) -> Delivery:
+        """``delivery`` with its boxes moved to the receiver's time along their tracks
+        (``comm.compensation: track``; a box whose track does not know its velocity yet
+        stays)."""
+        scan = delivery.scan
+        velocity, _ = self.tracks.velocities((receiver, scan.sender), scan.boxes,
+                                             scan.reported_pose, scan.time, delivery.new)
+        boxes = moved_boxes(scan.boxes, scan.reported_pose, velocity, delivery.age)
+        return dataclasses.replace(delivery, scan=dataclasses.replace(scan, boxes=boxes))
 
     def _scan(self, sender: int, step: int, now: float, state: WorldState, reported: np.ndarray,
               detections: AgentDetections, features: Any, encoder_maps: Any) -> Scan:
