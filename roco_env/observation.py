@@ -37,7 +37,10 @@ class EgoView:
     scan, s; collab_new (n,) bool, whether it arrived this step; network: the agent's
     traffic info entries (time, bytes_sent, bytes_received, messages_lost);
     collab_map_rows: under intermediate fusion, each slot's row of the frame's encoder
-    maps. All None with the network off (collab_map_rows: the slots' agent indices).
+    maps; in_range: the agents whose messages the ego would use now over an instant,
+    lossless link (in communication range, nearest first, at most N: the collaboration
+    its ground truth counts). All None with the network off (collab_map_rows: the slots'
+    agent indices; in_range: the slots).
     """
 
     agent: int
@@ -60,6 +63,7 @@ class EgoView:
     collab_new: np.ndarray | None = None
     network: dict | None = None
     collab_map_rows: tuple[int, ...] | None = None
+    in_range: tuple[int, ...] | None = None
 
 
 def top_k(scores: np.ndarray, k: int) -> np.ndarray:

@@ -38,6 +38,7 @@ from roco_env.sensing import (
     Visibility,
     compute_visibility,
     make_detector,
+    select_collaborators,
 )
 from roco_env.traffic import make_traffic_source
 from roco_env.traffic.state import WorldState
@@ -224,7 +225,9 @@ class Pipeline:
                 "collab_age": np.array([d.age for d in received], dtype=float),
                 "collab_new": np.array([d.new for d in received], dtype=bool),
                 "network": stats.info(ego),
-                "collab_map_rows": None if map_rows is None else map_rows[ego]}
+                "collab_map_rows": None if map_rows is None else map_rows[ego],
+                "in_range": tuple(select_collaborators(state, ego,
+                                                       self.config.max_collaborators))}
             views.append(EgoView(
                 agent=ego,
                 pose=np.array(own[ego], dtype=float),

@@ -334,3 +334,21 @@ def test_bad_comm_input_names_the_field(overrides, names):
 def test_a_sensor_offset_of_an_agent_the_scenario_lacks_names_it():
     with pytest.raises(ScenarioError, match="comm.sensor_offset_ms.cav_9.*cav_0"):
         roco_env.parallel_env(SCENE, cavs=3, **{"comm.sensor_offset_ms": {"cav_9": 10}})
+
+
+def test_lost_messages_cost_what_only_the_collaborators_see():
+    """The ground truth is the collaboration in range now, whether its messages arrive or
+    not: with every message lost, late fusion scores exactly the no-fusion reference."""
+    lost = roco_env.parallel_env(SCENE, max_cycles=3, cavs=3, loss="bernoulli", loss_rate=1.0)
+    alone = roco_env.parallel_env(SCENE, max_cycles=3, cavs=3, fusion="none")
+    late = roco_env.parallel_env(SCENE, max_cycles=3, cavs=3, delay="fixed", delay_ms=300)
+    for env in (lost, alone, late):
+        env.reset(seed=6)
+    while lost.agents:
+        zeros = {a: np.zeros((lost.config.max_collaborators, 3)) for a in lost.agents}
+        (_, r_lost, *_, i_lost), (_, r_alone, *_, i_alone), (*_, i_late) = (
+            lost.step(zeros), alone.step(zeros), late.step(zeros))
+        assert r_lost == r_alone
+        for agent in lost.agents or i_lost:
+            assert i_lost[agent]["n_gt"] == i_alone[agent]["n_gt"] == i_late[agent]["n_gt"]
+            assert i_lost[agent]["n_collaborators"] == 0

@@ -26,6 +26,7 @@ policy wrapper both use them.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 
@@ -60,6 +61,19 @@ class TrackingParams:
                          doc="measurements before a track's velocity counts")
 
 
+@functools.lru_cache(maxsize=256)
+def _motion(dt: float, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, Q) of a constant-velocity step of ``dt`` s (state x, vx, y, vy) with white
+    acceleration of std ``accel_std`` m/s^2; read-only, shared by every track (messages
+    come at a few distinct intervals)."""
+    F = np.array([[1.0, dt, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0],
+                  [0.0, 0.0, 1.0, dt], [0.0, 0.0, 0.0, 1.0]])
+    Q = Q_discrete_white_noise(dim=2, dt=dt, var=accel_std ** 2, block_size=2)
+    F.setflags(write=False)
+    Q.setflags(write=False)
+    return F, Q
+
+
 @dataclass
 class _Track:
     kf: KalmanFilter
@@ -80,10 +94,7 @@ class BoxTracker:
         dt = max(time - track.time, 0.0)
         if dt > 0.0:
             kf = track.kf
-            kf.F = np.array([[1.0, dt, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0],
-                             [0.0, 0.0, 1.0, dt], [0.0, 0.0, 0.0, 1.0]])
-            kf.Q = Q_discrete_white_noise(dim=2, dt=dt, var=self.params.accel_std ** 2,
-                                          block_size=2)
+            kf.F, kf.Q = _motion(round(dt, 9), self.params.accel_std)
             kf.predict()
             track.time = time
         return track.kf
@@ -100,13 +111,15 @@ class BoxTracker:
         """Feed one message: its instant ``time`` (s) and its box centres (n, 2), world
         frame (m). Returns each centre's track, an index into ``tracks`` (n,)."""
         centres = np.asarray(centres, dtype=float).reshape(-1, 2)
-        cost = np.full((len(self.tracks), centres.shape[0]), _UNMATCHED)
-        for row, track in enumerate(self.tracks):
-            kf = self._predicted(track, time)
-            innovation = centres - (_H @ kf.x).reshape(1, 2)
-            inverse = np.linalg.inv(_H @ kf.P @ _H.T + kf.R)
-            distance = np.einsum("ni,ij,nj->n", innovation, inverse, innovation)
-            cost[row] = np.where(distance <= self.params.gate, distance, _UNMATCHED)
+        filters = [self._predicted(track, time) for track in self.tracks]
+        cost = np.full((len(filters), centres.shape[0]), _UNMATCHED)
+        if filters:
+            means = np.stack([kf.x[[0, 2], 0] for kf in filters])  # (T, 2)
+            spread = np.stack([kf.P[np.ix_([0, 2], [0, 2])] + kf.R for kf in filters])
+            innovation = centres[None, :, :] - means[:, None, :]  # (T, n, 2)
+            distance = np.einsum("tni,tij,tnj->tn", innovation, np.linalg.inv(spread),
+                                 innovation)
+            cost = np.where(distance <= self.params.gate, distance, _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
         matched = {int(c): int(r) for r, c in zip(rows, cols, strict=True)
                    if cost[r, c] < _UNMATCHED}

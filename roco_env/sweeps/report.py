@@ -13,6 +13,7 @@ AP@0.7 against each axis.
 from __future__ import annotations
 
 import csv
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -100,8 +101,8 @@ def render_markdown(rows: Sequence[SummaryRow], failures: Sequence[dict],
 
 
 def _axis_blocks(group: Sequence[SummaryRow], axes: Sequence[str]) -> list[str]:
-    """AP@0.5 and AP@0.7 against each grid axis, a block per noise level and value of the
-    other axes."""
+    """AP@0.5 and AP@0.7 against each grid axis (and the bytes received, with the network
+    stage on), a block per noise level and value of the other axes."""
     parts = []
     for axis in axes:
         others = [a for a in axes if a != axis]
@@ -112,6 +113,9 @@ def _axis_blocks(group: Sequence[SummaryRow], axes: Sequence[str]) -> list[str]:
             for key, name in (("ap50", "AP@0.5 (%)"), ("ap70", "AP@0.7 (%)")):
                 parts += [f"### {name} vs {axis} ({where})", "", ap_by_axis(members, axis, key),
                           ""]
+            if any(math.isfinite(r.metrics.get("bytes_received", math.nan)) for r in members):
+                parts += [f"### Bytes received per agent-step vs {axis} ({where})", "",
+                          ap_by_axis(members, axis, "bytes_received", 1.0, 0), ""]
     return parts
 
 

@@ -66,11 +66,13 @@ def grid_axes(rows: Sequence[SummaryRow]) -> list[str]:
 
 
 def _matrix(rows: Sequence[SummaryRow], column: Callable[[SummaryRow], object], key: str,
-            first: str, label: Callable[[object], str]) -> str:
+            first: str, label: Callable[[object], str], scale: float = 100.0,
+            digits: int = 1) -> str:
     policies = _ordered([r.policy for r in rows])
     columns = sorted(_ordered([column(r) for r in rows]), key=value_order)
     index = {(r.policy, column(r)): r for r in rows}
-    body = [[p] + [_cell(index.get((p, c)), key) for c in columns] for p in policies]
+    body = [[p] + [_cell(index.get((p, c)), key, scale, digits) for c in columns]
+            for p in policies]
     return markdown_table([first] + [label(c) for c in columns], body)
 
 
@@ -84,10 +86,12 @@ def ap_by_density(rows: Sequence[SummaryRow], key: str) -> str:
     return _matrix(rows, lambda r: r.density, key, "Policy \\ density", density_label)
 
 
-def ap_by_axis(rows: Sequence[SummaryRow], axis: str, key: str) -> str:
+def ap_by_axis(rows: Sequence[SummaryRow], axis: str, key: str, scale: float = 100.0,
+               digits: int = 1) -> str:
     """Grid-axis block: rows = policies, columns = the values of override ``axis``, values
-    = ``key`` in %."""
-    return _matrix(rows, lambda r: r.overrides.get(axis), key, f"Policy \\ {axis}", axis_label)
+    = ``key`` times ``scale`` (default: a share in %)."""
+    return _matrix(rows, lambda r: r.overrides.get(axis), key, f"Policy \\ {axis}", axis_label,
+                   scale, digits)
 
 
 POSE_HEADER = ("Policy", "Noise", "RPE t med / p95 (m)", "RPE r med / p95 (deg)",
