@@ -205,6 +205,7 @@ def test_compare_sweeps_any_scenario_field_with_grid_and_resumes(capsys, tmp_pat
     out = capsys.readouterr().out
     assert "### AP@0.7 (%) vs delay_ms (noise 0.0/0.0)" in out
     assert "| Policy \\ delay_ms | 0 | 100 | 200 |" in out
+    assert "### Bytes received per agent-step vs delay_ms (noise 0.0/0.0)" in out
     assert "(3 run, 0 resumed" in out
     assert main(argv) == 0
     assert "(0 run, 3 resumed" in capsys.readouterr().out
