@@ -59,7 +59,8 @@ INFO_LEVELS = ("full", "metrics", "none")
 # The per-agent entries info_level="metrics" keeps.
 METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
                     "rejected", "evaluated", "evaluated_collaborators", "agent",
-                    "collaborators", "n_collaborators")
+                    "collaborators", "n_collaborators", "time", "bytes_sent", "bytes_received",
+                    "messages_lost", "compensated")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -87,7 +88,11 @@ class CollabPerceptionEnv(ParallelEnv):
     poses, ``collab_rel_poses`` (N, 3) the reported ``T_{j->i}``, ``collab_mask``
     (N,); ``collab_boxes`` (N, K, 7), ``collab_uncertainty``, ``collab_scores``,
     ``collab_box_mask``, each collaborator's boxes in its own frame; ``features``
-    (C, H, W) BEV maps when ``features=True``.
+    (C, H, W) BEV maps when ``features=True``. With the network stage on (any field of the
+    scenario section ``comm`` changed; docs/network.md) each slot holds the newest scan
+    the agent has received from that collaborator (its boxes in the collaborator's frame
+    and its reported pose, both of the scan's instant) and two entries more:
+    ``collab_age`` (N,) its age in s and ``collab_new`` (N,) 1 where it arrived this step.
 
     ## Action
 
@@ -142,8 +147,12 @@ class CollabPerceptionEnv(ParallelEnv):
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
     the observed boxes, -1 = false positive or empty slot; read by ``oracle``), and
-    ``rejected`` (N,) bool by slot of the scored frame.
-    ``reset()`` infos carry the last four and ``evaluated``.
+    ``rejected`` (N,) bool by slot of the scored frame. With the network stage on, also
+    ``time`` (s since reset), ``bytes_sent`` (the bytes of the messages the agent sent,
+    one per link, lost ones included), ``bytes_received`` (of the messages that reached
+    it) and ``messages_lost`` (of those sent to it), all of the observation's step, and
+    ``compensated`` (``comm.compensation: track``: the slots' boxes are moved to now).
+    ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
     errors and ids), ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
@@ -195,9 +204,9 @@ class CollabPerceptionEnv(ParallelEnv):
       ``privileged``: whether infos carry the privileged truth (default: with ``"full"``).
     - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
       ``sigma_r``, ``noise_model``, ``density``, ``cavs``, ``rsus``, ``detector``,
-      ``fusion``, ``reward``, ``features``) or dotted name
-      (``**{"traffic.min_gap": 1.0}``); a bad key or value raises ValueError naming
-      the field and the allowed values.
+      ``fusion``, ``reward``, ``features``, ``delay``, ``delay_ms``, ``loss``,
+      ``loss_rate``) or dotted name (``**{"traffic.min_gap": 1.0}``); a bad key or value
+      raises ValueError naming the field and the allowed values.
     """
 
     metadata = {
@@ -250,7 +259,8 @@ class CollabPerceptionEnv(ParallelEnv):
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
         self._observation_spaces = {  # one space object per agent: each samples its own seed
-            a: observation_space(k, n, feature_shape) if config.observation.mode == "raw"
+            a: observation_space(k, n, feature_shape, self.pipeline.network is not None)
+            if config.observation.mode == "raw"
             else mode_space(config.observation, k, n) for a in self.possible_agents}
         self.action_mode = build_action_mode(config.action, n, self.possible_agents)
         # The base aligner runs on every observation when the action or observation reads it.
@@ -443,6 +453,8 @@ class CollabPerceptionEnv(ParallelEnv):
             "collaborators": collaborators,
             "n_collaborators": len(collaborators),
         }
+        if view.network is not None:
+            info.update(view.network)
         if privileged:
             info["privileged"] = privileged_truth(view, self.config.max_boxes,
                                                   self.config.max_collaborators)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.resources
 import os
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -197,6 +198,47 @@ class ObservationConfig:
                                   doc="bev mode: raster cell side, m")
 
 
+# Bytes of a message's fixed header (sender, scan time, pose, box count, feature codec):
+# the payload encoder of roco_env.comm.payload writes exactly these (a test checks it).
+MESSAGE_HEADER_BYTES = 44
+# How a message carries a feature map (roco_env.comm.payload): every cell or only the
+# non-zero ones (with their indices), as 32- or 16-bit floats.
+FEATURE_CODECS: tuple[str, ...] = ("dense_f32", "dense_f16", "sparse_f32", "sparse_f16")
+# What the receiving ego does about a late message's moving boxes (roco_env.comm.network).
+COMPENSATIONS: tuple[str, ...] = ("none", "track")
+
+
+@dataclass
+class CommConfig:
+    """The network between the collaborators' messages and the ego (roco_env.comm,
+    docs/network.md). The defaults switch it off: every message arrives at once, whole."""
+
+    delay: str = _spec("none", choices=partial(available_stages, "delay"),
+                       doc="the delay stage (roco_env.comm.delay): none | fixed | uniform | "
+                       "opencood | distance | a registered one")
+    delay_params: dict = _spec({}, doc="the delay model's parameters (its dataclass)")
+    loss: str = _spec("none", choices=partial(available_stages, "loss"),
+                      doc="the loss stage (roco_env.comm.loss): none | bernoulli | "
+                      "gilbert_elliott | a registered one")
+    loss_params: dict = _spec({}, doc="the loss model's parameters (its dataclass)")
+    budget_bytes: int | None = _spec(
+        None, low=MESSAGE_HEADER_BYTES, high=10**9,
+        doc=f"per-link budget of one message, bytes (at least the {MESSAGE_HEADER_BYTES}-byte "
+        "header); what does not fit is dropped: the lowest-scoring boxes first, then feature "
+        "cells by magnitude; null = unlimited")
+    feature_codec: str = _spec("dense_f32", choices=FEATURE_CODECS,
+                               doc="how a feature map is sent: every cell (dense) or the "
+                               "non-zero cells with their indices (sparse), 32- or 16-bit")
+    sensor_offset_ms: dict = _spec({}, doc="agent id -> ms by which its LiDAR sweep ends "
+                                   "before the receiving ego's, in [0, 500]")
+    max_age_ms: float = _spec(1000.0, low=0.0, high=60000.0, low_open=True,
+                              doc="an ego drops a collaborator's message older than this, ms")
+    compensation: str = _spec("none", choices=COMPENSATIONS,
+                              doc="none: each slot's boxes as sent; track: the ego tracks each "
+                              "collaborator's boxes over its messages and moves them to its "
+                              "own time, for alignment and fusion")
+
+
 @dataclass
 class ScenarioConfig:
     name: str = _spec("custom")
@@ -210,6 +252,7 @@ class ScenarioConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
+    comm: CommConfig = field(default_factory=CommConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
     max_objects: int = _spec(256, low=1, high=4096,
@@ -228,6 +271,10 @@ ALIASES: dict[str, str] = {
     "fusion": "fusion.method",
     "reward": "evaluation.reward",
     "features": "features.enabled",
+    "delay": "comm.delay",
+    "delay_ms": "comm.delay_params.delay_ms",
+    "loss": "comm.loss",
+    "loss_rate": "comm.loss_params.loss_rate",
 }
 
 
@@ -362,7 +409,7 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
                 raise ScenarioError(unknown_key_message("override", ".".join(parts[: depth + 1]),
                                                          _valid_override_names()))
             node = node[part]
-        if parts[-1] not in node and parts[-2:-1] not in (["params"], ["per_agent"]):
+        if parts[-1] not in node and ".".join(parts[:-1]) not in _mapping_fields():
             raise ScenarioError(unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
     config = _build_scenario(data, where="override")
@@ -402,6 +449,7 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.per_agent = _per_agent_levels(config.noise.per_agent, where)
+    config.comm.sensor_offset_ms = _sensor_offsets(config.comm.sensor_offset_ms, where)
     config.action.scale = _check_scale(config.action.scale, where)
     config.action.choices = _check_choices(config.action.choices, where)
     for kind in SCENARIO_FIELDS:
@@ -412,6 +460,11 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
             f"feature maps, so it needs detector.preset='learned' (detector='learned'); got "
             f"detector.preset={config.detector.preset!r}"
         )
+    if config.comm.sensor_offset_ms and config.fusion.method == "intermediate":
+        raise ScenarioError(
+            f"{where}: comm.sensor_offset_ms moves a sender's boxes to the earlier instant of its "
+            "sweep, which a feature map cannot follow, so it needs fusion.method='late'; got "
+            "fusion.method='intermediate' (leave comm.sensor_offset_ms empty)")
     gate = config.detector.params.get("gate") if config.detector.preset == "learned" else None
     if gate is not None and config.fusion.method != "intermediate":
         raise ScenarioError(
@@ -449,6 +502,14 @@ def _per_agent_levels(per_agent: dict, where: str) -> dict:
     return checked
 
 
+def _sensor_offsets(offsets: dict, where: str) -> dict:
+    """comm.sensor_offset_ms (agent id -> ms) with each offset a number in [0, 500]; the
+    agent ids are checked when the env knows its agents."""
+    meta = {"low": 0.0, "high": 500.0}
+    return {agent: check_value(value, float, meta, where, f"comm.sensor_offset_ms.{agent}")
+            for agent, value in offsets.items()}
+
+
 def _check_scale(value: list, where: str) -> list[float]:
     """action.scale as three finite numbers > 0 (m, m, degrees), else a ScenarioError."""
     ok = isinstance(value, list) and len(value) == 3 and all(
@@ -478,6 +539,16 @@ def _check_range(value: list, where: str, key: str) -> list[float]:
         raise ScenarioError(f"{where}: {key} must be [low, high] in m with low < high; "
                             f"got {value!r}")
     return [float(v) for v in value]
+
+
+def _mapping_fields() -> set[str]:
+    """Dotted names of the fields holding a free mapping (``noise.params``,
+    ``comm.sensor_offset_ms``, ...): an override may add a key below them."""
+    return {f"{top.name}.{name}" for top in dataclasses.fields(ScenarioConfig)
+            if top.default_factory is not dataclasses.MISSING
+            and dataclasses.is_dataclass(top.default_factory)
+            for name, hint in typing.get_type_hints(top.default_factory).items()
+            if hint is dict}
 
 
 def _valid_override_names() -> list[str]:

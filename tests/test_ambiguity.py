@@ -9,13 +9,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from roco_env.testing.constructed_scenes import (
-    lattice_scene,
-    make_scene,
-    parking_rows,
-    pose_error,
-    to_observation,
-)
 
 from roco_env.geometry import wrap_angle
 from roco_env.policies import make_policy
@@ -23,6 +16,13 @@ from roco_env.policies.ambiguity import Ambiguity, diagnose
 from roco_env.policies.antialias import AntiAliasParams, antialias_align
 from roco_env.policies.hypotheses import box_sets, score_hypotheses
 from roco_env.policies.landmarks import prepare_inputs
+from roco_env.testing.constructed_scenes import (
+    lattice_scene,
+    make_scene,
+    parking_rows,
+    pose_error,
+    to_observation,
+)
 
 CAR = np.array([0.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0])
 

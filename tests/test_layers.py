@@ -22,6 +22,7 @@ LAYERS = (
     ("traffic",),
     ("noise",),
     ("sensing",),
+    ("comm",),
     ("policies",),
     ("fusion",),
     ("metrics",),

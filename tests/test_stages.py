@@ -28,20 +28,6 @@ from roco_env.sensing.detector import (
 from roco_env.traffic import make_traffic_source
 
 
-@pytest.fixture
-def registered():
-    """Names registered by a test are forgotten after it."""
-    added: list[tuple[str, str]] = []
-
-    def register(kind, name, factory, params=None):
-        roco_env.register_stage(kind, name, factory, params)
-        added.append((kind, name))
-
-    yield register
-    for kind, name in added:
-        stages.unregister_stage(kind, name)
-
-
 @pytest.mark.parametrize("kind", stages.KINDS)
 def test_every_built_in_stage_loads(kind):
     for name in stages.available_stages(kind):

@@ -16,8 +16,8 @@ import numpy as np
 
 from roco_env.geometry import wrap_angle
 from roco_env.policies.antialias import antialias_align
-from roco_env.testing.constructed_scenes import lattice_scene
 from roco_env.policies.roco import roco_align
+from roco_env.testing.constructed_scenes import lattice_scene
 
 LEVELS = (0.5, 1.0, 2.0, 3.0)  # m and deg
 PITCH = (2.4, 8.0)  # m

@@ -86,9 +86,13 @@ class RecordMetrics:
     success1_before: float | None = _share()
     success2_before: float | None = _share()
     success3_before: float | None = _share()
+    worse_share: float | None = _share("pairs whose correction added > 0.5 m of translation "
+                                       "error")
     match_precision: float | None = _share()
     match_recall: float | None = _share()
     correction_share: float | None = _share()
+    bytes_received: float | None = spec(None, low=0.0, doc="bytes an agent received per step "
+                                        "(the network stage on), mean")
     frames: int | None = _count()
     decisions: int | None = _count()
     matched_frames: int | None = _count()
