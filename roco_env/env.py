@@ -25,6 +25,7 @@ from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_mode
+from roco_env.attacks import attack_truth
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
@@ -139,7 +140,9 @@ class CollabPerceptionEnv(ParallelEnv):
     scored frame) and, describing the observation returned with it: ``agent`` (the
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
-    the observed boxes, -1 = false positive or empty slot; read by ``oracle``), and
+    the observed boxes, -1 = false positive, injected or empty slot; read by ``oracle``;
+    ``attacker``, whether the agent attacks, and ``collab_attackers`` (N,) bool, which
+    collaborators do: the attack stage, scenario section ``attack``), and
     ``rejected`` (N,) bool by slot of the scored frame.
     ``reset()`` infos carry the last four and ``evaluated``.
 
@@ -442,8 +445,10 @@ class CollabPerceptionEnv(ParallelEnv):
             "n_collaborators": len(collaborators),
         }
         if privileged:
-            info["privileged"] = privileged_truth(view, self.config.max_boxes,
-                                                  self.config.max_collaborators)
+            info["privileged"] = {
+                **privileged_truth(view, self.config.max_boxes, self.config.max_collaborators),
+                **attack_truth(self.pipeline.attack.attackers, view.agent, view.collaborators,
+                               self.config.max_collaborators)}
         return info
 
     def _lean(self, info: dict) -> dict:

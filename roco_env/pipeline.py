@@ -5,7 +5,8 @@ it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Percepti
 the world, every agent's reported pose and detections, and each agent's
 :class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
 transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
-the same top-K of its own. With ``noise.perturb_ego=False`` an ego's own pose
+the same top-K of its own. The attack stage (:mod:`roco_env.attacks`, scenario
+section ``attack``) rewrites what attackers send honest egos. With ``noise.perturb_ego=False`` an ego's own pose
 in its view is its true pose (its collaborators' stay noisy).
 """
 
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from roco_env import sensing
+from roco_env.attacks import make_attack
 from roco_env.geometry import canonical_axial_yaw, se2_inverse, se2_relative, transform_boxes
 from roco_env.noise import make_pose_noise
 from roco_env.observation import EgoView, top_k
@@ -107,6 +109,7 @@ class Pipeline:
                             config.features.resolution)
             if config.features.enabled else None
         )
+        self.attack = make_attack(config, self.agent_ids)
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
 
     @property
@@ -117,9 +120,11 @@ class Pipeline:
         return (len(sensing.CHANNELS), self.grid.H, self.grid.W)
 
     def reset(self, rng: np.random.Generator) -> PerceptionFrame:
-        """Start an episode: independent child streams for traffic, noise and sensing."""
+        """Start an episode: independent child streams for traffic, noise, sensing and the
+        attack (spawned after the others: theirs do not change)."""
         traffic_rng, noise_rng, sensing_rng = rng.spawn(3)
         self._rngs = (noise_rng, sensing_rng)
+        self.attack.reset(*rng.spawn(1))
         with self.clock.measure("traffic"):
             state = self.traffic.reset(traffic_rng)
         if state.agent_ids != self.agent_ids:
@@ -170,11 +175,11 @@ class Pipeline:
                detections: tuple[AgentDetections, ...],
                features: tuple | None) -> tuple[EgoView, ...]:
         """Every agent's view; the relative poses of all (ego, slot) pairs in one batch each."""
-        messages = [build_messages(state, ego, reported, detections,
-                                   self.config.max_collaborators, features)
-                    for ego in range(state.num_agents)]
-        slots = [tuple(self.agent_ids.index(m.sender) for m in sent) for sent in messages]
         own = reported if self.noise.perturb_ego else state.agent_poses
+        messages, sent_ids = self.attack.tamper(state, detections, own, [
+            build_messages(state, ego, reported, detections, self.config.max_collaborators,
+                           features) for ego in range(state.num_agents)])
+        slots = [tuple(self.agent_ids.index(m.sender) for m in sent) for sent in messages]
         true = state.agent_poses
         collab_poses = [np.array([m.reported_pose for m in sent]).reshape(-1, 3)
                         for sent in messages]
@@ -208,7 +213,7 @@ class Pipeline:
                 collab_boxes=collab_boxes,
                 collab_uncertainty=tuple(m.uncertainty for m in sent),
                 collab_scores=tuple(m.scores for m in sent),
-                collab_object_ids=tuple(detections[j].object_ids for j in slot),
+                collab_object_ids=tuple(sent_ids[ego]),
                 features=None if features is None else features[ego],
                 collab_features=None if features is None else tuple(m.features for m in sent),
             ))

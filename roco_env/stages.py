@@ -8,6 +8,7 @@ A scenario names one implementation per stage kind and gives it parameters (the
     detector:  {preset: realistic, params: {sigma_xy: 0.1}}
     fusion:    {method: late, params: {}}
     evaluation: {reward: ap70, reward_params: {}}
+    attack:    {kind: none, params: {}}
 
 The names a scenario accepts are the registry's; the parameters are checked by the
 implementation's own parameter dataclass (declared with :func:`roco_env.schema.spec`,
@@ -27,6 +28,8 @@ detector   ``(config: DetectorConfig, region)``                a ``Detector`` pr
 fusion     ``(config: ScenarioConfig, detector)``              a ``Fusion`` (roco_env.fusion)
 reward     ``(config: EvaluationConfig)``                      a ``Reward``
                                                                (roco_env.evaluation)
+attack     ``(config: ScenarioConfig, agent_ids)``             an ``Attack``
+                                                               (roco_env.attacks)
 =========  ==================================================  ==========================
 
 Three ways make a name of your own selectable from a scenario YAML:
@@ -72,6 +75,7 @@ SCENARIO_FIELDS: dict[str, tuple[str, str, str]] = {
     "detector": ("detector", "preset", "params"),
     "fusion": ("fusion", "method", "params"),
     "reward": ("evaluation", "reward", "reward_params"),
+    "attack": ("attack", "kind", "params"),
 }
 KINDS: tuple[str, ...] = tuple(SCENARIO_FIELDS)
 
@@ -112,6 +116,12 @@ _BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
         **{f"{name}_gain": (f"{_REWARDS}:APGainReward.from_config", None)
            for name in ("ap30", "ap50", "ap70")},
         "neg_rpe": (f"{_REWARDS}:NegativeRPEReward.from_config", None),
+    },
+    "attack": {
+        "none": ("roco_env.attacks.base:NoAttack", None),
+        "pose_spoof": ("roco_env.attacks.pose:PoseSpoof", "roco_env.attacks.pose:PoseSpoofParams"),
+        "ghost": ("roco_env.attacks.ghost:Ghost", "roco_env.attacks.ghost:GhostParams"),
+        "erase": ("roco_env.attacks.erase:Erase", "roco_env.attacks.erase:EraseParams"),
     },
 }
 

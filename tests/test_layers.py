@@ -26,7 +26,7 @@ LAYERS = (
     ("fusion",),
     ("metrics",),
     ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
-     "global_state", "render", "wrappers", "__init__"),
+     "global_state", "render", "wrappers", "attacks", "__init__"),
     ("training",),
     ("sweeps",),
     ("stress",),
