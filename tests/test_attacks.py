@@ -122,12 +122,16 @@ def test_ghosts_appear_only_in_the_attackers_messages(placement):
     victims = 0
     for before, after in zip(clean.views, attacked.views, strict=True):
         for slot in attacked_slots(before, 2) if before.agent != 2 else []:
-            ids = after.collab_object_ids[slot]
-            real = ids.shape[0] - n_ghost
-            assert np.array_equal(ids[:real], before.collab_object_ids[slot])
-            assert np.all(ids[real:] == -1)
-            assert np.array_equal(after.collab_boxes[slot][:real], before.collab_boxes[slot])
-            assert np.allclose(after.collab_poses[slot], before.collab_poses[slot])
+            ids, sent = after.collab_object_ids[slot], before.collab_object_ids[slot]
+            kept = np.ones(sent.shape[0], dtype=bool)
+            if placement == "aliasing":  # what supports the true pose is withheld
+                kept = ~(np.isin(sent, clean.detections[before.agent].object_ids) & (sent >= 0))
+                assert 0 < kept.sum() < kept.shape[0]
+            real = int(kept.sum())
+            assert np.array_equal(ids[:real], sent[kept])
+            assert np.all(ids[real:] == -1) and ids.shape[0] == real + n_ghost
+            assert np.array_equal(after.collab_boxes[slot][:real], before.collab_boxes[slot][kept])
+            assert np.array_equal(after.collab_poses[slot], before.collab_poses[slot])
             victims += 1
     assert victims > 0
 
@@ -231,3 +235,20 @@ def test_attacks_never_tamper_with_what_attackers_send_each_other():
             assert np.array_equal(view.collab_poses[slot], clean.views[attacker].collab_poses[slot])
     moved = se2_relative(attacked.views[2].pose, attacked.views[2].collab_poses)
     assert np.allclose(moved, attacked.views[2].reported_relative)
+
+
+def test_the_aliasing_pattern_makes_roco_pick_the_wrong_hypothesis():
+    from roco_env.policies import make_policy
+
+    env = roco_env.parallel_env(SCENE, max_cycles=1, **NOISE, **{
+        "attack.kind": "ghost", "attack.agents": ["cav_1"],
+        "attack.params": {"n_ghost": 20, "placement": "aliasing", "shift_m": 3.0}})
+    observations, infos = env.reset(seed=0)
+    delta = offset_pose(3.0, 0.0, 0.0)
+    view = env._frame.views[0]
+    (slot,) = attacked_slots(view, 1)
+    action = make_policy("roco")(observations["cav_0"], infos["cav_0"])
+    corrected = se2_compose(action[slot].astype(float), view.reported_relative[slot])
+    wrong = se2_compose(delta, view.reported_relative[slot])  # where the ghosts fit
+    assert np.hypot(*(corrected - wrong)[:2]) < 0.5  # the lie, not the truth, is matched
+    assert np.hypot(*(corrected - view.true_relative[slot])[:2]) > 2.0

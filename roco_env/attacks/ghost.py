@@ -14,9 +14,10 @@ Placements (``placement``), every ghost a car-sized box (:data:`GHOST_SIZE`) wit
   placed in the attacker's frame so that the correction ``delta`` (``shift_m`` m towards
   ``direction_deg`` and ``shift_deg`` degrees, in the victim's frame) lays them exactly on
   the victim's boxes: ``G = T_rel^-1 * delta^-1 * E`` with ``T_rel`` the attacker's
-  reported pose seen from the victim. An aligner counting matched boxes finds ``delta``
-  better supported than the truth as soon as the ghosts outnumber the objects both
-  really see, and moves every real box of the attacker by ``delta``.
+  reported pose seen from the victim. The attacker withholds its own boxes of the objects
+  the victim also detects (they would support the true pose), so an aligner matching
+  boxes finds ``delta`` the only well-supported correction and moves every real box of
+  the attacker by it.
 
 Injected boxes carry object id -1 (privileged); a message keeps at most K boxes, its
 highest-scoring ones.
@@ -108,13 +109,17 @@ class Ghost(Attack):
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
         ghosts = self.ghosts(step, victim, attacker, message)
         count = ghosts.shape[0]
+        real = np.ones(ids.shape[0], dtype=bool)
+        if self.params.placement == "aliasing":  # the true pose's support withheld
+            real = ~(np.isin(ids, step.detections[victim].object_ids) & (ids >= 0))
         typical = np.median(message.uncertainty, axis=0) if message.scores.shape[0] \
             else np.array(_FALLBACK_UNCERTAINTY)
         return rewritten(
             message, np.concatenate([ids, np.full(count, -1, dtype=np.int64)]), step.max_boxes,
             boxes=np.concatenate([message.boxes, ghosts]),
             uncertainty=np.concatenate([message.uncertainty, np.tile(typical, (count, 1))]),
-            scores=np.concatenate([message.scores, np.full(count, self.params.score)]))
+            scores=np.concatenate([message.scores, np.full(count, self.params.score)]),
+            keep=np.concatenate([real, np.ones(count, dtype=bool)]))
 
 
 def _ahead(boxes: np.ndarray, scores: np.ndarray, count: int, gap: float) -> np.ndarray:

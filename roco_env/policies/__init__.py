@@ -43,6 +43,8 @@ _REGISTRY: dict[str, str] = {
     "v2i_calib": "roco_env.policies.v2i_calib:V2ICalibPolicy",
     "freealign": "roco_env.policies.freealign:FreeAlignPolicy",
     "roco_fallback": "roco_env.policies.fallback:RoCoFallbackPolicy",
+    # acts in action.mode gate with observation.mode aligned (its env_overrides)
+    "defend": "roco_env.policies.defend:Defend",
     # acts in action.mode select (its env_overrides; roco_env.policies.learned)
     "learned_select": "roco_env.policies.learned:learned_select",
 }
