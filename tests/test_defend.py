@@ -138,10 +138,11 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
 
 
 @pytest.mark.parametrize("params, match", [
-    ({"base": "defend"}, "base must be the policy spec of an aligner"),
-    ({"sigma_t": 0.0}, "sigma_t must be a number > 0"),
-    ({"alpha": 1.5}, r"alpha must be in \(0, 1\)"),
-    ({"window": 0}, "window must be an integer >= 1"),
+    ({"base": "defend:base=roco"}, "base must be the policy spec of an aligner"),
+    ({"sigma_t": 0.0}, r"sigma_t=0.0 is out of range; allowed \(0.0, inf\)"),
+    ({"alpha": 1.5}, r"alpha=1.5 is out of range; allowed \(0.0, 1.0\)"),
+    ({"window": 0}, r"window=0 is out of range"),
+    ({"n_ghost": 3}, r"unknown defend parameter\(s\) \['n_ghost'\]"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):

@@ -9,7 +9,7 @@ The stage kind ``attack`` (scenario section ``attack``, :mod:`roco_env.stages`):
 
 from collections.abc import Sequence
 
-from roco_env.attacks.base import Attack, NoAttack, StepContext, attack_truth
+from roco_env.attacks.attack_stage import Attack, NoAttack, StepContext, attack_truth
 from roco_env.scenario import ScenarioConfig
 from roco_env.stages import checked_params, stage
 

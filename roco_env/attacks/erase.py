@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.attacks.base import Attack, ObjectIds, StepContext, rewritten
+from roco_env.attacks.attack_stage import Attack, ObjectIds, StepContext, rewritten
 from roco_env.scenario import ScenarioConfig
 from roco_env.schema import ConfigError, build, spec
 from roco_env.sensing.messages import Message

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.attacks.base import Attack, ObjectIds, StepContext, rewritten
+from roco_env.attacks.attack_stage import Attack, ObjectIds, StepContext, rewritten
 from roco_env.attacks.pose import offset_pose
 from roco_env.geometry import se2_compose, se2_inverse, se2_relative, transform_boxes
 from roco_env.observation import top_k

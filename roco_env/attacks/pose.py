@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.attacks.base import Attack, ObjectIds, StepContext, rewritten
+from roco_env.attacks.attack_stage import Attack, ObjectIds, StepContext, rewritten
 from roco_env.geometry import se2_compose, se2_inverse, transform_boxes
 from roco_env.scenario import ScenarioConfig
 from roco_env.schema import build, spec
