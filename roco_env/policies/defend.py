@@ -116,28 +116,31 @@ def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray
     return PairEvidence(int(matched.sum()), int(conflict.sum()), int(seen.sum()))
 
 
+def _positive(default: float, doc: str) -> Any:
+    return spec(default, low=0.0, low_open=True, doc=doc)
+
+
+def _open_share(default: float, doc: str) -> Any:
+    return spec(default, low=0.0, high=1.0, low_open=True, high_open=True, doc=doc)
+
+
 @dataclass(frozen=True)
 class DefendParams:
     """``defend``'s parameters (module docstring)."""
 
     base: str = spec("roco", doc="the aligner's policy spec the env runs (action.base)")
-    sigma_t: float = spec(0.4, low=0.0, low_open=True,
-                          doc="localisation noise assumed per agent and axis, m (std)")
-    sigma_r: float = spec(0.4, low=0.0, low_open=True,
-                          doc="localisation noise assumed on the heading, degrees (std)")
-    alpha: float = spec(0.01, low=0.0, high=1.0, low_open=True, high_open=True,
-                        doc="level of every test")
+    sigma_t: float = _positive(0.4, "localisation noise assumed per agent and axis, m (std)")
+    sigma_r: float = _positive(0.4, "localisation noise assumed on the heading, deg (std)")
+    alpha: float = _open_share(0.01, "level of every test")
     window: int = spec(10, low=1, doc="steps of history per collaborator and pair")
-    match_m: float = spec(1.0, low=0.0, low_open=True,
-                          doc="two sources' boxes closer than this are one object, m")
-    view_m: float = spec(40.0, low=0.0, low_open=True,
-                         doc="a source surely detects a car in its clear view this near, m")
-    occlusion_m: float = spec(1.5, low=0.0, low_open=True,
-                              doc="a box centre this near a sight line blocks it, m")
-    miss_rate: float = spec(0.12, low=0.0, high=1.0, low_open=True, high_open=True,
-                            doc="share of unconfirmed boxes an honest collaborator shows")
-    conflict_rate: float = spec(0.03, low=0.0, high=1.0, low_open=True, high_open=True,
-                                doc="share of conflicting boxes an honest collaborator shows")
+    match_m: float = _positive(1.0, "two sources' boxes closer than this are one object, m")
+    view_m: float = _positive(40.0, "a source surely detects a car in its clear view this "
+                              "near, m")
+    occlusion_m: float = _positive(1.5, "a box centre this near a sight line blocks it, m")
+    miss_rate: float = _open_share(0.12, "share of unconfirmed boxes an honest collaborator "
+                                   "shows")
+    conflict_rate: float = _open_share(0.03, "share of conflicting boxes an honest "
+                                       "collaborator shows")
     use_correction: bool = spec(True, doc="the correction (temporal) test")
     use_consistency: bool = spec(True, doc="the consistency test after alignment")
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
