@@ -122,6 +122,8 @@ _BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
         "pose_spoof": ("roco_env.attacks.pose:PoseSpoof", "roco_env.attacks.pose:PoseSpoofParams"),
         "ghost": ("roco_env.attacks.ghost:Ghost", "roco_env.attacks.ghost:GhostParams"),
         "erase": ("roco_env.attacks.erase:Erase", "roco_env.attacks.erase:EraseParams"),
+        "learned": ("roco_env.attacks.learned_attack:LearnedAttack",
+                    "roco_env.attacks.learned_attack:LearnedAttackParams"),
     },
 }
 

@@ -252,3 +252,77 @@ def test_the_aliasing_pattern_makes_roco_pick_the_wrong_hypothesis():
     wrong = se2_compose(delta, view.reported_relative[slot])  # where the ghosts fit
     assert np.hypot(*(corrected - wrong)[:2]) < 0.5  # the lie, not the truth, is matched
     assert np.hypot(*(corrected - view.true_relative[slot])[:2]) > 2.0
+
+
+def adversarial(**params):
+    from roco_env.attacks.adversarial_env import AdversarialEnv
+
+    return AdversarialEnv(roco_env.parallel_env(SCENE, max_cycles=3, cavs=2, rsus=1, **{
+        "attack.kind": "learned", "attack.params": {"ghosts": 2, **params}}))
+
+
+def test_a_learned_attacker_is_a_pettingzoo_agent_that_passes_the_api_and_seed_tests():
+    from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+    env = adversarial()
+    assert env.possible_agents == ["cav_0", "cav_1", "rsu_0", "attacker_0"]
+    assert env.action_space("attacker_0").shape == (3 + 3 * 2,)
+    parallel_api_test(adversarial(), num_cycles=5)
+    parallel_seed_test(adversarial)
+
+
+def test_the_learned_attackers_action_shapes_the_next_frame_within_its_budget():
+    env = adversarial(budget_m=2.0, budget_deg=1.0, consistent=False)
+    observations, infos = env.reset(seed=3)
+    vehicle = env.possible_agents.index(infos["attacker_0"]["privileged"]["vehicle"])
+    victim = next(k for k in range(3) if k != vehicle)
+    zeros = {a: np.zeros(env.action_space(a).shape) for a in env.possible_agents}
+    before = env.env._frame.views[victim]
+    (slot,) = attacked_slots(before, vehicle)  # no action yet: no lie
+    assert np.array_equal(before.collab_poses[slot], env.env._frame.reported_poses[vehicle])
+    lie = np.array([1.0, 1.0, -1.0, 0.5, 0.0, 1.0, 0.0, 0.0, -1.0])  # one ghost on, one off
+    env.step({**zeros, "attacker_0": lie})
+    after = env.env._frame.views[victim]
+    (slot,) = attacked_slots(after, vehicle)
+    shift = np.array([np.sqrt(2.0), np.sqrt(2.0), np.radians(-1.0)])  # clipped to the disc
+    expected = se2_compose(env.env._frame.reported_poses[vehicle], shift)
+    assert np.allclose(after.collab_poses[slot], expected)
+    assert after.collab_object_ids[slot][-1] == -1  # the one ghost switched on
+    assert np.allclose(after.collab_boxes[slot][-1, :2], [0.5 * 40.0, 0.0])
+
+
+def test_the_learned_attackers_reward_is_minus_its_victims_ap_and_its_detection():
+    env = adversarial(detection_penalty=2.0)
+    observations, infos = env.reset(seed=0)
+    zeros = {a: np.zeros(env.action_space(a).shape) for a in env.possible_agents}
+    _, rewards, _, _, infos = env.step(zeros)
+    vehicle = infos["attacker_0"]["privileged"]["vehicle"]
+    victims = [a for a in ("cav_0", "cav_1", "rsu_0") if a != vehicle]
+    assert rewards["attacker_0"] == pytest.approx(
+        -np.mean([max(infos[a]["ap70"], 0.0) for a in victims]))
+    rejected = {a: dict(info) for a, info in infos.items() if a in victims}
+    for info in rejected.values():
+        info["rejected"] = np.array([s == vehicle for s in info["evaluated_collaborators"]])
+    assert env.attack.reward(0, rejected) == pytest.approx(rewards["attacker_0"] - 2.0)
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"budget_m": -1.0}, r"attack.params.budget_m=-1.0 is out of range; allowed \[0.0, 100.0\]"),
+    ({"ghosts": -2}, r"attack.params.ghosts=-2 is out of range"),
+    ({"target": "cav_7"}, r"attack.params.target='cav_7' must be an honest agent"),
+])
+def test_a_bad_learned_attack_budget_or_target_is_refused(params, match):
+    with pytest.raises(ScenarioError, match=match):
+        adversarial(**params)
+
+
+def test_the_adversarial_env_needs_a_learned_attack_and_checks_the_attackers_action():
+    from roco_env.attacks.adversarial_env import AdversarialEnv
+
+    with pytest.raises(ValueError, match="attack.kind='learned'"):
+        AdversarialEnv(roco_env.parallel_env(SCENE, max_cycles=2))
+    env = adversarial()
+    env.reset(seed=0)
+    zeros = {a: np.zeros(env.action_space(a).shape) for a in env.possible_agents}
+    with pytest.raises(ValueError, match="action of attacker_0 must be 9 finite numbers"):
+        env.step({**zeros, "attacker_0": np.full(9, np.nan)})

@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from roco_env.attacks.scoring import ATTACK_METRICS, EpisodeLog
 from roco_env.sweeps import attack_protocol
 from roco_env.sweeps.attack import (
-    ATTACK_METRICS,
-    EpisodeLog,
     attack_metrics,
     clean_log,
     clean_twin,

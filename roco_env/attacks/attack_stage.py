@@ -61,6 +61,8 @@ class Attack:
         self.max_boxes = int(config.max_boxes)
         self._fixed = attacker_indices(config.attack, self.agent_ids)
         self._count = int(config.attack.count)
+        # how many agents attack in every episode
+        self.n_attackers = self._count if self._fixed is None else len(self._fixed)
         self.attackers: tuple[int, ...] = ()
         self.rng: np.random.Generator | None = None
         self._first_time: float | None = None
@@ -117,6 +119,7 @@ class NoAttack(Attack):
     def __init__(self, config: ScenarioConfig, agent_ids: Sequence[str]) -> None:
         self.agent_ids = tuple(agent_ids)
         self.max_boxes = int(config.max_boxes)
+        self.n_attackers = 0
         self.attackers = ()
 
     def reset(self, rng: np.random.Generator) -> None:

@@ -38,7 +38,7 @@ from roco_env.scenario import ScenarioConfig
 from roco_env.schema import build, spec
 from roco_env.sensing.messages import Message
 
-__all__ = ["GHOST_SIZE", "Ghost", "GhostParams"]
+__all__ = ["GHOST_SIZE", "Ghost", "GhostParams", "car_boxes", "with_ghosts"]
 
 GHOST_SIZE = (4.5, 1.9, 1.6)  # length, width, height of a random or lane ghost, m
 _FALLBACK_UNCERTAINTY = (0.1, 0.1, 0.03)  # sigma_x m, sigma_y m, sigma_yaw rad without real boxes
@@ -101,25 +101,34 @@ class Ghost(Attack):
             return transform_boxes(mine.boxes[chosen],
                                    se2_compose(se2_inverse(seen_from_victim), se2_inverse(delta)))
         if placement == "random":
-            return _car_boxes(self._random[attacker])
-        return _car_boxes(_ahead(message.boxes, message.scores, self.params.n_ghost,
+            return car_boxes(self._random[attacker])
+        return car_boxes(_ahead(message.boxes, message.scores, self.params.n_ghost,
                                  self.params.gap_m))
 
     def forge(self, step: StepContext, victim: int, attacker: int, message: Message,
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
-        ghosts = self.ghosts(step, victim, attacker, message)
-        count = ghosts.shape[0]
         real = np.ones(ids.shape[0], dtype=bool)
         if self.params.placement == "aliasing":  # the true pose's support withheld
             real = ~(np.isin(ids, step.detections[victim].object_ids) & (ids >= 0))
-        typical = np.median(message.uncertainty, axis=0) if message.scores.shape[0] \
-            else np.array(_FALLBACK_UNCERTAINTY)
-        return rewritten(
-            message, np.concatenate([ids, np.full(count, -1, dtype=np.int64)]), step.max_boxes,
-            boxes=np.concatenate([message.boxes, ghosts]),
-            uncertainty=np.concatenate([message.uncertainty, np.tile(typical, (count, 1))]),
-            scores=np.concatenate([message.scores, np.full(count, self.params.score)]),
-            keep=np.concatenate([real, np.ones(count, dtype=bool)]))
+        return with_ghosts(message, ids, self.ghosts(step, victim, attacker, message),
+                           self.params.score, step.max_boxes, real)
+
+
+def with_ghosts(message: Message, ids: ObjectIds, ghosts: np.ndarray, score: float,
+                max_boxes: int, real: np.ndarray | None = None) -> tuple[Message, ObjectIds]:
+    """``message`` with its ``real`` boxes (bool; default all) and the ``ghosts`` (G, 7)
+    appended (score ``score``, the real boxes' median uncertainty, object id -1), then its
+    ``max_boxes`` highest-scoring boxes."""
+    count = ghosts.shape[0]
+    real = np.ones(ids.shape[0], dtype=bool) if real is None else real
+    typical = np.median(message.uncertainty, axis=0) if message.scores.shape[0] \
+        else np.array(_FALLBACK_UNCERTAINTY)
+    return rewritten(
+        message, np.concatenate([ids, np.full(count, -1, dtype=np.int64)]), max_boxes,
+        boxes=np.concatenate([message.boxes, ghosts]),
+        uncertainty=np.concatenate([message.uncertainty, np.tile(typical, (count, 1))]),
+        scores=np.concatenate([message.scores, np.full(count, score)]),
+        keep=np.concatenate([real, np.ones(count, dtype=bool)]))
 
 
 def _ahead(boxes: np.ndarray, scores: np.ndarray, count: int, gap: float) -> np.ndarray:
@@ -136,7 +145,7 @@ def _ahead(boxes: np.ndarray, scores: np.ndarray, count: int, gap: float) -> np.
                      base[:, 1] + reach * np.sin(base[:, 6]), base[:, 6]], axis=1)
 
 
-def _car_boxes(poses: np.ndarray) -> np.ndarray:
+def car_boxes(poses: np.ndarray) -> np.ndarray:
     """Car-sized boxes (G, 7) at poses (G, 3) (x m, y m, yaw rad), standing on the ground."""
     length, width, height = GHOST_SIZE
     count = poses.shape[0]

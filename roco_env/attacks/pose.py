@@ -30,7 +30,7 @@ from roco_env.scenario import ScenarioConfig
 from roco_env.schema import build, spec
 from roco_env.sensing.messages import Message
 
-__all__ = ["PoseSpoof", "PoseSpoofParams", "offset_pose"]
+__all__ = ["PoseSpoof", "PoseSpoofParams", "offset_pose", "spoofed"]
 
 
 @dataclass
@@ -74,11 +74,18 @@ class PoseSpoof(Attack):
 
     def forge(self, step: StepContext, victim: int, attacker: int, message: Message,
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
-        offset = self.offset(step.elapsed)
-        boxes = message.boxes
-        if self.params.consistent:
-            seen = np.isin(ids, step.detections[victim].object_ids) & (ids >= 0)
-            boxes = boxes.copy()
-            boxes[seen] = transform_boxes(boxes[seen], se2_inverse(offset))
-        return rewritten(message, ids, step.max_boxes,
-                         pose=se2_compose(message.reported_pose, offset), boxes=boxes)
+        return spoofed(step, victim, message, ids, self.offset(step.elapsed),
+                       self.params.consistent)
+
+
+def spoofed(step: StepContext, victim: int, message: Message, ids: ObjectIds,
+            offset: np.ndarray, consistent: bool) -> tuple[Message, ObjectIds]:
+    """``message`` reporting ``T_reported * offset`` (offset (3,) in the attacker's frame);
+    with ``consistent`` the boxes of the objects ``victim`` also detects forged to agree."""
+    boxes = message.boxes
+    if consistent:
+        seen = np.isin(ids, step.detections[victim].object_ids) & (ids >= 0)
+        boxes = boxes.copy()
+        boxes[seen] = transform_boxes(boxes[seen], se2_inverse(offset))
+    return rewritten(message, ids, step.max_boxes,
+                     pose=se2_compose(message.reported_pose, offset), boxes=boxes)
