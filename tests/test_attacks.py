@@ -56,6 +56,21 @@ def test_the_attack_draws_from_its_own_stream_leaving_the_episode_as_it_was():
         same_view_except(clean, attacked, attacker)
 
 
+def test_without_an_attack_an_episode_is_the_one_played_before_the_attack_stage_existed():
+    """Numbers recorded with the code before the attack stage (and its child stream)."""
+    env = roco_env.parallel_env(SCENE, max_cycles=3, **NOISE)
+    observations, _ = env.reset(seed=7)
+    assert [int(o["box_mask"].sum()) for o in observations.values()] == [23, 29, 24, 22, 42]
+    assert [int(o["collab_box_mask"].sum()) for o in observations.values()] == \
+        [117, 111, 116, 118, 98]
+    rewards = [list(env.step({a: np.zeros((5, 3)) for a in env.agents})[1].values())
+               for _ in range(3)]
+    assert rewards[0] == pytest.approx([0.088573360379, 0.125668449198, 0.153151260504,
+                                        0.257347180267, 0.331543728603], abs=1e-9)
+    assert rewards[2] == pytest.approx([0.296867820827, 0.206102275621, 0.23011628894,
+                                        0.335824389731, 0.282700016033], abs=1e-9)
+
+
 def test_attackers_are_drawn_per_episode_from_the_seed_or_named():
     drawn = set()
     for seed in range(12):

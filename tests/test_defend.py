@@ -86,6 +86,20 @@ def test_the_consensus_clears_the_honest_collaborator_a_liar_disagrees_with():
     assert alone(obs, info(4)).tolist() == [1, 1, 1, 0]
 
 
+def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
+    """A collaborator misaligned on the first step only (the aligner corrected it since):
+    its window still fails the test, this step's evidence does not, so it is kept; with
+    ``recent=1`` the window decides alone and it stays rejected."""
+    scene = cars(*SCENE)
+    early = observation(scene, [(cars(*[(x + 2.5, y) for x, y in SCENE]),
+                                 np.array([5.0, 4.0, 0.0]))])
+    later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
+        defend = Defend(use_correction=False, recent=recent)
+        assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
+        assert defend(later, info(1)).tolist() == verdict
+
+
 def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():
     scene = cars(*SCENE)
     obs = observation(scene, [(scene, np.array([5.0, 4.0, 0.0])), (scene, np.array([6.0, 4, 0]))])

@@ -25,6 +25,9 @@ the gate mode. Three tests, each a statistical test at level ``alpha``:
   collaborator's counts against the ego and every other collaborator, summed over the
   last ``window`` steps, are tested against the shares an honest one shows
   (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the two).
+  It fails when the window's counts are significant at ``alpha`` and this step's alone
+  have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
+  resolved, an honest collaborator misaligned on one step, no longer counts.
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -141,6 +144,9 @@ class DefendParams:
                                    "shows")
     conflict_rate: float = _open_share(0.03, "share of conflicting boxes an honest "
                                        "collaborator shows")
+    recent: float = spec(0.5, low=0.0, high=1.0, doc="a collaborator failing the test over "
+                         "the window is kept when this step's evidence alone has a p-value "
+                         "above this (1: the window decides alone)")
     use_correction: bool = spec(True, doc="the correction (temporal) test")
     use_consistency: bool = spec(True, doc="the consistency test after alignment")
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
@@ -172,6 +178,7 @@ class Defend:
         self._pairs: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[frozenset, PairEvidence] = {}
+        self.last_now: dict[frozenset, PairEvidence] = {}
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
@@ -214,7 +221,7 @@ class Defend:
         sources = _sources(observation, filled)
         occluders = np.concatenate([boxes[:, :2] for boxes, _ in sources.values()])
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
-        self.last_pairs = {}
+        self.last_pairs, self.last_now = {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, self.params.match_m,
@@ -225,27 +232,39 @@ class Defend:
                                              deque(maxlen=self.params.window))
             history.append(evidence)
             self.last_pairs[frozenset((a, b))] = sum(history, NO_EVIDENCE)
+            self.last_now[frozenset((a, b))] = evidence
         return self.kept([int(s) for s in filled])
 
     def kept(self, slots: list[int]) -> set[int]:
         """The slots the consistency test (and the consensus, when on) keeps, judged on
-        :attr:`last_pairs` (each pair's evidence over the window)."""
+        :attr:`last_pairs` (each pair's evidence over the window) and :attr:`last_now`
+        (this step's)."""
         if not self.use["consensus"]:
-            return {slot for slot in slots if self._p_value(slot, slots) >= self.params.alpha}
+            return {slot for slot in slots if self._consistent(slot, slots)}
         for size in range(len(slots), -1, -1):
             fits = [chosen for chosen in itertools.combinations(slots, size)
-                    if all(self._p_value(slot, chosen) >= self.params.alpha for slot in chosen)]
+                    if all(self._consistent(slot, chosen) for slot in chosen)]
             if fits:  # ties: the set whose members agree best (sum of log p-values)
                 return set(max(fits, key=lambda chosen: sum(
-                    np.log(max(self._p_value(slot, chosen), 1e-300)) for slot in chosen)))
+                    np.log(max(self._p_value(slot, chosen, self.last_pairs), 1e-300))
+                    for slot in chosen)))
         return set()
 
-    def _p_value(self, slot: int, group: tuple[int, ...] | list[int]) -> float:
+    def _consistent(self, slot: int, group: tuple[int, ...] | list[int]) -> bool:
+        """Whether ``slot`` passes the test against ``group``: its disagreements over the
+        window are not significant at alpha, or this step's alone have a p-value above
+        ``recent`` (a past disagreement since resolved, an early misalignment the aligner
+        has corrected, no longer counts)."""
+        return self._p_value(slot, group, self.last_pairs) >= self.params.alpha \
+            or self._p_value(slot, group, self.last_now) > self.params.recent
+
+    def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
+                 pairs: dict[frozenset, PairEvidence]) -> float:
         """How likely an honest collaborator shows the conflicts or unconfirmed boxes that
-        ``slot`` shows against the ego and the other collaborators of ``group`` over the
-        window: twice the smaller p-value of two one-sided binomial tests (Bonferroni; 1
-        without boxes)."""
-        evidence = sum((self.last_pairs[frozenset((slot, other))]
+        ``slot`` shows against the ego and the other collaborators of ``group`` in
+        ``pairs``: twice the smaller p-value of two one-sided binomial tests (Bonferroni;
+        1 without boxes)."""
+        evidence = sum((pairs[frozenset((slot, other))]
                         for other in (EGO, *group) if other != slot), NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
         if total == 0:
