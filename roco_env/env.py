@@ -23,6 +23,7 @@ from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_mode
+from roco_env.attacks import attack_truth
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
@@ -146,7 +147,9 @@ class CollabPerceptionEnv(ParallelEnv):
     scored frame) and, describing the observation returned with it: ``agent`` (the
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
-    the observed boxes, -1 = false positive or empty slot; read by ``oracle``), and
+    the observed boxes, -1 = false positive, injected or empty slot; read by ``oracle``;
+    ``attacker``, whether the agent attacks, and ``collab_attackers`` (N,) bool, which
+    collaborators do: the attack stage, scenario section ``attack``), and
     ``rejected`` (N,) bool by slot of the scored frame. With the network stage on, also
     ``time`` (s since reset), ``bytes_sent`` (the bytes of the messages the agent sent,
     one per link, lost ones included), ``bytes_received`` (of the messages that reached
@@ -456,8 +459,10 @@ class CollabPerceptionEnv(ParallelEnv):
         if view.network is not None:
             info.update(view.network)
         if privileged:
-            info["privileged"] = privileged_truth(view, self.config.max_boxes,
-                                                  self.config.max_collaborators)
+            info["privileged"] = {
+                **privileged_truth(view, self.config.max_boxes, self.config.max_collaborators),
+                **attack_truth(self.pipeline.attack.attackers, view.agent, view.collaborators,
+                               self.config.max_collaborators)}
         return info
 
     def _lean(self, info: dict) -> dict:

@@ -5,12 +5,14 @@ it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Percepti
 the world, every agent's reported pose and detections, and each agent's
 :class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
 transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
-the same top-K of its own. With ``noise.perturb_ego=False`` an ego's own pose
+the same top-K of its own. The attack stage (:mod:`roco_env.attacks`, scenario
+section ``attack``) rewrites what attackers send honest egos. With ``noise.perturb_ego=False`` an ego's own pose
 in its view is its true pose (its collaborators' stay noisy).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import defaultdict
 from collections.abc import Sequence
@@ -21,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from roco_env import sensing
+from roco_env.attacks import make_attack
 from roco_env.comm import (
     Delivery,
     Network,
@@ -35,6 +38,7 @@ from roco_env.observation import EgoView, top_k
 from roco_env.scenario import ScenarioConfig
 from roco_env.sensing import (
     AgentDetections,
+    Message,
     Visibility,
     compute_visibility,
     make_detector,
@@ -116,6 +120,7 @@ class Pipeline:
             if config.features.enabled else None
         )
         self.network = Network(config, self.agent_ids) if network_active(config.comm) else None
+        self.attack = make_attack(config, self.agent_ids)
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
         self._step = 0
 
@@ -128,12 +133,13 @@ class Pipeline:
 
     def reset(self, rng: np.random.Generator) -> PerceptionFrame:
         """Start an episode: independent child streams for traffic, noise, sensing and the
-        network (the fourth: spawning it leaves the first three as they were)."""
+        network and the attack (spawned after the others: theirs do not change)."""
         traffic_rng, noise_rng, sensing_rng, comm_rng = rng.spawn(4)
         self._rngs = (noise_rng, sensing_rng)
         self._step = 0
         if self.network is not None:
             self.network.reset(comm_rng)
+        self.attack.reset(*rng.spawn(1))
         with self.clock.measure("traffic"):
             state = self.traffic.reset(traffic_rng)
         if state.agent_ids != self.agent_ids:
@@ -186,6 +192,8 @@ class Pipeline:
                                                      features, encoder_maps)
                 if self.network.sends_maps:
                     encoder_maps, map_rows = received_maps(encoder_maps, inbox)
+            own = reported if self.noise.perturb_ego else state.agent_poses
+            inbox = self._tampered(state, detections, own, inbox)
             views = self._views(state, reported, detections, features, inbox, stats, map_rows)
         return PerceptionFrame(state, reported, visibility, detections, features, views,
                                own_footprints(state), encoder_maps)
@@ -248,6 +256,25 @@ class Pipeline:
                 **timing,
             ))
         return tuple(views)
+
+
+    def _tampered(self, state: WorldState, detections: tuple[AgentDetections, ...],
+                  own: np.ndarray, inbox: list[list[Delivery]]) -> list[list[Delivery]]:
+        """The inbox with every attacker's scan to an honest ego rewritten by the attack
+        stage (the forged boxes' object ids with it); the inbox itself when nobody attacks.
+        The attack forges with what it knows now, also a scan the network delivers late."""
+        if not self.attack.attackers:
+            return inbox
+        messages = [[Message(self.agent_ids[d.scan.sender], d.scan.reported_pose, d.scan.boxes,
+                             d.scan.uncertainty, d.scan.scores, d.scan.features)
+                     for d in received] for received in inbox]
+        forged, ids = self.attack.tamper(state, detections, own, messages)
+        return [[d if m is original else Delivery(dataclasses.replace(
+                    d.scan, reported_pose=m.reported_pose, boxes=m.boxes,
+                    uncertainty=m.uncertainty, scores=m.scores, object_ids=object_ids),
+                    d.age, d.new)
+                 for d, original, m, object_ids in zip(received, sent, out, row_ids, strict=True)]
+                for received, sent, out, row_ids in zip(inbox, messages, forged, ids, strict=True)]
 
 
 def _with_axial_yaw(boxes: np.ndarray, frame_yaw: float) -> np.ndarray:

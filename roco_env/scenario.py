@@ -240,6 +240,20 @@ class CommConfig:
 
 
 @dataclass
+class AttackConfig:
+    """Collaborators that lie in what they send (roco_env.attacks; docs/attacks.md)."""
+
+    kind: str = _spec("none", choices=partial(available_stages, "attack"),
+                      doc="the attack stage (roco_env.attacks, roco_env.stages): none | "
+                      "pose_spoof | ghost | erase | learned | a registered one")
+    agents: list = _spec([], doc="the attackers' agent ids; empty = `count` agents drawn "
+                         "per episode from the seed")
+    count: int = _spec(1, low=1, high=32, doc="attackers drawn per episode when `agents` is "
+                       "empty")
+    params: dict = _spec({}, doc="the attack's parameters (its dataclass), checked on load")
+
+
+@dataclass
 class ScenarioConfig:
     name: str = _spec("custom")
     description: str = _spec("")
@@ -253,6 +267,7 @@ class ScenarioConfig:
     action: ActionConfig = field(default_factory=ActionConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     comm: CommConfig = field(default_factory=CommConfig)
+    attack: AttackConfig = field(default_factory=AttackConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
     max_objects: int = _spec(256, low=1, high=4096,

@@ -10,6 +10,7 @@ A scenario names one implementation per stage kind and gives it parameters (the
     evaluation: {reward: ap70, reward_params: {}}
     comm:      {delay: fixed, delay_params: {delay_ms: 100},
                 loss: bernoulli, loss_params: {loss_rate: 0.1}}
+    attack:    {kind: none, params: {}}
 
 The names a scenario accepts are the registry's; the parameters are checked by the
 implementation's own parameter dataclass (declared with :func:`roco_env.schema.spec`,
@@ -33,6 +34,8 @@ delay      ``(config: CommConfig)``                            a ``DelayModel``
                                                                (roco_env.comm.delay)
 loss       ``(config: CommConfig)``                            a ``LossModel``
                                                                (roco_env.comm.loss)
+attack     ``(config: ScenarioConfig, agent_ids)``             an ``Attack``
+                                                               (roco_env.attacks)
 =========  ==================================================  ==========================
 
 Three ways make a name of your own selectable from a scenario YAML:
@@ -80,6 +83,7 @@ SCENARIO_FIELDS: dict[str, tuple[str, str, str]] = {
     "reward": ("evaluation", "reward", "reward_params"),
     "delay": ("comm", "delay", "delay_params"),
     "loss": ("comm", "loss", "loss_params"),
+    "attack": ("attack", "kind", "params"),
 }
 KINDS: tuple[str, ...] = tuple(SCENARIO_FIELDS)
 
@@ -135,6 +139,14 @@ _BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
         "bernoulli": (f"{_LOSS}:BernoulliLoss.from_config", f"{_LOSS}:BernoulliLossParams"),
         "gilbert_elliott": (f"{_LOSS}:GilbertElliottLoss.from_config",
                             f"{_LOSS}:GilbertElliottParams"),
+    },
+    "attack": {
+        "none": ("roco_env.attacks.attack_stage:NoAttack", None),
+        "pose_spoof": ("roco_env.attacks.pose:PoseSpoof", "roco_env.attacks.pose:PoseSpoofParams"),
+        "ghost": ("roco_env.attacks.ghost:Ghost", "roco_env.attacks.ghost:GhostParams"),
+        "erase": ("roco_env.attacks.erase:Erase", "roco_env.attacks.erase:EraseParams"),
+        "learned": ("roco_env.attacks.learned_attack:LearnedAttack",
+                    "roco_env.attacks.learned_attack:LearnedAttackParams"),
     },
 }
 

@@ -27,7 +27,7 @@ LAYERS = (
     ("fusion",),
     ("metrics",),
     ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
-     "global_state", "render", "wrappers", "rollout", "registration", "__init__"),
+     "global_state", "render", "wrappers", "rollout", "registration", "attacks", "__init__"),
     ("training",),
     ("sweeps",),
     ("stress",),

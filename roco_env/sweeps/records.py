@@ -98,6 +98,12 @@ class RecordMetrics:
     matched_frames: int | None = _count()
     pairs: int | None = _count()
     steps: int | None = _count()
+    # cells under attack (roco_env.sweeps.attack): over the honest egos
+    ap70_clean: float | None = _share("dataset AP@0.7 of the same egos without the attack")
+    attack_success: float | None = _share("ego-steps whose AP@0.7 fell by > 5 points")
+    detection_rate: float | None = _share("attackers' slots rejected")
+    honest_rejected: float | None = _share("honest collaborators' slots rejected")
+    clean_rejected: float | None = _share("the same without the attack")
 
 
 @dataclass
