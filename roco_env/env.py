@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import copy
 import os
-import sys
-import types
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -43,6 +41,7 @@ from roco_env.observation import (
 )
 from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
+from roco_env.registration import ENV_ID
 from roco_env.scenario import (
     ScenarioConfig,
     ScenarioError,
@@ -51,14 +50,18 @@ from roco_env.scenario import (
     scenario_from_dict,
 )
 
+# The defaults of the environment's arguments (every entry point takes them from here).
+DEFAULT_SCENARIO = "urban_intersection"
+DEFAULT_MAX_CYCLES = 100
 RENDER_MODES = ("rgb_array", "human")
 # How much each step's info carries (see the class docstring's Info section).
 INFO_LEVELS = ("full", "metrics", "none")
 # The per-agent entries info_level="metrics" keeps.
 METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
                     "rejected", "evaluated", "evaluated_collaborators", "agent",
-                    "collaborators", "n_collaborators", "time", "bytes_sent", "bytes_received",
-                    "messages_lost", "compensated")
+                    "collaborators", "n_collaborators")
+# The network stage's entries (with it on), which info_level="metrics" keeps too.
+NETWORK_INFO_KEYS = ("time", "bytes_sent", "bytes_received", "messages_lost", "compensated")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -153,7 +156,7 @@ class CollabPerceptionEnv(ParallelEnv):
     ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
-    errors and ids), ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
+    errors and ids) and :data:`NETWORK_INFO_KEYS`, ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
     adds the privileged truth at any level (the ``oracle`` policy reads it).
 
     ## Fusion
@@ -208,14 +211,14 @@ class CollabPerceptionEnv(ParallelEnv):
     """
 
     metadata = {
-        "name": "roco_collab_perception_v0",
+        "name": ENV_ID,  # versioned, as registered
         "render_modes": list(RENDER_MODES),
         "is_parallelizable": True,
         "render_fps": 10,
     }
 
-    def __init__(self, scenario: ScenarioLike = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None,
+    def __init__(self, scenario: ScenarioLike = DEFAULT_SCENARIO,
+                 max_cycles: int = DEFAULT_MAX_CYCLES, render_mode: str | None = None,
                  frames: Sequence | None = None, render_ego: str | None = None,
                  info_level: str = "full", privileged: bool | None = None,
                  **overrides: Any) -> None:
@@ -462,7 +465,7 @@ class CollabPerceptionEnv(ParallelEnv):
         """``info`` cut to the entries ``info_level`` keeps (the privileged truth as asked)."""
         if self.info_level == "full":
             return info
-        keep = METRIC_INFO_KEYS if self.info_level == "metrics" else ()
+        keep = METRIC_INFO_KEYS + NETWORK_INFO_KEYS if self.info_level == "metrics" else ()
         return {k: v for k, v in info.items() if k in keep or k == "privileged"}
 
     def _score(self, frame: PerceptionFrame, decisions: dict[str, Decision],
@@ -547,25 +550,22 @@ def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:
     return [a for a in agents if a in chosen]
 
 
-def parallel_env(scenario: ScenarioLike = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None,
-                 **overrides: Any) -> CollabPerceptionEnv:
-    """The PettingZoo ParallelEnv (see :class:`CollabPerceptionEnv`)."""
-    return CollabPerceptionEnv(scenario, max_cycles=max_cycles, render_mode=render_mode,
-                               **overrides)
+# PettingZoo's parallel constructor (``roco_env.parallel_env``, the registry's entry point)
+# is the class itself: its arguments and their defaults are written once.
+parallel_env = CollabPerceptionEnv
 
 
-def aec_env(scenario: ScenarioLike = "urban_intersection",
-            max_cycles: int = 100, render_mode: str | None = None, **overrides: Any) -> AECEnv:
-    """The AEC version: ``parallel_to_aec`` (which adds PettingZoo's OrderEnforcingWrapper).
+def aec_env(*args: Any, **kwargs: Any) -> AECEnv:
+    """The AEC version (``roco_env.env``), built from the arguments of
+    :class:`CollabPerceptionEnv`: ``parallel_to_aec`` (which adds PettingZoo's
+    OrderEnforcingWrapper).
 
     No action-clipping wrapper: finite corrections outside the action bounds are
     applied as given. Each agent's action is validated at that agent's own step
     (NaN/inf or a wrong shape raise ValueError there and the action is not
     stored, so the agent may act again and later steps are unaffected).
     """
-    return _CheckedActions(
-        parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides)))
+    return _CheckedActions(parallel_to_aec(CollabPerceptionEnv(*args, **kwargs)))
 
 
 class _CheckedActions(BaseWrapper):
@@ -581,18 +581,3 @@ class _CheckedActions(BaseWrapper):
             action = self.unwrapped.action_mode.check(action, agent)
         super().step(action)
 
-
-class _CallableModule(types.ModuleType):
-    """Makes ``roco_env.env(...)`` build the AEC env although ``roco_env.env`` is this module.
-
-    The public API calls ``roco_env.env(...)`` (PettingZoo's convention) and the
-    package layout puts the environment in ``roco_env/env.py``; Python binds the
-    submodule to the package attribute ``env`` on import, so the module itself
-    must be the callable.
-    """
-
-    def __call__(self, *args: Any, **kwargs: Any) -> AECEnv:
-        return aec_env(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule

@@ -44,7 +44,7 @@ Three ways make a name of your own selectable from a scenario YAML:
       [project.entry-points."roco_env.detector"]
       mine = "my_pkg.module:make"
 
-  (the factory's ``params`` attribute, if it has one, declares its parameters);
+  (the factory's ``PARAMS`` attribute, if any, declares its parameters, as policies do);
 * nothing else: built-in names are fixed and a registration never replaces one.
 
 ``params``: a dataclass whose fields are declared with ``spec`` (checked key by key),
@@ -194,15 +194,15 @@ def _entry_points(kind: str) -> dict[str, StageEntry]:
 
 
 def _entry_point_stage(kind: str, point: importlib.metadata.EntryPoint) -> StageEntry:
-    """An entry point's stage; its parameters are the factory's ``params`` attribute."""
+    """An entry point's stage; its parameters are the factory's ``PARAMS`` attribute."""
     return _LazyParamsEntry(kind, point.name, point.value)
 
 
 class _LazyParamsEntry(StageEntry):
-    """An entry whose parameter class is the loaded factory's ``params`` attribute."""
+    """An entry whose parameter class is the loaded factory's ``PARAMS`` attribute."""
 
     def params_class(self) -> type | None:
-        return getattr(self.load_factory(), "params", None)
+        return getattr(self.load_factory(), "PARAMS", None)
 
 
 def _entries(kind: str) -> dict[str, StageEntry]:

@@ -9,7 +9,7 @@ from roco_env.metrics import matching_precision_recall, relative_pose_error
 from roco_env.policies import make_policy
 from roco_env.policies.base import apply_correction
 from roco_env.policies.coalign import circular_variance, coalign_align, greedy_clusters
-from roco_env.policies.constructed_scenes import (
+from roco_env.testing.constructed_scenes import (
     make_scene,
     pose_error,
     random_objects,

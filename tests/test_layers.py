@@ -27,11 +27,12 @@ LAYERS = (
     ("fusion",),
     ("metrics",),
     ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
-     "global_state", "render", "wrappers", "__init__"),
+     "global_state", "render", "wrappers", "rollout", "registration", "__init__"),
     ("training",),
     ("sweeps",),
     ("stress",),
     ("cli",),
+    ("testing",),  # scenes for the tests and benchmarks: nothing that runs the env uses it
     ("benchmarks",),
 )
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}

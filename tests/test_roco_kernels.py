@@ -11,15 +11,15 @@ import pytest
 from conftest import assert_equal_to_rounding
 
 from roco_env.policies import roco
-from roco_env.policies.constructed_scenes import (
+from roco_env.policies.landmarks import prepare_inputs, split_rows
+from roco_env.policies.pose_kernels import placed_centres
+from roco_env.policies.roco import RoCoParams
+from roco_env.testing.constructed_scenes import (
     benchmark_scene,
     make_scene,
     parking_rows,
     pose_error,
 )
-from roco_env.policies.landmarks import prepare_inputs, split_rows
-from roco_env.policies.pose_kernels import placed_centres
-from roco_env.policies.roco import RoCoParams
 
 
 def _scenes():

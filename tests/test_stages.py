@@ -147,7 +147,7 @@ def test_an_installed_package_entry_point_is_found(tmp_path, monkeypatch):
             return noise
 
 
-        make.params = Params
+        make.PARAMS = Params
         """))
     info = package / "my_noise_pkg-1.0.dist-info"
     info.mkdir()

@@ -1,9 +1,12 @@
 """Alignment policies and their registry (algorithms and equations: docs/alignment.md).
 
 ``make_policy(name, **params)`` builds a registered policy; ``available_policies()``
-lists the names. A user policy is any callable ``policy(obs, info=None) -> action``;
-three ways make it a name everywhere a policy name is accepted (``make_policy``,
-``roco-env compare --policies``, ``roco-env run --policy``):
+lists the names. A user policy is any callable ``policy(obs, info=None) -> action``
+(``make_policy`` returns it as a :class:`~roco_env.policies.base.Policy`, with the
+``reset``, ``keeps_state`` and ``last_result`` it lacks given by
+:func:`~roco_env.policies.base.as_policy`); three ways make it a name everywhere a policy
+name is accepted (``make_policy``, ``roco-env compare --policies``, ``roco-env run
+--policy``):
 
 * ``"my_pkg.module:make_policy"``: an import target, ``module:factory``;
 * ``register_policy("mine", "my_pkg.module:make_policy")`` in your own code;
@@ -29,7 +32,9 @@ from typing import Any
 
 from roco_env.policies.base import (
     AlignmentResult,
+    Policy,
     apply_correction,
+    as_policy,
     correction_action,
     reported_relative_poses,
 )
@@ -106,9 +111,10 @@ def registered_policies() -> dict[str, str]:
     return dict(_REGISTRY)
 
 
-def make_policy(name: str, **params: Any) -> Callable:
-    """Build the policy registered as ``name``, or imported from ``module:factory``."""
-    return _factory(name)(**params)
+def make_policy(name: str, **params: Any) -> Policy:
+    """Build the policy registered as ``name``, or imported from ``module:factory``; a
+    factory returning a plain callable gets the :class:`Policy` members it lacks."""
+    return as_policy(_factory(name)(**params), f"what {name}() returned")
 
 
 def declared_params(name: str) -> type | None:
@@ -153,6 +159,7 @@ def _factory(name: str) -> Callable:
 
 __all__ = [
     "AlignmentResult",
+    "Policy",
     "apply_correction",
     "ENTRY_POINT_GROUP",
     "available_policies",

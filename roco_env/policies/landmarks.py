@@ -276,7 +276,8 @@ def params_from_kwargs(cls: type, kwargs: dict, method: str):
     the messages.
 
     The one cache of checked parameters: aligners are called every frame with the same
-    keywords, and the checks read the class's annotations (about 0.7 ms). It keys on the
+    keywords, and the checks read the class's annotations (about a millisecond a build:
+    docs/performance.md). It keys on the
     class, ``method`` and each keyword's name, type and value: the type because equal values
     of other types (``1``, ``1.0``, ``True``) hash alike but check differently. The
     parameter classes are frozen, so one instance serves every call with those keywords;

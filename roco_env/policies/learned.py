@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from roco_env.policies.base import StatelessPolicy
 from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
@@ -81,7 +82,7 @@ def load_weights(path: str | Path) -> tuple[dict, dict]:
     return state, metadata
 
 
-class LearnedPolicy:
+class LearnedPolicy(StatelessPolicy):
     """A trained MLP acting in the env modes its weights file names (see module docstring).
 
     weights: the weights file (default: the shipped file of ``name``); name: the
@@ -89,8 +90,6 @@ class LearnedPolicy:
     None to take the file's. Raises ValueError naming the file and the field when the
     file was trained for another action mode.
     """
-
-    keeps_state = False
 
     def __init__(self, weights: str | None = None, *, name: str = "learned",
                  action_mode: str | None = None) -> None:

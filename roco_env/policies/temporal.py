@@ -31,7 +31,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import policy_input_files
+from roco_env.policies.base import AlignmentResult, Policy, as_policy, policy_input_files
 from roco_env.policies.landmarks import require_sigmas
 from roco_env.schema import build, spec
 
@@ -56,7 +56,8 @@ class SmoothingParams:
 class TemporalSmoothing:
     """``TemporalSmoothing(policy, **params)(obs, info=None) -> action (N, 3) float32``.
 
-    policy: a policy name for ``make_policy`` or a callable policy; params: the fields of
+    policy: a policy name for ``make_policy`` or a callable (a plain function becomes a
+    :class:`~roco_env.policies.base.Policy` through ``as_policy``); params: the fields of
     :class:`SmoothingParams`, and with a policy name the inner policy's parameters
     (policy_params, passed to make_policy).
     """
@@ -75,18 +76,17 @@ class TemporalSmoothing:
         elif params:
             raise ValueError(f"policy_params ({sorted(params)}: not parameters of the "
                              "smoothing) are only accepted with a policy name")
-        if not callable(policy):
-            raise ValueError(f"policy must be a policy name or a callable; got {policy!r}")
+        self.policy: Policy = as_policy(policy)
         self.q = np.asarray(self.params.process_std)
         self.r = np.asarray(self.params.measurement_std)
-        self.policy, self.max_age = policy, self.params.max_age
+        self.max_age = self.params.max_age
         self._filters: dict[Hashable, KalmanFilter] = {}
         self._age: dict[Hashable, int] = {}
 
     @property
-    def last_result(self):
+    def last_result(self) -> AlignmentResult | None:
         """The inner policy's last AlignmentResult (None if it keeps none)."""
-        return getattr(self.policy, "last_result", None)
+        return self.policy.last_result
 
     def input_files(self) -> tuple[Path, ...]:
         """The files the inner policy declares (:class:`roco_env.policies.base.ReadsFiles`),
@@ -97,8 +97,7 @@ class TemporalSmoothing:
         """Forget every filter (call between episodes) and reset the inner policy."""
         self._filters.clear()
         self._age.clear()
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
 
     def _new_filter(self, z: np.ndarray) -> KalmanFilter:
         kf = KalmanFilter(dim_x=3, dim_z=3)

@@ -22,9 +22,9 @@ from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS
 from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.spec import Scalar, format_scalar
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")

@@ -221,9 +221,8 @@ class LearnedDetector:
     views of one car differ by a median 0.26 m on ``v2xset_like``; the RoCo paper's
     Table 1 losses fit 0.3 m / 1.5 deg (docs/perception.md, "Box precision").
     The default, one thread, is the safe choice: more threads pay off only on an idle
-    CPU (2 threads: 1.4x the steps per second of learned + intermediate fusion on an idle
-    2-core machine) and lose several times over on one busy with other jobs (6x slower
-    than one thread; measured in ``docs/perception.md``). The network's outputs differ
+    CPU and lose several times over on one busy with other jobs (measured in
+    docs/perception.md, "Threads"). The network's outputs differ
     between thread counts at float32 rounding (the fused maps do not), so results repeat
     bit for bit on the same count. In a process forked from one that has run torch on
     more than one thread keep one: more hang in torch there (a sweep's local workers
