@@ -156,8 +156,9 @@ class CollabPerceptionEnv(ParallelEnv):
     ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
-    errors and ids) and :data:`NETWORK_INFO_KEYS`, ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
-    adds the privileged truth at any level (the ``oracle`` policy reads it).
+    errors and ids) and :data:`NETWORK_INFO_KEYS`, ``"none"`` nothing; ``privileged``
+    (default: only with ``"full"``) adds the privileged truth at any level (the
+    ``oracle`` policy reads it).
 
     ## Fusion
 
