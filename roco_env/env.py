@@ -60,8 +60,9 @@ INFO_LEVELS = ("full", "metrics", "none")
 # The per-agent entries info_level="metrics" keeps.
 METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
                     "rejected", "evaluated", "evaluated_collaborators", "agent",
-                    "collaborators", "n_collaborators", "time", "bytes_sent", "bytes_received",
-                    "messages_lost", "compensated")
+                    "collaborators", "n_collaborators")
+# The network stage's entries (with it on), which info_level="metrics" keeps too.
+NETWORK_INFO_KEYS = ("time", "bytes_sent", "bytes_received", "messages_lost", "compensated")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -158,8 +159,9 @@ class CollabPerceptionEnv(ParallelEnv):
     ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
-    errors and ids), ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
-    adds the privileged truth at any level (the ``oracle`` policy reads it).
+    errors and ids) and :data:`NETWORK_INFO_KEYS`, ``"none"`` nothing; ``privileged``
+    (default: only with ``"full"``) adds the privileged truth at any level (the
+    ``oracle`` policy reads it).
 
     ## Fusion
 
@@ -469,7 +471,7 @@ class CollabPerceptionEnv(ParallelEnv):
         """``info`` cut to the entries ``info_level`` keeps (the privileged truth as asked)."""
         if self.info_level == "full":
             return info
-        keep = METRIC_INFO_KEYS if self.info_level == "metrics" else ()
+        keep = METRIC_INFO_KEYS + NETWORK_INFO_KEYS if self.info_level == "metrics" else ()
         return {k: v for k, v in info.items() if k in keep or k == "privileged"}
 
     def _score(self, frame: PerceptionFrame, decisions: dict[str, Decision],

@@ -204,7 +204,7 @@ MESSAGE_HEADER_BYTES = 44
 # How a message carries a feature map (roco_env.comm.payload): every cell or only the
 # non-zero ones (with their indices), as 32- or 16-bit floats.
 FEATURE_CODECS: tuple[str, ...] = ("dense_f32", "dense_f16", "sparse_f32", "sparse_f16")
-# What the receiving ego does about a late message's moving boxes (roco_env.comm.network).
+# What the receiving ego does about a late message's moving boxes (roco_env.comm.delivery).
 COMPENSATIONS: tuple[str, ...] = ("none", "track")
 
 

@@ -13,6 +13,7 @@ import roco_env
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
 from roco_env.comm.delay import OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
+from roco_env.env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.pipeline import Pipeline
 from roco_env.scenario import MESSAGE_HEADER_BYTES, ScenarioError, load_scenario
 
@@ -266,7 +267,7 @@ def test_maps_left_out_by_the_budget_fuse_as_zeros():
         maps: object
         grid: object = None
 
-    from roco_env.comm.network import Delivery, Scan
+    from roco_env.comm.delivery import Delivery, Scan
 
     def delivery(sender, encoder_map):
         scan = Scan(sender, 0, 0.0, np.zeros(3), np.zeros(3), np.zeros((0, 7)), np.zeros((0, 3)),
@@ -352,3 +353,11 @@ def test_lost_messages_cost_what_only_the_collaborators_see():
         for agent in lost.agents or i_lost:
             assert i_lost[agent]["n_gt"] == i_alone[agent]["n_gt"] == i_late[agent]["n_gt"]
             assert i_lost[agent]["n_collaborators"] == 0
+
+
+def test_lean_infos_keep_the_traffic():
+    env = roco_env.parallel_env(SCENE, max_cycles=2, cavs=3, info_level="metrics",
+                                delay="fixed", delay_ms=100)
+    env.reset(seed=0)
+    _, _, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
+    assert set(infos["cav_0"]) == set(METRIC_INFO_KEYS) | set(NETWORK_INFO_KEYS)

@@ -1,10 +1,10 @@
 """The network between the collaborators' messages and the ego (scenario section ``comm``,
 docs/network.md): delays (:mod:`roco_env.comm.delay`), losses (:mod:`roco_env.comm.loss`),
 message sizes and the budget (:mod:`roco_env.comm.payload`), asynchronous sensors and the
-ego's buffers (:mod:`roco_env.comm.network`). Off by default: every message then arrives
+ego's buffers (:mod:`roco_env.comm.delivery`). Off by default: every message then arrives
 at once, whole, and the episode is the one without this stage."""
 
-from roco_env.comm.network import (
+from roco_env.comm.delivery import (
     Delivery,
     Network,
     NetworkStats,

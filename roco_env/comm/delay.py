@@ -94,14 +94,14 @@ class NoDelay:
 class FixedDelay:
     """``fixed``: ``delay_ms`` for every message."""
 
-    params = FixedDelayParams
+    PARAMS = FixedDelayParams
 
     def __init__(self, delay_ms: float) -> None:
         self.delay_s = delay_ms / 1000.0
 
     @classmethod
     def from_config(cls, config: CommConfig) -> FixedDelay:
-        return cls(_params(cls.params, config).delay_ms)
+        return cls(_params(cls.PARAMS, config).delay_ms)
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:
@@ -111,7 +111,7 @@ class FixedDelay:
 class UniformDelay(FixedDelay):
     """``uniform``: U(0, ``delay_ms``) per message."""
 
-    params = UniformDelayParams
+    PARAMS = UniformDelayParams
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from roco_env.comm.tracking import KeyedTracks, TrackingParams, moved_boxes
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import policy_input_files
+from roco_env.policies.base import AlignmentResult, Policy, policy_input_files
 from roco_env.schema import build, spec
 
 __all__ = ["Compensate", "CompensateParams"]
@@ -69,13 +69,13 @@ class Compensate:
         self.params = build(CompensateParams, own, "compensate")
         from roco_env.policies import make_policy
 
-        self.policy = make_policy(self.params.base, **params)
+        self.policy: Policy = make_policy(self.params.base, **params)
         self.tracks = KeyedTracks(self.params)
 
     @property
-    def last_result(self):
+    def last_result(self) -> AlignmentResult | None:
         """The base policy's last AlignmentResult (None if it keeps none)."""
-        return getattr(self.policy, "last_result", None)
+        return self.policy.last_result
 
     def input_files(self) -> tuple[Path, ...]:
         """The files the base policy declares, so a sweep's resume check covers them."""
@@ -84,8 +84,7 @@ class Compensate:
     def reset(self) -> None:
         """Forget every track (call between episodes) and reset the base policy."""
         self.tracks.reset()
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
 
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         if "collab_age" not in observation:
