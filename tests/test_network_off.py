@@ -1,7 +1,9 @@
 """With the network off (``comm.delay: none``, the default) episodes are bit-identical to
 those of the code before the network stage existed: digests of seeded episodes (every
 observation, reward and info, byte for byte) pinned in tests/data/network_off.json,
-recorded with that code. The comm stage's own random stream is spawned after the other
+recorded with that code (re-recorded once since: the privileged info gained the attack
+stage's truth, ``attacker`` and ``collab_attackers``; with those two entries left out the
+digests were those of the first record). The comm stage's own random stream is spawned after the other
 three, so turning it on changes no draw of traffic, noise or sensing either.
 
 Regenerate (only for a deliberate, documented change of results) with
