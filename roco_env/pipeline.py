@@ -268,7 +268,9 @@ class Pipeline:
         messages = [[Message(self.agent_ids[d.scan.sender], d.scan.reported_pose, d.scan.boxes,
                              d.scan.uncertainty, d.scan.scores, d.scan.features)
                      for d in received] for received in inbox]
-        forged, ids = self.attack.tamper(state, detections, own, messages)
+        forged, ids = self.attack.tamper(state, detections, own, messages,
+                                         [[d.scan.object_ids for d in received]
+                                          for received in inbox])
         return [[d if m is original else Delivery(dataclasses.replace(
                     d.scan, reported_pose=m.reported_pose, boxes=m.boxes,
                     uncertainty=m.uncertainty, scores=m.scores, object_ids=object_ids),

@@ -88,12 +88,16 @@ class Attack:
         raise NotImplementedError
 
     def tamper(self, state: WorldState, detections: Sequence[AgentDetections],
-               own: np.ndarray, messages: Sequence[Sequence[Message]]
+               own: np.ndarray, messages: Sequence[Sequence[Message]],
+               ids: Sequence[Sequence[ObjectIds]] | None = None
                ) -> tuple[list[list[Message]], list[list[ObjectIds]]]:
         """(messages, ids): per ego, the messages it receives (in order) and their boxes'
-        object ids, every attacker's message to an honest ego rewritten by :meth:`forge`."""
+        object ids, every attacker's message to an honest ego rewritten by :meth:`forge`.
+        ``ids``: the received boxes' object ids (a late message's are not the sender's
+        current ones); None: the senders' current detections'."""
         index = {agent: k for k, agent in enumerate(self.agent_ids)}
-        ids = [[detections[index[m.sender]].object_ids for m in sent] for sent in messages]
+        ids = [list(row) for row in ids] if ids is not None else \
+            [[detections[index[m.sender]].object_ids for m in sent] for sent in messages]
         out = [list(sent) for sent in messages]
         if not self.attackers:
             return out, ids

@@ -4,7 +4,9 @@ Withheld each step: every detection of an object in ``objects`` (true object ids
 the rest a share ``share``, drawn per detection each step from the attack's stream (one
 draw per attacker, the same for all its victims). With ``hidden_only: true`` an attacker
 withholds from a victim only the objects that victim does not detect itself, the ones it
-cannot make up for (the worst case: the attacker knows what its victims see).
+cannot make up for (the worst case: the attacker knows what its victims see). What is
+withheld is decided by object: a message the network delivers late loses the same
+objects (its false positives are never withheld).
 """
 
 from __future__ import annotations
@@ -46,16 +48,17 @@ class Erase(Attack):
         self._withheld: dict[int, np.ndarray] = {}
 
     def prepare(self, step: StepContext) -> None:
-        """Each attacker's withheld detections (bool, by row of its detections) this step."""
+        """Each attacker's withheld objects this step (their ids: a message the network
+        delivers late holds other rows than the attacker's current detections)."""
         self._withheld = {}
         for attacker in self.attackers:
             ids = step.detections[attacker].object_ids
             drawn = self.rng.random(ids.shape[0]) < self.params.share
-            self._withheld[attacker] = drawn | np.isin(ids, self._objects)
+            self._withheld[attacker] = np.union1d(ids[drawn & (ids >= 0)], self._objects)
 
     def forge(self, step: StepContext, victim: int, attacker: int, message: Message,
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
-        withheld = self._withheld[attacker]
+        withheld = np.isin(ids, self._withheld[attacker]) & (ids >= 0)
         if self.params.hidden_only:
             withheld = withheld & ~(np.isin(ids, step.detections[victim].object_ids) & (ids >= 0))
         return rewritten(message, ids, step.max_boxes, keep=~withheld)
