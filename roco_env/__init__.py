@@ -5,6 +5,11 @@
     aec = roco_env.env("urban_intersection")          # AEC version
     roco_env.list_scenarios()
 
+As in PettingZoo's environment modules, ``roco_env.parallel_env(...)`` builds the
+ParallelEnv (:class:`CollabPerceptionEnv`, whose docstring is the contract) and
+``roco_env.env(...)`` the AEC env; both take the same arguments. The environment's
+code is the module ``roco_env/env.py``, imported as ``from roco_env.env import ...``.
+
 Scenarios: :func:`load_scenario` (name or YAML path), :func:`scenario_from_dict` /
 :func:`scenario_to_dict` (plain mappings with the YAML keys, validated) and
 :func:`save_scenario` (a config to a YAML file that loads back equal).
@@ -17,14 +22,13 @@ and the single-agent view ``roco/CollabPerceptionEgo-v0`` in Gymnasium's.
 
 from __future__ import annotations
 
-import importlib
-import os
-from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+import importlib.util
+import sys
+import types
+from typing import Any
 
-import gymnasium
-import pettingzoo
-
+from roco_env import registration
+from roco_env.registration import EGO_ENV_ID, ENV_ID
 from roco_env.scenario import (
     ScenarioConfig,
     list_scenarios,
@@ -33,49 +37,42 @@ from roco_env.scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
-
-if TYPE_CHECKING:
-    from roco_env.env import CollabPerceptionEnv
+from roco_env.stages import available_stages, register_stage
 
 __version__ = '0.1.0'
 
-ENV_ID = "roco/CollabPerception-v0"
-EGO_ENV_ID = "roco/CollabPerceptionEgo-v0"
-DEFAULT_MAX_CYCLES = 100
+__all__ = ["EGO_ENV_ID", "ENV_ID", "CollabPerceptionEnv", "ScenarioConfig", "__version__",
+           "available_stages", "env", "list_scenarios", "load_scenario", "parallel_env",
+           "register_stage", "save_scenario", "scenario_from_dict", "scenario_to_dict"]
 
-__all__ = ["EGO_ENV_ID", "ENV_ID", "ScenarioConfig", "__version__", "env", "list_scenarios",
-           "load_scenario", "parallel_env", "save_scenario", "scenario_from_dict",
-           "scenario_to_dict"]
+# Package attribute -> its one definition in roco_env/env.py.
+_FROM_ENV_MODULE = {"env": "aec_env", "parallel_env": "parallel_env",
+                    "CollabPerceptionEnv": "CollabPerceptionEnv"}
 
 
-def parallel_env(scenario: str | os.PathLike | Mapping[str, Any] | ScenarioConfig
-                 = "urban_intersection", max_cycles: int = DEFAULT_MAX_CYCLES,
-                 render_mode: str | None = None, **overrides: Any) -> CollabPerceptionEnv:
-    """The PettingZoo ParallelEnv (:class:`roco_env.env.CollabPerceptionEnv`).
+def _lazy_module(name: str) -> types.ModuleType:
+    """The module ``name`` entered in ``sys.modules``, its code run on first attribute
+    access (importlib's LazyLoader)."""
+    spec = importlib.util.find_spec(name)
+    loader = importlib.util.LazyLoader(spec.loader)
+    spec.loader = loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    loader.exec_module(module)
+    return module
 
-    scenario: a name from :func:`list_scenarios`, a path to a YAML file, a plain
-    mapping with the YAML keys (checked by :func:`roco_env.scenario.scenario_from_dict`)
-    or a :class:`~roco_env.scenario.ScenarioConfig`; overrides: validated scenario
-    fields (``sigma_t=0.4``, ``**{"traffic.min_gap": 1.0}``). Building the env
-    imports the simulation stack; ``import roco_env`` alone stays light.
-    """
-    from roco_env.env import parallel_env as make
 
-    return make(scenario, max_cycles=max_cycles, render_mode=render_mode, **overrides)
+# roco_env/env.py is entered as imported but runs only when first used, so `import
+# roco_env` stays light; and because the import system never loads it itself, it never
+# binds the module to this package's attribute ``env``, which stays PettingZoo's AEC
+# constructor (``roco_env.env(...)``; __getattr__ below).
+_ENV_MODULE = _lazy_module("roco_env.env")
 
 
 def __getattr__(name: str) -> Any:
-    # ``roco_env.env`` is the module roco_env/env.py, made callable there: calling it
-    # builds the AEC env. Loaded on first access to keep ``import roco_env`` light.
-    if name == "env":
-        return importlib.import_module("roco_env.env")
+    if name in _FROM_ENV_MODULE:
+        return getattr(_ENV_MODULE, _FROM_ENV_MODULE[name])
     raise AttributeError(f"module 'roco_env' has no attribute {name!r}")
 
 
-if ENV_ID not in pettingzoo.parallel_registry:
-    pettingzoo.register("parallel", ENV_ID, entry_point="roco_env.env:parallel_env",
-                        max_cycles=DEFAULT_MAX_CYCLES)
-    pettingzoo.register("aec", ENV_ID, entry_point="roco_env.env:aec_env",
-                        max_cycles=DEFAULT_MAX_CYCLES)
-if EGO_ENV_ID not in gymnasium.registry:
-    gymnasium.register(EGO_ENV_ID, entry_point="roco_env.wrappers:EgoEnv")
+registration.register()

@@ -26,7 +26,7 @@ aligner runs when the env builds each observation (:class:`AlignerSet`), so the
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -38,7 +38,7 @@ from roco_env.observation import EgoView, action_space, check_action
 from roco_env.scenario import ActionConfig
 
 if TYPE_CHECKING:  # the policies load when a mode names one: `import roco_env` stays light
-    from roco_env.policies.base import AlignmentResult
+    from roco_env.policies.base import AlignmentResult, Policy
     from roco_env.policies.spec import PolicySpec
 
 REJECT_GATE = 1  # gate mode's "reject"; 0 keeps the base aligner's pose
@@ -80,32 +80,29 @@ class AlignerSet:
 
     def __init__(self, field: str, texts: Sequence[str], agents: Sequence[str]) -> None:
         self.specs = [_policy_spec(text, field) for text in texts]
-        self.instances: dict[str, list[Callable]] = {
+        self.instances: dict[str, list[Policy]] = {
             agent: [spec.build() for spec in self.specs] for agent in agents}
         # whether each aligner must see every step (it keeps state), asked once
-        self.stateful = [any(bool(getattr(instances[index], "keeps_state", False))
+        self.stateful = [any(bool(instances[index].keeps_state)
                              for instances in self.instances.values())
                          for index in range(len(self.specs))]
 
     def reset(self) -> None:
-        """A new episode for every stateful instance."""
+        """A new episode for every instance (the stateful ones forget the last)."""
         for instances in self.instances.values():
             for policy in instances:
-                reset = getattr(policy, "reset", None)
-                if callable(reset):
-                    reset()
+                policy.reset()
 
     def align(self, agent: str, index: int, view: EgoView, observation: dict,
               info: dict) -> Alignment:
         """What the ``index``-th aligner computes for ``agent``'s filled slots."""
-        policy = self.instances[agent][index]
-        previous = getattr(policy, "last_result", None)
-        action = check_action(policy(observation, info), f"{agent} ({self.specs[index].label})",
+        from roco_env.policies.base import act
+
+        action, result = act(self.instances[agent][index], observation, info)
+        action = check_action(action, f"{agent} ({self.specs[index].label})",
                               len(observation["collab_mask"]))
-        result = getattr(policy, "last_result", None)
         n = len(view.collaborators)
-        return Alignment(apply_correction(view.reported_relative, action[:n]),
-                         None if result is previous else result)  # never a stale result
+        return Alignment(apply_correction(view.reported_relative, action[:n]), result)
 
 
 class ActionMode:

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import copy
 import os
-import sys
-import types
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -28,13 +26,12 @@ from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
-    is_gain_reward,
+    make_reward,
     metric_info,
-    reward,
     rpe_info,
     slot_errors,
 )
-from roco_env.fusion import FusedDetections, merge_many, suppress
+from roco_env.fusion import FusedDetections, make_fusion, own_detections, suppress
 from roco_env.global_state import pack_state, state_space
 from roco_env.observation import (
     EgoView,
@@ -44,6 +41,7 @@ from roco_env.observation import (
 )
 from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
+from roco_env.registration import ENV_ID
 from roco_env.scenario import (
     ScenarioConfig,
     ScenarioError,
@@ -52,6 +50,9 @@ from roco_env.scenario import (
     scenario_from_dict,
 )
 
+# The defaults of the environment's arguments (every entry point takes them from here).
+DEFAULT_SCENARIO = "urban_intersection"
+DEFAULT_MAX_CYCLES = 100
 RENDER_MODES = ("rgb_array", "human")
 # How much each step's info carries (see the class docstring's Info section).
 INFO_LEVELS = ("full", "metrics", "none")
@@ -200,14 +201,14 @@ class CollabPerceptionEnv(ParallelEnv):
     """
 
     metadata = {
-        "name": "roco_collab_perception_v0",
+        "name": ENV_ID,  # versioned, as registered
         "render_modes": list(RENDER_MODES),
         "is_parallelizable": True,
         "render_fps": 10,
     }
 
-    def __init__(self, scenario: ScenarioLike = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None,
+    def __init__(self, scenario: ScenarioLike = DEFAULT_SCENARIO,
+                 max_cycles: int = DEFAULT_MAX_CYCLES, render_mode: str | None = None,
                  frames: Sequence | None = None, render_ego: str | None = None,
                  info_level: str = "full", privileged: bool | None = None,
                  **overrides: Any) -> None:
@@ -242,6 +243,8 @@ class CollabPerceptionEnv(ParallelEnv):
         self.metadata = {**self.metadata, "render_fps": max(1, round(1.0 / config.traffic.dt))}
         self.clock = StageClock()
         self.pipeline = Pipeline(config, self.clock, frames)
+        self.fusion = make_fusion(config, self.pipeline.detector)
+        self.reward = make_reward(config.evaluation)
         self.possible_agents = list(self.pipeline.agent_ids)
         self.evaluated_agents = _evaluated_agents(config, self.possible_agents)
         n, k = config.max_collaborators, config.max_boxes
@@ -474,7 +477,7 @@ class CollabPerceptionEnv(ParallelEnv):
             capacity = self._info_capacity
             for agent, evaluation, own in zip(fused, evaluations, alone_evaluations, strict=True):
                 infos[agent] = metric_info(evaluation, capacity)
-                rewards[agent] = reward(evaluation, cfg.evaluation.reward, own)
+                rewards[agent] = self.reward(evaluation, own)
             others = [a for a in self.possible_agents if a not in fused]
             for agent, (before, after) in zip(others, slot_errors(
                     [views[a] for a in others], [corrected[a] for a in others],
@@ -493,53 +496,26 @@ class CollabPerceptionEnv(ParallelEnv):
 
     def _fuse(self, frame: PerceptionFrame,
               decisions: dict[str, Decision]) -> tuple[dict, dict]:
-        """(fused, alone) detections of every evaluated agent in one batched NMS: fused
-        through its kept collaborators, and with a gain reward its own boxes alone (else
-        ``alone`` is empty). Boxes on the ego's own footprint are dropped, except with
-        OpenCOOD's ground truth, which holds the ego's own car."""
+        """(fused, alone) detections of every evaluated agent in one batched NMS: fused by
+        the fusion stage through its kept collaborators, and, when the reward needs them,
+        its own boxes alone (else ``alone`` is empty). Boxes on the ego's own footprint
+        are dropped, except with OpenCOOD's ground truth, which holds the ego's own car."""
         with self.clock.measure("fusion"):
             egos = [k for k, agent in enumerate(self.possible_agents)
                     if agent in self.evaluated_agents]
             kept = [decisions[self.possible_agents[k]].kept for k in egos]
             poses = [decisions[self.possible_agents[k]].corrected[keep]
                      for k, keep in zip(egos, kept, strict=True)]
-            method = self.config.fusion.method
-            gain = is_gain_reward(self.config.evaluation.reward)
-            own = merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (),
-                               np.zeros((0, 3))) for k in egos]) \
-                if gain or method == "none" else []
-            if method == "intermediate":
-                from roco_env.fusion.intermediate import intermediate_fusion
-
-                merged = intermediate_fusion(
-                    self.pipeline.detector, frame.encoder_maps, frame.state, egos,
-                    [_kept(frame.views[k].collaborators, keep)
-                     for k, keep in zip(egos, kept, strict=True)],
-                    poses, self.config.evaluation.x_range, self.config.evaluation.y_range)
-            elif method == "late":
-                merged = merge_many([
-                    (frame.views[k].boxes, frame.views[k].scores,
-                     _kept(frame.views[k].collab_boxes, keep),
-                     _kept(frame.views[k].collab_scores, keep), pose)
-                    for k, keep, pose in zip(egos, kept, poses, strict=True)])
-            else:  # "none": the ego's own boxes, scored against the collaboration's truth
-                merged, own = own, []
-            sets = merged + (own if gain else [])
+            own = own_detections(frame, egos) if self.reward.needs_alone else []
+            sets = self.fusion.fuse(frame, egos, kept, poses) + own
             own_car_is_truth = self.config.evaluation.ground_truth == "opencood"
             footprints = [None if own_car_is_truth else frame.footprints[k] for k in egos]
             suppressed = suppress(sets, self.config.fusion.nms_iou,
                                   footprints * (len(sets) // len(egos)))
             fused = dict(zip(self.evaluated_agents, suppressed[: len(egos)], strict=True))
-            if not gain:
+            if not own:
                 return fused, {}
-            if method == "none":
-                return fused, fused
             return fused, dict(zip(self.evaluated_agents, suppressed[len(egos):], strict=True))
-
-
-def _kept(items: Sequence, keep: np.ndarray) -> list:
-    """The entries of ``items`` (one per collaborator slot) whose ``keep`` is True."""
-    return [item for item, k in zip(items, keep, strict=True) if k]
 
 
 def check_seed(seed: Any) -> None:
@@ -561,25 +537,22 @@ def _evaluated_agents(config: ScenarioConfig, agents: list[str]) -> list[str]:
     return [a for a in agents if a in chosen]
 
 
-def parallel_env(scenario: ScenarioLike = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None,
-                 **overrides: Any) -> CollabPerceptionEnv:
-    """The PettingZoo ParallelEnv (see :class:`CollabPerceptionEnv`)."""
-    return CollabPerceptionEnv(scenario, max_cycles=max_cycles, render_mode=render_mode,
-                               **overrides)
+# PettingZoo's parallel constructor (``roco_env.parallel_env``, the registry's entry point)
+# is the class itself: its arguments and their defaults are written once.
+parallel_env = CollabPerceptionEnv
 
 
-def aec_env(scenario: ScenarioLike = "urban_intersection",
-            max_cycles: int = 100, render_mode: str | None = None, **overrides: Any) -> AECEnv:
-    """The AEC version: ``parallel_to_aec`` (which adds PettingZoo's OrderEnforcingWrapper).
+def aec_env(*args: Any, **kwargs: Any) -> AECEnv:
+    """The AEC version (``roco_env.env``), built from the arguments of
+    :class:`CollabPerceptionEnv`: ``parallel_to_aec`` (which adds PettingZoo's
+    OrderEnforcingWrapper).
 
     No action-clipping wrapper: finite corrections outside the action bounds are
     applied as given. Each agent's action is validated at that agent's own step
     (NaN/inf or a wrong shape raise ValueError there and the action is not
     stored, so the agent may act again and later steps are unaffected).
     """
-    return _CheckedActions(
-        parallel_to_aec(parallel_env(scenario, max_cycles, render_mode, **overrides)))
+    return _CheckedActions(parallel_to_aec(CollabPerceptionEnv(*args, **kwargs)))
 
 
 class _CheckedActions(BaseWrapper):
@@ -595,18 +568,3 @@ class _CheckedActions(BaseWrapper):
             action = self.unwrapped.action_mode.check(action, agent)
         super().step(action)
 
-
-class _CallableModule(types.ModuleType):
-    """Makes ``roco_env.env(...)`` build the AEC env although ``roco_env.env`` is this module.
-
-    The public API calls ``roco_env.env(...)`` (PettingZoo's convention) and the
-    package layout puts the environment in ``roco_env/env.py``; Python binds the
-    submodule to the package attribute ``env`` on import, so the module itself
-    must be the callable.
-    """
-
-    def __call__(self, *args: Any, **kwargs: Any) -> AECEnv:
-        return aec_env(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule

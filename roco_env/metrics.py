@@ -80,7 +80,7 @@ __all__ = [
 DEFAULT_IOU_THRESHOLDS: tuple[float, ...] = (0.3, 0.5, 0.7)
 
 # Up to this many (prediction, GT) pairs, a dense centre-distance test finds the
-# candidate pairs faster than building KD-trees (measured crossover ~100 x 100).
+# candidate pairs faster than building KD-trees (the crossover: docs/performance.md).
 _DENSE_MAX_PAIRS = 10_000
 
 

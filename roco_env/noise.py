@@ -40,22 +40,45 @@ poses stay noisy). Every random draw comes from the generator passed in.
 from __future__ import annotations
 
 import abc
-import dataclasses
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.geometry import se2_relative, wrap_angle
-from roco_env.scenario import NOISE_PARAMS, NoiseConfig
-from roco_env.schema import build
+from roco_env.scenario import NoiseConfig
+from roco_env.schema import build, spec
+from roco_env.stages import available_stages, checked_params, stage
 
-__all__ = ["MODELS", "PoseNoise", "make_pose_noise"]
+__all__ = ["AR1Params", "LocalizationParams", "PoseNoise", "make_pose_noise"]
 
-# The models and their parameters are declared in roco_env.scenario.NOISE_PARAMS.
-MODELS: tuple[str, ...] = tuple(NOISE_PARAMS)
+
+@dataclass
+class AR1Params:
+    """``ar1`` noise: the error's lag-1 autocorrelation per step."""
+
+    rho: float = spec(0.9, low=0.0, high=1.0, high_open=True, doc="autocorrelation per step")
+
+
+@dataclass
+class LocalizationParams:
+    """``localization`` noise: a Kalman filter fed with GNSS fixes and odometry."""
+
+    gnss_sigma: float | None = spec(None, low=0.0, high=100.0,
+                                    doc="GNSS position std, m; null = the agent's sigma_t")
+    heading_sigma: float | None = spec(None, low=0.0, high=180.0,
+                                       doc="GNSS heading std, deg; null = the agent's sigma_r")
+    gnss_rate: float = spec(1.0, low=0.0, high=100.0, low_open=True, doc="GNSS fixes per s, Hz")
+    dropout: float = spec(0.05, low=0.0, high=1.0, high_open=True,
+                          doc="probability that a fix is lost")
+    odom_sigma_t: float | None = spec(None, low=0.0, high=100.0,
+                                      doc="odometry std, m per sqrt(s); null = gnss_sigma / 2")
+    odom_sigma_r: float | None = spec(None, low=0.0, high=180.0,
+                                      doc="odometry std, deg per sqrt(s); null = heading_sigma / 2")
+
 
 # Variance floor (m^2, rad^2) keeping the Kalman filter invertible at zero noise.
 _MIN_VARIANCE = 1e-18
@@ -69,6 +92,12 @@ class PoseNoise(abc.ABC):
     """
 
     model = "base"
+
+    @classmethod
+    def from_config(cls, config: NoiseConfig, agent_ids: tuple[str, ...],
+                    dt: float) -> PoseNoise:
+        """The stage factory (roco_env.stages): the model at ``config``'s levels."""
+        return cls(agent_ids, dt, _std(_levels(config, agent_ids)), config.perturb_ego)
 
     def __init__(self, agent_ids: Sequence[str], dt: float, std: np.ndarray,
                  perturb_ego: bool = True) -> None:
@@ -187,6 +216,13 @@ class AR1Noise(StatefulNoise):
         super().__init__(agent_ids, dt, std, perturb_ego)
         self.rho = rho
 
+    @classmethod
+    def from_config(cls, config: NoiseConfig, agent_ids: tuple[str, ...],
+                    dt: float) -> AR1Noise:
+        params = build(AR1Params, dict(config.params), where="noise", prefix="noise.params.")
+        return cls(agent_ids, dt, _std(_levels(config, agent_ids)), config.perturb_ego,
+                   rho=params.rho)
+
     def _next(self, previous: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
         fresh = self._gaussian(rng)
         if previous is None:
@@ -212,6 +248,25 @@ class LocalizationNoise(PoseNoise):
         )
         self.fix_every = max(1, round(1.0 / (gnss_rate * self.dt)))
         self.dropout = dropout
+
+    @classmethod
+    def from_config(cls, config: NoiseConfig, agent_ids: tuple[str, ...],
+                    dt: float) -> LocalizationNoise:
+        """Precedence of the GNSS sigmas: per_agent entry > params > the global levels."""
+        params = build(LocalizationParams, dict(config.params), where="noise",
+                       prefix="noise.params.")
+        levels = _levels(config, agent_ids)
+        per_agent = config.per_agent or {}
+        gnss = levels.copy()
+        for column, value in enumerate((params.gnss_sigma, params.heading_sigma)):
+            if value is not None:
+                gnss[[a not in per_agent for a in agent_ids], column] = value
+        odom = 0.5 * gnss
+        for column, value in enumerate((params.odom_sigma_t, params.odom_sigma_r)):
+            if value is not None:
+                odom[:, column] = value
+        return cls(agent_ids, dt, _std(gnss), _std(odom), config.perturb_ego,
+                   gnss_rate=params.gnss_rate, dropout=params.dropout)
 
     def _reset_state(self) -> None:
         self._filters: list[KalmanFilter] = []
@@ -295,49 +350,21 @@ def _levels(config: NoiseConfig, agent_ids: Sequence[str]) -> np.ndarray:
     return levels
 
 
-def _params(model: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The model's parameters, defaults filled in, checked against NOISE_PARAMS."""
-    return dataclasses.asdict(build(NOISE_PARAMS[model], dict(params or {}), where="noise",
-                                    prefix="noise.params."))
-
-
 def _std(levels: np.ndarray) -> np.ndarray:
     """(A, 2) [m, deg] -> (A, 3) [m, m, rad]."""
     return np.stack([levels[:, 0], levels[:, 0], np.radians(levels[:, 1])], axis=1)
 
 
 def make_pose_noise(config: NoiseConfig, agent_ids: Sequence[str], dt: float) -> PoseNoise:
-    """Build the pose-noise model of ``config`` for ``agent_ids`` stepping every ``dt`` s."""
-    if config.model not in NOISE_PARAMS:
-        raise ValueError(f"noise.model must be one of {list(MODELS)}; got {config.model!r}")
+    """Build the pose-noise model of ``config`` (the stage ``config.model`` names) for
+    ``agent_ids`` stepping every ``dt`` s."""
+    if config.model not in available_stages("noise"):
+        raise ValueError(f"noise.model must be one of {list(available_stages('noise'))}; "
+                         f"got {config.model!r}")
     agent_ids = tuple(agent_ids)
     if len(set(agent_ids)) != len(agent_ids):
         raise ValueError(f"agent_ids must be unique; got {list(agent_ids)}")
     if _non_negative(dt, "dt") == 0.0:
         raise ValueError(f"dt must be a finite number of seconds > 0; got {dt!r}")
-    levels = _levels(config, agent_ids)
-    params = _params(config.model, config.params)
-    ego = bool(config.perturb_ego)
-    simple = {"gaussian": GaussianNoise, "laplace": LaplaceNoise, "bias": BiasNoise,
-              "drift": DriftNoise}
-    if config.model in simple:
-        return simple[config.model](agent_ids, dt, _std(levels), ego)
-    if config.model == "ar1":
-        return AR1Noise(agent_ids, dt, _std(levels), ego, rho=params["rho"])
-    return _make_localization(config, agent_ids, dt, levels, params, ego)
-
-
-def _make_localization(config: NoiseConfig, agent_ids: tuple[str, ...], dt: float,
-                       levels: np.ndarray, params: dict[str, Any], ego: bool) -> PoseNoise:
-    """Precedence of the GNSS sigmas: per_agent entry > params > the global levels."""
-    per_agent = config.per_agent or {}
-    gnss = levels.copy()
-    for column, key in enumerate(("gnss_sigma", "heading_sigma")):
-        if params[key] is not None:
-            gnss[[a not in per_agent for a in agent_ids], column] = params[key]
-    odom = 0.5 * gnss
-    for column, key in enumerate(("odom_sigma_t", "odom_sigma_r")):
-        if params[key] is not None:
-            odom[:, column] = params[key]
-    return LocalizationNoise(agent_ids, dt, _std(gnss), _std(odom), ego,
-                             gnss_rate=params["gnss_rate"], dropout=params["dropout"])
+    checked_params("noise", config.model, config.params, where="noise")
+    return stage("noise", config.model).load_factory()(config, agent_ids, dt)

@@ -15,6 +15,7 @@ import importlib.resources
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from numbers import Real
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ from roco_env.schema import (
     spec,
     unknown_key_message,
 )
+from roco_env.stages import SCENARIO_FIELDS, available_stages, checked_params
 
 SCENARIO_DIR_ENV = "ROCO_ENV_SCENARIOS"
 
@@ -54,7 +56,9 @@ DENSITY_LAYOUTS: dict[str, tuple[str, ...]] = {
 class TrafficConfig:
     """Where the vehicles come from and how crowded the scene is."""
 
-    source: str = _spec("synthetic", choices=("synthetic", "highway_env", "opv2v", "dair", "frames"))
+    source: str = _spec("synthetic", choices=partial(available_stages, "traffic"),
+                        doc="the traffic stage (roco_env.stages): synthetic | highway_env | "
+                        "opv2v | dair | frames | a registered one")
     layout: str = _spec(
         "intersection",
         choices=LAYOUTS,
@@ -80,9 +84,7 @@ class TrafficConfig:
         None, low=0.5, high=60.0, doc="desired speed, m/s; null = the layout's default"
     )
     path: str | None = _spec(None, path=True, doc="dataset folder for opv2v/dair replay")
-    params: dict = _spec(
-        {}, doc="source-specific options (highway_env: extra env config; replay: see traffic)"
-    )
+    params: dict = _spec({}, doc="the source's parameters (highway_env: extra env config)")
 
 
 @dataclass
@@ -100,132 +102,36 @@ class AgentsConfig:
 
 
 @dataclass
-class NoParams:
-    """A noise model without parameters."""
-
-
-@dataclass
-class AR1Params:
-    """``ar1`` noise: the error's lag-1 autocorrelation per step."""
-
-    rho: float = _spec(0.9, low=0.0, high=1.0, high_open=True, doc="autocorrelation per step")
-
-
-@dataclass
-class LocalizationParams:
-    """``localization`` noise: a Kalman filter fed with GNSS fixes and odometry."""
-
-    gnss_sigma: float | None = _spec(None, low=0.0, high=100.0,
-                                     doc="GNSS position std, m; null = the agent's sigma_t")
-    heading_sigma: float | None = _spec(None, low=0.0, high=180.0,
-                                        doc="GNSS heading std, deg; null = the agent's sigma_r")
-    gnss_rate: float = _spec(1.0, low=0.0, high=100.0, low_open=True, doc="GNSS fixes per s, Hz")
-    dropout: float = _spec(0.05, low=0.0, high=1.0, high_open=True,
-                           doc="probability that a fix is lost")
-    odom_sigma_t: float | None = _spec(None, low=0.0, high=100.0,
-                                       doc="odometry std, m per sqrt(s); null = gnss_sigma / 2")
-    odom_sigma_r: float | None = _spec(None, low=0.0, high=180.0,
-                                       doc="odometry std, deg per sqrt(s); null = heading_sigma / 2")
-
-
-# Pose-noise models (roco_env.noise) and the parameters each accepts in noise.params.
-NOISE_PARAMS: dict[str, type] = {
-    "gaussian": NoParams,
-    "laplace": NoParams,
-    "bias": NoParams,
-    "drift": NoParams,
-    "ar1": AR1Params,
-    "localization": LocalizationParams,
-}
-
-
-@dataclass
 class NoiseConfig:
     """Pose noise (see roco_env.noise); sigmas are standard deviations."""
 
-    model: str = _spec("gaussian", choices=tuple(NOISE_PARAMS))
+    model: str = _spec("gaussian", choices=partial(available_stages, "noise"),
+                       doc="the pose-noise stage (roco_env.noise, roco_env.stages)")
     sigma_t: float = _spec(0.2, low=0.0, high=20.0, doc="translation std, m")
     sigma_r: float = _spec(0.2, low=0.0, high=45.0, doc="rotation std, degrees")
     perturb_ego: bool = _spec(True)
     per_agent: dict = _spec({}, doc="agent id -> [sigma_t, sigma_r] overriding the levels")
-    params: dict = _spec({}, doc="the model's parameters (NOISE_PARAMS), checked on load")
-
-
-@dataclass
-class DetectorParams:
-    """The detector model's parameters (roco_env.sensing.detector): the defaults are
-    the ``realistic`` preset; metres, radians, probabilities."""
-
-    noisy: bool = _spec(True, doc="perturb boxes, scores and sizes")
-    min_fraction: float = _spec(0.0, low=0.0, high=1.0, doc="visible fraction needed")
-    p_max: float = _spec(0.97, low=0.0, high=1.0, doc="detection probability, many returns")
-    returns_50: float = _spec(12.0, low=0.0, doc="LiDAR returns at half p_max")
-    returns_slope: float = _spec(1.5, low=0.0, high=20.0, low_open=True)
-    sigma_xy: float = _spec(0.06, low=0.0, high=10.0, low_open=True, doc="centre std, m")
-    sigma_xy_per_m: float = _spec(0.002, low=0.0, high=1.0, doc="centre std growth, m per m")
-    sigma_xy_occlusion: float = _spec(0.25, low=0.0, high=10.0, doc="m at full occlusion")
-    sigma_yaw: float = _spec(0.02, low=0.0, high=3.141592653589793, low_open=True,
-                             doc="yaw std, rad")
-    sigma_yaw_per_m: float = _spec(0.0004, low=0.0, high=0.1, doc="yaw std growth, rad per m")
-    sigma_yaw_occlusion: float = _spec(0.1, low=0.0, high=3.141592653589793,
-                                       doc="rad at full occlusion")
-    sigma_size: float = _spec(0.03, low=0.0, high=1.0, doc="log-size std")
-    sigma_size_occlusion: float = _spec(0.05, low=0.0, high=1.0)
-    flip_prob: float = _spec(0.03, low=0.0, high=1.0, doc="probability of a heading flip")
-    fp_rate: float = _spec(1.0, low=0.0, high=1000.0, doc="false positives per frame")
-    fp_score_max: float = _spec(0.45, low=0.01, high=1.0, low_open=True)
-    score_floor: float = _spec(0.4, low=0.0, high=1.0)
-    score_noise: float = _spec(0.05, low=0.0, high=1.0)
-    calibration: float = _spec(1.0, low=0.0, high=100.0, low_open=True,
-                               doc="reported / true uncertainty")
-
-
-@dataclass
-class LearnedDetectorParams:
-    """The learned detector's parameters (roco_env.sensing.learned)."""
-
-    weights: str | None = _spec(None, path=True,
-                                doc="weights file; None = the shipped weights")
-    device: str = _spec("cpu", choices=("cpu", "cuda"), doc="torch device")
-    score_threshold: float = _spec(0.2, low=0.0, high=1.0, low_open=True, high_open=True,
-                                   doc="decoded boxes below this score are dropped")
-    threads: int = _spec(1, low=1, high=256,
-                         doc="CPU threads of the network (torch, set process-wide when the "
-                         "detector is built) and of intermediate fusion")
-    gate: bool | None = _spec(None, doc="intermediate fusion through the weights' learned "
-                              "fusion gate: None = when they hold one, true = they must, false "
-                              "= the plain maximum")
-    box_sigma_xy: float = _spec(0.0, low=0.0, high=10.0,
-                                doc="extra centre std (m, each axis) of the boxes each agent "
-                                "reports and shares; its feature maps are untouched")
-    box_sigma_yaw: float = _spec(0.0, low=0.0, high=3.141592653589793,
-                                 doc="extra heading std (rad) of those boxes")
-
-
-# detector.preset -> the dataclass declaring its detector.params.
-DETECTOR_PARAMS: dict[str, type] = {
-    "ideal": DetectorParams,
-    "realistic": DetectorParams,
-    "learned": LearnedDetectorParams,
-}
+    params: dict = _spec({}, doc="the model's parameters (its dataclass), checked on load")
 
 
 @dataclass
 class DetectorConfig:
     """What each agent detects (see roco_env.sensing.detector)."""
 
-    preset: str = _spec("realistic", choices=tuple(DETECTOR_PARAMS))
-    params: dict = _spec({}, doc="the preset's parameters (DETECTOR_PARAMS) overriding its "
+    preset: str = _spec("realistic", choices=partial(available_stages, "detector"),
+                        doc="the detector stage (roco_env.sensing, roco_env.stages)")
+    params: dict = _spec({}, doc="the preset's parameters (its dataclass) overriding its "
                          "defaults, checked on load")
 
 
 @dataclass
 class FusionConfig:
-    method: str = _spec("late", choices=("late", "intermediate", "none"),
+    method: str = _spec("late", choices=partial(available_stages, "fusion"),
                         doc="intermediate decodes fused BEV feature maps: needs detector.preset "
                         "learned; none scores the ego's own boxes alone (the no-fusion "
                         "reference)")
     nms_iou: float = _spec(0.15, low=0.0, high=1.0, doc="BEV IoU threshold of late-fusion NMS")
+    params: dict = _spec({}, doc="the method's parameters (a registered method's dataclass)")
 
 
 @dataclass
@@ -234,9 +140,6 @@ class FeaturesConfig:
     resolution: float = _spec(0.4, low=0.05, high=5.0, doc="BEV cell size, m")
 
 
-# Per-step reward kinds (roco_env.evaluation.reward computes them).
-REWARDS: tuple[str, ...] = ("ap30", "ap50", "ap70", "ap30_gain", "ap50_gain", "ap70_gain",
-                            "neg_rpe")
 # Ground-truth conventions (roco_env.evaluation.ground_truths, docs/metrics.md).
 GROUND_TRUTHS: tuple[str, ...] = ("visible", "opencood")
 # What an agent's action means (roco_env.action_modes implements each).
@@ -249,7 +152,10 @@ OBSERVATION_MODES: tuple[str, ...] = ("raw", "aligned", "bev")
 class EvaluationConfig:
     x_range: list = _spec([-140.8, 140.8], doc="ego-frame evaluation range along x, m")
     y_range: list = _spec([-40.0, 40.0], doc="ego-frame evaluation range along y, m")
-    reward: str = _spec("ap70", choices=REWARDS)
+    reward: str = _spec("ap70", choices=partial(available_stages, "reward"),
+                        doc="the per-step reward stage (roco_env.evaluation, roco_env.stages)")
+    reward_params: dict = _spec({}, doc="the reward's parameters (a registered reward's "
+                                "dataclass)")
     ground_truth: str = _spec("visible", choices=GROUND_TRUTHS,
                               doc="visible: what the collaboration sees, own car out; opencood: "
                                   "every vehicle in range, own car in, z_range applies")
@@ -492,21 +398,14 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
     if traffic.source == "highway_env" and config.agents.cavs < 1:
         raise ScenarioError(f"{where}: agents.cavs must be >= 1 with traffic.source="
                             "'highway_env' (its controlled vehicle is a CAV); got 0")
-    if traffic.params and traffic.source != "highway_env":
-        raise ScenarioError(
-            f"{where}: traffic.params is only read by traffic.source='highway_env' (extra "
-            f"highway-env config); got {traffic.params!r} with source {traffic.source!r}")
     for name in ("x_range", "y_range", "z_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.per_agent = _per_agent_levels(config.noise.per_agent, where)
     config.action.scale = _check_scale(config.action.scale, where)
     config.action.choices = _check_choices(config.action.choices, where)
-    config.noise.params = _choice_params(NOISE_PARAMS, "noise.model", config.noise.model,
-                                         config.noise.params, where, "noise.params.", base)
-    config.detector.params = _choice_params(DETECTOR_PARAMS, "detector.preset",
-                                            config.detector.preset, config.detector.params,
-                                            where, "detector.params.", base)
+    for kind in SCENARIO_FIELDS:
+        _check_stage_params(config, kind, where, base)
     if config.fusion.method == "intermediate" and config.detector.preset != "learned":
         raise ScenarioError(
             f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
@@ -524,19 +423,14 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
     return config
 
 
-def _choice_params(table: Mapping[str, type], field: str, choice: str, given: Any, where: str,
-                   prefix: str, base: Path | None = None) -> dict:
-    """The checked parameters ``given`` for ``choice`` (a noise model, a detector preset), its
-    parameter dataclass in ``table``; a key that belongs to another choice says which."""
-    names = {name: [f.name for f in dataclasses.fields(cls)] for name, cls in table.items()}
-    unknown = sorted(set(given) - set(names[choice]), key=str) if isinstance(given, Mapping) else []
-    owners = [name for name, keys in names.items() if unknown and unknown[0] in keys]
-    if owners:
-        message = unknown_key_message(where, prefix + str(unknown[0]),
-                                      [prefix + key for key in names[choice]])
-        raise ScenarioError(f"{message}; {prefix}{unknown[0]} is a parameter of {field} "
-                            f"{' / '.join(map(repr, owners))}, not of {choice!r}")
-    return _given(build(table[choice], given, where, prefix, base), given)
+def _check_stage_params(config: ScenarioConfig, kind: str, where: str,
+                        base: Path | None) -> None:
+    """Check (in place) the parameters the scenario gives the implementation it names for
+    stage ``kind`` (roco_env.stages.checked_params)."""
+    section_name, choice_field, params_field = SCENARIO_FIELDS[kind]
+    section = getattr(config, section_name)
+    setattr(section, params_field, checked_params(
+        kind, getattr(section, choice_field), getattr(section, params_field), where, base))
 
 
 def _per_agent_levels(per_agent: dict, where: str) -> dict:
@@ -553,11 +447,6 @@ def _per_agent_levels(per_agent: dict, where: str) -> dict:
                           for k, (value, name) in enumerate(zip(pair, ("sigma_t", "sigma_r"),
                                                                 strict=True))]
     return checked
-
-
-def _given(params: Any, given: Mapping[str, Any]) -> dict:
-    """The checked values of the keys a user gave (the rest stay with the preset)."""
-    return {key: getattr(params, key) for key in given}
 
 
 def _check_scale(value: list, where: str) -> list[float]:

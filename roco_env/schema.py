@@ -24,7 +24,7 @@ import os
 import re
 import types
 import typing
-from collections.abc import Hashable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from typing import Any
 
 import numpy as np
@@ -41,10 +41,11 @@ class ConfigError(ValueError):
 ScenarioError = ConfigError
 
 
-def spec(default: Any, *, choices: tuple | None = None, low: float | None = None,
+def spec(default: Any, *, choices: tuple | Callable[[], tuple] | None = None, low: float | None = None,
          high: float | None = None, low_open: bool = False, high_open: bool = False,
          path: bool = False, doc: str = "") -> Any:
-    """A dataclass field carrying its allowed values: ``choices``, or ``low``..``high``
+    """A dataclass field carrying its allowed values: ``choices`` (a tuple, or a function
+    returning one when it is checked: a stage registry's names), or ``low``..``high``
     (closed ends unless ``low_open`` / ``high_open``; either bound may be omitted);
     ``path``: a string naming a file or folder (see :func:`build`)."""
     meta = {"choices": choices, "low": low, "high": high, "low_open": low_open,
@@ -57,11 +58,17 @@ def spec(default: Any, *, choices: tuple | None = None, low: float | None = None
 def allowed_text(meta: Mapping[str, Any]) -> str:
     """The allowed values of a field, as its error messages write them."""
     if meta.get("choices") is not None:
-        return f"one of {list(meta['choices'])}"
+        return f"one of {list(allowed_choices(meta))}"
     low, high = meta.get("low"), meta.get("high")
     left = "(" if meta.get("low_open") or low is None else "["
     right = ")" if meta.get("high_open") or high is None else "]"
     return f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
+
+
+def allowed_choices(meta: Mapping[str, Any]) -> tuple | None:
+    """A field's ``choices`` as a tuple (a function of them called now), None if it has none."""
+    choices = meta.get("choices")
+    return choices() if callable(choices) else choices
 
 
 def build(cls: type, data: Any, where: str, prefix: str = "",
@@ -131,7 +138,7 @@ def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key:
                             f"got {value!r} ({type(value).__name__})")
     if base is float and not math.isfinite(value):
         raise ScenarioError(f"{where}: {key}={value!r} must be finite")
-    choices, low, high = meta.get("choices"), meta.get("low"), meta.get("high")
+    choices, low, high = allowed_choices(meta), meta.get("low"), meta.get("high")
     if choices is not None and value not in choices:
         raise ScenarioError(f"{where}: {key}={value!r} is not allowed; choose "
                             f"{allowed_text(meta)}")

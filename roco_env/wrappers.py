@@ -25,8 +25,9 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 
 from roco_env.action_modes import ActionMode
-from roco_env.env import CollabPerceptionEnv
+from roco_env.env import DEFAULT_MAX_CYCLES, DEFAULT_SCENARIO, CollabPerceptionEnv
 from roco_env.policies import make_policy
+from roco_env.policies.base import Policy, StatelessPolicy, as_policy
 from roco_env.policies.spec import merge_env_overrides
 from roco_env.scenario import ScenarioConfig
 
@@ -37,8 +38,9 @@ class EgoEnv(gymnasium.Env):
     env: an existing (unwrapped) parallel env, or None to build one from
     ``scenario``, ``max_cycles``, ``render_mode``, ``info_level``, ``privileged`` and
     ``overrides``; agent: the controlled agent (default: the first evaluated agent);
-    others: the policy ``policy(obs, info) -> action`` of every other agent, or a policy
-    name for :func:`roco_env.policies.make_policy` (``"roco"``); by default they take
+    others: the policy ``policy(obs, info) -> action`` of every other agent (one instance
+    serves them all; a :class:`~roco_env.policies.base.Policy`, or any callable), or a
+    policy name for :func:`roco_env.policies.make_policy` (``"roco"``); by default they take
     the action mode's neutral action (zeros: trust the reported poses in ``correction``
     mode, keep the base aligner's poses in ``residual`` and ``gate`` modes, the first
     choice in ``select`` mode). A built env takes the env modes the others' policy
@@ -57,8 +59,8 @@ class EgoEnv(gymnasium.Env):
     metadata = {"render_modes": list(CollabPerceptionEnv.metadata["render_modes"]),
                 "render_fps": CollabPerceptionEnv.metadata["render_fps"]}
 
-    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = "urban_intersection",
-                 max_cycles: int = 100, render_mode: str | None = None, *,
+    def __init__(self, scenario: str | os.PathLike | ScenarioConfig = DEFAULT_SCENARIO,
+                 max_cycles: int = DEFAULT_MAX_CYCLES, render_mode: str | None = None, *,
                  env: CollabPerceptionEnv | None = None, agent: str | None = None,
                  others: Callable | str | None = None, info_level: str = "full",
                  privileged: bool | None = None, evaluate_others: bool = False,
@@ -84,7 +86,8 @@ class EgoEnv(gymnasium.Env):
         if others is not None and not callable(others):
             raise ValueError("others must be a policy(obs, info) -> action or a policy name "
                              f"(roco_env.policies.available_policies()); got {others!r}")
-        self.others = others if others is not None else _NeutralPolicy(base.action_mode)
+        self.others: Policy = as_policy(others) if others is not None \
+            else _NeutralPolicy(base.action_mode)
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)
         self.metadata = {**type(self).metadata, "render_fps": base.metadata["render_fps"]}
@@ -94,9 +97,7 @@ class EgoEnv(gymnasium.Env):
     def reset(self, *, seed: int | None = None,
               options: dict | None = None) -> tuple[dict, dict]:
         super().reset(seed=seed)
-        reset_others = getattr(self.others, "reset", None)
-        if callable(reset_others):  # a stateful policy starts each episode afresh
-            reset_others()
+        self.others.reset()  # a stateful policy starts each episode afresh
         observations, infos = self.env.reset(seed=seed, options=options)
         self._last = (observations, infos)
         return observations[self.agent], infos[self.agent]
@@ -120,7 +121,7 @@ class EgoEnv(gymnasium.Env):
         self.env.close()
 
 
-class _NeutralPolicy:
+class _NeutralPolicy(StatelessPolicy):
     """Takes the action mode's neutral action whatever it observes."""
 
     def __init__(self, mode: ActionMode) -> None:

@@ -11,9 +11,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from roco_env.metrics import matching_precision_recall, relative_pose_error
-from roco_env.policies.constructed_scenes import make_scene, pose_error, random_objects
 from roco_env.policies.matching import MatchingParams, match_star_graphs
 from roco_env.policies.roco import RoCoParams, roco_align
+from roco_env.testing.constructed_scenes import make_scene, pose_error, random_objects
 
 VARIANTS = {
     "full": {},

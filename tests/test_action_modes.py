@@ -16,6 +16,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from test_conformance import make_parallel, replay_folder  # noqa: F401 - a fixture
 
 import roco_env
+from roco_env.env import METRIC_INFO_KEYS
 from roco_env.fusion import merge_many, suppress
 from roco_env.metrics import in_range_mask
 from roco_env.policies import make_policy
@@ -203,11 +204,11 @@ def test_metrics_and_none_info_levels_are_lean():
     _, infos = env.reset(seed=0)
     assert "privileged" not in infos["cav_0"]
     _, _, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
-    assert set(infos["cav_0"]) == set(roco_env.env.METRIC_INFO_KEYS)
+    assert set(infos["cav_0"]) == set(METRIC_INFO_KEYS)
     full = env_in("correction")
     full.reset(seed=0)
     _, _, _, _, full_infos = full.step({a: np.zeros((5, 3)) for a in full.agents})
-    for key in roco_env.env.METRIC_INFO_KEYS:
+    for key in METRIC_INFO_KEYS:
         np.testing.assert_array_equal(infos["cav_0"][key], full_infos["cav_0"][key])
     bare = env_in("correction", info_level="none")
     _, infos = bare.reset(seed=0)

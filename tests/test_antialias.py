@@ -9,13 +9,13 @@ import pytest
 from roco_env.policies import make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.base import apply_correction
-from roco_env.policies.constructed_scenes import (
+from roco_env.policies.roco import roco_align
+from roco_env.testing.constructed_scenes import (
     make_scene,
     parking_rows,
     pose_error,
     to_observation,
 )
-from roco_env.policies.roco import roco_align
 
 ROW_CAR = np.array([0.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0])
 

@@ -15,7 +15,7 @@ import torch
 import roco_env.benchmarks as benchmarks
 
 # The sweep benchmark starts worker pools (about 25 s): with the slow tests.
-SLOW = {"sweep"}
+SLOW = {"sweep_backends"}
 MODULES = sorted(m.name for m in pkgutil.iter_modules(benchmarks.__path__)
                  if not m.name.startswith("_"))
 

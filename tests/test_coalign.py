@@ -9,7 +9,7 @@ from roco_env.metrics import matching_precision_recall, relative_pose_error
 from roco_env.policies import make_policy
 from roco_env.policies.base import apply_correction
 from roco_env.policies.coalign import circular_variance, coalign_align, greedy_clusters
-from roco_env.policies.constructed_scenes import (
+from roco_env.testing.constructed_scenes import (
     make_scene,
     pose_error,
     random_objects,
@@ -195,7 +195,8 @@ def test_released_yaw_variance_in_the_policy_reads_the_ego_world_yaw():
     obs["pose"][2] = np.pi / 2
     assert np.abs(policy(obs)).max() > 0.1  # the same boxes in a turned world frame
     assert np.abs(make_policy("coalign")(obs)).max() > 0.1
-    with pytest.raises(ValueError, match=r"yaw_variance must be one of \['circular', 'released'\]"):
+    with pytest.raises(ValueError, match=r"coalign: yaw_variance='np.var' is not allowed; choose "
+                                         r"one of \['circular', 'released'\]"):
         make_policy("coalign", yaw_variance="np.var")
 
 

@@ -9,6 +9,7 @@ import gymnasium
 import numpy as np
 import pettingzoo
 import pytest
+from conftest import run_python
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import (
     api_test,
@@ -68,6 +69,21 @@ def test_module_level_constructors():
     assert "urban_intersection" in roco_env.list_scenarios()
 
 
+def test_users_calls_still_work_whichever_module_loads_the_env_first():
+    """``roco_env.env(...)`` is PettingZoo's AEC constructor even after another module
+    imported roco_env/env.py; the module itself is imported by name."""
+    probe = ("import sys, roco_env; light = 'roco_env.pipeline' not in sys.modules; "
+             "from roco_env.wrappers import EgoEnv; "
+             "aec = roco_env.env('v2x_crossroad', max_cycles=2); "
+             "from roco_env.env import CollabPerceptionEnv, aec_env, parallel_env; "
+             "par = roco_env.parallel_env('v2x_crossroad'); "
+             "print(light, roco_env.env is aec_env, roco_env.parallel_env is parallel_env, "
+             "roco_env.CollabPerceptionEnv is CollabPerceptionEnv, "
+             "isinstance(aec.unwrapped, CollabPerceptionEnv), type(par).__name__, "
+             "par.max_cycles)")
+    assert run_python(probe) == "True True True True True CollabPerceptionEnv 100"
+
+
 def test_pettingzoo_registry():
     par = pettingzoo.make("parallel", roco_env.ENV_ID, **TINY, max_cycles=3)
     assert isinstance(par, CollabPerceptionEnv) and par.max_cycles == 3
@@ -79,7 +95,8 @@ def test_metadata_spaces_and_agents():
     env = fast_parallel()
     assert env.metadata["render_modes"] == ["rgb_array", "human"]
     assert env.metadata["is_parallelizable"] is True
-    assert env.metadata["render_fps"] == 10 and env.metadata["name"]
+    assert env.metadata["render_fps"] == 10
+    assert env.metadata["name"] == roco_env.ENV_ID == "roco/CollabPerception-v0"
     assert env.possible_agents == ["cav_0", "cav_1", "cav_2", "cav_3", "rsu_0"]
     for agent in env.possible_agents:
         assert env.observation_space(agent) is env.observation_space(agent)

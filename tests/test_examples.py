@@ -20,6 +20,7 @@ EXPECTED = {  # a line fragment each example must print
     "quickstart.py": "AP@0.7 =",
     "compare_policies.py": "### AP@0.7 (%)",
     "custom_policy.py": "nn-icp (this file)",
+    "custom_stage.py": "rain 30%, discounted fusion",
     "stress_crowding.py": "nearest-neighbour gap",
     "rllib_ppo.py": "roco_antialias" if RLLIB else "RLlib is not available",
     "sb3_ppo.py": "roco_antialias" if SB3 else "Stable-Baselines3 is not available",

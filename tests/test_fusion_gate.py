@@ -168,10 +168,12 @@ def test_training_the_gate_alone_changes_only_the_gate(tmp_path):
 
 
 def test_gate_training_inputs_are_checked(tmp_path):
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.schema import build
+    from roco_env.training.train import WHERE, TrainConfig, train
 
-    with pytest.raises(ValueError, match=r"fusion must be one of \('max', 'gated'\)"):
-        TrainConfig(fusion="mean")
+    with pytest.raises(ValueError, match=r"fusion='mean' is not allowed; choose one of "
+                                         r"\['max', 'gated'\]"):
+        build(TrainConfig, {"fusion": "mean"}, WHERE)
     with pytest.raises(ValueError, match="--freeze-detector.* needs init"):
         TrainConfig(train_detector=False, fusion="gated")
     start = tmp_path / "gated.pt"

@@ -14,12 +14,6 @@ import pytest
 from conftest import assert_equal_to_rounding
 from scipy.spatial import cKDTree
 
-from roco_env.policies.constructed_scenes import (
-    benchmark_scene,
-    make_scene,
-    parking_rows,
-    pose_error,
-)
 from roco_env.policies.hypotheses import (
     EvidenceParams,
     box_set,
@@ -29,6 +23,12 @@ from roco_env.policies.hypotheses import (
 )
 from roco_env.policies.hypothesis_kernels import best_pair_gains, close_pairs, pairwise_sum
 from roco_env.policies.landmarks import UncertaintyParams, prepare_inputs
+from roco_env.testing.constructed_scenes import (
+    benchmark_scene,
+    make_scene,
+    parking_rows,
+    pose_error,
+)
 
 
 def numpy_map(pose, poses):

@@ -16,7 +16,7 @@ PACKAGE = Path(roco_env.__file__).parent
 # Bottom to top, as docs/architecture.md draws them; modules of one layer may import
 # each other. ``__init__`` (the package's entry points) sits on top of env.
 LAYERS = (
-    ("schema",),
+    ("schema", "stages", "flags"),
     ("scenario",),
     ("geometry", "batched_nms"),
     ("traffic",),
@@ -26,11 +26,12 @@ LAYERS = (
     ("fusion",),
     ("metrics",),
     ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
-     "global_state", "render", "wrappers", "__init__"),
+     "global_state", "render", "wrappers", "rollout", "registration", "__init__"),
     ("training",),
     ("sweeps",),
     ("stress",),
     ("cli",),
+    ("testing",),  # scenes for the tests and benchmarks: nothing that runs the env uses it
     ("benchmarks",),
 )
 LEVEL = {name: level for level, names in enumerate(LAYERS) for name in names}

@@ -267,7 +267,8 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
     capsys.readouterr()
     for bad, message in ((["--freeze-encoder"], "(a frozen encoder, --freeze-encoder) needs "
                                                 "init, the weights file to start from (--init"),
-                         (["--warp-augment=2"], "must be a share in [0, 1] (--warp-augment)"),
+                         (["--warp-augment=2"], "warp_augment=2.0 is out of range; allowed "
+                                                "[0.0, 1.0]"),
                          (["--fused-x-range", "5", "-5"], "low < high, in m (--fused-x-range"),
                          (["--init", str(first), "--widths", "4", "8", "4"],
                           "were trained with widths (4, 8, 8)")):
@@ -277,14 +278,16 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
 
 
 def test_fine_tuning_inputs_are_checked(tmp_path):
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.schema import build
+    from roco_env.training.train import WHERE, TrainConfig, train
 
     with pytest.raises(ValueError, match="train_encoder=False .* needs init"):
         TrainConfig(train_encoder=False)
     with pytest.raises(ValueError, match="fused_x_range must be None or two finite numbers"):
         TrainConfig(fused_x_range=(40.0, -40.0))
-    with pytest.raises(ValueError, match=r"warp_augment must be a share in \[0, 1\]"):
-        TrainConfig(warp_augment=1.5)
+    with pytest.raises(ValueError, match=r"train-detector: warp_augment=1.5 is out of range; "
+                                         r"allowed \[0.0, 1.0\]"):
+        build(TrainConfig, {"warp_augment": 1.5}, WHERE)
     start = tmp_path / "start.pt"
     save_checkpoint(start, BevDetectorNet(NetConfig(widths=(4, 8, 8))), GRID, ScanNoise(), {})
     for change, field in (({"widths": (4, 8, 4)}, "widths"),

@@ -25,4 +25,4 @@ def test_unknown_benchmark_module_lists_the_available_ones(capsys):
         main(["alignmnet"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "unknown benchmark module 'alignmnet'; available: alignment, ego, env," in err
+    assert "unknown benchmark module 'alignmnet'; available: alignment, ego, env_step," in err

@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 
 from roco_env.geometry import wrap_angle
-from roco_env.noise import MODELS, make_pose_noise
+from roco_env.noise import make_pose_noise
 from roco_env.scenario import NoiseConfig
+from roco_env.stages import available_stages
+
+MODELS = available_stages("noise")
 
 SIGMA_T, SIGMA_R = 0.4, 0.6  # m, deg
 

@@ -7,17 +7,17 @@ from hypothesis import strategies as st
 
 from roco_env.policies import make_policy
 from roco_env.policies.coalign import coalign_align
-from roco_env.policies.constructed_scenes import (
-    make_scene,
-    pose_error,
-    random_objects,
-    to_observation,
-)
 from roco_env.policies.fallback import roco_fallback_align
 from roco_env.policies.freealign import freealign_align
 from roco_env.policies.ransac import ransac_align
 from roco_env.policies.roco import roco_align
 from roco_env.policies.v2i_calib import v2i_calib_align
+from roco_env.testing.constructed_scenes import (
+    make_scene,
+    pose_error,
+    random_objects,
+    to_observation,
+)
 
 ALIGNERS = [
     coalign_align,

@@ -37,3 +37,25 @@ def test_a_spec_string_and_unknown_parameters_are_explained():
     for name in ("identity", "oracle"):
         with pytest.raises(ValueError, match=f"policy '{name}' takes no parameters"):
             make_policy(name, tau2=2)
+
+
+@pytest.mark.parametrize("name", sorted(policies.registered_policies()))
+def test_every_builtin_refuses_an_unknown_parameter_by_name(name):
+    with pytest.raises(ValueError, match="no_such_key"):
+        make_policy(name, no_such_key=1)
+
+
+def test_a_declared_parameter_class_checks_policy_specs():
+    from roco_env.policies.ransac import RansacParams
+    from roco_env.policies.roco import RoCoPolicyParams
+    from roco_env.policies.spec import validate_policy_spec
+
+    assert policies.declared_params("roco") is RoCoPolicyParams
+    assert policies.declared_params("ransac") is RansacParams
+    assert policies.declared_params("identity") is None
+    with pytest.raises(ValueError, match=r"policy spec 'ransac:min_inliers=0': ransac: "
+                                         r"min_inliers=0 is out of range; allowed \[1, inf\)"):
+        validate_policy_spec("ransac:min_inliers=0")
+    with pytest.raises(ValueError, match=r"policy spec 'roco:pooled_significance=0.9,"
+                                         r"significance=null': pooled_significance needs"):
+        validate_policy_spec("roco:pooled_significance=0.9,significance=null")

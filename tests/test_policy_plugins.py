@@ -143,9 +143,9 @@ def test_list_names_the_stateful_policies(capsys):
 
 
 def test_a_plugin_without_a_policy_is_refused_before_the_sweep(plugin):
-    with pytest.raises(ValueError, match=r"policy spec 'my_plugin_mod:make_nothing': "
-                                         r"my_plugin_mod:make_nothing\(\) returned None, not a "
-                                         r"policy\(obs, info\) -> action"):
+    with pytest.raises(ValueError, match=r"policy spec 'my_plugin_mod:make_nothing': what "
+                                         r"my_plugin_mod:make_nothing\(\) returned must be a "
+                                         r"policy\(obs, info\) -> action; got None"):
         validate_policy_spec("my_plugin_mod:make_nothing")
 
 

@@ -9,19 +9,19 @@ from hypothesis import strategies as st
 from roco_env.geometry import se2_apply
 from roco_env.metrics import relative_pose_error
 from roco_env.policies import make_policy
-from roco_env.policies.constructed_scenes import (
-    make_scene,
-    parking_rows,
-    pose_error,
-    random_objects,
-    to_observation,
-)
 from roco_env.policies.fallback import roco_fallback_align
 from roco_env.policies.freealign import common_subgraph, freealign_align
 from roco_env.policies.prior_free import content_seed, fit_se2
 from roco_env.policies.ransac import ransac_align
 from roco_env.policies.roco import roco_align
 from roco_env.policies.v2i_calib import sinkhorn, v2i_calib_align
+from roco_env.testing.constructed_scenes import (
+    make_scene,
+    parking_rows,
+    pose_error,
+    random_objects,
+    to_observation,
+)
 
 PRIOR_FREE = {
     "ransac": ransac_align,

@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 
 from roco_env.policies.base import AlignmentResult
-from roco_env.policies.constructed_scenes import (
+from roco_env.policies.fallback import roco_fallback_align
+from roco_env.policies.freealign import freealign_align
+from roco_env.policies.ransac import ransac_align
+from roco_env.policies.v2i_calib import v2i_calib_align
+from roco_env.testing.constructed_scenes import (
     AlignmentScene,
     benchmark_scene,
     make_scene,
     parking_rows,
     pose_error,
 )
-from roco_env.policies.fallback import roco_fallback_align
-from roco_env.policies.freealign import freealign_align
-from roco_env.policies.ransac import ransac_align
-from roco_env.policies.v2i_calib import v2i_calib_align
 
 REFERENCE = Path(__file__).parent / "data" / "prior_free_reference.json"
 

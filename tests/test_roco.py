@@ -11,13 +11,6 @@ from roco_env.metrics import matching_precision_recall, relative_pose_error
 from roco_env.policies import make_policy
 from roco_env.policies.base import AlignmentResult, apply_correction
 from roco_env.policies.coalign import coalign_align
-from roco_env.policies.constructed_scenes import (
-    make_scene,
-    parking_rows,
-    pose_error,
-    random_objects,
-    to_observation,
-)
 from roco_env.policies.matching import (
     MatchingParams,
     StarGraphMatcher,
@@ -27,6 +20,13 @@ from roco_env.policies.matching import (
 )
 from roco_env.policies.pose_kernels import GatedPairs, edge_similarity
 from roco_env.policies.roco import roco_align
+from roco_env.testing.constructed_scenes import (
+    make_scene,
+    parking_rows,
+    pose_error,
+    random_objects,
+    to_observation,
+)
 
 AGENTS = np.array([[0.0, 0.0, 0.0], [15.0, 5.0, 0.5], [-10.0, 12.0, -1.0]])
 ERRORS = np.array([pose_error(0.8, 0.8, 0.3), pose_error(0.8, -0.8, 2.0)])

@@ -15,12 +15,6 @@ import pytest
 from conftest import assert_equal_to_rounding
 
 from roco_env.policies import roco
-from roco_env.policies.constructed_scenes import (
-    benchmark_scene,
-    make_scene,
-    parking_rows,
-    pose_error,
-)
 from roco_env.policies.landmarks import prepare_inputs, split_rows
 from roco_env.policies.matching import StarGraphMatcher
 from roco_env.policies.pose_kernels import (
@@ -33,6 +27,12 @@ from roco_env.policies.pose_kernels import (
 )
 from roco_env.policies.posegraph import optimize_pose, solver_settings
 from roco_env.policies.roco import RoCoParams
+from roco_env.testing.constructed_scenes import (
+    benchmark_scene,
+    make_scene,
+    parking_rows,
+    pose_error,
+)
 
 
 def _scenes():

@@ -6,9 +6,9 @@ from test_roco import calibrated_scene, errors
 
 import roco_env
 from roco_env.policies import make_policy
-from roco_env.policies.constructed_scenes import pose_error, to_observation
 from roco_env.policies.pooled import PooledSignificance
 from roco_env.policies.roco import NOT_SIGNIFICANT, roco_align
+from roco_env.testing.constructed_scenes import pose_error, to_observation
 
 LEVEL = 0.9999
 
@@ -88,7 +88,7 @@ def test_the_policy_corrects_small_errors_and_leaves_clean_poses_alone():
 
 
 def test_pooled_significance_is_checked_and_stateful_only_when_on():
-    assert getattr(make_policy("roco"), "keeps_state", None) is None
+    assert not make_policy("roco").keeps_state
     policy = make_policy("roco", pooled_significance=LEVEL)
     assert "collaborator" in policy.keeps_state
     for bad in ({"pooled_significance": 1.5}, {"pooled_significance": 0},

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roco_env.policies.constructed_scenes import benchmark_scene
 from roco_env.policies.roco import roco_align
+from roco_env.testing.constructed_scenes import benchmark_scene
 
 CASES = json.loads((Path(__file__).parent / "data" / "roco_reference.json").read_text())
 

@@ -152,7 +152,7 @@ def test_never_detects_itself():
 
 
 def test_invalid_preset_and_params_rejected():
-    with pytest.raises(ValueError, match="preset 'perfect'.*ideal.*realistic"):
+    with pytest.raises(ValueError, match="detector.preset='perfect'.*ideal.*realistic"):
         make_detector(DetectorConfig(preset="perfect"))
     with pytest.raises(ValueError, match="sigma_z'.*allowed:.*sigma_xy"):
         detector(sigma_z=0.1)

@@ -287,12 +287,13 @@ def test_the_command_writes_the_worst_scenarios_report_plot_and_gif(tmp_path, ca
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--budget", "0"], "budget must be an integer >= 1"),
-    (["--steps", "0"], "steps must be an integer >= 1"),
+    (["--budget", "0"], "stress: budget=0 is out of range; allowed [1, inf)"),
+    (["--steps", "0"], "stress: steps=0 is out of range; allowed [1, inf)"),
     (["--policy", "no_such_policy"], "no_such_policy"),
-    (["--workers", "0"], "workers must be an integer >= 1"),
+    (["--workers", "0"], "stress: workers=0 is out of range; allowed [1, inf)"),
     (["--address", "auto"], "--address needs --backend ray"),
     (["--space", "/no/such/space.yaml"], "no such file"),
+    (["--seeds", "0", "-1"], "seed must be None or an integer >= 0; got -1"),
 ])
 def test_bad_input_is_refused_with_a_clear_message(tmp_path, capsys, argv, message):
     args = ["stress", "--policy", "coalign", "--out", str(tmp_path / "out"), "--budget", "1",
@@ -302,7 +303,7 @@ def test_bad_input_is_refused_with_a_clear_message(tmp_path, capsys, argv, messa
 
 
 @pytest.mark.parametrize("argv", [["--objective", "worst"], ["--sampler", "grid"],
-                                  ["--seeds", "-1"], ["--backend", "dask"]])
+                                  ["--seeds", "one"], ["--backend", "dask"]])
 def test_bad_choices_are_refused_by_the_parser(tmp_path, capsys, argv):
     with pytest.raises(SystemExit) as stop:
         main(["stress", "--policy", "coalign", "--out", str(tmp_path)] + argv)

@@ -9,8 +9,8 @@ from conftest import FAILING_NOISE, fake_cell
 from PIL import Image
 
 from roco_env.sweeps.grid import build_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 
 def _markdown_tables(text: str) -> dict[str, list[list[str]]]:

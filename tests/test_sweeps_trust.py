@@ -21,9 +21,9 @@ from test_sweeps_sweep import _alive, _children
 from roco_env.cli import main
 from roco_env.sweeps import provenance
 from roco_env.sweeps.grid import Cell, build_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.store import ResultsInUse, ResultStore
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 
 @pytest.fixture(autouse=True)
@@ -319,10 +319,11 @@ class FakeClock:
 def test_time_per_call_leaves_out_each_agents_first_call(monkeypatch):
     """The first call of each policy pays numba's compilation (hundreds of ms in a fresh
     worker): it must not be in the reported per-call time."""
+    from roco_env import rollout
     from roco_env.sweeps import episode
 
     clock = FakeClock()
-    monkeypatch.setattr(episode, "time", clock)
+    monkeypatch.setattr(rollout, "time", clock)  # the episode loop times each call
 
     class Compiling:
         calls = 0

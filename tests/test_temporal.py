@@ -104,13 +104,13 @@ def test_accepts_registry_names_and_validates():
 def test_wraps_a_real_aligner_on_a_static_scene():
     from roco_env.metrics import relative_pose_error
     from roco_env.policies.base import apply_correction
-    from roco_env.policies.constructed_scenes import (
+    from roco_env.policies.temporal import roco_temporal
+    from roco_env.testing.constructed_scenes import (
         make_scene,
         pose_error,
         random_objects,
         to_observation,
     )
-    from roco_env.policies.temporal import roco_temporal
 
     objects = random_objects(np.random.default_rng(1), 12, 40.0)
     agents = np.array([[0.0, 0.0, 0.0], [15.0, 5.0, 0.5]])

@@ -72,7 +72,7 @@ def test_one_temporal_instance_keeps_each_egos_filters_apart():
 
 def test_pooled_roco_without_ids_refuses_instead_of_keying_by_slot():
     from roco_env.policies import make_policy
-    from roco_env.policies.constructed_scenes import (
+    from roco_env.testing.constructed_scenes import (
         make_scene,
         pose_error,
         random_objects,
@@ -179,7 +179,7 @@ def test_the_pettingzoo_floor_has_the_registry_roco_env_uses():
     from packaging.requirements import Requirement
 
     root = Path(__file__).resolve().parents[1]
-    assert "pettingzoo.parallel_registry" in (root / "roco_env" / "__init__.py").read_text()
+    assert "pettingzoo.parallel_registry" in (root / "roco_env" / "registration.py").read_text()
     # The one quoted requirement naming pettingzoo (tomllib is Python 3.11+).
     (line,) = re.findall(r'"(pettingzoo[^"]*)"', (root / "pyproject.toml").read_text())
     pettingzoo = Requirement(line)

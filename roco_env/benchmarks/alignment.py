@@ -1,7 +1,7 @@
 """Per-frame alignment latency of coalign, roco and roco_antialias
 (``python -m roco_env.benchmarks alignment``).
 
-Scenes from :func:`roco_env.policies.constructed_scenes.benchmark_scene` (seeded) with
+Scenes from :func:`roco_env.testing.constructed_scenes.benchmark_scene` (seeded) with
 (agents, objects) = (2, 20), (5, 60), (10, 200); each line gives the median time of one
 ``coalign_align`` / ``roco_align`` / ``antialias_align`` call on the same frame, the
 calls interleaved round by round, timed as CPU time of this process (other processes'
@@ -33,8 +33,9 @@ import roco_env
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.coalign import coalign_align
-from roco_env.policies.constructed_scenes import benchmark_scene, to_observation
 from roco_env.policies.roco import roco_align
+from roco_env.rollout import play_episode
+from roco_env.testing.constructed_scenes import benchmark_scene, to_observation
 
 SIZES = ((2, 20), (5, 60), (10, 200))
 ENV_POLICIES = ("identity", "coalign", "roco", "roco_antialias")
@@ -45,11 +46,9 @@ PRIOR_FREE_BUDGET_MS = 10.0
 def _episode(policy: str, steps: int) -> None:
     """One seeded urban_intersection episode of ``steps`` steps driven by ``policy``."""
     env = roco_env.parallel_env("urban_intersection", max_cycles=steps, sigma_t=0.8, sigma_r=0.8)
-    observations, infos = env.reset(seed=0)
-    agents = {agent: make_policy(policy) for agent in env.agents}
-    while env.agents:
-        actions = {a: agents[a](observations[a], infos[a]) for a in env.agents}
-        observations, _, _, _, infos = env.step(actions)
+    for _ in play_episode(env, {agent: make_policy(policy) for agent in env.possible_agents},
+                          seed=0):
+        pass
     env.close()
 
 

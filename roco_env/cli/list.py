@@ -26,7 +26,7 @@ def _policy_lines() -> list[str]:
     lines = []
     for name in available_policies():
         try:
-            state = getattr(make_policy(name), "keeps_state", None)
+            state = make_policy(name).keeps_state
         except (ValueError, TypeError) as exc:  # a broken plug-in must not hide the others
             lines.append(f"  {name:<28} (cannot build: {exc})")
             continue

@@ -52,16 +52,14 @@ def _line(cells: list[str] | tuple[str, ...]) -> str:
 def run(args: argparse.Namespace) -> int:
     cell = episode_cell(args)
 
-    # Printed once the env is reset, so that a scene it cannot build says why on its own.
-    def header(_scorer: object) -> None:
-        print(f"{cell.scenario}: policy {cell.policy}, noise {cell.noise:g} m / "
-              f"{cell.noise:g} deg, {cell.steps} steps, seed {cell.seed}")
-        print(_line(COLUMNS), flush=True)
-
     def on_step(step: int, env, actions: dict, infos: dict) -> None:
+        if step == 1:  # printed once a step ran, so that a scene that fails says why alone
+            print(f"{cell.scenario}: policy {cell.policy}, noise {cell.noise:g} m / "
+                  f"{cell.noise:g} deg, {cell.steps} steps, seed {cell.seed}")
+            print(_line(COLUMNS), flush=True)
         print(_line(step_row(step, actions, infos)), flush=True)
 
-    metrics, _ = run_episode(cell, on_step=on_step, on_scorer=header)
+    metrics, _ = run_episode(cell, on_step=on_step)
     if metrics["steps"] < cell.steps:
         print(f"the episode ended after {metrics['steps']} of {cell.steps} steps: the scenario's "
               "frames ran out (a replay or user frames end at their last frame)")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from roco_env.training.rl.config import add_arguments
+    from roco_env.training.rl.config import FLAGS
 
     p = subparsers.add_parser(
         "train-policy",
@@ -23,20 +23,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, type=Path, help="output folder (resumable)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or log lines")
-    add_arguments(p)
+    FLAGS.add_to(p)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     from roco_env.sensing.learned.model import sha256_of
-    from roco_env.training.rl.config import command_arguments, config_from_arguments
+    from roco_env.training.rl.config import FLAGS
     from roco_env.training.rl.export import save_policy
     from roco_env.training.rl.ppo import train
     from roco_env.training.rl.report import write_report
 
-    config = config_from_arguments(args)
-    command = "roco-env train-policy " + shlex.join([f"--out={args.out}",
-                                                     *command_arguments(config)])
+    config = FLAGS.parse(args)
+    command = "roco-env train-policy " + shlex.join([f"--out={args.out}", *FLAGS.argv(config)])
     args.out.mkdir(parents=True, exist_ok=True)
     log = (lambda message: None) if args.quiet else \
         (lambda message: print(message, file=sys.stderr, flush=True))

@@ -19,11 +19,12 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 import torch
 
-from roco_env.fusion.late import EGO_SOURCE, FusedDetections
+from roco_env.fusion.late import EGO_SOURCE, FusedDetections, kept_items
 from roco_env.fusion.warp_kernels import Gate, Warp, warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.features import zero_padded
@@ -258,3 +259,22 @@ def intermediate_fusion(detector, encoder_maps, state: WorldState,
     decoded = detector.decode(fused, ground_references(state)[list(egos)], canvas)
     return [FusedDetections(d.boxes, d.scores, np.full(len(d.scores), EGO_SOURCE, dtype=np.int64),
                             np.arange(len(d.scores), dtype=np.int64)) for d in decoded]
+
+
+class IntermediateFusion:
+    """``intermediate``: the kept collaborators' encoder maps warped into the ego's, fused
+    and decoded by the learned detector (:func:`intermediate_fusion`) over the
+    evaluation range."""
+
+    def __init__(self, config: Any, detector: Any) -> None:
+        self.detector = detector
+        self.x_range = tuple(config.evaluation.x_range)
+        self.y_range = tuple(config.evaluation.y_range)
+
+    def fuse(self, frame: Any, egos: Sequence[int], kept: Sequence[np.ndarray],
+             poses: Sequence[np.ndarray]) -> list[FusedDetections]:
+        return intermediate_fusion(
+            self.detector, frame.encoder_maps, frame.state, egos,
+            [kept_items(frame.views[k].collaborators, keep) for k, keep in zip(egos, kept,
+                                                                               strict=True)],
+            poses, self.x_range, self.y_range)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -224,3 +225,38 @@ def _scores(scores: np.ndarray, n_boxes: int, name: str) -> np.ndarray:
     if scores.shape[0] != n_boxes:
         raise ValueError(f"{name} must have one score per box ({n_boxes}); got {scores.shape[0]}")
     return scores
+
+
+class LateFusion:
+    """``late`` (the default): the ego's boxes and its kept collaborators' boxes, moved
+    into the ego frame with the corrected poses (:func:`merge_many`)."""
+
+    def __init__(self, config: Any = None, detector: Any = None) -> None:
+        """The stage factory's signature; late fusion needs neither argument."""
+
+    def fuse(self, frame: Any, egos: Sequence[int], kept: Sequence[np.ndarray],
+             poses: Sequence[np.ndarray]) -> list[FusedDetections]:
+        return merge_many([
+            (frame.views[k].boxes, frame.views[k].scores,
+             kept_items(frame.views[k].collab_boxes, keep),
+             kept_items(frame.views[k].collab_scores, keep), pose)
+            for k, keep, pose in zip(egos, kept, poses, strict=True)])
+
+
+class NoFusion(LateFusion):
+    """``none``: the ego's own boxes alone (the no-fusion reference row)."""
+
+    def fuse(self, frame: Any, egos: Sequence[int], kept: Sequence[np.ndarray],
+             poses: Sequence[np.ndarray]) -> list[FusedDetections]:
+        return own_detections(frame, egos)
+
+
+def own_detections(frame: Any, egos: Sequence[int]) -> list[FusedDetections]:
+    """Each ego's own boxes as merged detections (no collaborator), in its true frame."""
+    return merge_many([(frame.views[k].boxes, frame.views[k].scores, (), (), np.zeros((0, 3)))
+                       for k in egos])
+
+
+def kept_items(items: Sequence, keep: np.ndarray) -> list:
+    """The entries of ``items`` (one per collaborator slot) whose slot ``keep`` keeps."""
+    return [item for item, k in zip(items, keep, strict=True) if k]

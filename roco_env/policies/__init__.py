@@ -1,9 +1,12 @@
 """Alignment policies and their registry (algorithms and equations: docs/alignment.md).
 
 ``make_policy(name, **params)`` builds a registered policy; ``available_policies()``
-lists the names. A user policy is any callable ``policy(obs, info=None) -> action``;
-three ways make it a name everywhere a policy name is accepted (``make_policy``,
-``roco-env compare --policies``, ``roco-env run --policy``):
+lists the names. A user policy is any callable ``policy(obs, info=None) -> action``
+(``make_policy`` returns it as a :class:`~roco_env.policies.base.Policy`, with the
+``reset``, ``keeps_state`` and ``last_result`` it lacks given by
+:func:`~roco_env.policies.base.as_policy`); three ways make it a name everywhere a policy
+name is accepted (``make_policy``, ``roco-env compare --policies``, ``roco-env run
+--policy``):
 
 * ``"my_pkg.module:make_policy"``: an import target, ``module:factory``;
 * ``register_policy("mine", "my_pkg.module:make_policy")`` in your own code;
@@ -12,11 +15,15 @@ three ways make it a name everywhere a policy name is accepted (``make_policy``,
       [project.entry-points."roco_env.policies"]
       mine = "my_pkg.module:make_policy"
 
-The factory is called with the spec's parameters and returns the callable.
+The factory is called with the spec's parameters and returns the callable. A factory
+that declares its parameters as a :func:`roco_env.schema.spec` dataclass, ``PARAMS``
+(:func:`declared_params`), has a policy spec's parameters checked against it before
+anything is built (``roco_env.policies.spec.validate_policy_spec``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.metadata
 import sys
@@ -25,7 +32,9 @@ from typing import Any
 
 from roco_env.policies.base import (
     AlignmentResult,
+    Policy,
     apply_correction,
+    as_policy,
     correction_action,
     reported_relative_poses,
 )
@@ -100,8 +109,22 @@ def registered_policies() -> dict[str, str]:
     return dict(_REGISTRY)
 
 
-def make_policy(name: str, **params: Any) -> Callable:
-    """Build the policy registered as ``name``, or imported from ``module:factory``."""
+def make_policy(name: str, **params: Any) -> Policy:
+    """Build the policy registered as ``name``, or imported from ``module:factory``; a
+    factory returning a plain callable gets the :class:`Policy` members it lacks."""
+    return as_policy(_factory(name)(**params), f"what {name}() returned")
+
+
+def declared_params(name: str) -> type | None:
+    """The parameter dataclass the factory of ``name`` declares as ``PARAMS`` (its fields,
+    made with :func:`roco_env.schema.spec`, are every keyword argument the factory takes), or
+    None when it declares none."""
+    declared = getattr(_factory(name), "PARAMS", None)
+    return declared if dataclasses.is_dataclass(declared) else None
+
+
+def _factory(name: str) -> Callable:
+    """The factory registered as ``name``, or imported from ``module:factory``."""
     if not isinstance(name, str):
         raise ValueError(f"make_policy: name must be a policy name (available_policies()) or "
                          f"an import target 'my_pkg.module:make_policy'; got {name!r} "
@@ -129,15 +152,17 @@ def make_policy(name: str, **params: Any) -> Callable:
         raise ValueError(f"policy {name!r}: cannot import module {module_name!r}: {exc}") from exc
     if not callable(getattr(module, factory, None)):
         raise ValueError(f"policy {name!r}: module {module_name!r} has no callable {factory!r}")
-    return getattr(module, factory)(**params)
+    return getattr(module, factory)
 
 
 __all__ = [
     "AlignmentResult",
+    "Policy",
     "apply_correction",
     "ENTRY_POINT_GROUP",
     "available_policies",
     "correction_action",
+    "declared_params",
     "is_import_target",
     "make_policy",
     "register_policy",

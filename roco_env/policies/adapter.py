@@ -151,8 +151,11 @@ class ArrayAlignmentPolicy:
     the last result in observation positions (slots, box indices). Subclasses that need
     more per call (arguments from the observation or the info dict, state across calls)
     override :meth:`align_view`, the one step between unpacking the observation and
-    mapping the result back.
+    mapping the result back; one that keeps state says what in ``keeps_state``
+    (:class:`~roco_env.policies.base.Policy`).
     """
+
+    keeps_state: bool | str = False
 
     def __init__(self, align: Callable[..., AlignmentResult], params: object, kwargs: dict):
         self._align = align

@@ -1,19 +1,22 @@
-"""What every alignment policy shares: the result type and observation helpers.
+"""What every alignment policy shares: the :class:`Policy` protocol, the result type
+and observation helpers.
 
-A policy is any callable ``policy(observation, info=None) -> action`` where the
-action (N, 3) holds one correction (dx, dy, dyaw) per collaborator slot, in the
-ego frame: ``T_corrected_{j->i} = SE2(dx, dy, dyaw) * T_reported_{j->i}``
-(metres, radians). Zeros trust the reported poses. Built-in alignment policies
-also keep their last :class:`AlignmentResult` in ``policy.last_result`` so a
-sweep can score their matching. A policy that reads files (learned weights, lookup
-tables) declares them with an ``input_files()`` method (:class:`ReadsFiles`), so a
-sweep's resume check covers their content.
+A policy is called as ``policy(observation, info=None) -> action``; in the default
+action mode the action (N, 3) holds one correction (dx, dy, dyaw) per collaborator
+slot, in the ego frame: ``T_corrected_{j->i} = SE2(dx, dy, dyaw) * T_reported_{j->i}``
+(metres, radians). Zeros trust the reported poses. Besides the call, a
+:class:`Policy` has ``reset()`` (a new episode), ``keeps_state`` (whether, and what,
+it keeps across calls) and ``last_result`` (its last :class:`AlignmentResult`, so a
+sweep can score its matching). Every built-in policy is one; :func:`as_policy` gives
+any other callable (a plain function) the members it lacks. A policy that reads files
+(learned weights, lookup tables) declares them with an ``input_files()`` method
+(:class:`ReadsFiles`), so a sweep's resume check covers their content.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -22,8 +25,9 @@ import numpy as np
 
 from roco_env.geometry import apply_correction, se2_compose, se2_inverse, se2_relative
 
-__all__ = ["AlignmentResult", "ReadsFiles", "apply_correction", "correction_action",
-           "policy_input_files", "reported_relative_poses"]
+__all__ = ["AlignmentResult", "Policy", "PolicyAdapter", "ReadsFiles", "StatelessPolicy",
+           "act", "apply_correction", "as_policy", "correction_action", "policy_input_files",
+           "reported_relative_poses"]
 
 
 @dataclass
@@ -97,3 +101,94 @@ def policy_input_files(policy: Any) -> tuple[Path, ...]:
         raise TypeError(f"{type(policy).__name__}.input_files() must return a list of paths; "
                         f"got {declared!r}")
     return tuple(Path(item) for item in declared)
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """What the env's action modes, its wrappers, the episode loop and the sweeps call.
+
+    ``__call__(observation, info=None)``: the action on one agent's observation (``info``
+    is the env's info returned with it). ``reset()``: a new episode (forget what was kept).
+    ``keeps_state``: falsy for a policy whose action depends on this call alone, else a
+    text saying what it keeps across calls (``roco-env list`` shows it; the env's action
+    modes run a stateful aligner on every step). ``last_result``: the
+    :class:`AlignmentResult` of its last call, None when it reports none.
+    """
+
+    keeps_state: bool | str
+    last_result: AlignmentResult | None
+
+    def __call__(self, observation: Mapping[str, Any],
+                 info: Mapping[str, Any] | None = None) -> np.ndarray:
+        ...
+
+    def reset(self) -> None:
+        ...
+
+
+class StatelessPolicy:
+    """The :class:`Policy` members of a policy that keeps nothing across calls and reports
+    no alignment result; subclasses define ``__call__``."""
+
+    keeps_state: bool | str = False
+    last_result: AlignmentResult | None = None
+
+    def reset(self) -> None:
+        """Nothing to forget."""
+
+
+class PolicyAdapter:
+    """A callable ``policy(observation, info=None) -> action`` as a :class:`Policy`: the
+    members it has are its own, the missing ones the defaults (stateless, no result,
+    ``reset`` does nothing). The files it declares (:class:`ReadsFiles`) and its
+    ``env_overrides`` stay visible; ``policy`` is the callable itself."""
+
+    def __init__(self, policy: Callable[..., Any]) -> None:
+        self.policy = policy
+
+    def __call__(self, observation: Mapping[str, Any],
+                 info: Mapping[str, Any] | None = None) -> np.ndarray:
+        return self.policy(observation, info)
+
+    @property
+    def keeps_state(self) -> bool | str:
+        return getattr(self.policy, "keeps_state", False)
+
+    @property
+    def last_result(self) -> AlignmentResult | None:
+        return getattr(self.policy, "last_result", None)
+
+    @property
+    def env_overrides(self) -> Mapping[str, Any] | None:
+        """The env modes the callable acts in (None: it declares none)."""
+        return getattr(self.policy, "env_overrides", None)
+
+    def reset(self) -> None:
+        reset = getattr(self.policy, "reset", None)
+        if callable(reset):
+            reset()
+
+    def input_files(self) -> tuple[Path, ...]:
+        """The files the callable declares (none without the hook)."""
+        return policy_input_files(self.policy)
+
+
+def as_policy(policy: Any, label: str = "policy") -> Policy:
+    """``policy`` itself when it is a :class:`Policy`, else the callable in a
+    :class:`PolicyAdapter`; ValueError naming ``label`` when it is not callable."""
+    if isinstance(policy, Policy):
+        return policy
+    if not callable(policy):
+        raise ValueError(f"{label} must be a policy(obs, info) -> action; got {policy!r}")
+    return PolicyAdapter(policy)
+
+
+def act(policy: Policy, observation: Mapping[str, Any],
+        info: Mapping[str, Any] | None) -> tuple[Any, AlignmentResult | None]:
+    """(action, result) of one call of ``policy``: the action as returned (the env checks
+    it) and the :class:`AlignmentResult` of this very call, None when the call reported
+    none (a result left from an earlier call is never returned)."""
+    previous = policy.last_result
+    action = policy(observation, info)
+    result = policy.last_result
+    return action, None if result is previous else result

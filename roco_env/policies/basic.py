@@ -1,8 +1,8 @@
 """The two reference policies: ``identity`` (trust the reported poses) and ``oracle``.
 
-Both are callables ``policy(observation, info=None) -> action (N, 3) float32``
-(one (dx, dy, dyaw) correction per collaborator slot, metres and radians, in the
-ego frame; see :mod:`roco_env.policies.base`).
+Both are stateless :class:`~roco_env.policies.base.Policy` objects,
+``policy(observation, info=None) -> action (N, 3) float32`` (one (dx, dy, dyaw)
+correction per collaborator slot, metres and radians, in the ego frame).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from roco_env.policies.base import correction_action
+from roco_env.policies.base import StatelessPolicy, correction_action
 
 
 def _slots(observation: Mapping[str, Any]) -> int:
@@ -30,7 +30,7 @@ def _no_params(name: str, params: dict) -> None:
         raise ValueError(f"policy {name!r} takes no parameters; got {sorted(params)}")
 
 
-class IdentityPolicy:
+class IdentityPolicy(StatelessPolicy):
     """Keeps every reported relative pose: the all-zeros correction."""
 
     def __init__(self, **params: Any) -> None:
@@ -40,7 +40,7 @@ class IdentityPolicy:
         return np.zeros((_slots(observation), 3), dtype=np.float32)
 
 
-class OraclePolicy:
+class OraclePolicy(StatelessPolicy):
     """Returns the exact correction from the privileged truth in ``info``.
 
     Reads ``info["privileged"]["true_relative_poses"]`` and

@@ -61,6 +61,7 @@ from roco_env.policies.landmarks import (
     prepare_inputs,
 )
 from roco_env.policies.posegraph import optimize
+from roco_env.schema import spec
 
 __all__ = [
     "CoAlignParams",
@@ -76,36 +77,22 @@ YAW_VARIANCES = ("circular", "released")
 
 @dataclass(frozen=True)
 class CoAlignParams(UncertaintyParams):
-    """CoAlign parameters: cluster_threshold (m), hard_yaw_variance (rad^2),
-    max_landmarks_keep_prior, max_hard_fraction, min_matches, max_solver_iterations,
-    yaw_variance ("circular" | "released", see the module docstring)."""
+    """CoAlign parameters (module docstring)."""
 
-    cluster_threshold: float = 1.5
-    hard_yaw_variance: float = 0.2
-    max_landmarks_keep_prior: int = 3
-    max_hard_fraction: float = 0.5
-    min_matches: int = 1
-    max_solver_iterations: int = 1000
-    yaw_variance: str = "circular"
-
-    def __post_init__(self) -> None:
-        UncertaintyParams.__post_init__(self)
-        if self.yaw_variance not in YAW_VARIANCES:
-            raise ValueError(f"yaw_variance must be one of {list(YAW_VARIANCES)}; "
-                             f"got {self.yaw_variance!r}")
-        if not (np.isfinite(self.cluster_threshold) and self.cluster_threshold > 0):
-            raise ValueError(f"cluster_threshold must be > 0 m; got {self.cluster_threshold}")
-        if not self.hard_yaw_variance > 0:
-            raise ValueError(f"hard_yaw_variance must be > 0 rad^2; got {self.hard_yaw_variance}")
-        if not 0 < self.max_hard_fraction <= 1:
-            raise ValueError(f"max_hard_fraction must be in (0, 1]; got {self.max_hard_fraction}")
-        if self.max_landmarks_keep_prior < 0:
-            raise ValueError(
-                f"max_landmarks_keep_prior must be >= 0; got {self.max_landmarks_keep_prior}"
-            )
-        for name in ("min_matches", "max_solver_iterations"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
+    cluster_threshold: float = spec(1.5, low=0.0, low_open=True,
+                                    doc="a seed box takes the boxes within this distance, m")
+    hard_yaw_variance: float = spec(0.2, low=0.0, low_open=True,
+                                    doc="a landmark with a larger yaw variance (rad^2) is hard")
+    max_landmarks_keep_prior: int = spec(3, low=0, doc="with at most this many landmarks "
+                                         "every reported pose is kept")
+    max_hard_fraction: float = spec(0.5, low=0.0, high=1.0, low_open=True,
+                                    doc="with this share of hard landmarks or more every "
+                                    "reported pose is kept")
+    min_matches: int = spec(1, low=1, doc="boxes on easy landmarks a collaborator needs")
+    max_solver_iterations: int = spec(1000, low=1, doc="Levenberg-Marquardt cap")
+    yaw_variance: str = spec("circular", choices=YAW_VARIANCES,
+                             doc="a landmark's yaw variance: circular, or the released "
+                             "code's np.var in the world frame")
 
 
 def greedy_clusters(xy: np.ndarray, owner: np.ndarray, threshold: float) -> list[np.ndarray]:
@@ -263,6 +250,8 @@ def _usable_agents(
 
 class CoAlignPolicy(ArrayAlignmentPolicy):
     """CoAlign as an env policy: ``CoAlignPolicy(**params)(obs, info=None) -> action (N, 3)``."""
+
+    PARAMS = CoAlignParams
 
     def __init__(self, **params) -> None:
         super().__init__(

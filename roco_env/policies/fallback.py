@@ -53,6 +53,7 @@ the second pass's when there is one.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -65,8 +66,9 @@ from roco_env.policies.prior_free import consensus, poses_distinct
 from roco_env.policies.ransac import RansacParams, ransac_align
 from roco_env.policies.roco import NOT_SIGNIFICANT, RoCoParams, roco_align
 from roco_env.policies.v2i_calib import V2ICalibParams, v2i_calib_align
+from roco_env.schema import spec
 
-__all__ = ["FALLBACKS", "roco_fallback_align", "RoCoFallbackPolicy"]
+__all__ = ["FALLBACKS", "RoCoFallbackParams", "RoCoFallbackPolicy", "roco_fallback_align"]
 
 FALLBACKS = {
     "ransac": (ransac_align, RansacParams),
@@ -74,26 +76,34 @@ FALLBACKS = {
     "freealign": (freealign_align, FreeAlignParams),
 }
 _PREFIX = "fallback_"
-_OWN_DEFAULTS = {"verify_beyond_m": 0.0, "verify_beyond_deg": 0.0,
-                 "refine_beyond_m": 1.0, "refine_beyond_deg": 1.0}
+_ROCO_FIELDS = frozenset(RoCoParams.__dataclass_fields__)
 
 
-def _split(params: dict) -> tuple[str, dict, dict, dict]:
-    """(fallback name, the policy's own params, the fallback's params, roco params),
-    each validated."""
-    params = dict(params)
-    name = params.pop("fallback", "ransac")
-    if name not in FALLBACKS:
-        raise ValueError(f"fallback must be one of {sorted(FALLBACKS)}; got {name!r}")
-    own = {key: params.pop(key, default) for key, default in _OWN_DEFAULTS.items()}
-    for key, value in own.items():
-        if value is not None and not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"{key} must be None or >= 0; got {value}")
+@dataclass(frozen=True)
+class RoCoFallbackParams(RoCoParams):
+    """roco_fallback's parameters: RoCo's and its own (module docstring). The keys prefixed
+    ``fallback_`` are the fallback aligner's parameters, checked by its class."""
+
+    fallback: str = spec("ransac", choices=tuple(FALLBACKS), doc="the prior-free aligner")
+    verify_beyond_m: float | None = spec(0.0, low=0.0, doc="a correction of RoCo's larger "
+                                         "than this (m) or verify_beyond_deg is checked by the "
+                                         "fallback (None and None: none is)")
+    verify_beyond_deg: float | None = spec(0.0, low=0.0, doc="see verify_beyond_m, deg")
+    refine_beyond_m: float | None = spec(1.0, low=0.0, doc="a correction of RoCo's larger "
+                                         "than this (m) or refine_beyond_deg is solved again "
+                                         "from RoCo's own estimate (None and None: none is)")
+    refine_beyond_deg: float | None = spec(1.0, low=0.0, doc="see refine_beyond_m, deg")
+
+
+def _split(params: dict) -> tuple[RoCoFallbackParams, object, dict, dict]:
+    """(the policy's checked parameters, the fallback's checked parameters and its keyword
+    arguments, RoCo's keyword arguments)."""
     inner = {k[len(_PREFIX):]: v for k, v in params.items() if k.startswith(_PREFIX)}
-    roco = {k: v for k, v in params.items() if not k.startswith(_PREFIX)}
-    params_from_kwargs(FALLBACKS[name][1], inner, f"roco_fallback fallback {name!r}")
-    params_from_kwargs(RoCoParams, roco, "roco_fallback")
-    return name, own, inner, roco
+    own = {k: v for k, v in params.items() if not k.startswith(_PREFIX)}
+    p = params_from_kwargs(RoCoFallbackParams, own, "roco_fallback")
+    fallback_params = params_from_kwargs(FALLBACKS[p.fallback][1], inner,
+                                         f"roco_fallback fallback {p.fallback!r}")
+    return p, fallback_params, inner, {k: v for k, v in own.items() if k in _ROCO_FIELDS}
 
 
 def roco_fallback_align(
@@ -108,12 +118,13 @@ def roco_fallback_align(
 
     Same array call as :func:`roco_env.policies.roco.roco_align`.
     """
-    name, own, inner, roco_params = _split(params)
+    p, fallback_params, inner, roco_params = _split(params)
     reported = np.asarray(reported, dtype=float)
     first = roco_align(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, **roco_params)
     found, found_poses, found_pairs = _relocalise(
-        name, inner, own, first, ego_boxes, ego_unc, collab_boxes, collab_unc, reported)
-    recentred = np.setdiff1d(_large_corrections(first, reported, own, "refine_beyond"), found)
+        p, fallback_params, inner, first, ego_boxes, ego_unc, collab_boxes, collab_unc,
+        reported)
+    recentred = np.setdiff1d(_large_corrections(first, reported, p, "refine_beyond"), found)
     use = np.union1d(found, recentred)
     if use.size == 0:
         return first
@@ -137,7 +148,8 @@ def roco_fallback_align(
     extra = found_pairs[~second.applied[found_pairs[:, 2]]]
     notes = []
     if found.size:
-        notes.append(f"slots {found.tolist()}: re-localised by {name}, then refined by roco")
+        notes.append(f"slots {found.tolist()}: re-localised by {p.fallback}, then refined by "
+                     "roco")
     if recentred.size:
         notes.append(f"slots {recentred.tolist()}: refined by roco from its own estimate")
     reasons = [f"slot {j}: {r}" for j, r in enumerate(first.slot_reasons) if r and j not in use]
@@ -156,9 +168,9 @@ def roco_fallback_align(
 
 
 def _relocalise(
-    name: str,
+    p: RoCoFallbackParams,
+    fallback_params: object,
     inner: dict,
-    own: dict,
     first: AlignmentResult,
     ego_boxes: np.ndarray,
     ego_unc: np.ndarray,
@@ -172,12 +184,11 @@ def _relocalise(
     stuck = [j for j in range(first.applied.size)
              if not first.applied[j] and len(collab_boxes[j])
              and not first.slot_reasons[j].startswith(NOT_SIGNIFICANT)]
-    moved = _large_corrections(first, reported, own, "verify_beyond")
+    moved = _large_corrections(first, reported, p, "verify_beyond")
     slots = np.array(sorted([*stuck, *moved]), dtype=np.int64)
     if slots.size == 0:
         return slots, np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64)
-    align, params_cls = FALLBACKS[name]
-    fallback_params = params_from_kwargs(params_cls, inner, name)
+    align = FALLBACKS[p.fallback][0]
     estimate = align(ego_boxes, ego_unc, [collab_boxes[j] for j in slots],
                      [collab_unc[j] for j in slots], reported[slots], **inner)
     ok = estimate.applied & poses_distinct(estimate.corrected, reported[slots], fallback_params)
@@ -195,17 +206,18 @@ def _relocalise(
     return slots[ok], estimate.corrected[ok], pairs
 
 
-def _large_corrections(result: AlignmentResult, reported: np.ndarray, own: dict,
+def _large_corrections(result: AlignmentResult, reported: np.ndarray, p: RoCoFallbackParams,
                        name: str) -> np.ndarray:
-    """Slots (int64) whose applied correction exceeds ``own[name + "_m"]`` m or
-    ``own[name + "_deg"]`` deg (none when both are None)."""
+    """Slots (int64) whose applied correction exceeds ``p``'s ``name + "_m"`` m or
+    ``name + "_deg"`` deg (none when both are None)."""
     size_m = np.hypot(*(result.corrected[:, :2] - reported[:, :2]).T)
     size_deg = np.rad2deg(np.abs(wrap_angle(result.corrected[:, 2] - reported[:, 2])))
     large = np.zeros(size_m.size, dtype=bool)
-    if own[f"{name}_m"] is not None:
-        large |= size_m > own[f"{name}_m"]
-    if own[f"{name}_deg"] is not None:
-        large |= size_deg > own[f"{name}_deg"]
+    limit_m, limit_deg = getattr(p, f"{name}_m"), getattr(p, f"{name}_deg")
+    if limit_m is not None:
+        large |= size_m > limit_m
+    if limit_deg is not None:
+        large |= size_deg > limit_deg
     return np.nonzero(large & result.applied)[0].astype(np.int64)
 
 
@@ -213,5 +225,4 @@ class RoCoFallbackPolicy(ArrayAlignmentPolicy):
     """``roco_fallback`` as an env policy: ``RoCoFallbackPolicy(**params)(obs) -> action``."""
 
     def __init__(self, **params) -> None:
-        _split(params)
-        super().__init__(roco_fallback_align, dict(params), params)
+        super().__init__(roco_fallback_align, _split(params)[0], params)

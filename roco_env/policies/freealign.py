@@ -55,6 +55,7 @@ from roco_env.policies.prior_free_kernels import (
     descriptor_similarity,
     grow_subgraph,
 )
+from roco_env.schema import spec
 
 __all__ = ["FreeAlignParams", "FreeAlignPolicy", "common_subgraph", "freealign_align",
            "freealign_search"]
@@ -62,35 +63,29 @@ __all__ = ["FreeAlignParams", "FreeAlignPolicy", "common_subgraph", "freealign_a
 
 @dataclass(frozen=True)
 class FreeAlignParams(PriorFreeParams):
-    """FreeAlign parameters on top of :class:`PriorFreeParams` (module docstring):
-    descriptor_neighbors, edge_tolerance (m), anchors, edge_yaw_tolerance_deg (None =
-    distances only), min_subgraph (nodes a subgraph needs to become a candidate),
-    max_subgraph (growth stops there; None = grow to the full common subgraph)."""
+    """FreeAlign parameters on top of :class:`PriorFreeParams` (module docstring)."""
 
-    descriptor_neighbors: int = 6
-    edge_tolerance: float = 0.8
-    anchors: int = 4
-    edge_yaw_tolerance_deg: float | None = 15.0
-    min_subgraph: int = 3
-    max_subgraph: int | None = 16
+    descriptor_neighbors: int = spec(6, low=1, doc="nearest-node distances in a "
+                                     "node's descriptor")
+    edge_tolerance: float = spec(0.8, low=0.0, low_open=True,
+                                 doc="two edges agree within this length difference, m")
+    anchors: int = spec(4, low=1, doc="most similar node pairs, each "
+                        "seeding a subgraph")
+    edge_yaw_tolerance_deg: float | None = spec(15.0, low=0.0, high=90.0, low_open=True,
+                                                high_open=True,
+                                                doc="two edges agree within this heading "
+                                                "difference, deg (None: distances only)")
+    min_subgraph: int = spec(3, low=2, doc="nodes a subgraph needs to become a candidate "
+                             "(2: an SE(2) fit)")
+    max_subgraph: int | None = spec(16, doc="growth stops there (>= min_subgraph; None: grow "
+                                    "to the full common subgraph)")
 
     def __post_init__(self) -> None:
+        """The rule joining fields (each field's own: its spec)."""
         PriorFreeParams.__post_init__(self)
-        for name in ("descriptor_neighbors", "anchors"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
-        if self.max_subgraph is not None and not int(self.max_subgraph) >= self.min_subgraph:
-            raise ValueError(
-                f"max_subgraph must be None or >= min_subgraph; got {self.max_subgraph}")
-        if int(self.min_subgraph) < 2:
-            raise ValueError(f"min_subgraph must be >= 2 (an SE(2) fit); got {self.min_subgraph}")
-        if not (np.isfinite(self.edge_tolerance) and self.edge_tolerance > 0):
-            raise ValueError(f"edge_tolerance must be finite and > 0 m; got {self.edge_tolerance}")
-        if self.edge_yaw_tolerance_deg is not None and not 0 < self.edge_yaw_tolerance_deg < 90:
-            raise ValueError(
-                f"edge_yaw_tolerance_deg must be None or in (0, 90); "
-                f"got {self.edge_yaw_tolerance_deg}"
-            )
+        if self.max_subgraph is not None and not self.max_subgraph >= self.min_subgraph:
+            raise ValueError(f"max_subgraph must be None or >= min_subgraph="
+                             f"{self.min_subgraph}; got {self.max_subgraph}")
 
 
 def _descriptors(distances: np.ndarray, count: int) -> np.ndarray:

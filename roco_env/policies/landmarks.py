@@ -21,7 +21,7 @@ import numpy as np
 
 from roco_env.geometry import validate_boxes
 from roco_env.policies.posegraph import PoseGraph
-from roco_env.schema import build
+from roco_env.schema import build, spec
 
 __all__ = [
     "AlignmentInputs",
@@ -33,6 +33,7 @@ __all__ = [
     "params_from_kwargs",
     "prior_information",
     "require_positive",
+    "require_sigmas",
     "split_rows",
 ]
 
@@ -81,19 +82,24 @@ class UncertaintyParams:
     """How box uncertainties become information: sigma floors (m, rad) and the
     sigmas used for non-finite entries (sigma_x m, sigma_y m, sigma_yaw rad)."""
 
-    sigma_floor_xy: float = 0.02
-    sigma_floor_yaw: float = 0.002
-    default_sigma: tuple[float, float, float] = (0.5, 0.5, 0.1)
+    sigma_floor_xy: float = spec(0.02, low=0.0, low_open=True,
+                                 doc="floor of a box's sigma_x and sigma_y, m")
+    sigma_floor_yaw: float = spec(0.002, low=0.0, low_open=True,
+                                  doc="floor of a box's sigma_yaw, rad")
+    default_sigma: tuple[float, float, float] = spec(
+        (0.5, 0.5, 0.1), doc="sigma_x m, sigma_y m, sigma_yaw rad of a non-finite entry")
 
     def __post_init__(self) -> None:
-        if not (self.sigma_floor_xy > 0 and self.sigma_floor_yaw > 0):
-            raise ValueError(
-                "sigma_floor_xy and sigma_floor_yaw must be > 0; got "
-                f"{self.sigma_floor_xy}, {self.sigma_floor_yaw}"
-            )
-        sigma = np.asarray(self.default_sigma, dtype=float)
-        if sigma.shape != (3,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
-            raise ValueError(f"default_sigma must be 3 finite values > 0; got {self.default_sigma}")
+        require_sigmas(self.default_sigma, "default_sigma")
+
+
+def require_sigmas(value: Sequence[float], name: str) -> np.ndarray:
+    """``value`` as an array (3,) of standard deviations (m, m, rad); ValueError naming
+    ``name`` unless it holds 3 finite values > 0 (a rule a field's spec cannot state)."""
+    sigma = np.asarray(value, dtype=float)
+    if sigma.shape != (3,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError(f"{name} must be 3 finite values > 0 (m, m, rad); got {value!r}")
+    return sigma
 
 
 def box_information(
@@ -264,12 +270,18 @@ def pairs_from_observations(
 
 
 def params_from_kwargs(cls: type, kwargs: dict, method: str):
-    """Build the parameter dataclass ``cls`` from keyword arguments; an unknown name
-    raises ValueError listing the accepted ones.
+    """The parameter dataclass ``cls`` built from keyword arguments by
+    :func:`~roco_env.schema.build` (every value checked against its field's spec); an
+    unknown name raises ValueError listing the accepted ones. ``method`` names the policy in
+    the messages.
 
-    The parameter classes are frozen, so one instance serves every call with the same
-    keywords (same names, types and values): aligners are called every frame with the
-    same keywords, and the type checks read the class's annotations (about 0.7 ms).
+    The one cache of checked parameters: aligners are called every frame with the same
+    keywords, and the checks read the class's annotations (about a millisecond a build:
+    docs/performance.md). It keys on the
+    class, ``method`` and each keyword's name, type and value: the type because equal values
+    of other types (``1``, ``1.0``, ``True``) hash alike but check differently. The
+    parameter classes are frozen, so one instance serves every call with those keywords;
+    an unhashable value (a list) is checked on every call.
     """
     try:
         key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))
@@ -289,4 +301,4 @@ def _build_params(cls: type, kwargs: dict, method: str):
     unknown = sorted(set(kwargs) - set(allowed))
     if unknown:
         raise ValueError(f"unknown {method} parameter(s) {unknown}; allowed: {', '.join(allowed)}")
-    return build(cls, kwargs, where=method)  # types checked: "tau2 expects a number"
+    return build(cls, kwargs, where=method)

@@ -26,10 +26,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from roco_env.policies.base import StatelessPolicy
+from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -78,7 +82,7 @@ def load_weights(path: str | Path) -> tuple[dict, dict]:
     return state, metadata
 
 
-class LearnedPolicy:
+class LearnedPolicy(StatelessPolicy):
     """A trained MLP acting in the env modes its weights file names (see module docstring).
 
     weights: the weights file (default: the shipped file of ``name``); name: the
@@ -86,8 +90,6 @@ class LearnedPolicy:
     None to take the file's. Raises ValueError naming the file and the field when the
     file was trained for another action mode.
     """
-
-    keeps_state = False
 
     def __init__(self, weights: str | None = None, *, name: str = "learned",
                  action_mode: str | None = None) -> None:
@@ -188,7 +190,16 @@ def _build_mlp(state: dict, path: Path, size: int):
     return torch.nn.Sequential(*modules[:-1]).eval()
 
 
-def learned_select(weights: str | None = None) -> LearnedPolicy:
-    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md)."""
+@dataclass(frozen=True)
+class LearnedSelectParams:
+    """The parameter of ``learned_select``."""
+
+    weights: str | None = spec(None, doc="weights file (None: the shipped one)")
+
+
+def learned_select(**params: Any) -> LearnedPolicy:
+    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md);
+    params: the fields of :class:`LearnedSelectParams`."""
+    weights = build(LearnedSelectParams, params, "learned_select").weights
     return LearnedPolicy(weights, name="learned_select", action_mode="select")
 

@@ -48,6 +48,7 @@ from roco_env.policies.pose_kernels import (
     placed_centres,
     scored_pairs,
 )
+from roco_env.schema import spec
 
 __all__ = [
     "MatchingParams",
@@ -62,30 +63,23 @@ _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
 
 @dataclass(frozen=True)
 class MatchingParams:
-    """tau1 (similarity threshold of the full S), tau2 (gate, m), lam (weight of S_dis),
-    use_edge_similarity / use_distance_similarity (ablation switches),
-    neighbor_radius (m, leaves of a star graph; None = all boxes are leaves)."""
+    """The star-graph matcher's parameters (module docstring; S = S_edge + lam * S_dis)."""
 
-    tau1: float = 0.5
-    tau2: float = 3.0
-    lam: float = 1.0
-    use_edge_similarity: bool = True
-    use_distance_similarity: bool = True
-    neighbor_radius: float | None = 20.0
+    tau1: float = spec(0.5, doc="threshold of the full similarity S")
+    tau2: float = spec(3.0, low=0.0, low_open=True, doc="gate of the initial nearest match, m")
+    lam: float = spec(1.0, low=0.0, doc="weight of S_dis")
+    use_edge_similarity: bool = spec(True, doc="S_edge on (ablation switch)")
+    use_distance_similarity: bool = spec(True, doc="S_dis on (ablation switch)")
+    neighbor_radius: float | None = spec(20.0, low=0.0, low_open=True,
+                                         doc="radius of a star graph's leaves, m (None: "
+                                         "every box is a leaf)")
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.tau1):
-            raise ValueError(f"tau1 must be finite; got {self.tau1}")
-        if not (np.isfinite(self.tau2) and self.tau2 > 0):
-            raise ValueError(f"tau2 must be a finite distance > 0 m; got {self.tau2}")
-        if not (np.isfinite(self.lam) and self.lam >= 0):
-            raise ValueError(f"lam must be finite and >= 0; got {self.lam}")
+        """The rules joining fields (each field's own: its spec)."""
         if not (self.use_edge_similarity or self.use_distance_similarity):
             raise ValueError("use_edge_similarity and use_distance_similarity cannot both be False")
         if not (self.use_edge_similarity or self.lam > 0):
             raise ValueError("lam must be > 0 when use_edge_similarity is False (S = lam * S_dis)")
-        if self.neighbor_radius is not None and not self.neighbor_radius > 0:
-            raise ValueError(f"neighbor_radius must be None or > 0 m; got {self.neighbor_radius}")
 
     @property
     def similarity_threshold(self) -> float:

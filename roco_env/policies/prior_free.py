@@ -55,7 +55,6 @@ from roco_env.policies.landmarks import (
     UncertaintyParams,
     params_from_kwargs,
     prepare_inputs,
-    require_positive,
 )
 from roco_env.policies.posegraph import ROBUST_KERNELS, optimize_pose
 from roco_env.policies.prior_free_kernels import (
@@ -66,6 +65,7 @@ from roco_env.policies.prior_free_kernels import (
     refine_rounds,
     suppress,
 )
+from roco_env.schema import spec
 
 __all__ = [
     "CandidateSearch",
@@ -96,53 +96,37 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 
 @dataclass(frozen=True)
 class PriorFreeParams(UncertaintyParams):
-    """Parameters every prior-free method shares (units m, deg unless noted).
+    """Parameters every prior-free method shares (module docstring; units m, deg unless
+    noted). distinct_distance and distinct_yaw_deg serve rules (b) and (c) of do-no-harm
+    and the candidates' non-maximum suppression."""
 
-    do_no_harm: keep the reported pose when the evidence is weak (module docstring);
-    False applies the method's estimate whenever it has one.
-    min_inliers: inliers the estimate needs under do-no-harm.
-    inlier_distance / inlier_yaw_deg: consensus gate per box pair.
-    refine_gate: association gate (m) of the refinement rounds; refine_iterations:
-    association + Kabsch rounds per candidate.
-    max_candidates: candidates (best first) that are refined and compared.
-    distinct_distance, distinct_yaw_deg: poses closer than both are the same hypothesis
-    (rules (b) and (c) of do-no-harm, and the candidates' non-maximum suppression).
-    support_sigma (m): scale of the soft support that ranks candidates and rule (c).
-    ambiguity_ratio: rule (c).
-    robust_kernel / kernel_delta: of the final least-squares solve (as roco's).
-    max_solver_iterations: Levenberg-Marquardt cap of that solve.
-    """
-
-    do_no_harm: bool = True
-    min_inliers: int = 3
-    inlier_distance: float = 1.5
-    inlier_yaw_deg: float = 10.0
-    refine_gate: float = 3.0
-    refine_iterations: int = 3
-    max_candidates: int = 3
-    support_sigma: float = 0.3
-    ambiguity_ratio: float = 0.8
-    distinct_distance: float = 0.5
-    distinct_yaw_deg: float = 1.0
-    robust_kernel: str | None = "cauchy"
-    kernel_delta: float = float(np.sqrt(7.815))
-    max_solver_iterations: int = 100
-
-    def __post_init__(self) -> None:
-        UncertaintyParams.__post_init__(self)
-        require_positive(self, ("inlier_distance", "inlier_yaw_deg", "refine_gate",
-                                "distinct_distance", "distinct_yaw_deg", "kernel_delta"))
-        for name in ("min_inliers", "max_candidates", "max_solver_iterations"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
-        if int(self.refine_iterations) < 0:
-            raise ValueError(f"refine_iterations must be >= 0; got {self.refine_iterations}")
-        if not 0 < self.ambiguity_ratio <= 1:
-            raise ValueError(f"ambiguity_ratio must be in (0, 1]; got {self.ambiguity_ratio}")
-        if self.robust_kernel is not None and self.robust_kernel not in ROBUST_KERNELS:
-            raise ValueError(
-                f"robust_kernel must be None or one of {ROBUST_KERNELS}; got {self.robust_kernel!r}"
-            )
+    do_no_harm: bool = spec(True, doc="keep the reported pose when the evidence is weak "
+                            "(False: apply the method's estimate whenever it has one)")
+    min_inliers: int = spec(3, low=1, doc="inliers the estimate needs under do-no-harm")
+    inlier_distance: float = spec(1.5, low=0.0, low_open=True,
+                                  doc="consensus gate of a box pair, m")
+    inlier_yaw_deg: float = spec(10.0, low=0.0, low_open=True,
+                                 doc="consensus gate of a box pair, deg")
+    refine_gate: float = spec(3.0, low=0.0, low_open=True,
+                              doc="association gate of the refinement rounds, m")
+    refine_iterations: int = spec(3, low=0, doc="association + Kabsch rounds per candidate")
+    max_candidates: int = spec(3, low=1, doc="candidates (best first) refined and compared")
+    support_sigma: float = spec(0.3, low=0.0, low_open=True,
+                                doc="scale of the soft support that ranks candidates "
+                                "and rule (c), m")
+    ambiguity_ratio: float = spec(0.8, low=0.0, high=1.0, low_open=True, doc="rule (c)")
+    distinct_distance: float = spec(0.5, low=0.0, low_open=True,
+                                    doc="poses closer than this and distinct_yaw_deg are the "
+                                    "same hypothesis, m")
+    distinct_yaw_deg: float = spec(1.0, low=0.0, low_open=True,
+                                   doc="see distinct_distance, deg")
+    robust_kernel: str | None = spec("cauchy", choices=(*ROBUST_KERNELS, None),
+                                     doc="robust kernel of the final least-squares solve "
+                                     "(as roco's)")
+    kernel_delta: float = spec(float(np.sqrt(7.815)), low=0.0, low_open=True,
+                               doc="the kernel's width in whitened units")
+    max_solver_iterations: int = spec(100, low=1,
+                                      doc="Levenberg-Marquardt cap of the final solve")
 
 
 def axial_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -40,7 +40,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
@@ -56,38 +55,39 @@ from roco_env.policies.prior_free_kernels import (
     inlier_counts,
     matching_pairs,
 )
+from roco_env.schema import spec
 
 __all__ = ["RansacParams", "RansacPolicy", "ransac_align", "ransac_search"]
 
 
 @dataclass(frozen=True)
 class RansacParams(PriorFreeParams):
-    """RANSAC parameters (m, deg) on top of :class:`PriorFreeParams`: pair_tolerance,
-    min_pair_distance, max_pair_distance, use_yaw_invariants, yaw_tolerance_deg,
-    max_hypotheses, pair_neighbors, score_boxes (module docstring)."""
+    """RANSAC parameters (m, deg) on top of :class:`PriorFreeParams` (module docstring)."""
 
-    pair_tolerance: float = 0.6
-    min_pair_distance: float = 4.0
-    max_pair_distance: float = 80.0
-    use_yaw_invariants: bool = True
-    yaw_tolerance_deg: float = 10.0
-    max_hypotheses: int = 200
-    pair_neighbors: int | None = 8
-    score_boxes: int | None = 24
+    pair_tolerance: float = spec(0.6, low=0.0, low_open=True,
+                                 doc="two box pairs' centre distances agree "
+                                 "within this, m")
+    min_pair_distance: float = spec(4.0, low=0.0, low_open=True,
+                                    doc="shortest box pair that votes, m")
+    max_pair_distance: float = spec(80.0, doc="longest box pair that votes, m "
+                                    "(> min_pair_distance)")
+    use_yaw_invariants: bool = spec(True, doc="pairs must also agree in relative "
+                                    "heading and bearing")
+    yaw_tolerance_deg: float = spec(10.0, low=0.0, low_open=True,
+                                    doc="tolerance of those invariants, deg "
+                                    "(modulo pi)")
+    max_hypotheses: int = spec(200, low=1, doc="consistent samples drawn at most")
+    pair_neighbors: int | None = spec(8, low=1, doc="each box pairs with this many nearest "
+                                      "boxes (None: all pairs)")
+    score_boxes: int | None = spec(24, low=2, doc="collaborator boxes a hypothesis's "
+                                   "inliers are counted on (None: all)")
 
     def __post_init__(self) -> None:
+        """The rule joining fields (each field's own: its spec)."""
         PriorFreeParams.__post_init__(self)
-        require_positive(self, ("pair_tolerance", "min_pair_distance", "yaw_tolerance_deg"))
         if not self.max_pair_distance > self.min_pair_distance:
-            raise ValueError(
-                f"max_pair_distance must be > min_pair_distance; got {self.max_pair_distance}"
-            )
-        if self.pair_neighbors is not None and int(self.pair_neighbors) < 1:
-            raise ValueError(f"pair_neighbors must be None or >= 1; got {self.pair_neighbors}")
-        if self.score_boxes is not None and int(self.score_boxes) < 2:
-            raise ValueError(f"score_boxes must be None or >= 2; got {self.score_boxes}")
-        if int(self.max_hypotheses) < 1:
-            raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
+            raise ValueError(f"max_pair_distance must be > min_pair_distance="
+                             f"{self.min_pair_distance}; got {self.max_pair_distance}")
 
 
 def _pairs(poses: np.ndarray, ordered: bool, p: RansacParams) -> tuple:

@@ -103,12 +103,14 @@ from roco_env.policies.posegraph import (
     robust_kernel,
     solver_settings,
 )
+from roco_env.schema import spec
 
 __all__ = [
     "NOT_SIGNIFICANT",
     "ROUND_INFORMATION",
     "RoCoParams",
     "RoCoPolicy",
+    "RoCoPolicyParams",
     "checked_params",
     "roco_align",
     "roco_solve",
@@ -132,74 +134,62 @@ _FIT_TOLERANCE = 1e-6
 class RoCoParams(MatchingParams, UncertaintyParams):
     """RoCo parameters (matching ones from :class:`MatchingParams`; units m, rad unless noted).
 
-    iterate / max_outer_iterations: re-matching after each solve, and its cap.
-    robust_kernel: "cauchy" (default), "huber" or None; kernel_delta: its width in
-    whitened units (default sqrt of the 95% chi-square quantile for 3 dof). Cauchy is
-    the default because a mismatched box is a gross outlier and Huber still pulls on
-    it linearly (tests/test_roco.py: 3 of 10 boxes misplaced by 1.2 m leave 0.05 m
-    error with Cauchy, 0.2 m with Huber, 0.3 m without a kernel).
-    prior_sigma_t (m) / prior_sigma_r_deg (deg): std of the reported relative poses.
-    min_matches, inlier_chi2: the do-no-harm rule (module docstring).
+    robust_kernel: Cauchy is the default because a mismatched box is a gross outlier and
+    Huber still pulls on it linearly (tests/test_roco.py: 3 of 10 boxes misplaced by 1.2 m
+    leave 0.05 m error with Cauchy, 0.2 m with Huber, 0.3 m without a kernel).
     round_information: the information of an edge in the single-vertex rounds (and so of
     the kernel's weights and the inlier test): "difference" = ``(Sigma_box +
     Sigma_landmark)^-1``, "box" = the box's own (module docstring, step 3); None (default):
     "difference", or with joint_every_round "box" (the rounds then solve the whole graph,
     where landmarks are free and every edge keeps its box's information, so "difference"
     is a ValueError there).
-    significance: confidence of the do-no-harm significance test (module docstring), in
-    (0, 1); a correction is applied when its Wald statistic exceeds
-    chi2.ppf(significance, 3). None or 0 = no test (the pre-test rule: any cost
-    decrease). Relies on calibrated box uncertainties. On the realistic detector at
-    sigma 0, 0.99 corrects ~1-2% of slots (0.95: ~7-10%, 0.999: ~0.3%).
-    max_solver_iterations: Levenberg-Marquardt cap.
-    joint_every_round: solve the whole graph in every matching round (slower) instead of
-    the collaborator's vertex against the current map, with one joint solve at the end.
-    coarse_tau2 (m): when the first round finds fewer than min_matches matches within
-    tau2, it is redone with this wider gate (large errors push true partners beyond
-    tau2; the later rounds use tau2 again). None = the paper's single gate.
+    significance: a correction is applied when its Wald statistic exceeds
+    chi2.ppf(significance, 3) (module docstring). Relies on calibrated box uncertainties.
+    On the realistic detector at sigma 0, 0.99 corrects ~1-2% of slots (0.95: ~7-10%,
+    0.999: ~0.3%).
+    coarse_tau2: large errors push true partners beyond tau2; the later rounds use tau2
+    again.
     """
 
-    iterate: bool = True
-    max_outer_iterations: int = 10
-    robust_kernel: str | None = "cauchy"
-    kernel_delta: float = float(np.sqrt(7.815))
-    prior_sigma_t: float = 1.0
-    prior_sigma_r_deg: float = 1.0
-    min_matches: int = 3
-    inlier_chi2: float = 11.345
-    max_solver_iterations: int = 1000
-    joint_every_round: bool = False
-    coarse_tau2: float | None = 6.0
-    significance: float | None = 0.99
-    round_information: str | None = None
+    iterate: bool = spec(True, doc="re-match after each solve")
+    max_outer_iterations: int = spec(10, low=1, doc="cap of the match-solve rounds")
+    robust_kernel: str | None = spec("cauchy", choices=(*ROBUST_KERNELS, None),
+                                     doc="robust kernel of the pose graph (None: least "
+                                     "squares)")
+    kernel_delta: float = spec(float(np.sqrt(7.815)), low=0.0, low_open=True,
+                               doc="the kernel's width in whitened units (default: sqrt of "
+                               "the 95% chi-square quantile for 3 dof)")
+    prior_sigma_t: float = spec(1.0, low=0.0, low_open=True,
+                                doc="std of the reported relative poses' translation, m")
+    prior_sigma_r_deg: float = spec(1.0, low=0.0, low_open=True,
+                                    doc="std of the reported relative poses' rotation, deg")
+    min_matches: int = spec(3, low=1, doc="matches (and inliers) the do-no-harm rule needs")
+    inlier_chi2: float = spec(11.345, low=0.0, low_open=True,
+                              doc="an edge is an inlier when e^T Omega e <= inlier_chi2")
+    max_solver_iterations: int = spec(1000, low=1, doc="Levenberg-Marquardt cap")
+    joint_every_round: bool = spec(False, doc="solve the whole graph in every matching "
+                                   "round (slower) instead of the collaborator's vertex "
+                                   "against the current map, with one joint solve at the end")
+    coarse_tau2: float | None = spec(6.0, doc="gate (m, > tau2) that redoes a first round "
+                                     "with fewer than min_matches matches within tau2 "
+                                     "(None: the paper's single gate)")
+    significance: float | None = spec(0.99, low=0.0, high=1.0, high_open=True,
+                                      doc="confidence of the do-no-harm significance test "
+                                      "(None or 0: no test, any cost decrease applies)")
+    round_information: str | None = spec(None, choices=(*ROUND_INFORMATION, None),
+                                         doc="edge information of the single-vertex rounds")
 
     def __post_init__(self) -> None:
+        """The rules joining fields (each field's own: its spec)."""
         MatchingParams.__post_init__(self)
         UncertaintyParams.__post_init__(self)
-        if self.robust_kernel is not None and self.robust_kernel not in ROBUST_KERNELS:
-            raise ValueError(
-                f"robust_kernel must be None or one of {ROBUST_KERNELS}; got {self.robust_kernel!r}"
-            )
-        for name in ("kernel_delta", "prior_sigma_t", "prior_sigma_r_deg", "inlier_chi2"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0; got {value}")
-        if self.significance is not None and not 0 <= self.significance < 1:
-            raise ValueError(
-                f"significance must be None or in [0, 1) (0 = off); got {self.significance}"
-            )
-        if self.round_information is not None and self.round_information not in ROUND_INFORMATION:
-            raise ValueError(f"round_information must be None or one of {ROUND_INFORMATION}; "
-                             f"got {self.round_information!r}")
         if self.joint_every_round and self.round_information == "difference":
             raise ValueError("round_information='difference' weighs single-vertex rounds; "
                              "joint_every_round=True solves the whole graph, where each edge "
                              "keeps its box's information: set round_information='box'")
         if self.coarse_tau2 is not None and not self.coarse_tau2 > self.tau2:
-            raise ValueError(f"coarse_tau2 must be None or > tau2; got {self.coarse_tau2}")
-        for name in ("max_outer_iterations", "min_matches", "max_solver_iterations"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {getattr(self, name)}")
+            raise ValueError(f"coarse_tau2 must be None or > tau2={self.tau2}; got "
+                             f"{self.coarse_tau2}")
 
     @property
     def difference_rounds(self) -> bool:
@@ -446,20 +436,9 @@ def _commit(world: _Map, agent: int, att: _Attempt, boxes: AgentBoxes) -> None:
     world.landmarks, world.observations = LandmarkMap(*landmarks), Observations(*observations)
 
 
-def checked_params(cls: type, kwargs: dict, method: str):
-    """:func:`~roco_env.policies.landmarks.params_from_kwargs`, memoised for keyword
-    arguments whose values are hashable (the parameter dataclasses are frozen, so one
-    instance serves every call with the same arguments; checking them costs ~1 ms)."""
-    key = tuple(sorted((name, type(value), value) for name, value in kwargs.items()))
-    try:
-        return _checked_params(cls, method, key)
-    except TypeError:  # an unhashable value (e.g. a list): checked on every call
-        return params_from_kwargs(cls, kwargs, method)
-
-
-@lru_cache(maxsize=64)
-def _checked_params(cls: type, method: str, key: tuple):
-    return params_from_kwargs(cls, {name: value for name, _, value in key}, method)
+# The name roco_antialias imports: the parameters are checked, and memoised, by
+# params_from_kwargs (the one cache; its docstring says what it keys on).
+checked_params = params_from_kwargs
 
 
 def roco_align(
@@ -485,7 +464,7 @@ def roco_align(
     (:mod:`roco_env.policies.pooled`; :class:`RoCoPolicy` decides it over the frames).
     params: fields of :class:`RoCoParams`. Returns corrected T_{j->i} and diagnostics.
     """
-    p = checked_params(RoCoParams, params, "roco")
+    p = params_from_kwargs(RoCoParams, params, "roco")
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
     waived = frozenset(int(j) for j in waived)
     if not waived <= set(range(inputs.n_collaborators)):
@@ -570,6 +549,22 @@ def roco_solve(
     )
 
 
+@dataclass(frozen=True)
+class RoCoPolicyParams(RoCoParams):
+    """:class:`RoCoPolicy`'s parameters: RoCo's and the pooled significance test's."""
+
+    pooled_significance: float | None = spec(
+        None, low=0.0, high=1.0, low_open=True, high_open=True,
+        doc="confidence of the pooled test over each collaborator's last frames (None: "
+        "every frame's significance test decides alone)")
+
+    def __post_init__(self) -> None:
+        RoCoParams.__post_init__(self)
+        if self.pooled_significance is not None and not self.significance:
+            raise ValueError("pooled_significance needs RoCo's significance test; got "
+                             f"significance={self.significance}")
+
+
 class RoCoPolicy(ArrayAlignmentPolicy):
     """RoCo as an env policy: ``RoCoPolicy(**params)(obs, info=None) -> action (N, 3)``.
 
@@ -582,14 +577,15 @@ class RoCoPolicy(ArrayAlignmentPolicy):
     between episodes. Needs the significance test (``significance`` not None or 0).
     """
 
-    def __init__(self, pooled_significance: float | None = None, **params) -> None:
-        super().__init__(roco_align, checked_params(RoCoParams, params, "roco"), params)
+    PARAMS = RoCoPolicyParams
+
+    def __init__(self, **params) -> None:
+        checked = params_from_kwargs(RoCoPolicyParams, params, "roco")
+        super().__init__(roco_align, checked,
+                         {k: v for k, v in params.items() if k != "pooled_significance"})
         self.pooled = None
-        if pooled_significance is not None:
-            if not self.params.significance:
-                raise ValueError("pooled_significance needs RoCo's significance test; got "
-                                 f"significance={self.params.significance}")
-            self.pooled = PooledSignificance(pooled_significance)
+        if checked.pooled_significance is not None:
+            self.pooled = PooledSignificance(checked.pooled_significance)
             self.keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
 
     def reset(self) -> None:

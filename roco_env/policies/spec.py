@@ -14,15 +14,21 @@ Values are YAML scalars (``2`` -> int, ``1.5`` -> float, ``false`` -> bool,
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import yaml
 
-from roco_env.policies import available_policies, is_import_target, make_policy
+from roco_env.policies import (
+    Policy,
+    available_policies,
+    declared_params,
+    is_import_target,
+    make_policy,
+)
 from roco_env.scenario import ALIASES
-from roco_env.schema import load_yaml
+from roco_env.schema import build, load_yaml
 
 Scalar = bool | int | float | str | None
 
@@ -76,7 +82,7 @@ class PolicySpec:
             return self.name
         return self.name + ":" + ",".join(f"{k}={format_scalar(v)}" for k, v in self.params)
 
-    def build(self) -> Callable:
+    def build(self) -> Policy:
         """A fresh policy instance (one per agent: policies may keep state)."""
         return make_policy(self.name, **dict(self.params))
 
@@ -107,15 +113,19 @@ def parse_policy_spec(text: str) -> PolicySpec:
 
 
 def validate_policy_spec(text: str) -> PolicySpec:
-    """Parse and construct the policy once so bad parameters fail before a sweep starts."""
+    """Parse and construct the policy once so bad parameters fail before a sweep starts.
+
+    The parameters of a policy that declares them (:func:`~roco_env.policies.declared_params`)
+    are checked first, by :func:`~roco_env.schema.build`: the message names the spec, the key
+    and the allowed values."""
     spec = parse_policy_spec(text)
+    declared = declared_params(spec.name)
     try:
-        policy = spec.build()
+        if declared is not None:
+            build(declared, dict(spec.params), spec.name)
+        spec.build()
     except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
-    if not callable(policy):
-        raise ValueError(f"policy spec {text!r}: {spec.name}() returned {policy!r}, not a "
-                         "policy(obs, info) -> action")
     return spec
 
 

@@ -23,6 +23,7 @@ Call :meth:`reset` between episodes.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,58 +31,62 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import policy_input_files
+from roco_env.policies.base import AlignmentResult, Policy, as_policy, policy_input_files
+from roco_env.policies.landmarks import require_sigmas
+from roco_env.schema import build, spec
 
-__all__ = ["TemporalSmoothing", "coalign_temporal", "roco_temporal"]
+__all__ = ["SmoothingParams", "TemporalSmoothing", "coalign_temporal", "roco_temporal"]
+
+
+@dataclass(frozen=True)
+class SmoothingParams:
+    """The wrapper's own parameters: the Kalman filter's (module docstring)."""
+
+    process_std: tuple[float, float, float] = spec(
+        (0.05, 0.05, float(np.deg2rad(0.05))), doc="random-walk std per step (m, m, rad)")
+    measurement_std: tuple[float, float, float] = spec(
+        (0.05, 0.05, float(np.deg2rad(0.05))), doc="std of one inner correction (m, m, rad)")
+    max_age: int = spec(20, low=0, doc="steps an estimate survives without a measurement")
+
+    def __post_init__(self) -> None:
+        require_sigmas(self.process_std, "process_std")
+        require_sigmas(self.measurement_std, "measurement_std")
 
 
 class TemporalSmoothing:
-    """``TemporalSmoothing(policy, ...)(obs, info=None) -> action (N, 3) float32``.
+    """``TemporalSmoothing(policy, **params)(obs, info=None) -> action (N, 3) float32``.
 
-    policy: a policy name for ``make_policy`` or a callable policy; policy_params go to
-    make_policy. process_std (3,): random-walk std per step (m, m, rad);
-    measurement_std (3,): std of one inner correction (m, m, rad); max_age: steps an
-    estimate survives without a measurement.
+    policy: a policy name for ``make_policy`` or a callable (a plain function becomes a
+    :class:`~roco_env.policies.base.Policy` through ``as_policy``); params: the fields of
+    :class:`SmoothingParams`, and with a policy name the inner policy's parameters
+    (policy_params, passed to make_policy).
     """
 
     # State kept across steps, per (ego, collaborator); ``roco-env list`` shows it.
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
 
-    def __init__(
-        self,
-        policy: str | Callable,
-        process_std: tuple[float, float, float] = (0.05, 0.05, np.deg2rad(0.05)),
-        measurement_std: tuple[float, float, float] = (0.05, 0.05, np.deg2rad(0.05)),
-        max_age: int = 20,
-        **policy_params: Any,
-    ) -> None:
+    def __init__(self, policy: str | Callable, **params: Any) -> None:
+        own = {key: params.pop(key) for key in SmoothingParams.__dataclass_fields__
+               if key in params}
+        self.params = build(SmoothingParams, own, "temporal smoothing")
         if isinstance(policy, str):
             from roco_env.policies import make_policy
 
-            policy = make_policy(policy, **policy_params)
-        elif policy_params:
-            raise ValueError("policy_params are only accepted with a policy name")
-        if not callable(policy):
-            raise ValueError(f"policy must be a policy name or a callable; got {policy!r}")
-        self.q = self._std(process_std, "process_std")
-        self.r = self._std(measurement_std, "measurement_std")
-        if int(max_age) < 0:
-            raise ValueError(f"max_age must be >= 0 steps; got {max_age}")
-        self.policy, self.max_age = policy, int(max_age)
+            policy = make_policy(policy, **params)
+        elif params:
+            raise ValueError(f"policy_params ({sorted(params)}: not parameters of the "
+                             "smoothing) are only accepted with a policy name")
+        self.policy: Policy = as_policy(policy)
+        self.q = np.asarray(self.params.process_std)
+        self.r = np.asarray(self.params.measurement_std)
+        self.max_age = self.params.max_age
         self._filters: dict[Hashable, KalmanFilter] = {}
         self._age: dict[Hashable, int] = {}
 
-    @staticmethod
-    def _std(value: tuple[float, float, float], name: str) -> np.ndarray:
-        arr = np.asarray(value, dtype=float)
-        if arr.shape != (3,) or not np.all(np.isfinite(arr) & (arr > 0)):
-            raise ValueError(f"{name} must be 3 finite values > 0 (m, m, rad); got {value}")
-        return arr
-
     @property
-    def last_result(self):
+    def last_result(self) -> AlignmentResult | None:
         """The inner policy's last AlignmentResult (None if it keeps none)."""
-        return getattr(self.policy, "last_result", None)
+        return self.policy.last_result
 
     def input_files(self) -> tuple[Path, ...]:
         """The files the inner policy declares (:class:`roco_env.policies.base.ReadsFiles`),
@@ -92,8 +97,7 @@ class TemporalSmoothing:
         """Forget every filter (call between episodes) and reset the inner policy."""
         self._filters.clear()
         self._age.clear()
-        if hasattr(self.policy, "reset"):
-            self.policy.reset()
+        self.policy.reset()
 
     def _new_filter(self, z: np.ndarray) -> KalmanFilter:
         kf = KalmanFilter(dim_x=3, dim_z=3)

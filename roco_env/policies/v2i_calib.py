@@ -48,7 +48,6 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
-from roco_env.policies.landmarks import require_positive
 from roco_env.policies.prior_free import (
     PriorFreeParams,
     PriorFreePolicy,
@@ -58,6 +57,7 @@ from roco_env.policies.prior_free import (
     fit_se2,
 )
 from roco_env.policies.prior_free_kernels import odist_scores
+from roco_env.schema import spec
 
 __all__ = ["V2ICalibParams", "V2ICalibPolicy", "affinity_matrix", "sinkhorn", "v2i_calib_align",
            "v2i_calib_search"]
@@ -69,29 +69,22 @@ _FAR = 1e6  # coordinate of padding neighbours: never close to anything
 
 @dataclass(frozen=True)
 class V2ICalibParams(PriorFreeParams):
-    """V2I-Calib(++) parameters on top of :class:`PriorFreeParams` (module docstring):
-    metric ("odist" | "oiou"), association ("sinkhorn" | "hungarian"), neighbors,
-    odist_threshold (m), min_affinity, sinkhorn_epsilon, sinkhorn_iterations."""
+    """V2I-Calib(++) parameters on top of :class:`PriorFreeParams` (module docstring)."""
 
-    metric: str = "odist"
-    association: str = "sinkhorn"
-    neighbors: int | None = 6
-    odist_threshold: float = 2.0
-    min_affinity: float = 2.0
-    sinkhorn_epsilon: float = 0.1
-    sinkhorn_iterations: int = 50
-
-    def __post_init__(self) -> None:
-        PriorFreeParams.__post_init__(self)
-        if self.metric not in METRICS:
-            raise ValueError(f"metric must be one of {METRICS}; got {self.metric!r}")
-        if self.association not in ASSOCIATIONS:
-            raise ValueError(f"association must be one of {ASSOCIATIONS}; got {self.association!r}")
-        if self.neighbors is not None and int(self.neighbors) < 1:
-            raise ValueError(f"neighbors must be None or >= 1; got {self.neighbors}")
-        require_positive(self, ("odist_threshold", "min_affinity", "sinkhorn_epsilon"))
-        if int(self.sinkhorn_iterations) < 1:
-            raise ValueError(f"sinkhorn_iterations must be >= 1; got {self.sinkhorn_iterations}")
+    metric: str = spec("odist", choices=METRICS, doc="box-pair distance of the affinity")
+    association: str = spec("sinkhorn", choices=ASSOCIATIONS,
+                            doc="how the affinity becomes matches")
+    neighbors: int | None = spec(6, low=1, doc="neighbours of a box's local frame (None: "
+                                 "all boxes)")
+    odist_threshold: float = spec(2.0, low=0.0, low_open=True,
+                                  doc="r of the odist score, m")
+    min_affinity: float = spec(2.0, low=0.0, low_open=True,
+                               doc="affinity an association needs (agreeing "
+                               "boxes)")
+    sinkhorn_epsilon: float = spec(0.1, low=0.0, low_open=True,
+                                   doc="Sinkhorn runs on affinity / "
+                                   "sinkhorn_epsilon")
+    sinkhorn_iterations: int = spec(50, low=1, doc="Sinkhorn iterations")
 
 
 def _local_neighbours(boxes: np.ndarray, count: int | None) -> tuple[np.ndarray, np.ndarray]:

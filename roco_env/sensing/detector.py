@@ -28,20 +28,51 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
 from roco_env.geometry import se2_inverse, transform_boxes, wrap_angle
-from roco_env.scenario import DetectorConfig, DetectorParams
-from roco_env.schema import build
+from roco_env.scenario import DetectorConfig
+from roco_env.schema import build, spec
 from roco_env.sensing.visibility import Visibility
+from roco_env.stages import checked_params, stage
 from roco_env.traffic.state import WorldState
 
-__all__ = ["PRESETS", "AgentDetections", "Detector", "make_detector"]
+__all__ = ["PRESETS", "AgentDetections", "Detector", "DetectorParams", "Perception",
+           "PerceptionModel", "make_detector"]
 
-# The realistic preset is DetectorParams' defaults (declared with their bounds in
-# roco_env.scenario, so scenario files are checked when they load).
+
+@dataclass
+class DetectorParams:
+    """The detector model's parameters (roco_env.sensing.detector): the defaults are
+    the ``realistic`` preset; metres, radians, probabilities."""
+
+    noisy: bool = spec(True, doc="perturb boxes, scores and sizes")
+    min_fraction: float = spec(0.0, low=0.0, high=1.0, doc="visible fraction needed")
+    p_max: float = spec(0.97, low=0.0, high=1.0, doc="detection probability, many returns")
+    returns_50: float = spec(12.0, low=0.0, doc="LiDAR returns at half p_max")
+    returns_slope: float = spec(1.5, low=0.0, high=20.0, low_open=True)
+    sigma_xy: float = spec(0.06, low=0.0, high=10.0, low_open=True, doc="centre std, m")
+    sigma_xy_per_m: float = spec(0.002, low=0.0, high=1.0, doc="centre std growth, m per m")
+    sigma_xy_occlusion: float = spec(0.25, low=0.0, high=10.0, doc="m at full occlusion")
+    sigma_yaw: float = spec(0.02, low=0.0, high=3.141592653589793, low_open=True,
+                            doc="yaw std, rad")
+    sigma_yaw_per_m: float = spec(0.0004, low=0.0, high=0.1, doc="yaw std growth, rad per m")
+    sigma_yaw_occlusion: float = spec(0.1, low=0.0, high=3.141592653589793,
+                                      doc="rad at full occlusion")
+    sigma_size: float = spec(0.03, low=0.0, high=1.0, doc="log-size std")
+    sigma_size_occlusion: float = spec(0.05, low=0.0, high=1.0)
+    flip_prob: float = spec(0.03, low=0.0, high=1.0, doc="probability of a heading flip")
+    fp_rate: float = spec(1.0, low=0.0, high=1000.0, doc="false positives per frame")
+    fp_score_max: float = spec(0.45, low=0.01, high=1.0, low_open=True)
+    score_floor: float = spec(0.4, low=0.0, high=1.0)
+    score_noise: float = spec(0.05, low=0.0, high=1.0)
+    calibration: float = spec(1.0, low=0.0, high=100.0, low_open=True,
+                              doc="reported / true uncertainty")
+
+
+# The realistic preset is DetectorParams' defaults.
 _REALISTIC: dict[str, Any] = dataclasses.asdict(DetectorParams())
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -88,6 +119,30 @@ class AgentDetections:
         return cls(np.zeros((0, 7)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64))
 
 
+class Perception(NamedTuple):
+    """What a detector makes of one step: per agent its detections (true sensor frame,
+    in ``state.agent_ids`` order), and the encoder maps intermediate fusion warps and
+    decodes (a learned detector's :class:`~roco_env.sensing.learned.model.EncoderMaps`;
+    None for detectors without feature maps)."""
+
+    detections: list[AgentDetections]
+    encoder_maps: Any = None
+
+
+class PerceptionModel(Protocol):
+    """The detector stage (roco_env.stages, kind ``detector``): its factory is called
+    with the scenario's checked ``detector.params`` (the keys given) and the evaluation
+    region ``(x_range, y_range)`` (m, agent frame) or None."""
+
+    #: True when headings are only known up to a half turn (the env then exchanges them
+    #: in one convention, roco_env.geometry.canonical_axial_yaw).
+    axial_headings: bool
+
+    def perceive(self, state: WorldState, visibility: Visibility,
+                 rng: np.random.Generator) -> Perception:
+        """Every agent's detections of ``state``; draws only from ``rng``."""
+
+
 class Detector:
     """The detector model of the module docstring with fixed, validated parameters."""
 
@@ -120,11 +175,10 @@ class Detector:
                           where=returns > 0.0)
         return p["p_max"] / (1.0 + ratio ** p["returns_slope"])
 
-    def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
-                 ) -> tuple[list[AgentDetections], None]:
-        """The detections of :meth:`detect` and no encoder maps (the learned detector's
-        interface: only it has feature maps for intermediate fusion)."""
-        return self.detect(state, visibility, rng), None
+    def perceive(self, state: WorldState, visibility: Visibility,
+                 rng: np.random.Generator) -> Perception:
+        """The detections of :meth:`detect` and no encoder maps."""
+        return Perception(self.detect(state, visibility, rng))
 
     def detect(self, state: WorldState, visibility: Visibility,
                rng: np.random.Generator) -> list[AgentDetections]:
@@ -193,22 +247,27 @@ class Detector:
         return AgentDetections(boxes, unc, scores, np.full(n, -1, dtype=np.int64))
 
 
+def ideal_detector(params: dict[str, Any], region: Any = None) -> Detector:
+    """The ``ideal`` preset with ``params`` overriding it (stage factory)."""
+    return Detector({**PRESETS["ideal"], **params})
+
+
+def realistic_detector(params: dict[str, Any], region: Any = None) -> Detector:
+    """The ``realistic`` preset with ``params`` overriding it (stage factory)."""
+    return Detector({**PRESETS["realistic"], **params})
+
+
 def make_detector(config: DetectorConfig,
-                  region: tuple[Sequence[float], Sequence[float]] | None = None) -> Detector:
-    """Build the detector of ``config.preset`` with ``config.params`` overriding it.
+                  region: tuple[Sequence[float], Sequence[float]] | None = None
+                  ) -> PerceptionModel:
+    """Build the detector stage ``config.preset`` names with ``config.params``.
 
     ``learned`` builds :class:`roco_env.sensing.learned.LearnedDetector` (loads torch
     and the weights; params: weights, device, score_threshold, threads), reading each
     agent's sensor range within ``region`` ((x_range, y_range), m, agent frame: the
     evaluation range; None: the grid it was trained on).
-    Raises ValueError naming the preset or parameter and the allowed values.
+    Raises a ConfigError (a ValueError) naming the preset or parameter and the allowed
+    values.
     """
-    if config.preset == "learned":
-        from roco_env.sensing.learned import make_learned_detector
-
-        return make_learned_detector(config.params, region)
-    if config.preset not in PRESETS:
-        raise ValueError(
-            f"unknown detector preset {config.preset!r}; choose one of {sorted(PRESETS)}"
-        )
-    return Detector({**PRESETS[config.preset], **(config.params or {})})
+    params = checked_params("detector", config.preset, config.params, where="detector")
+    return stage("detector", config.preset).load_factory()(params, region)

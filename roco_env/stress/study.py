@@ -30,8 +30,10 @@ from pathlib import Path
 from typing import Any
 
 from roco_env.env import check_seed
+from roco_env.flags import SpecFlags
 from roco_env.scenario import save_scenario
-from roco_env.stress.objectives import Infeasible, check_objective, evaluate
+from roco_env.schema import ConfigError, build, spec
+from roco_env.stress.objectives import OBJECTIVES, Infeasible, evaluate
 from roco_env.stress.space import SearchSpace, scenario_for, suggest
 from roco_env.sweeps.spec import parse_policy_spec
 
@@ -40,6 +42,7 @@ BACKENDS = ("local", "ray")
 OPTUNA_MISSING = "roco-env stress needs Optuna: pip install 'roco-env[stress]'"
 RAY_MISSING = "--backend ray needs Ray: pip install 'roco-env[ray]'"
 MAX_INFEASIBLE_FACTOR = 2  # stop after max(10, 2 * budget) infeasible scenarios in one run
+WHERE = "stress"
 
 
 def import_optuna():
@@ -90,22 +93,55 @@ class SearchSettings:
                                 for p in self.space.params), "base": self.space.base}
 
 
-def check_settings(settings: SearchSettings) -> None:
-    """ValueError naming the bad setting and what is allowed."""
-    check_objective(settings.objective)
+@dataclass
+class StressOptions:
+    """The options of ``roco-env stress`` (docs/stress.md); its command-line options are
+    generated from these fields (:data:`FLAGS`). Check them with
+    :func:`~roco_env.schema.build` (``build(StressOptions, values, WHERE)``)."""
+
+    policy: list[str] = spec([], doc="policy spec(s), one search each, e.g. roco "
+                             "roco_antialias coalign")
+    objective: str = spec("harm", choices=OBJECTIVES, doc="what the search makes worst")
+    budget: int = spec(100, low=1, doc="completed evaluations per policy")
+    space: str | None = spec(None, path=True, doc="YAML file of parameter ranges (none: the "
+                             "shipped default space)")
+    seeds: list[int] = spec([0], doc="episode seeds of every evaluation")
+    steps: int = spec(5, low=1, doc="env steps per episode")
+    out: str = spec("", doc="output folder (study.db, scenarios, report.md); re-running "
+                    "resumes")
+    backend: str = spec("local", choices=BACKENDS, doc="local processes or Ray tasks")
+    workers: int = spec(1, low=1, doc="parallel workers sharing the study")
+    address: str | None = spec(None, doc="Ray cluster address for --backend ray (none: a "
+                               "local Ray)")
+    sampler: str = spec("tpe", choices=SAMPLERS, doc="Optuna sampler")
+    seed: int = spec(0, low=0, doc="sampler seed")
+    gif: bool = spec(True, doc="a GIF of the worst episode")
+
+    def __post_init__(self) -> None:
+        """The rules one field's spec cannot state: the seeds' values, the address's
+        backend."""
+        if not self.seeds:
+            raise ConfigError(f"{WHERE}: seeds must name at least one episode seed")
+        for seed in self.seeds:
+            check_seed(seed)
+        if self.address is not None and self.backend != "ray":
+            raise ConfigError(f"{WHERE}: --address needs --backend ray")
+
+
+# The command line's options (roco-env stress), one per field.
+FLAGS = SpecFlags(StressOptions, WHERE, required=("policy", "out"))
+
+
+def check_settings(settings: SearchSettings, backend: str = "local", workers: int = 1,
+                   address: str | None = None) -> None:
+    """ValueError naming the bad setting and what is allowed: the rules of
+    :class:`StressOptions`, the policy spec, the sampler's package."""
+    build(StressOptions, {"policy": [settings.policy], "objective": settings.objective,
+                          "budget": settings.budget, "seeds": list(settings.seeds),
+                          "steps": settings.steps, "out": settings.out, "backend": backend,
+                          "workers": workers, "address": address, "sampler": settings.sampler,
+                          "seed": settings.seed}, WHERE)
     parse_policy_spec(settings.policy)
-    if settings.sampler not in SAMPLERS:
-        raise ValueError(f"sampler={settings.sampler!r} is not allowed; choose one of "
-                         f"{list(SAMPLERS)}")
-    if int(settings.budget) != settings.budget or settings.budget < 1:
-        raise ValueError(f"budget must be an integer >= 1 (completed evaluations); got "
-                         f"{settings.budget}")
-    if int(settings.steps) != settings.steps or settings.steps < 1:
-        raise ValueError(f"steps must be an integer >= 1; got {settings.steps}")
-    if not settings.seeds:
-        raise ValueError("seeds must name at least one episode seed")
-    for seed in (*settings.seeds, settings.seed):
-        check_seed(seed)
     if settings.sampler == "cmaes":
         try:
             import cmaes  # noqa: F401 - CmaEsSampler imports it when it samples
@@ -275,11 +311,7 @@ def run_search(settings: SearchSettings, backend: str = "local", workers: int = 
     process, or ``workers`` processes sharing the SQLite study) or ``ray`` (``workers``
     Ray tasks; ``address`` a running cluster, None starts a local one): the study file
     must be reachable from every worker (one machine or a shared file system)."""
-    check_settings(settings)
-    if backend not in BACKENDS:
-        raise ValueError(f"backend={backend!r} is not allowed; choose one of {list(BACKENDS)}")
-    if int(workers) != workers or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1; got {workers}")
+    check_settings(settings, backend, workers, address)
     study = open_study(settings)
     recover_interrupted(study)
     if backend == "ray":

@@ -8,7 +8,7 @@
 """
 
 from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 __all__ = ["Cell", "build_grid", "run_sweep", "validate_grid", "write_report"]

@@ -124,8 +124,8 @@ os.register_at_fork(after_in_child=_POOLS.clear)  # a forked child has none of t
 def _pool(workers: int) -> tuple[tuple[int, str], ProcessPoolExecutor]:
     """This process's pool of ``workers`` workers (and its key), started on first use and
     kept: a later sweep reuses its workers warm (imports, compiled kernels, caches), where
-    new ones would each spend ~0.5-1 s on their first cell. Dropped when a sweep stops
-    early or a worker dies (:func:`_drop_pool`)."""
+    new ones would each pay those on their first cell (docs/performance.md). Dropped when
+    a sweep stops early or a worker dies (:func:`_drop_pool`)."""
     key = (workers, _start_method())
     if key not in _POOLS:
         context = (_fork_server() if key[1] == "forkserver"
@@ -145,9 +145,9 @@ def _drop_pool(key: tuple[int, str], kill: bool) -> None:
 
 def _fork_server() -> multiprocessing.context.BaseContext:
     """The fork-server context, its server started (once a process) importing once what
-    every worker needs, so that each worker starts as a fork of it: on this 2-core machine
-    a pool of two took ~6 s to start without the preload, ~4 s for a process's first pool
-    with it and ~0.05 s for every later one. Importing torch starts no threads, so the
+    every worker needs, so that each worker starts as a fork of it: a process's first pool
+    pays the imports once, every later one starts in a fraction of a second (measured
+    with and without the preload in docs/performance.md). Importing torch starts no threads, so the
     workers inherit no OpenMP pool.
 
     Ctrl-C reaches the whole process group. From the main thread the server starts with

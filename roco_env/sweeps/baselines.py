@@ -22,9 +22,9 @@ from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS
 from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.report import write_report
 from roco_env.sweeps.spec import Scalar, format_scalar
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.sweep_report import write_report
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
@@ -42,7 +42,7 @@ PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_
 ROCO_POOLED = "roco:pooled_significance=0.9999"
 POOLED_POLICIES = ("coalign", "roco", ROCO_POOLED)
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
-# The realistic preset's box-centre and yaw noise (roco_env.scenario.DetectorParams) times 1.5:
+# The realistic preset's box-centre and yaw noise (roco_env.sensing.detector.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
 DETECTOR_NOISE_X15 = {"detector.params.sigma_xy": 0.09, "detector.params.sigma_xy_per_m": 0.003,
                       "detector.params.sigma_xy_occlusion": 0.375,

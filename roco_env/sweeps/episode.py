@@ -1,5 +1,8 @@
 """Run one sweep cell: one env episode with one policy instance per agent, scored.
 
+The episode is :func:`roco_env.rollout.play_episode` (the env checks every action);
+this module scores what it yields.
+
 Scores (docs/metrics.md), pooled over every evaluated agent and step:
 * dataset AP@0.3/0.5/0.7 from the infos' exact per-frame data
   (``frame_scores``, ``frame_tp``, ``frame_fp``, ``frame_n_gt``);
@@ -7,15 +10,15 @@ Scores (docs/metrics.md), pooled over every evaluated agent and step:
   correction (translation m, rotation deg): median, 95th percentile,
   Success@1m1deg, @2m2deg and @3m3deg; the samples are kept for distribution plots;
 * matching precision/recall against true object ids, mean over the frames where
-  the policy reported a match result (``policy.last_result``), using the privileged
+  the policy reported a match result of that call (``policy.last_result``), using the privileged
   ids of the info returned *with* the observation the policy saw;
 * correction share: frames (agent-steps with >= 1 collaborator) where the action
   changed a filled slot's reported pose;
 * time per call: median wall time (ms) of one *warm* policy call, stored beside the
   metrics (a wall time, not reproducible): each agent's first call is left out, as it
-  includes one-off costs (numba compiling the kernels in a fresh worker: 40-500 ms
-  against 1-3 ms warm, the policy's first-use set-up); the median keeps a later
-  one-off (a kernel first needed at step k) from weighing in.
+  includes one-off costs (numba compiling the kernels in a fresh worker, the policy's
+  first-use set-up: many warm calls' worth, docs/performance.md); the median keeps a
+  later one-off (a kernel first needed at step k) from weighing in.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from roco_env.evaluation import filled_rpe_rows, info_frame_stats
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_precision_recall
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.spec import merge_env_overrides
+from roco_env.rollout import play_episode
 from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record, ok_record
 from roco_env.sweeps.spec import parse_policy_spec
@@ -58,12 +62,12 @@ class EpisodeScorer:
     decisions: int = 0  # agent-steps with >= 1 collaborator
     steps: int = 0  # env steps played (fewer than asked when a replay's frames run out)
 
-    def add_decision(self, observation: dict, info: dict, action: np.ndarray | None,
+    def add_decision(self, observation: dict, info: dict, action: Any,
                      result: AlignmentResult | None) -> None:
         """Score an action taken on ``observation`` (``info`` came with it); ``result`` is
         the policy's alignment result for this very call, None when it reported none;
-        ``action`` is the (N, 3) correction, None in the other action modes (whose actions
-        are no corrections: the correction share is left undefined)."""
+        ``action`` is the (N, 3) correction the env accepted, None in the other action
+        modes (whose actions are no corrections: the correction share is left undefined)."""
         filled = np.asarray(observation["collab_mask"]) > 0
         if not filled.any():
             return
@@ -145,36 +149,22 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
     first = factory()  # its env_overrides say which env modes it acts in
     env = make_env(cell, render_mode, first)
     try:
-        observations, infos = env.reset(seed=cell.seed)
         policies = {agent: first if index == 0 else factory()
-                    for index, agent in enumerate(env.agents)}
+                    for index, agent in enumerate(env.possible_agents)}
         correction = env.config.action.mode == "correction"
         scorer = EpisodeScorer()
         if on_scorer is not None:
             on_scorer(scorer)
-        step = 0
-        while env.agents and step < cell.steps:
-            actions = {}
-            for agent in env.agents:
-                policy = policies[agent]
-                previous = getattr(policy, "last_result", None)
-                start = time.perf_counter()
-                action = policy(observations[agent], infos[agent])
-                scorer.add_call(agent, time.perf_counter() - start)
-                # the env's own check (of its action mode), before the scorer reads it by slot
-                action = env.action_mode.check(action, agent)
-                result = getattr(policy, "last_result", None)
-                scorer.add_decision(observations[agent], infos[agent],
-                                    action if correction else None,
-                                    None if result is previous else result)  # never a stale one
-                actions[agent] = action
-            observations, _, _, _, infos = env.step(actions)
-            step += 1
-            scorer.steps = step
-            for info in infos.values():
+        for step in play_episode(env, policies, seed=cell.seed, max_steps=cell.steps):
+            for agent, turn in step.turns.items():  # the env accepted every action
+                scorer.add_call(agent, turn.seconds)
+                scorer.add_decision(turn.observation, turn.info,
+                                    turn.action if correction else None, turn.result)
+            scorer.steps = step.number
+            for info in step.infos.values():
                 scorer.add_outcome(info)
             if on_step is not None:
-                on_step(step, env, actions, infos)
+                on_step(step.number, env, step.actions, step.infos)
         return scorer.summary()
     finally:
         env.close()

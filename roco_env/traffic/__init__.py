@@ -1,6 +1,7 @@
 """Where objects and agents are, step by step (docs/architecture.md).
 
-``make_traffic_source(config)`` builds the source named by ``config.traffic.source``:
+``make_traffic_source(config)`` builds the source named by ``config.traffic.source``
+(a stage, roco_env.stages; built in):
 
 - ``synthetic``: numpy IDM traffic on a layout (:mod:`.synthetic`, :mod:`.layouts`).
 - ``highway_env``: highway-env scenes run headless (:mod:`.highway_env_source`).
@@ -15,10 +16,12 @@ Heavy sources (highway-env) are imported only when used.
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections.abc import Sequence
 from typing import Any
 
 from roco_env.scenario import ScenarioConfig
+from roco_env.stages import stage
 from roco_env.traffic.state import AGENT_KINDS, OBJECT_CLASSES, TrafficSource, WorldState
 
 _LAZY = {
@@ -44,35 +47,17 @@ def __getattr__(name: str) -> Any:
 
 def make_traffic_source(config: ScenarioConfig, frames: Sequence[Any] | None = None
                         ) -> TrafficSource:
-    """Build the traffic source of ``config.traffic.source``.
+    """Build the traffic stage ``config.traffic.source`` names (roco_env.stages).
 
-    ``frames`` (a sequence of :class:`roco_env.traffic.frames.Frame`) is required
-    for source ``frames`` and rejected otherwise.
+    ``frames`` (a sequence of :class:`roco_env.traffic.frames.Frame`) is passed to a
+    source whose factory takes them (``frames``, which requires them) and rejected by
+    the others.
     """
     source = config.traffic.source
-    if frames is not None and source != "frames":
-        raise ValueError(f"frames= is only used with traffic.source='frames', not {source!r}")
-    if source == "synthetic":
-        from roco_env.traffic.synthetic import make_synthetic
-
-        return make_synthetic(config)
-    if source == "highway_env":
-        from roco_env.traffic.highway_env_source import HighwayEnvSource
-
-        return HighwayEnvSource(config)
-    if source in ("opv2v", "dair"):
-        from roco_env.traffic.replay import DairReplay, OPV2VReplay
-
-        return (OPV2VReplay if source == "opv2v" else DairReplay)(config)
-    if source == "frames":
-        if frames is None:
-            raise ValueError(
-                "traffic.source='frames' needs your frames: pass frames=[Frame(...), ...] to "
-                "roco_env.parallel_env / roco_env.env (or to make_traffic_source)"
-            )
-        from roco_env.traffic.frames import FramesSource
-
-        return FramesSource(frames, config.agents, config.traffic.dt)
-    raise ValueError(
-        f"traffic.source={source!r} is unknown; allowed: synthetic, highway_env, opv2v, dair, frames"
-    )
+    factory = stage("traffic", source).load_factory()
+    if frames is None:
+        return factory(config)
+    if "frames" not in inspect.signature(factory).parameters:
+        raise ValueError(f"frames= is only used with traffic.source='frames' (or a source "
+                         f"whose factory takes frames), not {source!r}")
+    return factory(config, frames=frames)

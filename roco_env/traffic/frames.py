@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from roco_env.geometry import validate_boxes
-from roco_env.scenario import AgentsConfig
+from roco_env.scenario import AgentsConfig, ScenarioConfig
 from roco_env.traffic.agents import make_world
 from roco_env.traffic.state import OBJECT_CLASSES, WorldState
 
@@ -127,3 +127,12 @@ class FramesSource(SequenceSource):
 
     def __init__(self, frames: Sequence[Frame], agents: AgentsConfig, dt: float = 0.1) -> None:
         super().__init__([frame_to_state(f, agents, k, dt) for k, f in enumerate(frames)])
+
+
+def frames_source(config: ScenarioConfig, frames: Sequence[Frame] | None = None) -> FramesSource:
+    """The ``frames`` traffic stage's factory: the user's frames, which it requires."""
+    if frames is None:
+        raise ValueError(
+            "traffic.source='frames' needs your frames: pass frames=[Frame(...), ...] to "
+            "roco_env.parallel_env / roco_env.env (or to make_traffic_source)")
+    return FramesSource(frames, config.agents, config.traffic.dt)

@@ -4,7 +4,7 @@
 gaps, previews one episode from ``seed`` to summarise it (vehicle count and
 nearest-neighbour gaps), and can write the scenario YAML and an OPV2V export
 of the preview episode. The CLI ``roco-env scenario generate`` is a thin
-wrapper around :func:`generate` (see roco_env/cli/scenario.py).
+wrapper around :func:`generate` (see roco_env/cli/scenario_command.py).
 """
 
 from __future__ import annotations

@@ -50,6 +50,7 @@ import torch.nn.functional as F
 from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
 from roco_env.geometry import se2_compose, transform_boxes, wrap_angle
 from roco_env.metrics import APAccumulator
+from roco_env.schema import ConfigError, spec
 from roco_env.sensing.features import BevGrid, warp_bev
 from roco_env.sensing.learned.model import Checkpoint, build_network, load_checkpoint
 from roco_env.sensing.learned.network import FUSIONS, BevDetectorNet, NetConfig
@@ -64,89 +65,91 @@ from roco_env.training.data import (
     make_scenes,
 )
 
-__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "init_checkpoint", "mirror_rasters",
-           "set_determinism"]
+__all__ = ["WHERE", "TrainConfig", "TrainResult", "train", "evaluate", "init_checkpoint",
+           "mirror_rasters", "set_determinism"]
 
 # Loss weights: heatmap, offset, size, yaw, uncertainty NLL.
 _WEIGHTS = {"heatmap": 1.0, "offset": 1.0, "size": 1.0, "yaw": 1.0, "nll": 0.2}
+
+
+# Where the errors of a training configuration say they come from.
+WHERE = "train-detector"
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that determines a training run (recorded in the weights and report).
 
-    grid: detector raster extent and cell (m); net: widths; train_scenes /
-    val_scenes: scene counts; steps: optimiser steps; scenes_per_step: scenes per
-    batch; lr: peak learning rate; pose_sigma_t (m) / pose_sigma_r (deg): pose
-    noise of the fused loss; fused_x_range / fused_y_range: the ego-frame extent (m) the
-    fused loss decodes (None: the detector grid's); init: weights file to start from
-    (None: random); train_encoder: False freezes the encoder (needs ``init``);
-    fusion: the fusion of the fused loss and of the weights (``"max"`` or ``"gated"``,
-    :data:`~roco_env.sensing.learned.network.FUSIONS`); train_detector: False freezes
-    every part but the fusion gate (needs ``init`` and ``fusion="gated"``);
-    warp_augment: share of single-agent maps decoded after a random warp; seed;
-    threads: torch CPU threads; workers: processes that generate the scenes and prepare
-    the batches (0: the training process; the run does not depend on it); device.
+    Build it with :func:`~roco_env.schema.build` (``build(TrainConfig, values, WHERE)``)
+    to check every value; the fields' docs are the help of the options of ``roco-env
+    train-detector``, generated from them. ``noise``: the scan noise of the training scenes.
     """
 
-    x_range: tuple[float, float] = (-70.4, 70.4)
-    y_range: tuple[float, float] = (-40.0, 40.0)
-    resolution: float = 0.8
-    widths: tuple[int, int, int] = (32, 64, 48)
-    train_scenes: int = 800
-    val_scenes: int = 20
-    scenarios: tuple[str, ...] = TRAIN_SCENARIOS
-    val_scenarios: tuple[str, ...] = ("urban_intersection",)
-    steps: int = 1200
-    scenes_per_step: int = 4
-    lr: float = 3e-3
-    pose_sigma_t: float = 0.2
-    pose_sigma_r: float = 0.2
-    fused_x_range: tuple[float, float] | None = None
-    fused_y_range: tuple[float, float] | None = None
-    init: str | None = None
-    train_encoder: bool = True
-    fusion: str = "max"
-    train_detector: bool = True
-    warp_augment: float = 0.0
-    seed: int = 0
-    threads: int = 2
-    workers: int = 0
-    device: str = "cpu"
+    x_range: tuple[float, float] = spec((-70.4, 70.4), doc="detector raster extent along x, m")
+    y_range: tuple[float, float] = spec((-40.0, 40.0), doc="detector raster extent along y, m")
+    resolution: float = spec(0.8, low=0.0, low_open=True, doc="detector raster cell, m")
+    widths: tuple[int, int, int] = spec((32, 64, 48), doc="network widths W1 W2 C")
+    train_scenes: int = spec(800, low=1, doc="training scenes")
+    val_scenes: int = spec(20, low=0, doc="validation scenes (0: none)")
+    scenarios: tuple[str, ...] = spec(TRAIN_SCENARIOS, doc="training scenarios")
+    val_scenarios: tuple[str, ...] = spec(("urban_intersection",),
+                                          doc="validation scenarios")
+    steps: int = spec(1200, low=1, doc="optimiser steps")
+    scenes_per_step: int = spec(4, low=1, doc="scenes per batch")
+    lr: float = spec(3e-3, low=0.0, low_open=True, doc="peak learning rate")
+    pose_sigma_t: float = spec(0.2, low=0.0, doc="pose noise of the fused loss, translation "
+                               "std in m (the RoCo paper's training protocol)")
+    pose_sigma_r: float = spec(0.2, low=0.0, doc="pose noise of the fused loss, rotation std "
+                               "in degrees")
+    fused_x_range: tuple[float, float] | None = spec(
+        None, doc="ego-frame x extent LOW HIGH (m) the fused loss decodes: the detector grid "
+        "grown to cover it in whole feature cells, e.g. the evaluation range -140.8 140.8 "
+        "(none: the detector grid)")
+    fused_y_range: tuple[float, float] | None = spec(None, doc="the same along y")
+    init: str | None = spec(None, path=True, doc="weights file to start from; its widths "
+                            "must be --widths (none: random initialisation; --lr applies as "
+                            "given)")
+    train_encoder: bool = spec(True, doc="train the encoder; --no-train-encoder (or "
+                               "--freeze-encoder) trains the trunk and heads only (needs "
+                               "--init): a fine-tuning stage that keeps every encoder map")
+    fusion: str = spec("max", choices=FUSIONS, doc="intermediate fusion of the fused loss "
+                       "and of the weights: the maximum, or the maximum after a learned "
+                       "per-cell gate on each collaborator's map")
+    train_detector: bool = spec(True, doc="train the detector; --no-train-detector (or "
+                                "--freeze-detector) trains the fusion gate only (needs --init "
+                                "and --fusion gated): every detection of the start weights "
+                                "stays as it was")
+    warp_augment: float = spec(0.0, low=0.0, high=1.0, doc="share of single-agent maps "
+                               "decoded after a random rigid warp (any heading, a shift of up "
+                               "to one feature cell), so the network learns maps that survive "
+                               "the warp of fusion")
+    seed: int = spec(0, low=0, doc="training seed")
+    threads: int = spec(2, low=1, doc="torch CPU threads")
+    workers: int = spec(0, low=0, doc="processes generating scenes and batches (0: none; the "
+                        "weights do not depend on it)")
+    device: str = spec("cpu", choices=("cpu", "cuda"), doc="torch device")
     noise: ScanNoise = field(default_factory=ScanNoise)
 
     def __post_init__(self) -> None:
-        for name in ("train_scenes", "val_scenes", "steps", "scenes_per_step", "threads",
-                     "workers"):
-            value = getattr(self, name)
-            low = 0 if name in ("val_scenes", "workers") else 1
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
-        for name in ("lr", "pose_sigma_t", "pose_sigma_r"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0) or (name == "lr" and value == 0.0):
-                raise ValueError(f"{name} must be a finite number >= 0 (lr > 0); got {value!r}")
-        if self.device not in ("cpu", "cuda"):
-            raise ValueError(f"device must be 'cpu' or 'cuda'; got {self.device!r}")
+        """The rules one field's spec cannot state: the fused ranges' values, and the
+        fields that go together."""
         for name in ("fused_x_range", "fused_y_range"):
             value = getattr(self, name)
             if value is not None and not (len(value) == 2 and all(map(math.isfinite, value))
                                           and value[0] < value[1]):
                 option = "--" + name.replace("_", "-")
-                raise ValueError(f"{name} must be None or two finite numbers (low, high) with "
-                                 f"low < high, in m ({option} LOW HIGH); got {value!r}")
-        if not (isinstance(self.warp_augment, int | float) and 0.0 <= self.warp_augment <= 1.0):
-            raise ValueError(f"warp_augment must be a share in [0, 1] (--warp-augment); got "
-                             f"{self.warp_augment!r}")
+                raise ConfigError(f"{WHERE}: {name} must be None or two finite numbers (low, "
+                                  f"high) with low < high, in m ({option} LOW HIGH); got "
+                                  f"{value!r}")
         if not self.train_encoder and self.init is None:
-            raise ValueError("train_encoder=False (a frozen encoder, --freeze-encoder) needs "
-                             "init, the weights file to start from (--init FILE)")
-        if self.fusion not in FUSIONS:
-            raise ValueError(f"fusion must be one of {FUSIONS} (--fusion); got {self.fusion!r}")
+            raise ConfigError(f"{WHERE}: train_encoder=False (a frozen encoder, "
+                              "--freeze-encoder) needs init, the weights file to start from "
+                              "(--init FILE)")
         if not self.train_detector and (self.init is None or self.fusion != "gated"):
-            raise ValueError("train_detector=False (a frozen detector, --freeze-detector) "
-                             "trains the fusion gate alone: it needs init, the weights file "
-                             "to start from (--init FILE), and fusion='gated' (--fusion gated)")
+            raise ConfigError(f"{WHERE}: train_detector=False (a frozen detector, "
+                              "--freeze-detector) trains the fusion gate alone: it needs "
+                              "init, the weights file to start from (--init FILE), and "
+                              "fusion='gated' (--fusion gated)")
 
     @property
     def trains_encoder(self) -> bool:

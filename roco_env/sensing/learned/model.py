@@ -26,12 +26,12 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from roco_env.geometry import se2_inverse, transform_boxes
-from roco_env.scenario import LearnedDetectorParams
 from roco_env.schema import build
-from roco_env.sensing.detector import AgentDetections
+from roco_env.sensing.detector import AgentDetections, Perception
 from roco_env.sensing.features import BevGrid, placement
 from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import SCORE_THRESHOLD, Decoded, decode, feature_grid
+from roco_env.sensing.learned_params import LearnedDetectorParams
 from roco_env.sensing.lidar import (
     LIDAR_CHANNELS,
     ScanNoise,
@@ -205,7 +205,7 @@ class LearnedDetector:
     compiled pass; gate: intermediate fusion through the weights' learned fusion gate
     (None: when they hold one; True: they must; False: the plain maximum). The values are
     checked against
-    :class:`~roco_env.scenario.LearnedDetectorParams` (ValueError naming the parameter).
+    :class:`~roco_env.sensing.learned_params.LearnedDetectorParams` (ValueError naming the parameter).
     region: ``(x_range, y_range)`` (m, agent frame), the part of an agent's surroundings
     that is scored (the scenario's evaluation range). With it, an agent's raster is the
     trained grid grown to cover the agent's sensor range within the region
@@ -221,9 +221,8 @@ class LearnedDetector:
     views of one car differ by a median 0.26 m on ``v2xset_like``; the RoCo paper's
     Table 1 losses fit 0.3 m / 1.5 deg (docs/perception.md, "Box precision").
     The default, one thread, is the safe choice: more threads pay off only on an idle
-    CPU (2 threads: 1.4x the steps per second of learned + intermediate fusion on an idle
-    2-core machine) and lose several times over on one busy with other jobs (6x slower
-    than one thread; measured in ``docs/perception.md``). The network's outputs differ
+    CPU and lose several times over on one busy with other jobs (measured in
+    docs/perception.md, "Threads"). The network's outputs differ
     between thread counts at float32 rounding (the fused maps do not), so results repeat
     bit for bit on the same count. In a process forked from one that has run torch on
     more than one thread keep one: more hang in torch there (a sweep's local workers
@@ -310,15 +309,15 @@ class LearnedDetector:
                       np.asarray(grounds, dtype=float), self.score_threshold)
 
     def perceive(self, state: WorldState, visibility: Visibility, rng: np.random.Generator
-                 ) -> tuple[list[AgentDetections], EncoderMaps]:
+                 ) -> Perception:
         """Per agent its detections (true sensor frame), and all encoder maps, each agent read
         on its :meth:`raster_grid`; the maps are zero-padded onto the widest of them."""
         grids = [self.raster_grid(r) for r in np.asarray(state.sensor_ranges).reshape(-1)]
         widest = max(grids, key=lambda g: (g.W, g.H), default=self.grid)
         wide = feature_grid(widest, self.checkpoint.net.stride)
         if state.num_agents == 0:
-            return [], EncoderMaps(torch.zeros((0, self.checkpoint.net.widths[2], wide.H,
-                                                wide.W)), wide)
+            empty = torch.zeros((0, self.checkpoint.net.widths[2], wide.H, wide.W))
+            return Perception([], EncoderMaps(empty, wide))
         scans = sample_scans(state, visibility, self.noise, rng)
         grounds = ground_references(state)
         groups: dict[BevGrid, list[int]] = {}
@@ -341,12 +340,12 @@ class LearnedDetector:
             # this and every later step are those of the same episode without the noise.
             (box_rng,) = rng.spawn(1)
             detections = [_blurred(d, self.box_sigma, box_rng) for d in detections]
-        return detections, EncoderMaps(maps, wide)
+        return Perception(detections, EncoderMaps(maps, wide))
 
     def detect(self, state: WorldState, visibility: Visibility,
                rng: np.random.Generator) -> list[AgentDetections]:
         """One :class:`AgentDetections` per agent (the parametric detector's interface)."""
-        return self.perceive(state, visibility, rng)[0]
+        return self.perceive(state, visibility, rng).detections
 
     def _labelled(self, state: WorldState, agent: int, decoded: Decoded) -> AgentDetections:
         return AgentDetections(decoded.boxes, decoded.uncertainty, decoded.scores,
@@ -419,13 +418,13 @@ def make_learned_detector(params: dict[str, Any] | None,
                           region: tuple[Sequence[float], Sequence[float]] | None = None
                           ) -> LearnedDetector:
     """The learned detector from scenario ``detector.params`` (the fields of
-    :class:`~roco_env.scenario.LearnedDetectorParams`) reading each agent's sensor range
+    :class:`~roco_env.sensing.learned_params.LearnedDetectorParams`) reading each agent's sensor range
     within ``region`` (see :class:`LearnedDetector`); ValueError naming an unknown key or
     a bad value."""
     return LearnedDetector(**dataclasses.asdict(_checked(dict(params or {}))), region=region)
 
 
 def _checked(params: dict[str, Any]) -> LearnedDetectorParams:
-    """``params`` checked against :class:`~roco_env.scenario.LearnedDetectorParams`, the one
+    """``params`` checked against :class:`~roco_env.sensing.learned_params.LearnedDetectorParams`, the one
     place the learned detector's parameters are declared (scenario files use it too)."""
     return build(LearnedDetectorParams, params, "detector 'learned'", "detector.params.")

@@ -114,8 +114,8 @@ class FusionGate(nn.Module):
 
         The 1x1 convolutions run as matrix products over the cells, the first split by its
         three inputs and accumulated (no concatenation): on channels-last maps the cells
-        are views, and this is about 3x faster than the convolutions. (Fusion at run time
-        on the CPU evaluates the same gate cell by cell in its compiled pass, from
+        are views, and this is faster than the convolutions (docs/performance.md). (Fusion
+        at run time on the CPU evaluates the same gate cell by cell in its compiled pass, from
         :meth:`cell_weights`.)"""
         first, last = self.body[0], self.body[2]
         n, c, h, w = own.shape

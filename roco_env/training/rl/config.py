@@ -1,21 +1,20 @@
 """The settings of ``roco-env train-policy``: one dataclass, the single place for defaults,
-allowed values and the command line's options (generated from it).
+allowed values and the command line's options (:data:`FLAGS`, generated from it).
 
 Every field is declared with :func:`roco_env.schema.spec`; :func:`build_config` checks a
-mapping of values (unknown keys, types, ranges, choices) and the rules that tie fields
-together, raising :class:`roco_env.schema.ConfigError` naming the field.
+mapping of values (unknown keys, types, ranges, choices) and, in the dataclass's
+``__post_init__``, the rules one field's spec cannot state (list items, fields that go
+together), raising :class:`roco_env.schema.ConfigError` naming the field.
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import typing
 from dataclasses import dataclass
 from typing import Any
 
+from roco_env.flags import SpecFlags
 from roco_env.scenario import OBSERVATION_MODES, list_scenarios
-from roco_env.schema import ConfigError, allowed_text, build, spec
+from roco_env.schema import ConfigError, build, spec
 
 ACTION_MODES = ("correction", "residual", "select", "gate")
 NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
@@ -30,12 +29,12 @@ class PolicyTrainConfig:
     action_mode: str = spec("select", choices=ACTION_MODES, doc="the env's action.mode")
     observation_mode: str = spec("aligned", choices=OBSERVATION_MODES,
                                  doc="the env's observation.mode")
-    observation_keys: list = spec([], doc="the observation entries the policy reads, in "
-                                  "the space's order (empty: all)")
+    observation_keys: list[str] = spec([], doc="the observation entries the policy reads, "
+                                       "in the space's order (empty: all)")
     action_base: str = spec("roco_antialias", doc="action.base: the aligner of residual and "
                             "gate modes and of the aligned observation's diagnostics")
-    scenarios: list = spec(["urban_intersection", "parking_lot", "v2xset_like"],
-                           doc="scenarios an episode is drawn from")
+    scenarios: list[str] = spec(["urban_intersection", "parking_lot", "v2xset_like"],
+                                doc="scenarios an episode is drawn from")
     noise_low: float = spec(0.0, low=0.0, high=20.0,
                             doc="noise level drawn uniformly in [noise_low, noise_high]: "
                             "sigma_t m = sigma_r deg")
@@ -44,7 +43,7 @@ class PolicyTrainConfig:
                               doc="scenario density multiplied by a factor drawn in "
                               "[density_low, density_high] (parking_lot: fill ratio, capped at 1)")
     density_high: float = spec(1.0, low=0.0, high=2.0, low_open=True, doc="see density_low")
-    noise_models: list = spec(["gaussian", "ar1"], doc="noise models drawn per episode")
+    noise_models: list[str] = spec(["gaussian", "ar1"], doc="noise models drawn per episode")
     max_collaborators: int = spec(5, low=1, high=32, doc="N, fixed across the curriculum")
     max_boxes: int = spec(64, low=1, high=1024, doc="K, fixed across the curriculum")
     episode_steps: int = spec(8, low=1, high=1000, doc="env steps per training episode")
@@ -60,23 +59,25 @@ class PolicyTrainConfig:
     gae_lambda: float = spec(0.95, low=0.0, high=1.0, doc="GAE lambda")
     ent_coef: float = spec(0.01, low=0.0, high=1.0, doc="entropy bonus")
     clip_range: float = spec(0.2, low=0.0, high=1.0, low_open=True, doc="PPO clip range")
-    net_arch: list = spec([64, 64], doc="hidden widths of the policy and value MLPs (tanh)")
+    net_arch: list[int] = spec([64, 64], doc="hidden widths of the policy and value MLPs (tanh)")
     eval_every: int = spec(1920, low=1, doc="env steps between evaluations and checkpoints "
                            "(a multiple of n_steps)")
-    eval_noises: list = spec([0.4, 1.2, 2.0, 3.0], doc="noise levels of the held-out "
-                             "evaluation (every scenario, eval_seeds seeds each)")
+    eval_noises: list[float] = spec([0.4, 1.2, 2.0, 3.0], doc="noise levels of the "
+                                    "held-out evaluation (every scenario, eval_seeds seeds "
+                                    "each)")
     eval_seeds: int = spec(1, low=1, high=100, doc="held-out evaluation seeds per condition")
     seed: int = spec(0, low=0, high=2**31 - 1, doc="training seed (weights, conditions, "
                      "episodes)")
     threads: int = spec(1, low=1, high=64, doc="torch CPU threads")
 
+    def __post_init__(self) -> None:
+        _check_lists(self)
+        _check_ties(self)
+
 
 def build_config(values: dict[str, Any]) -> PolicyTrainConfig:
     """A checked :class:`PolicyTrainConfig` from ``values`` (missing keys keep defaults)."""
-    config = build(PolicyTrainConfig, values, WHERE)
-    _check_lists(config)
-    _check_ties(config)
-    return config
+    return build(PolicyTrainConfig, values, WHERE)
 
 
 def _check_lists(config: PolicyTrainConfig) -> None:
@@ -124,40 +125,5 @@ def _check_ties(config: PolicyTrainConfig) -> None:
                           f"n_steps={config.n_steps}")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """One ``--option`` per field (``noise_low`` -> ``--noise-low``), help from its doc."""
-    hints = typing.get_type_hints(PolicyTrainConfig)
-    defaults = PolicyTrainConfig()
-    for field in dataclasses.fields(PolicyTrainConfig):
-        default = getattr(defaults, field.name)
-        meta = field.metadata
-        allowed = f"; {allowed_text(meta)}" if meta.get("choices") or \
-            meta.get("low") is not None or meta.get("high") is not None else ""
-        text = f"{meta.get('doc', '')} (default {default}{allowed})"
-        flag = "--" + field.name.replace("_", "-")
-        if hints[field.name] is list:
-            item = type(default[0]) if default else str
-            parser.add_argument(flag, nargs="+", type=item, default=None, help=text)
-        else:
-            parser.add_argument(flag, type=hints[field.name], default=None, help=text)
-
-
-def config_from_arguments(args: argparse.Namespace) -> PolicyTrainConfig:
-    """The checked config of the options given (the others keep their defaults)."""
-    given = {field.name: getattr(args, field.name)
-             for field in dataclasses.fields(PolicyTrainConfig)
-             if getattr(args, field.name, None) is not None}
-    return build_config(given)
-
-
-def command_arguments(config: PolicyTrainConfig) -> list[str]:
-    """Every field as its option: the arguments that reproduce ``config`` exactly."""
-    argv: list[str] = []
-    for field in dataclasses.fields(PolicyTrainConfig):
-        value = getattr(config, field.name)
-        flag = "--" + field.name.replace("_", "-")
-        if isinstance(value, list):
-            argv += [flag, *map(str, value)] if value else []  # empty: the default
-        else:
-            argv.append(f"{flag}={value}")
-    return argv
+# The command line's options (roco-env train-policy), one per field.
+FLAGS = SpecFlags(PolicyTrainConfig, WHERE)

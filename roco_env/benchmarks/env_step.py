@@ -30,44 +30,41 @@ from roco_env.fusion import merge_into_ego_frame
 from roco_env.geometry import nms_bev
 from roco_env.metrics import frame_stats, match_frames
 from roco_env.policies.basic import IdentityPolicy
+from roco_env.rollout import play_episode
 
 SETTING = dict(scenario="urban_intersection", cavs=4, rsus=1, fusion="late")
 TARGET_VEHICLES = 100
 TARGET_STEPS_PER_S = 200.0
 
 
-def _env() -> tuple[CollabPerceptionEnv, dict, dict]:
+def _env() -> CollabPerceptionEnv:
     """The benchmark env, reset with seed 0, at the density giving TARGET_VEHICLES."""
     for density in np.arange(2.0, 20.0, 0.5):
         env = CollabPerceptionEnv(**SETTING, density=float(density), max_cycles=10**9)
-        obs, infos = env.reset(seed=0)
+        env.reset(seed=0)
         if env.unwrapped._frame.state.num_objects >= TARGET_VEHICLES:
-            return env, obs, infos
+            return env
     raise ValueError(f"no density up to 20 gives {TARGET_VEHICLES} vehicles")
 
 
-def _stepper(env: CollabPerceptionEnv, obs: dict, infos: dict, steps: int):
-    policy = IdentityPolicy()
-    state = {"obs": obs, "infos": infos}
-
-    def run_steps() -> None:
-        for _ in range(steps):
-            actions = {a: policy(state["obs"][a], state["infos"][a]) for a in env.agents}
-            state["obs"], _, _, _, state["infos"] = env.step(actions)
-
-    return run_steps
+def _episode(env: CollabPerceptionEnv, steps: int) -> None:
+    """Steps 1..``steps`` after a seeded reset (the cost varies along an episode), every
+    agent with the identity policy."""
+    policies = dict.fromkeys(env.possible_agents, IdentityPolicy())
+    for _ in play_episode(env, policies, seed=0, max_steps=steps):
+        pass
 
 
 def run(quick: bool) -> list[str]:
     steps, repeats = (100, 3) if quick else (500, 3)
-    env, obs, infos = _env()
+    env = _env()
     frame = env.unwrapped._frame
     lines = [f"setting: {env.config.name}, {len(env.possible_agents)} agents (all evaluated), "
              f"{frame.state.num_objects} vehicles (density {env.config.traffic.density}), "
              "identity policy, late fusion"]
 
-    def episode() -> None:  # steps 1..steps after a seeded reset (cost varies along it)
-        _stepper(env, *env.reset(seed=0), steps)()
+    def episode() -> None:
+        _episode(env, steps)
 
     seconds = median_seconds(episode, repeats=repeats, warmup=1)
     rate = steps / seconds
@@ -132,9 +129,8 @@ def _matching_line(env: CollabPerceptionEnv, repeats: int) -> str:
 
 def _profile(env: CollabPerceptionEnv, steps: int, top: int = 6) -> list[str]:
     profiler = cProfile.Profile()
-    run_steps = _stepper(env, *env.reset(seed=0), steps)
     profiler.enable()
-    run_steps()
+    _episode(env, steps)
     profiler.disable()
     out = io.StringIO()
     pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(top)

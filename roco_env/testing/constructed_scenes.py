@@ -1,4 +1,4 @@
-"""Constructed alignment scenes with known pose errors (tests and benchmarks).
+"""Constructed alignment scenes with known pose errors (tests and benchmarks only).
 
 Objects are boxes in a world frame, agents sit at true poses and see the objects
 within their sensor range, boxes are expressed in each agent's true frame, and
