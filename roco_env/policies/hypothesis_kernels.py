@@ -17,7 +17,7 @@ The kernels take an agent's boxes as a :class:`BoxTerms` record, the evidence se
 an :class:`EvidenceSettings` and the votes' as a :class:`VoteSettings`
 (``typing.NamedTuple``, compiled as tuples with named fields); from Python a record is
 passed as a plain tuple, ``tuple(record)``, which numba types in C (a named tuple it types
-field by field in Python, about 1 us per field and call), and named again on entry.
+field by field in Python on every call: docs/performance.md), and named again on entry.
 
 Every compiled function here calls only functions and records of this module: numba's
 on-disk cache recompiles a function when its own file changes, not when a callee in

@@ -28,12 +28,12 @@ which numba compiles as tuples with named fields): the solver's settings
 (:class:`MatchSettings`), a collaborator's boxes (:class:`AgentBoxes`), RoCo's map
 (:class:`LandmarkMap`, :class:`Observations`), the rounds' settings
 (:class:`RoundSettings`) and state (:class:`RoundState`). From Python a record is passed
-as a plain tuple, ``tuple(record)``: numba types a named tuple
-argument field by field in Python on every call (about 15 us for the rounds' settings),
-a plain one in C (about 1 us); the kernels name it again on entry (``Record(*argument)``,
-free once compiled), so either form is accepted. The other way, a named tuple is boxed by
-calling its class (about 3 us), so the rounds and the commit, called per collaborator,
-return their records as plain tuples (:func:`_plain`) for the caller to name.
+as a plain tuple, ``tuple(record)``: numba types a named tuple argument field by field in
+Python on every call, a plain one in C (several times faster, docs/performance.md); the
+kernels name it again on entry (``Record(*argument)``, free once compiled), so either form
+is accepted. The other way, a named tuple is boxed by calling its class, so the rounds and
+the commit, called per collaborator, return their records as plain tuples
+(:func:`_plain`) for the caller to name.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).

@@ -13,7 +13,7 @@ association (:class:`Gates`), poses with the cos / sin of their yaws
 (:class:`Placement`), a set of box pairs' invariants (:class:`PairInvariants`) and a
 graph of boxes (:class:`NodeGraph`). From Python a record is passed as a plain tuple,
 ``tuple(record)``, which numba types in C (a named tuple it types field by field in
-Python, about 1 us per field and call), and named again on entry. Every compiled function
+Python on every call: docs/performance.md), and named again on entry. Every compiled function
 here calls only functions and records of this module (numba's on-disk cache notices edits
 to a function's own file only).
 """
