@@ -233,7 +233,7 @@ def diagnose(
     information, matches = pair_information(
         ego.poses, ego.var_t, ego.var_r, collab.poses, collab.var_t, collab.var_r, pose,
         float(p.refine_gate), *evidence_terms(p)[:2])
-    information *= np.outer(scale, scale)
+    information *= scale[:, None] * scale
     if matches < min_matches:
         return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0],
                          weak_translation=True)
@@ -241,9 +241,11 @@ def diagnose(
     limits = ((p.search_radius / scale[0]) ** 2, (np.deg2rad(p.search_yaw_deg) / scale[2]) ** 2)
     moves, yaw_open = _spectrum(information, limits)
     weak_translation = bool(moves)
-    offset = (candidates - pose) / scale
-    offset[:, 2] = wrap_angle(offset[:, 2] * scale[2]) / scale[2]
-    rival = (rival_score >= rival_score[best] - margin) & _distinct(offset)
+    offset = candidates - pose
+    offset[:, 2] = (offset[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # the turn, wrapped
+    offset /= scale
+    distinct_rows = _distinct(offset)
+    rival = (rival_score >= rival_score[best] - margin) & distinct_rows
     # Step 3: translation directions (largest rival shift first) and the yaw axis.
     if rival.any():
         shifts = offset[rival, :2]
@@ -255,7 +257,8 @@ def diagnose(
     directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
     undetermined = np.array(directions, dtype=float).reshape(-1, 3)
     return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
-                     _determined_margin(offset, undetermined, score), weak_translation)
+                     _determined_margin(offset, undetermined, score, distinct_rows),
+                     weak_translation)
 
 
 def _spectrum(
@@ -288,11 +291,16 @@ def _distinct(offset: np.ndarray) -> np.ndarray:
     return (np.hypot(offset[:, 0], offset[:, 1]) > 1.0) | (np.abs(offset[:, 2]) > 1.0)
 
 
-def _determined_margin(offset: np.ndarray, undetermined: np.ndarray, total: np.ndarray) -> float:
+def _determined_margin(
+    offset: np.ndarray, undetermined: np.ndarray, total: np.ndarray, distinct_rows: np.ndarray
+) -> float:
     """Step 4 of the module docstring: offsets (H, 3) of the candidates from the pose (scaled
-    coordinates), the undetermined basis (k, 3), the candidates' scores (H,)."""
+    coordinates), the undetermined basis (k, 3), the candidates' scores (H,) and which
+    offsets are distinct (H,) (those of the determined part when nothing is open)."""
     if undetermined.shape[0] == 3:
         return float("nan")
-    other = _distinct(offset - (offset @ undetermined.T) @ undetermined)
+    other = distinct_rows
+    if undetermined.shape[0]:
+        other = _distinct(offset - (offset @ undetermined.T) @ undetermined)
     runner_up = total[other].max() if other.any() else 0.0
     return float(total[~other].max() - runner_up)
