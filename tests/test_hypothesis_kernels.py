@@ -355,8 +355,8 @@ def test_pair_information_matches_the_numpy_path():
             for pose in (true, true + rng.normal(size=3) * [0.4, 0.4, 0.01], scene.reported[j]):
                 args = (sets[0], sets[j + 1], pose, 1.0, 0.01, 3e-5)
                 info, count = pair_information(
-                    sets[0].poses, sets[0].var_t, sets[0].var_r, sets[j + 1].poses,
-                    sets[j + 1].var_t, sets[j + 1].var_r, pose, *args[3:])
+                    (sets[0].poses, sets[0].var_t, sets[0].var_r),
+                    (sets[j + 1].poses, sets[j + 1].var_t, sets[j + 1].var_r), pose, *args[3:])
                 expected, expected_count = numpy_pair_information(*args)
                 assert count == expected_count
                 assert_equal_to_rounding(info, expected, rtol=1e-10)

@@ -139,7 +139,8 @@ def test_list_names_the_stateful_policies(capsys):
     assert main(["list", "policies"]) == 0
     lines = capsys.readouterr().out.splitlines()
     stateful = {line.split()[0] for line in lines if "stateful" in line}
-    assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias", "defend"}
+    assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias", "defend",
+                        "compensate"}
 
 
 def test_a_plugin_without_a_policy_is_refused_before_the_sweep(plugin):

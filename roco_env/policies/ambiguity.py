@@ -231,7 +231,7 @@ def diagnose(
     pose = candidates[best]
     scale = np.array([distinct[0], distinct[0], distinct[1]], dtype=float)
     information, matches = pair_information(
-        ego.poses, ego.var_t, ego.var_r, collab.poses, collab.var_t, collab.var_r, pose,
+        (ego.poses, ego.var_t, ego.var_r), (collab.poses, collab.var_t, collab.var_r), pose,
         float(p.refine_gate), *evidence_terms(p)[:2])
     information *= scale[:, None] * scale
     if matches < min_matches:

@@ -870,16 +870,18 @@ def _nearest(x, y, land_poses, by_x, sorted_x, gate):
 
 
 @njit(cache=True)
-def pair_information(land_poses, land_var_t, land_var_r, own_poses, own_var_t, own_var_r, pose,
-                     gate, slack_t, slack_r):
+def pair_information(landmarks, own, pose, gate, slack_t, slack_r):
     """Information (3, 3) of the agent's pose (3,) (x m, y m, yaw rad) from the pairs of each
-    of its boxes (own_poses (K, 3) in its frame, mapped by ``pose``) with the nearest
-    landmark (land_poses (L, 3)) closer than ``gate`` m, as the refinement pairs them, and
-    the number of pairs (the ambiguity diagnosis, ``roco_env.policies.ambiguity``, step 1).
+    of its boxes (``own`` = (poses (K, 3) in its frame, mapped by ``pose``, var_t (K,),
+    var_r (K,))) with the nearest landmark (``landmarks``, the same three arrays, L rows)
+    closer than ``gate`` m, as the refinement pairs them, and the number of pairs (the
+    ambiguity diagnosis, ``roco_env.policies.ambiguity``, step 1).
 
     A pair's position residual has variance ``land_var_t + own_var_t + slack_t`` (m^2) in x
     and y, its heading residual ``land_var_r + own_var_r + slack_r`` (rad^2); the mapped
     centre's derivative in yaw is its offset from the agent's origin turned by 90 degrees."""
+    land_poses, land_var_t, land_var_r = landmarks
+    own_poses, own_var_t, own_var_r = own
     info = np.zeros((3, 3))
     if land_poses.shape[0] == 0:
         return info, 0
