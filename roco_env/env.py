@@ -44,8 +44,8 @@ from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
 from roco_env.registration import ENV_ID
 from roco_env.scenario import (
+    ConfigError,
     ScenarioConfig,
-    ScenarioError,
     apply_overrides,
     load_scenario,
     scenario_from_dict,
@@ -243,7 +243,7 @@ class CollabPerceptionEnv(ParallelEnv):
         elif isinstance(scenario, (str, os.PathLike)):
             config = load_scenario(scenario, **overrides)
         else:
-            raise ScenarioError(
+            raise ConfigError(
                 "scenario must be a name from roco_env.list_scenarios(), a .yaml path, a mapping "
                 f"of its keys or a ScenarioConfig; got {scenario!r} ({type(scenario).__name__})")
         if config.agents.cavs + config.agents.rsus < 1:

@@ -24,7 +24,7 @@ from scipy.optimize import linear_sum_assignment
 
 import roco_env
 from roco_env import stages
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import ok_record
 from roco_env.traffic.state import WorldState
 

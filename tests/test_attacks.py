@@ -11,7 +11,7 @@ from roco_env.attacks.ghost import GHOST_SIZE
 from roco_env.attacks.pose import PoseSpoof, offset_pose
 from roco_env.geometry import se2_compose, se2_relative, transform_boxes
 from roco_env.pipeline import Pipeline
-from roco_env.scenario import ScenarioError, load_scenario
+from roco_env.scenario import ConfigError, load_scenario
 
 SCENE = "urban_intersection"  # 4 CAVs and 1 RSU
 NOISE = {"sigma_t": 0.4, "sigma_r": 0.4}
@@ -224,7 +224,7 @@ def test_the_attackers_identity_reaches_infos_privileged_but_never_an_observatio
     ({"kind": "erase", "count": 5}, r"attack.count=5 would make every one of the 5 agents"),
 ])
 def test_bad_attackers_are_refused_naming_the_field(attack, match):
-    with pytest.raises(ScenarioError, match=match):
+    with pytest.raises(ConfigError, match=match):
         roco_env.parallel_env(SCENE, **{f"attack.{k}": v for k, v in attack.items()})
 
 
@@ -237,7 +237,7 @@ def test_bad_attackers_are_refused_naming_the_field(attack, match):
     ({"kind": "lie"}, r"attack.kind='lie' is not allowed"),
 ])
 def test_bad_attack_parameters_are_refused_naming_the_field(attack, match):
-    with pytest.raises(ScenarioError, match=match):
+    with pytest.raises(ConfigError, match=match):
         roco_env.parallel_env(SCENE, **{f"attack.{k}": v for k, v in attack.items()})
 
 
@@ -327,7 +327,7 @@ def test_the_learned_attackers_reward_is_minus_its_victims_ap_and_its_detection(
     ({"target": "cav_7"}, r"attack.params.target='cav_7' must be an honest agent"),
 ])
 def test_a_bad_learned_attack_budget_or_target_is_refused(params, match):
-    with pytest.raises(ScenarioError, match=match):
+    with pytest.raises(ConfigError, match=match):
         adversarial(**params)
 
 

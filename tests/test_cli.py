@@ -174,8 +174,8 @@ def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
 
 
 def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
-    from roco_env.traffic.export import scenario_folder
     from roco_env.traffic.generate import generate
+    from roco_env.traffic.opv2v_export import scenario_folder
 
     generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
     scene = scenario_folder(tmp_path / "scene")

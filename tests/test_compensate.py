@@ -11,8 +11,8 @@ import roco_env
 from roco_env.comm.tracking import BoxTracker, TrackingParams, moved_boxes, world_centres
 from roco_env.policies import make_policy
 from roco_env.policies.compensate import Compensate
+from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import build_grid
 from roco_env.traffic.frames import Frame
 
 LATE = {"delay": "fixed", "delay_ms": 200}

@@ -15,7 +15,7 @@ from roco_env.comm.delay import OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
 from roco_env.env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.pipeline import Pipeline
-from roco_env.scenario import MESSAGE_HEADER_BYTES, ScenarioError, load_scenario
+from roco_env.scenario import MESSAGE_HEADER_BYTES, ConfigError, load_scenario
 
 SCENE = "highway_dense"
 DT = 0.1  # highway_dense's traffic.dt
@@ -298,7 +298,7 @@ def test_gilbert_elliott_losses_come_in_bursts_at_the_asked_rate():
     assert abs(lost.mean() - 0.2) < 0.02
     starts = np.flatnonzero(np.diff(lost.astype(int)) == 1)
     assert abs(lost.sum() / starts.size - 4.0) < 0.4  # mean burst length
-    with pytest.raises(ScenarioError, match="loss_rate=0.9 cannot be reached with comm.loss_params"
+    with pytest.raises(ConfigError, match="loss_rate=0.9 cannot be reached with comm.loss_params"
                                             ".burst_length=2.0"):
         load_scenario(SCENE, loss="gilbert_elliott", loss_rate=0.9,
                       **{"comm.loss_params.burst_length": 2.0})
@@ -326,14 +326,14 @@ def test_gilbert_elliott_losses_come_in_bursts_at_the_asked_rate():
     ({"comm.compensation": "magic"}, ["comm.compensation='magic'", "'track'"]),
 ])
 def test_bad_comm_input_names_the_field(overrides, names):
-    with pytest.raises(ScenarioError) as info:
+    with pytest.raises(ConfigError) as info:
         load_scenario(SCENE, **overrides)
     for name in names:
         assert name in str(info.value)
 
 
 def test_a_sensor_offset_of_an_agent_the_scenario_lacks_names_it():
-    with pytest.raises(ScenarioError, match="comm.sensor_offset_ms.cav_9.*cav_0"):
+    with pytest.raises(ConfigError, match="comm.sensor_offset_ms.cav_9.*cav_0"):
         roco_env.parallel_env(SCENE, cavs=3, **{"comm.sensor_offset_ms": {"cav_9": 10}})
 
 

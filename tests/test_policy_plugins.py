@@ -9,7 +9,7 @@ import roco_env
 from roco_env.cli import main
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.spec import merge_env_overrides
-from roco_env.sweeps.spec import parse_policy_spec, validate_policy_spec
+from roco_env.sweeps.text_specs import parse_policy_spec, validate_policy_spec
 
 PLUGIN = textwrap.dedent('''
     import numpy as np

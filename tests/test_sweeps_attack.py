@@ -15,7 +15,7 @@ from roco_env.sweeps.attack import (
     is_attacked,
     run_attack_cell,
 )
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import record_problem
 from roco_env.sweeps.store import ResultStore
 

@@ -11,7 +11,7 @@ import pytest
 from roco_env.cli import build_parser
 from roco_env.cli.compare import grid_from_args
 from roco_env.sweeps.baselines import EXPERIMENTS, experiment, main
-from roco_env.sweeps.grid import validate_grid
+from roco_env.sweeps.cells import validate_grid
 
 
 @pytest.mark.parametrize("item", EXPERIMENTS, ids=lambda e: e.name)

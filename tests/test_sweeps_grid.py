@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from roco_env.sweeps.grid import Cell, build_grid
-from roco_env.sweeps.spec import format_scalar, parse_grid, parse_overrides, parse_policy_spec
+from roco_env.sweeps.cells import Cell, build_grid
+from roco_env.sweeps.text_specs import format_scalar, parse_grid, parse_overrides, parse_policy_spec
 
 
 def test_policy_spec_is_canonical_and_typed():

@@ -8,7 +8,7 @@ import numpy as np
 from conftest import FAILING_NOISE, fake_cell
 from PIL import Image
 
-from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report
 

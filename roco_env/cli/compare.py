@@ -21,13 +21,13 @@ import sys
 from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS, check_backend
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.options import DEFAULT_SCENARIO
 from roco_env.sweeps.provenance import Provenance
-from roco_env.sweeps.spec import parse_grid, parse_overrides
 from roco_env.sweeps.store import ResultsInUse
 from roco_env.sweeps.sweep import SweepStopped, run_sweep, stored_results
 from roco_env.sweeps.sweep_report import write_report
+from roco_env.sweeps.text_specs import parse_grid, parse_overrides
 
 # Defaults, and the `--demo` preset (crowded default scenario, the four built-in
 # policies plus roco_antialias, three noise levels).

@@ -27,8 +27,8 @@ import torch
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections, kept_items
 from roco_env.fusion.warp_kernels import Gate, Warp, warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
+from roco_env.sensing.bev_grid import affine_theta
 from roco_env.sensing.features import zero_padded
-from roco_env.sensing.grid import affine_theta
 from roco_env.sensing.learned.network import FusionGate
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState

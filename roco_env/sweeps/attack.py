@@ -30,8 +30,8 @@ from dataclasses import replace
 from typing import Any
 
 from roco_env.attacks.scoring import EpisodeLog, attack_scores
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.records import error_record, ok_record
 
 ATTACK_PREFIX = "attack."

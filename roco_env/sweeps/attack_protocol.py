@@ -23,9 +23,9 @@ import numpy as np
 
 from roco_env.sweeps.attack import ATTACK_PREFIX, run_attack_cell
 from roco_env.sweeps.backends import BACKENDS
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.spec import Scalar
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.sweep import run_sweep
+from roco_env.sweeps.text_specs import Scalar
 
 NOISE = 0.4
 SPOOF, GHOST = "pose_spoof", "ghost"

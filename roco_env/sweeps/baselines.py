@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.spec import Scalar, format_scalar
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report
+from roco_env.sweeps.text_specs import Scalar, format_scalar
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")

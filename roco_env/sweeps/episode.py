@@ -38,10 +38,10 @@ from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_pre
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.spec import merge_env_overrides
 from roco_env.rollout import play_episode
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import error_record, ok_record
-from roco_env.sweeps.spec import parse_policy_spec
 from roco_env.sweeps.stats import nanmean, pose_error_summary
+from roco_env.sweeps.text_specs import parse_policy_spec
 
 SAMPLE_DECIMALS = 3  # RPE samples are stored to 1 mm / 0.001 deg (plots, pooled percentiles)
 _ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from roco_env.schema import ConfigError, build, spec
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 
 RECORD_VERSION = 1
 TRACEBACK_FRAMES = 6
@@ -125,7 +125,7 @@ class RecordHead:
 
 @dataclass
 class RecordCell:
-    """A record's ``cell`` (:meth:`roco_env.sweeps.grid.Cell.to_dict`): noise level s
+    """A record's ``cell`` (:meth:`roco_env.sweeps.cells.Cell.to_dict`): noise level s
     (sigma_t = s m, sigma_r = s deg), env steps, traffic density (null = the scenario's)."""
 
     scenario: str = spec("")

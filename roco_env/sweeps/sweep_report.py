@@ -21,7 +21,6 @@ from pathlib import Path
 
 from roco_env.sweeps import plots
 from roco_env.sweeps.aggregate import SummaryRow, summarize
-from roco_env.sweeps.spec import format_scalar
 from roco_env.sweeps.tables import (
     ap_by_axis,
     ap_by_density,
@@ -32,6 +31,7 @@ from roco_env.sweeps.tables import (
     noise_label,
     pose_table,
 )
+from roco_env.sweeps.text_specs import format_scalar
 
 
 @dataclass

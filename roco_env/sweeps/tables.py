@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable, Sequence
 
 from roco_env.sweeps.aggregate import SummaryRow
-from roco_env.sweeps.spec import format_scalar
+from roco_env.sweeps.text_specs import format_scalar
 
 
 def noise_label(noise: float) -> str:

@@ -17,7 +17,12 @@ from typing import Any
 
 from roco_env.env import check_seed
 from roco_env.scenario import load_scenario
-from roco_env.sweeps.spec import Scalar, format_scalar, parse_policy_spec, validate_policy_spec
+from roco_env.sweeps.text_specs import (
+    Scalar,
+    format_scalar,
+    parse_policy_spec,
+    validate_policy_spec,
+)
 
 # Overrides the grid sets itself; a grid-level override may not fight them.
 GRID_OWNED_OVERRIDES = ("sigma_t", "sigma_r", "density", "noise.sigma_t", "noise.sigma_r",
@@ -29,7 +34,7 @@ class Cell:
     """One episode of the sweep.
 
     scenario: scenario name or YAML path; noise: level s (sigma_t = s m, sigma_r = s deg),
-    None = the scenario's own sigma_t / sigma_r (``roco-env stress`` cells); policy: canonical policy spec (see :mod:`roco_env.sweeps.spec`); seed: env reset seed;
+    None = the scenario's own sigma_t / sigma_r (``roco-env stress`` cells); policy: canonical policy spec (see :mod:`roco_env.sweeps.text_specs`); seed: env reset seed;
     steps: env steps (max_cycles); density: traffic density override, None = scenario
     default; overrides: further scenario overrides as sorted (key, value) pairs.
     """
