@@ -93,11 +93,11 @@ _REWARDS = "roco_env.evaluation"
 _DELAY = "roco_env.comm.delay"
 _LOSS = "roco_env.comm.loss"
 
-# kind -> name -> (factory target, params: a target, "dict" or None). Imported on first use.
-_BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
+# kind -> name -> (factory target, params: a target, dict or None). Imported on first use.
+_BUILT_IN: dict[str, dict[str, tuple[str, str | type | None]]] = {
     "traffic": {
         "synthetic": ("roco_env.traffic.synthetic:make_synthetic", None),
-        "highway_env": ("roco_env.traffic.highway_env_source:HighwayEnvSource", "dict"),
+        "highway_env": ("roco_env.traffic.highway_env_source:HighwayEnvSource", dict),
         "opv2v": ("roco_env.traffic.replay:OPV2VReplay", None),
         "dair": ("roco_env.traffic.replay:DairReplay", None),
         "frames": ("roco_env.traffic.frames:frames_source", None),
@@ -170,11 +170,14 @@ class StageEntry:
 
     def params_class(self) -> type | None:
         """The parameter dataclass, ``dict`` (a free mapping) or None (no parameters)."""
-        if self.params == "dict":
-            return dict
         if isinstance(self.params, str):
             return _resolve(self.params, self)
         return self.params
+
+
+_BUILT_IN_ENTRIES: dict[str, dict[str, StageEntry]] = {
+    kind: {name: StageEntry(kind, name, factory, params) for name, (factory, params)
+           in names.items()} for kind, names in _BUILT_IN.items()}
 
 
 def _resolve(target: str, entry: StageEntry) -> Any:
@@ -220,9 +223,7 @@ class _LazyParamsEntry(StageEntry):
 def _entries(kind: str) -> dict[str, StageEntry]:
     if kind not in KINDS:
         raise ConfigError(f"unknown stage kind {kind!r}; allowed: {', '.join(KINDS)}")
-    built_in = {name: StageEntry(kind, name, factory, params)
-                for name, (factory, params) in _BUILT_IN[kind].items()}
-    return {**_entry_points(kind), **_REGISTERED[kind], **built_in}
+    return {**_entry_points(kind), **_REGISTERED[kind], **_BUILT_IN_ENTRIES[kind]}
 
 
 def available_stages(kind: str) -> tuple[str, ...]:
