@@ -242,7 +242,9 @@ def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, 
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
     try:
-        deadline = time.monotonic() + 60
+        # a bound on the wait, not a speed check: a loaded 2-core machine needs over a
+        # minute to import the command and start its pool
+        deadline = time.monotonic() + 180
         workers: set[int] = set()
         helpers: set[int] = set()
         while time.monotonic() < deadline and process.poll() is None and len(workers) < 2:
