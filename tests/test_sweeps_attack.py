@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from roco_env.attacks.scoring import EpisodeLog
+from roco_env.scenario import scenario_path
 from roco_env.sweeps import attack, attack_protocol
 from roco_env.sweeps.attack import attack_metrics, clean_twin, run_attack_cell
 from roco_env.sweeps.cells import Cell
@@ -43,8 +44,6 @@ def fresh(monkeypatch):
 @pytest.fixture
 def scenario_attack(tmp_path):
     """urban_intersection's file with SPOOF_10 as its own attack section."""
-    from roco_env.scenario import scenario_path
-
     text = scenario_path("urban_intersection").read_text(encoding="utf-8")
     path = tmp_path / "spoofed.yaml"
     path.write_text(text + "\nattack:\n  kind: pose_spoof\n  agents: [cav_1]\n"
