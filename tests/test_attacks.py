@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import roco_env
-from roco_env.attacks.ghost import GHOST_SIZE
 from roco_env.attacks.pose import PoseSpoof, offset_pose
 from roco_env.geometry import se2_compose, se2_relative, transform_boxes
 from roco_env.pipeline import Pipeline
 from roco_env.scenario import ConfigError, load_scenario
+from roco_env.sensing.detector import FP_SIZE_MEAN
 
 SCENE = "urban_intersection"  # 4 CAVs and 1 RSU
 NOISE = {"sigma_t": 0.4, "sigma_r": 0.4}
@@ -115,10 +115,21 @@ def test_a_consistent_spoof_moves_exactly_the_attackers_pose_and_unshared_boxes(
 
 def test_a_plain_spoof_moves_every_box_by_the_lie_and_drift_ramps_it():
     _, clean = frame()
-    _, attacked = frame(kind="pose_spoof", agents=["cav_0"], params={"offset_m": 3.0})
-    victim = attacked.views[1]
+    _, attacked = frame(kind="pose_spoof", agents=["cav_0"],
+                        params={"offset_m": 3.0, "direction_deg": 90.0})
+    victim, honest = attacked.views[1], clean.views[1]
     (slot,) = attacked_slots(victim, 0)
-    assert np.array_equal(victim.collab_boxes[slot], clean.views[1].collab_boxes[slot])
+    assert np.array_equal(victim.collab_boxes[slot], honest.collab_boxes[slot])  # as sent
+    offset = offset_pose(3.0, 90.0, 0.0)
+    assert np.allclose(victim.collab_poses[slot], se2_compose(honest.collab_poses[slot], offset))
+    # where the victim puts them: every box moved by the lie, 3 m to the attacker's left
+    placed = transform_boxes(honest.collab_boxes[slot], honest.reported_relative[slot])
+    lied = transform_boxes(victim.collab_boxes[slot], victim.reported_relative[slot])
+    expected = transform_boxes(honest.collab_boxes[slot],
+                               se2_compose(honest.reported_relative[slot], offset))
+    assert victim.collab_boxes[slot].shape[0] > 0
+    assert np.allclose(lied, expected, atol=1e-9)
+    assert np.allclose(np.hypot(*(lied[:, :2] - placed[:, :2]).T), 3.0)
     config = load_scenario(SCENE, **{"attack.kind": "pose_spoof", "attack.agents": ["cav_0"],
                                      "attack.params": {"offset_m": 4.0, "drift": 2.0}})
     spoof = PoseSpoof(config, ("cav_0", "cav_1"))
@@ -167,15 +178,17 @@ def test_aliasing_ghosts_land_on_the_victims_boxes_under_the_wrong_hypothesis():
     assert np.all(nearest < 1e-6)
 
 
-def test_random_and_lane_ghosts_are_car_sized_and_a_message_keeps_at_most_k_boxes():
+@pytest.mark.parametrize("placement", ["random", "lanes"])
+def test_random_and_lane_ghosts_are_car_sized_and_a_message_keeps_at_most_k_boxes(placement):
     _, attacked = frame(kind="ghost", agents=["cav_0"], params={"n_ghost": 1000,
-                                                                 "placement": "lanes"})
+                                                                 "placement": placement})
     victim = attacked.views[1]
     (slot,) = attacked_slots(victim, 0)
     assert victim.collab_boxes[slot].shape[0] == 64  # max_boxes
     ghosts = victim.collab_boxes[slot][victim.collab_object_ids[slot] == -1]
     assert ghosts.shape[0] > 64 // 2  # they outscore most real boxes
-    assert np.allclose(ghosts[-10:, 3:6], GHOST_SIZE)  # appended after the real boxes
+    assert np.allclose(ghosts[:, 3:6], FP_SIZE_MEAN)
+    assert np.allclose(ghosts[:, 2], 0.5 * FP_SIZE_MEAN[2])  # standing on the ground
 
 
 def test_erase_withholds_the_named_objects_and_a_share_of_the_rest():
@@ -324,11 +337,18 @@ def test_the_learned_attackers_reward_is_minus_its_victims_ap_and_its_detection(
 @pytest.mark.parametrize("params, match", [
     ({"budget_m": -1.0}, r"attack.params.budget_m=-1.0 is out of range; allowed \[0.0, 100.0\]"),
     ({"ghosts": -2}, r"attack.params.ghosts=-2 is out of range"),
-    ({"target": "cav_7"}, r"attack.params.target='cav_7' must be an honest agent"),
+    ({"target": "cav_1"}, r"attack.params.target='cav_1' needs attack.agents"),
 ])
 def test_a_bad_learned_attack_budget_or_target_is_refused(params, match):
     with pytest.raises(ConfigError, match=match):
         adversarial(**params)
+
+
+@pytest.mark.parametrize("target", ["cav_7", "cav_0"])
+def test_a_learned_attacks_target_must_be_an_honest_agent(target):
+    with pytest.raises(ConfigError, match=rf"target='{target}' must be an honest agent"):
+        roco_env.parallel_env(SCENE, **{"attack.kind": "learned", "attack.agents": ["cav_0"],
+                                        "attack.params": {"target": target}})
 
 
 def test_the_adversarial_env_needs_a_learned_attack_and_checks_the_attackers_action():
@@ -341,3 +361,14 @@ def test_the_adversarial_env_needs_a_learned_attack_and_checks_the_attackers_act
     zeros = {a: np.zeros(env.action_space(a).shape) for a in env.possible_agents}
     with pytest.raises(ValueError, match="action of attacker_0 must be 9 finite numbers"):
         env.step({**zeros, "attacker_0": np.full(9, np.nan)})
+
+
+def test_what_a_victim_also_detects_is_decided_by_true_object_id_never_for_an_injected_box():
+    from roco_env.attacks.attack_stage import StepContext
+
+    pipeline, clean = frame()
+    own = clean.detections[1].object_ids
+    real = own[own >= 0][:2]
+    ids = np.array([real[0], -1, 10**6, real[1]])
+    step = StepContext(clean.state, clean.detections, np.zeros((5, 3)), 0.0, 64)
+    assert step.seen_by(1, ids).tolist() == [True, False, False, True]

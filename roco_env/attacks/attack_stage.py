@@ -51,6 +51,11 @@ class StepContext:
     elapsed: float
     max_boxes: int
 
+    def seen_by(self, victim: int, ids: ObjectIds) -> np.ndarray:
+        """(K,) bool: which boxes of ids ``ids`` (K,) are of objects agent ``victim`` detects
+        itself (an injected or false-positive box, id -1, never)."""
+        return np.isin(ids, self.detections[victim].object_ids) & (ids >= 0)
+
 
 class Attack:
     """Base of the attacks. Subclasses implement :meth:`forge` and may draw per episode in
@@ -89,15 +94,14 @@ class Attack:
 
     def tamper(self, state: WorldState, detections: Sequence[AgentDetections],
                own: np.ndarray, messages: Sequence[Sequence[Message]],
-               ids: Sequence[Sequence[ObjectIds]] | None = None
+               ids: Sequence[Sequence[ObjectIds]]
                ) -> tuple[list[list[Message]], list[list[ObjectIds]]]:
         """(messages, ids): per ego, the messages it receives (in order) and their boxes'
         object ids, every attacker's message to an honest ego rewritten by :meth:`forge`.
-        ``ids``: the received boxes' object ids (a late message's are not the sender's
-        current ones); None: the senders' current detections'."""
+        ``ids``: the received boxes' object ids, message by message (a late message's are
+        not the sender's current ones)."""
         index = {agent: k for k, agent in enumerate(self.agent_ids)}
-        ids = [list(row) for row in ids] if ids is not None else \
-            [[detections[index[m.sender]].object_ids for m in sent] for sent in messages]
+        ids = [list(row) for row in ids]
         out = [list(sent) for sent in messages]
         if not self.attackers:
             return out, ids

@@ -60,5 +60,5 @@ class Erase(Attack):
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
         withheld = np.isin(ids, self._withheld[attacker]) & (ids >= 0)
         if self.params.hidden_only:
-            withheld = withheld & ~(np.isin(ids, step.detections[victim].object_ids) & (ids >= 0))
+            withheld = withheld & ~step.seen_by(victim, ids)
         return rewritten(message, ids, step.max_boxes, keep=~withheld)

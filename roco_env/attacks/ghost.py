@@ -1,6 +1,7 @@
 """``ghost``: the attacker injects ``n_ghost`` fake car boxes into what it sends.
 
-Placements (``placement``), every ghost a car-sized box (:data:`GHOST_SIZE`) with score
+Placements (``placement``), every ghost a car-sized box (the mean size of the detector's
+false positives, :data:`roco_env.sensing.detector.FP_SIZE_MEAN`) with score
 ``score`` and the median uncertainty of the attacker's real boxes:
 
 * ``random``: positions drawn once per episode (from the attack's stream) in the
@@ -36,11 +37,11 @@ from roco_env.geometry import se2_compose, se2_inverse, se2_relative, transform_
 from roco_env.observation import top_k
 from roco_env.scenario import ScenarioConfig
 from roco_env.schema import build, spec
+from roco_env.sensing.detector import FP_SIZE_MEAN
 from roco_env.sensing.messages import Message
 
-__all__ = ["GHOST_SIZE", "Ghost", "GhostParams", "car_boxes", "with_ghosts"]
+__all__ = ["Ghost", "GhostParams", "car_boxes", "with_ghosts"]
 
-GHOST_SIZE = (4.5, 1.9, 1.6)  # length, width, height of a random or lane ghost, m
 _FALLBACK_UNCERTAINTY = (0.1, 0.1, 0.03)  # sigma_x m, sigma_y m, sigma_yaw rad without real boxes
 _NEAREST_M = 5.0  # random ghosts keep this far from the attacker's sensor, m
 
@@ -109,7 +110,7 @@ class Ghost(Attack):
               ids: ObjectIds) -> tuple[Message, ObjectIds]:
         real = np.ones(ids.shape[0], dtype=bool)
         if self.params.placement == "aliasing":  # the true pose's support withheld
-            real = ~(np.isin(ids, step.detections[victim].object_ids) & (ids >= 0))
+            real = ~step.seen_by(victim, ids)
         return with_ghosts(message, ids, self.ghosts(step, victim, attacker, message),
                            self.params.score, step.max_boxes, real)
 
@@ -140,14 +141,14 @@ def _ahead(boxes: np.ndarray, scores: np.ndarray, count: int, gap: float) -> np.
     order = np.argsort(-scores, kind="stable")
     g = np.arange(count)
     base = boxes[order[g % order.shape[0]]]
-    reach = (g // order.shape[0] + 1) * (0.5 * base[:, 3] + gap + 0.5 * GHOST_SIZE[0])
+    reach = (g // order.shape[0] + 1) * (0.5 * base[:, 3] + gap + 0.5 * FP_SIZE_MEAN[0])
     return np.stack([base[:, 0] + reach * np.cos(base[:, 6]),
                      base[:, 1] + reach * np.sin(base[:, 6]), base[:, 6]], axis=1)
 
 
 def car_boxes(poses: np.ndarray) -> np.ndarray:
     """Car-sized boxes (G, 7) at poses (G, 3) (x m, y m, yaw rad), standing on the ground."""
-    length, width, height = GHOST_SIZE
+    length, width, height = FP_SIZE_MEAN
     count = poses.shape[0]
     return np.column_stack([poses[:, 0], poses[:, 1], np.full(count, 0.5 * height),
                             np.full(count, length), np.full(count, width),

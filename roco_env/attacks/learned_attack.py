@@ -54,8 +54,8 @@ class LearnedAttackParams:
                                 doc="how far from the attacker a ghost may lie, m (per axis)")
     consistent: bool = spec(True, doc="forge the boxes of the objects a victim also detects "
                             "to agree with the lie")
-    target: str | None = spec(None, doc="the agent whose AP@0.7 the reward is minus; null = "
-                              "the mean over the attacker's victims")
+    target: str | None = spec(None, doc="the agent whose AP@0.7 the reward is minus (needs "
+                              "attack.agents); null = the mean over the attacker's victims")
     detection_penalty: float = spec(1.0, low=0.0, high=100.0,
                                     doc="reward lost when every victim rejects the attacker")
 
@@ -68,6 +68,10 @@ class LearnedAttack(Attack):
         self.params = build(LearnedAttackParams, config.attack.params, "attack",
                             "attack.params.")
         target = self.params.target
+        if target is not None and not config.attack.agents:
+            raise ConfigError(f"attack: attack.params.target={target!r} needs attack.agents "
+                              "naming the attackers (with attackers drawn per episode, "
+                              "attack.count, the target could be one of them)")
         if target is not None and (target not in self.agent_ids or target in config.attack.agents):
             raise ConfigError(f"attack: attack.params.target={target!r} must be an honest "
                               f"agent; choose among {list(self.agent_ids)} (not an attacker)")

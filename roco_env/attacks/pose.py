@@ -84,7 +84,7 @@ def spoofed(step: StepContext, victim: int, message: Message, ids: ObjectIds,
     with ``consistent`` the boxes of the objects ``victim`` also detects forged to agree."""
     boxes = message.boxes
     if consistent:
-        seen = np.isin(ids, step.detections[victim].object_ids) & (ids >= 0)
+        seen = step.seen_by(victim, ids)
         boxes = boxes.copy()
         boxes[seen] = transform_boxes(boxes[seen], se2_inverse(offset))
     return rewritten(message, ids, step.max_boxes,

@@ -18,22 +18,21 @@ import numpy as np
 from roco_env.evaluation import info_frame_stats
 from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, FrameStats
 
-__all__ = ["ATTACK_METRICS", "SUCCESS_DROP", "EpisodeLog", "attack_scores"]
+__all__ = ["SUCCESS_DROP", "EpisodeLog", "attack_scores"]
 
 SUCCESS_DROP = 0.05  # AP@0.7 (as a share) an attack must remove from an ego-step to succeed
-ATTACK_METRICS = ("ap70_clean", "attack_success", "detection_rate", "honest_rejected",
-                  "clean_rejected")
 
 
 @dataclass
 class EpisodeLog:
     """One episode, ego by ego: its attackers (agent ids), per (agent, step) AP@0.7
-    (undefined = 0), each agent's scored frames, and every (ego, sender, rejected)
-    decision on a filled slot of a scored frame."""
+    (undefined = 0), the scored frames as (agent, stats) in the order played (step by
+    step, as a sweep pools them: the order breaks AP's score ties), and every (ego,
+    sender, rejected) decision on a filled slot of a scored frame."""
 
     attackers: frozenset[str] = frozenset()
     ap70: dict[tuple[str, int], float] = field(default_factory=dict)
-    frames: dict[str, list[FrameStats]] = field(default_factory=dict)
+    frames: list[tuple[str, FrameStats]] = field(default_factory=list)
     decisions: list[tuple[str, str, bool]] = field(default_factory=list)
 
     def on_step(self, step: int, env: Any, actions: dict, infos: dict) -> None:
@@ -47,15 +46,22 @@ class EpisodeLog:
             if "frame_scores" not in info:  # not evaluated
                 continue
             self.ap70[agent, step] = max(float(info["ap70"]), 0.0)
-            self.frames.setdefault(agent, []).append(info_frame_stats(info))
+            self.frames.append((agent, info_frame_stats(info)))
             self.decisions += [(agent, sender, bool(info["rejected"][slot]))
                                for slot, sender in enumerate(info["evaluated_collaborators"])]
 
+    @property
+    def egos(self) -> frozenset[str]:
+        """The agents with a scored frame."""
+        return frozenset(agent for agent, _ in self.frames)
+
     def ap(self, egos: Iterable[str]) -> dict[float, float]:
-        """Dataset AP by IoU threshold over the frames of ``egos``."""
+        """Dataset AP by IoU threshold over the frames of ``egos``, pooled in the order
+        played."""
+        chosen = frozenset(egos)
         accumulator = APAccumulator(DEFAULT_IOU_THRESHOLDS)
-        for ego in egos:
-            for stats in self.frames.get(ego, []):
+        for agent, stats in self.frames:
+            if agent in chosen:
                 accumulator.add_stats(stats)
         return accumulator.ap()
 
@@ -75,7 +81,7 @@ def attack_scores(log: EpisodeLog, clean: EpisodeLog) -> dict[str, float]:
     ``detection_rate`` / ``honest_rejected``, the shares of attacker / honest slots
     rejected; ``clean_rejected``, honest slots rejected in the clean twin (NaN where
     there is nothing to count)."""
-    honest = frozenset(log.frames) - log.attackers
+    honest = log.egos - log.attackers
     ap = log.ap(honest)
     drops = [clean.ap70[key] - value > SUCCESS_DROP for key, value in log.ap70.items()
              if key[0] in honest and key in clean.ap70]

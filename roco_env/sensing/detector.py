@@ -39,8 +39,8 @@ from roco_env.sensing.visibility import Visibility
 from roco_env.stages import checked_params, stage
 from roco_env.traffic.state import WorldState
 
-__all__ = ["PRESETS", "AgentDetections", "Detector", "DetectorParams", "Perception",
-           "PerceptionModel", "make_detector"]
+__all__ = ["FP_SIZE_MEAN", "PRESETS", "AgentDetections", "Detector", "DetectorParams",
+           "Perception", "PerceptionModel", "make_detector"]
 
 
 @dataclass
@@ -94,8 +94,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     "realistic": dict(_REALISTIC),
 }
 
-# Car-sized clutter boxes: (mean, std) of l, w, h in metres.
-_FP_SIZE_MEAN = np.array([4.5, 1.9, 1.6])
+# Car-sized clutter boxes: (mean, std) of l, w, h in metres (the mean also sizes an
+# attack's ghost cars, roco_env.attacks.ghost).
+FP_SIZE_MEAN = np.array([4.5, 1.9, 1.6])
 _FP_SIZE_STD = np.array([0.4, 0.15, 0.15])
 
 
@@ -237,7 +238,7 @@ class Detector:
             return AgentDetections.empty()
         radius = sensor_range * np.sqrt(rng.random(n))
         bearing = rng.uniform(-np.pi, np.pi, n)
-        size = np.maximum(_FP_SIZE_MEAN + _FP_SIZE_STD * rng.standard_normal((n, 3)), 0.5)
+        size = np.maximum(FP_SIZE_MEAN + _FP_SIZE_STD * rng.standard_normal((n, 3)), 0.5)
         yaw = rng.uniform(-np.pi, np.pi, n)
         boxes = np.column_stack([radius * np.cos(bearing), radius * np.sin(bearing),
                                  ground + 0.5 * size[:, 2], size, yaw])

@@ -48,6 +48,8 @@ _ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"
 
 PolicyFactory = Callable[[], Callable]
 StepCallback = Callable[[int, Any, dict, dict], None]
+# cell -> (metrics, samples, median warm time per policy call ms): how run_cell scores a cell
+CellScore = Callable[[Cell], tuple[dict[str, float], dict[str, list], float]]
 
 
 @dataclass
@@ -177,16 +179,25 @@ def run_episode(cell: Cell, policy_factory: PolicyFactory | None = None,
         env.close()
 
 
-def run_cell(cell: Cell) -> dict[str, Any]:
-    """The stored record of one cell; an exception becomes an ``error`` record (never raised).
+def timed_episode(cell: Cell, on_step: StepCallback | None = None
+                  ) -> tuple[dict[str, float], dict[str, list], float]:
+    """(metrics, samples) of :func:`run_episode` and the episode's median warm time per
+    policy call, ms (:meth:`EpisodeScorer.time_per_call_ms`)."""
+    scorers: list[EpisodeScorer] = []
+    metrics, samples = run_episode(cell, on_step=on_step, on_scorer=scorers.append)
+    return metrics, samples, scorers[0].time_per_call_ms()
 
-    Module-level and argument-only so process pools and Ray can ship it.
+
+def run_cell(cell: Cell, score: CellScore = timed_episode) -> dict[str, Any]:
+    """The stored record of one cell scored by ``score`` (default: :func:`timed_episode`);
+    an exception becomes an ``error`` record (never raised).
+
+    Module-level and argument-only so process pools and Ray can ship it (a sweep scoring
+    otherwise ships a module-level function calling it with its ``score``).
     """
     start = time.perf_counter()
-    scorers: list[EpisodeScorer] = []
     try:
-        metrics, samples = run_episode(cell, on_scorer=scorers.append)
+        metrics, samples, per_call_ms = score(cell)
     except Exception as exc:  # noqa: BLE001 - a failing cell is recorded, the sweep goes on
         return error_record(cell, exc, time.perf_counter() - start)
-    return ok_record(cell, metrics, samples, time.perf_counter() - start,
-                     scorers[0].time_per_call_ms())
+    return ok_record(cell, metrics, samples, time.perf_counter() - start, per_call_ms)

@@ -7,25 +7,31 @@ One attacker (``attack.kind: learned``, one agent of the scene drawn per episode
 ``attacker_0`` of an :class:`~roco_env.attacks.adversarial_env.AdversarialEnv`; every
 vehicle and RSU acts with the victims' policy spec (in the env modes it declares: ``defend``
 in gate mode). :class:`AttackerEnv` is that agent as a Gymnasium env: its observation (its
-vehicle's Dict observation) flattened, divided by :data:`SCALE` and clipped to
-+-:data:`CLIP`; its action the attack's Box. Episode k is env seed ``seed + k``; the held-out
-evaluation plays seeds from :data:`EVAL_SEED` on with the greedy (mean) action and scores
-each episode against its clean twin (the same seed without the attack) over the honest
-egos (:func:`roco_env.attacks.scoring.attack_scores`): the AP@0.7 it removes and how often
-the victims rejected it. Writes ``curve.csv`` (mean episode return per PPO rollout),
-``curve.png``, ``report.json`` (the evaluation, the zero action's, the command) and
-``attacker.zip`` (the SB3 model). Deterministic on one machine (seeded torch and numpy).
+vehicle's Dict observation) flattened and scaled as the learned policies' are
+(:func:`roco_env.training.rl.curriculum.observation_layout`, clipped to
++-:data:`~roco_env.training.rl.curriculum.INPUT_CLIP`); its action the attack's Box.
+Episode k is env seed ``seed + k``; the held-out evaluation plays seeds from
+:data:`EVAL_SEED` on with the greedy (mean) action and scores each episode against its
+clean twin (the same seed without the attack, played once) over the honest egos
+(:func:`roco_env.attacks.scoring.attack_scores`): the AP@0.7 it removes and how often the
+victims rejected it. The options: :class:`AttackerTrainConfig` (:data:`FLAGS`). Writes
+``curve.csv`` (mean episode return per PPO rollout), ``curve.png``, ``report.json`` (the
+evaluation, the zero action's, the command) and ``attacker.zip`` (the SB3 model).
+Deterministic on one machine (seeded torch and numpy).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import random
+import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,16 +40,60 @@ import numpy as np
 from gymnasium import spaces
 
 from roco_env.attacks.adversarial_env import AdversarialEnv
+from roco_env.attacks.learned_attack import LearnedAttackParams
 from roco_env.attacks.scoring import EpisodeLog, attack_scores
 from roco_env.env import CollabPerceptionEnv
-from roco_env.policies.spec import merge_env_overrides, parse_policy_spec, validate_policy_spec
+from roco_env.flags import SpecFlags
+from roco_env.policies.learned import scaled_observation
+from roco_env.policies.spec import merge_env_overrides, validate_policy_spec
+from roco_env.rollout import play_episode
+from roco_env.schema import ConfigError, build, spec
+from roco_env.training.rl.curriculum import INPUT_CLIP, observation_layout
 from roco_env.training.rl.ppo import sb3_missing
 
-__all__ = ["AttackerEnv", "evaluate", "main", "train"]
+__all__ = ["FLAGS", "AttackerEnv", "AttackerTrainConfig", "evaluate", "main", "train"]
 
-SCALE, CLIP = 50.0, 10.0  # metres map 50 m to 1; the flat observation is clipped to +-10
 EVAL_SEED = 500_000  # held-out evaluation seeds start here (training: seed + episode index)
 ATTACKER = "attacker_0"
+WHERE = "python -m roco_env.training.rl.attacker"
+
+
+@dataclass
+class AttackerTrainConfig:
+    """The options of one learned attacker's training (module docstring). The attack's
+    budget and penalty are checked as ``attack.params`` of ``attack.kind: learned``."""
+
+    victims: str = spec("roco", doc="the victims' policy spec")
+    scenario: str = spec("urban_intersection", doc="the scenario (a name or a YAML path)")
+    cavs: int = spec(4, low=1, high=32, doc="CAVs (plus one RSU)")
+    noise: float = spec(0.4, low=0.0, high=20.0, doc="sigma_t m = sigma_r deg")
+    steps: int = spec(10, low=1, high=1000, doc="env steps per episode")
+    timesteps: int = spec(1280, low=1, doc="PPO env steps")
+    rollout: int = spec(128, low=1, doc="env steps per PPO update")
+    budget_m: float = spec(3.0, doc="attack.params.budget_m: the largest pose translation, m")
+    budget_deg: float = spec(3.0, doc="attack.params.budget_deg: the largest pose rotation, "
+                             "degrees")
+    ghosts: int = spec(5, doc="attack.params.ghosts: ghost boxes per message")
+    detection_penalty: float = spec(1.0, doc="attack.params.detection_penalty: reward lost "
+                                    "when every victim rejects the attacker")
+    eval_episodes: int = spec(3, low=1, high=1000, doc="held-out evaluation episodes")
+    seed: int = spec(0, low=0, high=2**31 - 1, doc="training seed (weights, episodes)")
+
+    def __post_init__(self) -> None:
+        build(LearnedAttackParams, self.attack(), WHERE, "attack.params.")
+        try:
+            validate_policy_spec(self.victims)
+        except ValueError as exc:
+            raise ConfigError(f"{WHERE}: victims: {exc}") from exc
+
+    def attack(self) -> dict[str, Any]:
+        """The learned attack's ``attack.params``."""
+        return {"budget_m": self.budget_m, "budget_deg": self.budget_deg,
+                "ghosts": self.ghosts, "detection_penalty": self.detection_penalty}
+
+
+# The command line's options, one per field of AttackerTrainConfig.
+FLAGS = SpecFlags(AttackerTrainConfig, WHERE)
 
 
 class AttackerEnv(gymnasium.Env):
@@ -51,41 +101,38 @@ class AttackerEnv(gymnasium.Env):
 
     scenario: a scenario name; victims: the policy spec every vehicle and RSU acts with;
     attack: ``attack.params`` of the learned attack; noise: sigma_t m = sigma_r deg;
-    steps: env steps per episode; seed: the first episode's env seed; clean: play the
-    episode without the attack (the clean twin; the attacker's actions are ignored);
-    overrides: further scenario overrides.
+    steps: env steps per episode; seed: the first episode's env seed; overrides: further
+    scenario overrides. ``log``: the :class:`EpisodeLog` of the episode under way.
     """
 
     metadata = {"render_modes": []}
 
     def __init__(self, scenario: str, victims: str, attack: dict[str, Any], noise: float,
-                 steps: int, seed: int = 0, clean: bool = False, **overrides: Any) -> None:
+                 steps: int, seed: int = 0, **overrides: Any) -> None:
         self.spec_of_victims = validate_policy_spec(victims)
         policy = self.spec_of_victims.build()
-        given = {**overrides, "sigma_t": noise, "sigma_r": noise,
-                 "attack.kind": "learned", "attack.params": dict(attack)}
+        self._clean_overrides = merge_env_overrides(
+            {**overrides, "sigma_t": noise, "sigma_r": noise}, policy, victims)
+        self._scenario, self._steps_per_episode = scenario, int(steps)
         self.adversarial = AdversarialEnv(CollabPerceptionEnv(
-            scenario, max_cycles=steps, **merge_env_overrides(given, policy, victims)))
+            scenario, max_cycles=steps, **{**self._clean_overrides, "attack.kind": "learned",
+                                          "attack.params": dict(attack)}))
         self.env = self.adversarial.env
-        self.clean = clean
-        if clean:
-            self.twin = CollabPerceptionEnv(scenario, max_cycles=steps, **merge_env_overrides(
-                {**overrides, "sigma_t": noise, "sigma_r": noise}, policy, victims))
         self.victims = {agent: policy if k == 0 else self.spec_of_victims.build()
                         for k, agent in enumerate(self.env.possible_agents)}
-        self.observation_layout = self.adversarial.observation_space(ATTACKER)
-        size = spaces.flatdim(self.observation_layout)
-        self.observation_space = spaces.Box(-CLIP, CLIP, (size,), np.float32)
+        self.keys, self.scale = observation_layout(self.adversarial.observation_space(ATTACKER))
+        self.observation_space = spaces.Box(-INPUT_CLIP, INPUT_CLIP, self.scale.shape,
+                                            np.float32)
         self.action_space = self.adversarial.action_space(ATTACKER)
         self.seed_base, self.episodes = int(seed), 0
         self.log = EpisodeLog()
+        self._clean: dict[int, EpisodeLog] = {}
         self._last: tuple[dict, dict] | None = None
         self._steps = 0
 
     def flat(self, observation: dict) -> np.ndarray:
-        """The network's input: the flattened observation / SCALE, clipped to +-CLIP."""
-        flat = spaces.flatten(self.observation_layout, observation) / SCALE
-        return np.clip(flat, -CLIP, CLIP).astype(np.float32)
+        """The network's input (module docstring)."""
+        return scaled_observation(observation, self.keys, self.scale, INPUT_CLIP)
 
     def reset(self, *, seed: int | None = None,
               options: dict | None = None) -> tuple[np.ndarray, dict]:
@@ -95,80 +142,75 @@ class AttackerEnv(gymnasium.Env):
         for policy in self.victims.values():
             policy.reset()
         observations, infos = self.adversarial.reset(seed=episode_seed)
-        if self.clean:  # the twin's views; the attacker's observation is unused
-            observations, infos = self.twin.reset(seed=episode_seed)
-            observations, infos = {**observations, ATTACKER: None}, {**infos, ATTACKER: {}}
         self._last, self._steps = (observations, infos), 0
         self.log = EpisodeLog(attackers=frozenset(
             self.adversarial.vehicle(k) for k in range(len(self.adversarial.attackers))))
-        return self._observation(observations), infos[ATTACKER]
+        return self.flat(observations[ATTACKER]), infos[ATTACKER]
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         observations, infos = self._last
         actions = {agent: self.victims[agent](observations[agent], infos[agent])
                    for agent in self.env.possible_agents}
-        if self.clean:
-            observations, rewards, terminations, truncations, infos = self.twin.step(actions)
-            reward, observations = 0.0, {**observations, ATTACKER: None}
-            infos = {**infos, ATTACKER: {}}
-        else:
-            observations, rewards, terminations, truncations, infos = self.adversarial.step(
-                {**actions, ATTACKER: action})
-            reward = rewards[ATTACKER]
+        observations, rewards, terminations, truncations, infos = self.adversarial.step(
+            {**actions, ATTACKER: action})
         self._steps += 1
         self.log.record(self._steps, {a: infos[a] for a in self.env.possible_agents})
         self._last = (observations, infos)
-        done = any(truncations.values())
-        return self._observation(observations), float(reward), \
-            any(terminations.values()), done, infos[ATTACKER]
+        return self.flat(observations[ATTACKER]), float(rewards[ATTACKER]), \
+            any(terminations.values()), any(truncations.values()), infos[ATTACKER]
 
-    def _observation(self, observations: dict) -> np.ndarray:
-        seen = observations[ATTACKER]
-        return self.flat(seen) if seen is not None else np.zeros(self.observation_space.shape,
-                                                                np.float32)
+    @functools.cached_property
+    def twin(self) -> CollabPerceptionEnv:
+        """The env without the attack (the clean twins' episodes)."""
+        return CollabPerceptionEnv(self._scenario, max_cycles=self._steps_per_episode,
+                                   **self._clean_overrides)
+
+    def clean_log(self, seed: int) -> EpisodeLog:
+        """The log of episode ``seed`` played by the victims without the attack, played
+        once per env (call it between episodes: it resets the victims' policies)."""
+        if seed not in self._clean:
+            log = EpisodeLog()
+            for step in play_episode(self.twin, self.victims, seed=seed,
+                                     max_steps=self._steps_per_episode):
+                log.record(step.number, step.infos)
+            self._clean[seed] = log
+        return self._clean[seed]
 
 
-def evaluate(make: Callable[[bool], AttackerEnv], act: Callable[[np.ndarray], np.ndarray],
+def evaluate(env: AttackerEnv, act: Callable[[np.ndarray], np.ndarray],
              seeds: Sequence[int]) -> dict[str, float]:
     """The attack scores (:func:`roco_env.attacks.scoring.attack_scores`), mean over the
-    ``seeds`` episodes, of ``act`` (flat observation -> action) against the clean twins;
-    ``make(clean)`` builds the env."""
-    attacked_env, clean_env = make(False), make(True)
+    ``seeds`` episodes of ``env``, of ``act`` (flat observation -> action) against their
+    clean twins (:meth:`AttackerEnv.clean_log`)."""
     rows = []
     for seed in seeds:
-        logs = []
-        for env in (attacked_env, clean_env):
-            observation, _ = env.reset(seed=seed)
-            done = False
-            while not done:
-                observation, _, terminated, truncated, _ = env.step(act(observation))
-                done = terminated or truncated
-            logs.append(env.log)
-        clean = logs[1]
-        clean.attackers = logs[0].attackers
-        rows.append(attack_scores(logs[0], clean))
+        observation, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            observation, _, terminated, truncated, _ = env.step(act(observation))
+            done = terminated or truncated
+        rows.append(attack_scores(env.log, env.clean_log(seed)))
     return {key: float(np.nanmean([row[key] for row in rows])) for key in rows[0]}
 
 
-def train(args: argparse.Namespace) -> dict[str, Any]:
-    """Train and evaluate (module docstring); returns the report."""
+def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, Any]:
+    """Train and evaluate (module docstring) into the folder ``out``; ``command``: the
+    command line recorded in the report. Returns the report."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
 
-    attack = {"budget_m": args.budget_m, "budget_deg": args.budget_deg,
-              "ghosts": args.ghosts, "detection_penalty": args.detection_penalty}
+    def make(seed: int) -> AttackerEnv:
+        return AttackerEnv(options.scenario, options.victims, options.attack(), options.noise,
+                           options.steps, seed=seed, cavs=options.cavs, rsus=1)
 
-    def make(clean: bool = False, seed: int = args.seed) -> AttackerEnv:
-        return AttackerEnv(args.scenario, args.victims, attack, args.noise, args.steps,
-                           seed=seed, clean=clean, cavs=args.cavs, rsus=1)
-
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    env = make()
-    model = PPO("MlpPolicy", env, n_steps=args.rollout, batch_size=min(64, args.rollout),
-                gamma=0.9, ent_coef=0.0, learning_rate=3e-4, seed=args.seed, device="cpu",
+    random.seed(options.seed)
+    np.random.seed(options.seed)
+    torch.manual_seed(options.seed)
+    env = make(options.seed)
+    model = PPO("MlpPolicy", env, n_steps=options.rollout,
+                batch_size=min(64, options.rollout), gamma=0.9, ent_coef=0.0,
+                learning_rate=3e-4, seed=options.seed, device="cpu",
                 policy_kwargs={"net_arch": [64, 64]}, verbose=0)
     curve: list[dict[str, float]] = []
     returns: list[float] = []
@@ -189,20 +231,21 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             return True
 
         def _on_rollout_end(self) -> None:
-            recent = returns[-max(1, args.rollout // args.steps):]
+            recent = returns[-max(1, options.rollout // options.steps):]
             curve.append({"timesteps": self.num_timesteps, "return": float(np.mean(recent)),
                           "wall_s": round(time.perf_counter() - started, 1)})
 
-    model.learn(args.timesteps, callback=Curve())
-    out = Path(args.out)
+    model.learn(options.timesteps, callback=Curve())
     out.mkdir(parents=True, exist_ok=True)
     model.save(out / "attacker.zip")
-    seeds = range(EVAL_SEED, EVAL_SEED + args.eval_episodes)
-    greedy = evaluate(make, lambda o: model.predict(o, deterministic=True)[0], seeds)
-    zero = evaluate(make, lambda o: np.zeros(env.action_space.shape, np.float32), seeds)
-    report = {"command": " ".join(sys.argv), "victims": args.victims, "attack": attack,
-              "scenario": args.scenario, "noise": args.noise, "steps": args.steps,
-              "timesteps": args.timesteps, "wall_s": round(time.perf_counter() - started, 1),
+    seeds = range(EVAL_SEED, EVAL_SEED + options.eval_episodes)
+    held_out = make(EVAL_SEED)  # plays each clean twin once for both evaluations
+    greedy = evaluate(held_out, lambda o: model.predict(o, deterministic=True)[0], seeds)
+    zero = evaluate(held_out, lambda o: np.zeros(env.action_space.shape, np.float32), seeds)
+    report = {"command": command, "victims": options.victims, "attack": options.attack(),
+              "scenario": options.scenario, "noise": options.noise, "steps": options.steps,
+              "timesteps": options.timesteps,
+              "wall_s": round(time.perf_counter() - started, 1),
               "curve": curve, "learned": greedy, "zero_action": zero}
     _write(out, report)
     return report
@@ -230,36 +273,20 @@ def _write(out: Path, report: dict[str, Any]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m roco_env.training.rl.attacker",
-                                     description=__doc__,
+    parser = argparse.ArgumentParser(prog=WHERE, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--victims", default="roco", help="the victims' policy spec")
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--scenario", default="urban_intersection")
-    parser.add_argument("--cavs", type=int, default=4, help="CAVs (plus one RSU)")
-    parser.add_argument("--noise", type=float, default=0.4, help="sigma_t m = sigma_r deg")
-    parser.add_argument("--steps", type=int, default=10, help="env steps per episode")
-    parser.add_argument("--timesteps", type=int, default=1280, help="PPO env steps")
-    parser.add_argument("--rollout", type=int, default=128, help="env steps per PPO update")
-    parser.add_argument("--budget-m", type=float, default=3.0)
-    parser.add_argument("--budget-deg", type=float, default=3.0)
-    parser.add_argument("--ghosts", type=int, default=5)
-    parser.add_argument("--detection-penalty", type=float, default=1.0)
-    parser.add_argument("--eval-episodes", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    FLAGS.add_to(parser)
     args = parser.parse_args(argv)
-    missing = sb3_missing()
-    if missing:
-        print(f"{parser.prog}: Stable-Baselines3 is not available ({missing})", file=sys.stderr)
-        return 2
     try:
-        parse_policy_spec(args.victims)
-        for name in ("steps", "timesteps", "rollout", "eval_episodes"):
-            if getattr(args, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        report = train(args)
+        options = FLAGS.parse(args)
+        missing = sb3_missing()
+        if missing:
+            raise ValueError(f"Stable-Baselines3 is not available ({missing})")
+        command = f"{WHERE} " + shlex.join([f"--out={args.out}", *FLAGS.argv(options)])
+        report = train(options, args.out, command)
     except ValueError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        print(f"{WHERE}: error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({k: report[k] for k in ("victims", "learned", "zero_action", "wall_s")},
                      indent=2))
