@@ -35,9 +35,11 @@ def test_docs_index_links_resolve():
 
 
 def test_the_env_does_not_import_the_policies():
-    probe = ("import sys, roco_env.env; "
-             "print(sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
-    assert run_python(probe) == "[]"
+    """The environment's module, really imported (its pipeline loaded), loads no policy."""
+    probe = ("import sys, roco_env.collab_env; "
+             "print('roco_env.pipeline' in sys.modules, "
+             "sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
+    assert run_python(probe) == "True []"
 
 
 def test_module_file_names_are_unique():

@@ -35,7 +35,7 @@ from gymnasium import spaces
 
 from roco_env.attacks.adversarial_env import AdversarialEnv
 from roco_env.attacks.scoring import EpisodeLog, attack_scores
-from roco_env.env import CollabPerceptionEnv
+from roco_env.collab_env import CollabPerceptionEnv
 from roco_env.policies.spec import merge_env_overrides, parse_policy_spec, validate_policy_spec
 from roco_env.training.rl.ppo import sb3_missing
 
