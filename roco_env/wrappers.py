@@ -83,10 +83,7 @@ class EgoEnv(gymnasium.Env):
         if built and not evaluate_others:  # fuse and score only what this env returns
             base.evaluated_agents = [self.agent]
         base.render_ego = self.agent  # pictures show the controlled agent's fused view
-        if others is not None and not callable(others):
-            raise ValueError("others must be a policy(obs, info) -> action or a policy name "
-                             f"(roco_env.policies.available_policies()); got {others!r}")
-        self.others: Policy = as_policy(others) if others is not None \
+        self.others: Policy = as_policy(others, "others") if others is not None \
             else _NeutralPolicy(base.action_mode)
         self.observation_space = base.observation_space(self.agent)
         self.action_space = base.action_space(self.agent)
