@@ -8,7 +8,8 @@
 As in PettingZoo's environment modules, ``roco_env.parallel_env(...)`` builds the
 ParallelEnv (:class:`CollabPerceptionEnv`, whose docstring is the contract) and
 ``roco_env.env(...)`` the AEC env; both take the same arguments. The environment's
-code is the module ``roco_env/env.py``, imported as ``from roco_env.env import ...``.
+code is the module :mod:`roco_env.collab_env` (``from roco_env.collab_env import ...``);
+its name differs from the attribute ``env``, which stays the AEC constructor.
 
 Scenarios: :func:`load_scenario` (name or YAML path), :func:`scenario_from_dict` /
 :func:`scenario_to_dict` (plain mappings with the YAML keys, validated) and
@@ -22,9 +23,7 @@ and the single-agent view ``roco/CollabPerceptionEgo-v0`` in Gymnasium's.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-import types
+import importlib
 from typing import Any
 
 from roco_env import registration
@@ -45,33 +44,15 @@ __all__ = ["EGO_ENV_ID", "ENV_ID", "CollabPerceptionEnv", "ScenarioConfig", "__v
            "available_stages", "env", "list_scenarios", "load_scenario", "parallel_env",
            "register_stage", "save_scenario", "scenario_from_dict", "scenario_to_dict"]
 
-# Package attribute -> its one definition in roco_env/env.py.
+# Package attribute -> its one definition in roco_env/collab_env.py, imported on first
+# access so that ``import roco_env`` stays light.
 _FROM_ENV_MODULE = {"env": "aec_env", "parallel_env": "parallel_env",
                     "CollabPerceptionEnv": "CollabPerceptionEnv"}
 
 
-def _lazy_module(name: str) -> types.ModuleType:
-    """The module ``name`` entered in ``sys.modules``, its code run on first attribute
-    access (importlib's LazyLoader)."""
-    spec = importlib.util.find_spec(name)
-    loader = importlib.util.LazyLoader(spec.loader)
-    spec.loader = loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    loader.exec_module(module)
-    return module
-
-
-# roco_env/env.py is entered as imported but runs only when first used, so `import
-# roco_env` stays light; and because the import system never loads it itself, it never
-# binds the module to this package's attribute ``env``, which stays PettingZoo's AEC
-# constructor (``roco_env.env(...)``; __getattr__ below).
-_ENV_MODULE = _lazy_module("roco_env.env")
-
-
 def __getattr__(name: str) -> Any:
     if name in _FROM_ENV_MODULE:
-        return getattr(_ENV_MODULE, _FROM_ENV_MODULE[name])
+        return getattr(importlib.import_module("roco_env.collab_env"), _FROM_ENV_MODULE[name])
     raise AttributeError(f"module 'roco_env' has no attribute {name!r}")
 
 

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import types
 import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from roco_env.schema import allowed_choices, allowed_text, build
+from roco_env.schema import allowed_choices, allowed_text, build, optional_type
 
 __all__ = ["SpecFlags"]
 
@@ -33,13 +32,6 @@ def _generated(name: str, value: Any) -> str:
     if isinstance(value, bool):
         return _flag(name) if value else "--no-" + _flag(name)[2:]
     return f"{_flag(name)}={value}"
-
-
-def _value_type(hint: Any) -> Any:
-    """The annotation without ``| None``."""
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        return next(t for t in typing.get_args(hint) if t is not type(None))
-    return hint
 
 
 def _default(field: dataclasses.Field) -> Any:
@@ -69,7 +61,7 @@ class SpecFlags:
         self.required = frozenset(required)
         self.aliases = dict(aliases or {})
         hints = typing.get_type_hints(cls)
-        self._fields = [(field, _value_type(hints[field.name]))
+        self._fields = [(field, optional_type(hints[field.name])[0])
                         for field in dataclasses.fields(cls)
                         if not dataclasses.is_dataclass(hints[field.name])]
 

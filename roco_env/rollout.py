@@ -1,13 +1,17 @@
-"""The episode loop: one policy per agent acting in a :class:`~roco_env.env.CollabPerceptionEnv`.
+"""The episode loop: one policy per agent acting in a :class:`~roco_env.collab_env.CollabPerceptionEnv`.
 
-:func:`play_episode` is the package's one loop over a parallel env (the sweeps, and
-through them ``roco-env run``/``render`` and the stress search; the benchmarks; the
-detector assessment): the policies start a new episode (``reset``), the env resets with
-the seed, then every step each live agent's policy acts on the observation and info it
+:func:`play_episode` is the package's one loop of policies over a parallel env: the sweeps
+(and through them ``roco-env run``/``render`` and the stress search) and the env-step and
+alignment benchmarks run it. The policies start a new episode (``reset``), the env resets
+with the seed, then every step each live agent's policy acts on the observation and info it
 was given, the env checks the actions (its action mode's check, the only one) and steps.
 Each step is yielded as a :class:`Step`: every agent's :class:`Turn` (what its policy
 saw, the action as the policy returned it, the alignment result of that very call, the
-call's wall time) and what ``env.step`` returned.
+call's wall time) and what ``env.step`` returned. Loops without policies step the env
+themselves with zero actions: the detector assessment's episodes
+(:mod:`roco_env.training.assessment`, which read the env's state before each step) and
+the learned detector's step-rate benchmark (:mod:`roco_env.benchmarks.learned_detector`,
+which times ``env.step`` alone).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from roco_env.policies.base import AlignmentResult, act, as_policy
 
 if TYPE_CHECKING:
-    from roco_env.env import CollabPerceptionEnv
+    from roco_env.collab_env import CollabPerceptionEnv
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,9 @@ A setting is a dataclass field declared once with :func:`spec`: its type (the
 annotation), its default and what is allowed (``choices`` or an interval
 ``[low, high]``, either end open). :func:`build` turns a plain mapping into
 such a dataclass, checking every key and value; the messages name the place
-(a file, ``override``, a policy), the dotted key and what is allowed. A field
+(a file, ``override``, a policy), the dotted key and what is allowed. A dataclass
+built directly as well (``TrainConfig(lr=-1)``) calls :func:`check_fields` in its
+``__post_init__``: the same check of every field, so both ways share it. A field
 declared ``path=True`` names a file or folder: given a ``base`` folder (a scenario
 file's), :func:`build` resolves a relative value against it. Scenario
 files, overrides, noise-model and detector parameters (:mod:`roco_env.scenario`)
@@ -19,6 +21,7 @@ valid list. :func:`load_yaml` reads YAML with the YAML 1.2 number rules, so
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import re
@@ -30,7 +33,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-__all__ = ["ConfigError", "build", "check_value", "load_yaml", "spec"]
+__all__ = ["ConfigError", "build", "check_fields", "check_value", "load_yaml", "optional_type",
+           "spec"]
 
 
 class ConfigError(ValueError):
@@ -78,7 +82,7 @@ def build(cls: type, data: Any, where: str, prefix: str = "",
         raise ConfigError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping of "
                             f"keys; got {type(data).__name__} ({data!r})")
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     unknown = sorted(set(data) - set(fields), key=str)
     if unknown:
         raise ConfigError(unknown_key_message(where, prefix + str(unknown[0]),
@@ -93,6 +97,40 @@ def build(cls: type, data: Any, where: str, prefix: str = "",
             if base is not None and fields[name].metadata.get("path"):
                 values[name] = resolved_path(values[name], base)
     return cls(**values)
+
+
+def check_fields(instance: Any, where: str) -> None:
+    """Check every field of the dataclass ``instance`` as :func:`build` checks a value
+    (:func:`check_value`: type, choices, interval, the messages naming ``where`` and the
+    field) and keep the value :func:`check_value` returns (numpy scalars as Python numbers,
+    an int as a float, a list as a tuple and back, as annotated). A field annotated with a
+    dataclass must hold an instance of it. Call it first in ``__post_init__`` (frozen
+    dataclasses included), so constructing the dataclass directly checks what ``build``
+    checks. Raises :class:`ConfigError`."""
+    hints = _type_hints(type(instance))
+    for field in dataclasses.fields(instance):
+        value, hint = getattr(instance, field.name), hints[field.name]
+        if dataclasses.is_dataclass(hint):
+            if not isinstance(value, hint):
+                raise ConfigError(f"{where}: {field.name} expects a {hint.__name__}; got "
+                                  f"{value!r} ({type(value).__name__})")
+            continue
+        object.__setattr__(instance, field.name,
+                           check_value(value, hint, field.metadata, where, field.name))
+
+
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """The resolved annotations of dataclass ``cls`` (read once per class)."""
+    return typing.get_type_hints(cls)
+
+
+def optional_type(hint: Any) -> tuple[Any, bool]:
+    """(the annotation ``hint`` without ``| None``, whether it allows None)."""
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = typing.get_args(hint)
+        return next(t for t in args if t is not type(None)), type(None) in args
+    return hint, False
 
 
 def resolved_path(value: str | None, base: str | os.PathLike) -> str | None:
@@ -115,13 +153,11 @@ _EXPECTS = {bool: "true or false", int: "an integer", float: "a number", str: "a
 def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key: str) -> Any:
     """``value`` checked against the annotation ``hint`` and the field's allowed values;
     returns it as the plain Python type (numpy scalars converted)."""
-    union = isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union
-    allowed_types = typing.get_args(hint) if union else (hint,)
+    base, nullable = optional_type(hint)
     if value is None:
-        if type(None) in allowed_types:
+        if nullable:
             return None
         raise ConfigError(f"{where}: {key} must not be null")
-    base = next(t for t in allowed_types if t is not type(None))
     base = typing.get_origin(base) or base
     if isinstance(value, np.generic):
         value = value.item()

@@ -117,8 +117,8 @@ def test_oracle_without_info(env):
 def test_ego_env_bad_arguments():
     with pytest.raises(ValueError, match="agent must be one of"):
         EgoEnv(**FAST, agent="cav_8")
-    with pytest.raises(ValueError, match=r"others must be a policy\(obs, info\) -> action or a "
-                                         "policy name"):
+    with pytest.raises(ValueError, match=r"others must be a policy\(obs, info\) -> action; "
+                                         "got 3"):
         EgoEnv(**FAST, others=3)
     with pytest.raises(ValueError, match="unknown policy 'rocco'"):
         EgoEnv(**FAST, others="rocco")

@@ -152,7 +152,8 @@ def test_a_gated_weights_file_round_trips_and_old_files_read_as_max(tmp_path):
 def test_training_the_gate_alone_changes_only_the_gate(tmp_path):
     """--freeze-detector from a gate-less file: the detector (weights and batch-norm
     statistics) is the file's, the fresh gate (its output bias starts at 4) moved."""
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.training.detector_config import TrainConfig
+    from roco_env.training.train import train
 
     net, _, settings = tiny_detector_start(tmp_path)
     config = TrainConfig(**settings, steps=8, lr=3e-2, fusion="gated", train_detector=False,
@@ -169,7 +170,8 @@ def test_training_the_gate_alone_changes_only_the_gate(tmp_path):
 
 def test_gate_training_inputs_are_checked(tmp_path):
     from roco_env.schema import build
-    from roco_env.training.train import WHERE, TrainConfig, train
+    from roco_env.training.detector_config import WHERE, TrainConfig
+    from roco_env.training.train import train
 
     with pytest.raises(ValueError, match=r"fusion='mean' is not allowed; choose one of "
                                          r"\['max', 'gated'\]"):

@@ -35,9 +35,11 @@ def test_docs_index_links_resolve():
 
 
 def test_the_env_does_not_import_the_policies():
-    probe = ("import sys, roco_env.env; "
-             "print(sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
-    assert run_python(probe) == "[]"
+    """The environment's module, really imported (its pipeline loaded), loads no policy."""
+    probe = ("import sys, roco_env.collab_env; "
+             "print('roco_env.pipeline' in sys.modules, "
+             "sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
+    assert run_python(probe) == "True []"
 
 
 def test_module_file_names_are_unique():
@@ -47,3 +49,12 @@ def test_module_file_names_are_unique():
             names.setdefault(path.name, []).append(str(path.relative_to(ROOT)))
     shared = {name: paths for name, paths in names.items() if len(paths) > 1}
     assert not shared, shared
+
+
+def test_the_command_line_builds_its_parser_without_torch():
+    """Every `roco-env` command (`--help` included) builds the whole parser; its options,
+    train-detector's too (roco_env.training.detector_config), come without torch."""
+    probe = ("import sys; from roco_env.cli import build_parser; "
+             "help = build_parser().format_help(); "
+             "print('train-detector' in help, 'torch' in sys.modules)")
+    assert run_python(probe) == "True False"

@@ -26,7 +26,7 @@ LAYERS = (
     ("policies",),
     ("fusion",),
     ("metrics",),
-    ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
+    ("collab_env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
      "global_state", "render", "wrappers", "rollout", "registration", "attacks", "__init__"),
     ("training",),
     ("sweeps",),

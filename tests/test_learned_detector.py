@@ -173,7 +173,8 @@ def test_a_wrong_pose_decodes_worse_than_the_true_pose(detector, scene):
 
 
 def test_training_smoke_run_lowers_the_loss_and_is_deterministic():
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.training.detector_config import TrainConfig
+    from roco_env.training.train import train
 
     config = TrainConfig(x_range=(-25.6, 25.6), y_range=(-12.8, 12.8), widths=(4, 8, 8),
                          train_scenes=2, val_scenes=0, steps=16, lr=1e-2,
@@ -191,12 +192,13 @@ def test_fine_tuning_with_a_frozen_encoder_changes_only_the_trunk_and_heads(tmp_
     """A run from a weights file with train_encoder=False and the fused loss on a canvas
     beyond the detector grid: the encoder (weights and batch-norm statistics) is the
     file's, the trunk and heads moved, the loss fell."""
-    from roco_env.training.train import TrainConfig, train
+    from roco_env.training.detector_config import TrainConfig
+    from roco_env.training.train import fused_canvas, train
 
     net, _, settings = tiny_detector_start(tmp_path)
     config = TrainConfig(**settings, steps=16, lr=1e-2, train_encoder=False,
                          fused_x_range=(-40.0, 40.0), fused_y_range=(-16.0, 16.0))
-    assert (config.fused_canvas.W, config.fused_canvas.H) == (50, 20)
+    assert (fused_canvas(config).W, fused_canvas(config).H) == (50, 20)
     result = train(config, progress=False)
     total = result.history["total"]
     assert np.mean(total[-4:]) < np.mean(total[:4])
@@ -214,7 +216,8 @@ def test_warp_augmentation_moves_maps_and_their_targets_alike():
     plain batch's target heatmap, warped as the maps are, peaks on the moved targets."""
     from roco_env.geometry import se2_apply, se2_inverse
     from roco_env.training.data import TRAIN_SEED_BASE
-    from roco_env.training.train import TrainConfig, _Batches, _warped
+    from roco_env.training.detector_config import TrainConfig
+    from roco_env.training.train import _Batches, _warped, feature_grid_of
 
     config = TrainConfig(x_range=(-25.6, 25.6), y_range=(-12.8, 12.8), train_scenes=2,
                          steps=1, scenes_per_step=2, scenarios=("urban_intersection",),
@@ -222,7 +225,7 @@ def test_warp_augmentation_moves_maps_and_their_targets_alike():
     scenes = make_scenes(config.scenarios, 2, TRAIN_SEED_BASE, config.grid, config.noise)
     moved = _Batches(scenes, config)[0]
     plain = _Batches(scenes, dataclasses.replace(config, warp_augment=0.0))[0]
-    fgrid = config.feature_grid
+    fgrid = feature_grid_of(config)
     n_maps = plain.rasters.shape[0]
     assert moved.warped.tolist() == list(range(n_maps)) and plain.warped.size == 0
     assert np.ptp(moved.warps[:, 2]) > 1.0 and np.abs(moved.warps[:, :2]).max() <= 1.6
@@ -279,7 +282,8 @@ def test_train_detector_cli_records_a_two_stage_recipe(tmp_path, capsys):
 
 def test_fine_tuning_inputs_are_checked(tmp_path):
     from roco_env.schema import build
-    from roco_env.training.train import WHERE, TrainConfig, train
+    from roco_env.training.detector_config import WHERE, TrainConfig
+    from roco_env.training.train import train
 
     with pytest.raises(ValueError, match="train_encoder=False .* needs init"):
         TrainConfig(train_encoder=False)
@@ -480,7 +484,7 @@ def test_axial_headings_of_one_object_agree_between_ego_and_collaborator(scenari
     seen by the ego and by a collaborator, has one heading in the ego's frame (through the
     reported, noisy relative pose); a flip would break RoCo's edge similarity. Both
     scenes have an RSU, which faces the diagonal of its crossing."""
-    from roco_env.env import CollabPerceptionEnv
+    from roco_env.collab_env import CollabPerceptionEnv
 
     env = CollabPerceptionEnv(scenario=scenario, max_cycles=3, detector="learned",
                               sigma_t=0.4, sigma_r=0.4)

@@ -45,10 +45,10 @@ TINY = {
 
 
 def _settings(out, budget: int = 3, sampler: str = "tpe", seed: int = 0,
-              policy: str = "coalign", objective: str = "harm") -> SearchSettings:
+              policy: str = "coalign", objective: str = "harm", **more) -> SearchSettings:
     return SearchSettings(out=str(out), policy=policy, objective=objective, budget=budget,
                           seeds=(0,), steps=2, space=parse_space(TINY), sampler=sampler,
-                          seed=seed)
+                          seed=seed, **more)
 
 
 def _trials(study) -> list[tuple]:
@@ -252,7 +252,7 @@ def test_a_study_refuses_to_resume_with_other_seeds_or_steps(tmp_path):
 
 @pytest.mark.slow
 def test_two_local_workers_share_the_study(tmp_path):
-    study = run_search(_settings(tmp_path, budget=4), workers=2)
+    study = run_search(_settings(tmp_path, budget=4, workers=2))
     assert 4 <= count(study, "COMPLETE") <= 5  # a trial running at the stop may finish
 
 
@@ -260,7 +260,7 @@ def test_two_local_workers_share_the_study(tmp_path):
 def test_the_ray_backend_runs_the_search_on_a_local_two_cpu_ray(tmp_path):
     ray = pytest.importorskip("ray")
     try:
-        study = run_search(_settings(tmp_path, budget=3), backend="ray", workers=2)
+        study = run_search(_settings(tmp_path, budget=3, backend="ray", workers=2))
     finally:
         ray.shutdown()
     assert 3 <= count(study, "COMPLETE") <= 4

@@ -133,3 +133,30 @@ def test_iid_corrections_are_followed_with_lag():
     wrapper = TemporalSmoothing(Scripted(steps))
     outputs = np.array([wrapper(observation(1, 1), info(1))[0] for _ in range(30)])
     assert np.abs(outputs[1:, :2] - truth[1:, :2]).mean() > 0.1
+
+
+
+class ReportsOnce(Scripted):
+    """An inner policy that reports a result on its first call only (later calls return
+    zeros and leave last_result as it was)."""
+
+    def __call__(self, obs, info=None):
+        if self.t == 0:
+            return super().__call__(obs, info)
+        return np.zeros((2, 3), np.float32)
+
+
+def test_a_result_left_from_an_earlier_call_is_no_measurement():
+    """Only the result of this very call says what was applied (roco_env.policies.base.act):
+    a zero action from a call that reported nothing is a step without evidence, which
+    inherits the estimate, though the inner policy's last_result still says applied."""
+    good = np.array([[0.5, -0.2, 0.01], [0.0, 0.0, 0.0]])
+    stale = ReportsOnce([(good, [True, False])])
+    fresh = Scripted([(good, [True, False]), (np.zeros((2, 3)), [True, False])])
+    held, measured = TemporalSmoothing(stale), TemporalSmoothing(fresh)
+    held(observation(), info())
+    measured(observation(), info())
+    assert np.allclose(held(observation(), info())[0], good[0], atol=1e-6)
+    assert stale.last_result.applied[0]  # left from the first call
+    # the same zero action with this call's result saying applied is a measurement of zero
+    assert np.linalg.norm(measured(observation(), info())[0]) < 0.6 * np.linalg.norm(good[0])

@@ -81,3 +81,12 @@ def test_the_recorded_options_reproduce_the_run():
 def test_bad_options_are_refused_naming_the_field(argv, message, capsys):
     assert main(argv + ["--out", "unused"]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_options_built_directly_are_checked_as_the_command_line_checks_them():
+    from roco_env.schema import ConfigError
+
+    with pytest.raises(ConfigError, match="cavs=0 is out of range"):
+        AttackerTrainConfig(cavs=0)
+    with pytest.raises(ConfigError, match="attack.params.budget_m=-1.0 is out of range"):
+        AttackerTrainConfig(budget_m=-1.0)

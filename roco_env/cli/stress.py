@@ -9,7 +9,8 @@ ap70 (minus AP@0.7), gap (oracle AP@0.7 minus the policy's). --budget counts com
 evaluations; the same command resumes an interrupted search. Writes per policy the 3
 worst scenarios (YAML), a plot of the objective over trials and a GIF of the worst
 episode, OUT/report.md, and prints one summary line per policy. See docs/stress.md.
-The options are the fields of roco_env.stress.study.StressOptions.
+The options are the fields of roco_env.stress.study.StressOptions (those it shares with
+each search: SearchOptions).
 """
 
 from __future__ import annotations
@@ -19,26 +20,15 @@ import argparse
 from roco_env.cli.render_command import render_episode
 from roco_env.stress.space import load_space
 from roco_env.stress.stress_report import evaluate_reference, export_worst, section, write_report
-from roco_env.stress.study import FLAGS, SearchSettings, check_settings, run_search
+from roco_env.stress.study import FLAGS, run_search
 from roco_env.sweeps.cells import Cell
-from roco_env.sweeps.text_specs import parse_policy_spec
 
 
 def run(args: argparse.Namespace) -> int:
     options = FLAGS.parse(args)
-    space = load_space(options.space)
-    all_settings = [
-        SearchSettings(out=options.out, policy=parse_policy_spec(policy).label,
-                       objective=options.objective, budget=options.budget,
-                       seeds=tuple(options.seeds), steps=options.steps, space=space,
-                       sampler=options.sampler, seed=options.seed)
-        for policy in dict.fromkeys(options.policy)]
-    for settings in all_settings:  # every bad setting is refused before any search starts
-        check_settings(settings, options.backend, options.workers, options.address)
     sections, summaries = [], []
-    for settings in all_settings:
-        study = run_search(settings, backend=options.backend, workers=options.workers,
-                           address=options.address)
+    for settings in options.searches(load_space(options.space)):
+        study = run_search(settings)
         found = export_worst(settings, study)
         gif = None
         if found and options.gif:

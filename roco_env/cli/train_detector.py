@@ -1,7 +1,9 @@
 """``roco-env train-detector``: train the learned BEV detector and write weights + report.
 
-Its options are :class:`~roco_env.training.train.TrainConfig`'s fields (``--pose-sigma-t``
-for ``pose_sigma_t``), generated from the dataclass, plus ``--out`` and ``--quiet``.
+Its options are :class:`~roco_env.training.detector_config.TrainConfig`'s fields
+(``--pose-sigma-t`` for ``pose_sigma_t``; :data:`~roco_env.training.detector_config.FLAGS`),
+generated from the dataclass, plus ``--out`` and ``--quiet``. Building the parser imports
+no torch; running the command does.
 """
 
 from __future__ import annotations
@@ -11,16 +13,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from roco_env.flags import SpecFlags
-
-
-def _flags() -> SpecFlags:
-    """The options of TrainConfig; ``--freeze-encoder`` / ``--freeze-detector`` are the
-    older names of ``--no-train-encoder`` / ``--no-train-detector``."""
-    from roco_env.training.train import WHERE, TrainConfig
-
-    return SpecFlags(TrainConfig, WHERE, aliases={"--freeze-encoder": ("train_encoder", False),
-                                                  "--freeze-detector": ("train_detector", False)})
+from roco_env.training.detector_config import FLAGS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -34,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _flags().add_to(p)
+    FLAGS.add_to(p)
     p.set_defaults(func=_run)
 
 
@@ -43,10 +36,9 @@ def _run(args: argparse.Namespace) -> int:
     from roco_env.training.detector_report import write_report
     from roco_env.training.train import init_checkpoint, train
 
-    flags = _flags()
-    config = flags.parse(args)
+    config = FLAGS.parse(args)
     command = "roco-env train-detector " + shlex.join([f"--out={args.out}",
-                                                       *flags.argv(config)])
+                                                       *FLAGS.argv(config)])
     # Checked (and hashed: the output may overwrite it) before any output or scene exists.
     init_sha256 = None if init_checkpoint(config) is None else sha256_of(config.init)
     init = {} if init_sha256 is None else {"init_sha256": init_sha256}

@@ -15,15 +15,15 @@ name is accepted (``make_policy``, ``roco-env compare --policies``, ``roco-env r
       [project.entry-points."roco_env.policies"]
       mine = "my_pkg.module:make_policy"
 
-The factory is called with the spec's parameters and returns the callable. A factory
-that declares its parameters as a :func:`roco_env.schema.spec` dataclass, ``PARAMS``
-(:func:`declared_params`), has a policy spec's parameters checked against it before
-anything is built (``roco_env.policies.spec.validate_policy_spec``).
+The factory is called with the spec's parameters and returns the callable; it checks
+them itself (the built-ins through a :func:`roco_env.schema.spec` parameter dataclass),
+so a bad parameter is the factory's error, naming the key and
+what is allowed (``roco_env.policies.spec.validate_policy_spec`` builds a spec's policy
+once to find it before a sweep starts).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import importlib.metadata
 import sys
@@ -119,14 +119,6 @@ def make_policy(name: str, **params: Any) -> Policy:
     return as_policy(_factory(name)(**params), f"what {name}() returned")
 
 
-def declared_params(name: str) -> type | None:
-    """The parameter dataclass the factory of ``name`` declares as ``PARAMS`` (its fields,
-    made with :func:`roco_env.schema.spec`, are every keyword argument the factory takes), or
-    None when it declares none."""
-    declared = getattr(_factory(name), "PARAMS", None)
-    return declared if dataclasses.is_dataclass(declared) else None
-
-
 def _factory(name: str) -> Callable:
     """The factory registered as ``name``, or imported from ``module:factory``."""
     if not isinstance(name, str):
@@ -166,7 +158,6 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available_policies",
     "correction_action",
-    "declared_params",
     "is_import_target",
     "make_policy",
     "register_policy",

@@ -10,7 +10,8 @@ it keeps across calls) and ``last_result`` (its last :class:`AlignmentResult`, s
 sweep can score its matching). Every built-in policy is one; :func:`as_policy` gives
 any other callable (a plain function) the members it lacks. A policy that reads files
 (learned weights, lookup tables) declares them with an ``input_files()`` method
-(:class:`ReadsFiles`), so a sweep's resume check covers their content.
+(:class:`ReadsFiles`), so a sweep's resume check covers their content. A policy run
+around an inner one (temporal smoothing, delay compensation) is a :class:`PolicyWrapper`.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from roco_env.geometry import apply_correction, se2_compose, se2_inverse, se2_relative
+from roco_env.schema import build
 
-__all__ = ["AlignmentResult", "Policy", "PolicyAdapter", "ReadsFiles", "StatelessPolicy",
-           "act", "apply_correction", "as_policy", "correction_action", "policy_input_files",
-           "reported_relative_poses"]
+__all__ = ["AlignmentResult", "Policy", "PolicyAdapter", "PolicyWrapper", "ReadsFiles",
+           "StatelessPolicy", "act", "apply_correction", "as_policy", "correction_action",
+           "policy_input_files", "reported_relative_poses"]
 
 
 @dataclass
@@ -172,6 +174,55 @@ class PolicyAdapter:
     def input_files(self) -> tuple[Path, ...]:
         """The files the callable declares (none without the hook)."""
         return policy_input_files(self.policy)
+
+
+class PolicyWrapper:
+    """The plumbing of a policy run around an inner one (``TemporalSmoothing``,
+    ``Compensate``): its own parameters, the inner policy, and the members it passes on.
+
+    ``params``: the wrapper's checked parameters; ``policy``: the inner :class:`Policy`;
+    ``last_result`` and ``input_files()`` are the inner policy's (a sweep scores its
+    matching and hashes its files); ``reset()`` resets it (a subclass forgets its own
+    state, then calls ``super().reset()``). Subclasses define ``__call__`` and
+    ``keeps_state``.
+    """
+
+    def __init__(self, inner: str | Callable[..., Any], own: Any,
+                 params: Mapping[str, Any]) -> None:
+        """inner: a policy name for ``make_policy`` (built with ``params``) or a callable
+        (then ``params`` must be empty); own: the wrapper's parameters, checked
+        (:func:`own_params`)."""
+        if isinstance(inner, str):
+            from roco_env.policies import make_policy
+
+            inner = make_policy(inner, **params)
+        elif params:
+            raise ValueError(f"policy_params ({sorted(params)}: not parameters of the "
+                             "wrapper) are only accepted with a policy name")
+        self.params = own
+        self.policy: Policy = as_policy(inner)
+
+    @staticmethod
+    def own_params(cls: type, params: Mapping[str, Any], where: str) -> tuple[Any, dict]:
+        """(the fields of dataclass ``cls`` in ``params``, checked by
+        :func:`~roco_env.schema.build` naming ``where``; the other parameters)."""
+        own = {key: value for key, value in params.items() if key in cls.__dataclass_fields__}
+        rest = {key: value for key, value in params.items() if key not in own}
+        return build(cls, own, where), rest
+
+    @property
+    def last_result(self) -> AlignmentResult | None:
+        """The inner policy's last AlignmentResult (None if it keeps none)."""
+        return self.policy.last_result
+
+    def input_files(self) -> tuple[Path, ...]:
+        """The files the inner policy declares (:class:`ReadsFiles`), so a sweep's resume
+        check still covers them once the policy is wrapped."""
+        return policy_input_files(self.policy)
+
+    def reset(self) -> None:
+        """Reset the inner policy (a new episode)."""
+        self.policy.reset()
 
 
 def as_policy(policy: Any, label: str = "policy") -> Policy:

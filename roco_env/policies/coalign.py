@@ -251,8 +251,6 @@ def _usable_agents(
 class CoAlignPolicy(ArrayAlignmentPolicy):
     """CoAlign as an env policy: ``CoAlignPolicy(**params)(obs, info=None) -> action (N, 3)``."""
 
-    PARAMS = CoAlignParams
-
     def __init__(self, **params) -> None:
         super().__init__(
             coalign_align, params_from_kwargs(CoAlignParams, params, "coalign"), params

@@ -29,15 +29,14 @@ leaves them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from roco_env.comm.tracking import KeyedTracks, TrackingParams, moved_boxes
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import AlignmentResult, Policy, policy_input_files
-from roco_env.schema import build, spec
+from roco_env.policies.base import PolicyWrapper
+from roco_env.schema import spec
 
 __all__ = ["Compensate", "CompensateParams"]
 
@@ -56,35 +55,22 @@ class CompensateParams(TrackingParams):
                                doc="static mode: the speed below which a box stands still, m/s")
 
 
-class Compensate:
+class Compensate(PolicyWrapper):
     """``Compensate(base="roco", **params)(obs, info) -> action (N, 3)``: the base aligner on
     delay-compensated boxes (module docstring). Parameters not of
-    :class:`CompensateParams` go to the base policy."""
+    :class:`CompensateParams` go to the base policy; ``last_result`` is the base's."""
 
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
 
     def __init__(self, **params: Any) -> None:
-        own = {key: params.pop(key) for key in CompensateParams.__dataclass_fields__
-               if key in params}
-        self.params = build(CompensateParams, own, "compensate")
-        from roco_env.policies import make_policy
-
-        self.policy: Policy = make_policy(self.params.base, **params)
+        own, rest = self.own_params(CompensateParams, params, "compensate")
+        super().__init__(own.base, own, rest)
         self.tracks = KeyedTracks(self.params)
-
-    @property
-    def last_result(self) -> AlignmentResult | None:
-        """The base policy's last AlignmentResult (None if it keeps none)."""
-        return self.policy.last_result
-
-    def input_files(self) -> tuple[Path, ...]:
-        """The files the base policy declares, so a sweep's resume check covers them."""
-        return policy_input_files(self.policy)
 
     def reset(self) -> None:
         """Forget every track (call between episodes) and reset the base policy."""
         self.tracks.reset()
-        self.policy.reset()
+        super().reset()
 
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         if "collab_age" not in observation:
@@ -92,14 +78,15 @@ class Compensate:
         if info is None or "time" not in info:
             raise ValueError("compensate needs the env's info with 'time' (the network "
                              "stage's clock): call policy(obs[agent], infos[agent])")
+        compensated = bool(info.get("compensated"))  # the env moved them to now already
+        if compensated and self.params.mode == "extrapolate":
+            return self.policy(observation, info)  # nothing to move: no tracks needed
         now = float(info["time"])
         filled = np.flatnonzero(np.asarray(observation["collab_mask"]) > 0)
         keys = collaborator_keys(info, filled, "compensate")
         obs = {**observation, "collab_boxes": np.array(observation["collab_boxes"]),
                "collab_box_mask": np.array(observation["collab_box_mask"]),
                "box_mask": np.array(observation["box_mask"])}
-        compensated = bool(info.get("compensated"))  # the env moved them to now already
-        extrapolate = self.params.mode == "extrapolate" and not compensated
         for slot, key in zip(filled.tolist(), keys, strict=True):
             rows = np.flatnonzero(obs["collab_box_mask"][slot] > 0)
             age = float(observation["collab_age"][slot])
@@ -108,9 +95,9 @@ class Compensate:
             velocity, known = self.tracks.velocities(key, boxes, pose,
                                                      now if compensated else now - age,
                                                      bool(observation["collab_new"][slot]))
-            if extrapolate:
+            if self.params.mode == "extrapolate":
                 obs["collab_boxes"][slot, rows] = moved_boxes(boxes, pose, velocity, age)
-            elif self.params.mode == "static":
+            else:  # static
                 obs["collab_box_mask"][slot, rows] = self._standing(velocity, known)
         if self.params.mode == "static":
             rows = np.flatnonzero(obs["box_mask"] > 0)

@@ -577,8 +577,6 @@ class RoCoPolicy(ArrayAlignmentPolicy):
     between episodes. Needs the significance test (``significance`` not None or 0).
     """
 
-    PARAMS = RoCoPolicyParams
-
     def __init__(self, **params) -> None:
         checked = params_from_kwargs(RoCoPolicyParams, params, "roco")
         super().__init__(roco_align, checked,

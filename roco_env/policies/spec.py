@@ -20,15 +20,9 @@ from typing import Any
 
 import yaml
 
-from roco_env.policies import (
-    Policy,
-    available_policies,
-    declared_params,
-    is_import_target,
-    make_policy,
-)
+from roco_env.policies import Policy, available_policies, is_import_target, make_policy
 from roco_env.scenario import ALIASES
-from roco_env.schema import build, load_yaml
+from roco_env.schema import load_yaml
 
 Scalar = bool | int | float | str | None
 
@@ -113,21 +107,14 @@ def parse_policy_spec(text: str) -> PolicySpec:
 
 
 def validate_policy_spec(text: str) -> PolicySpec:
-    """Parse and construct the policy once so bad parameters fail before a sweep starts.
-
-    The parameters of a policy that declares them (:func:`~roco_env.policies.declared_params`)
-    are checked first, by :func:`~roco_env.schema.build`: the message names the spec, the key
-    and the allowed values."""
+    """Parse and construct the policy once so bad parameters fail before a sweep starts: the
+    policy's own check (the message names the spec, the key and the allowed values)."""
     spec = parse_policy_spec(text)
-    declared = declared_params(spec.name)
     try:
-        if declared is not None:
-            build(declared, dict(spec.params), spec.name)
         spec.build()
     except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
         raise ValueError(f"policy spec {text!r}: {exc}") from exc
     return spec
-
 
 
 def merge_env_overrides(overrides: Mapping[str, Any], policy: object,

@@ -24,16 +24,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from roco_env.policies.adapter import collaborator_keys
-from roco_env.policies.base import AlignmentResult, Policy, as_policy, policy_input_files
+from roco_env.policies.base import AlignmentResult, PolicyWrapper, act
 from roco_env.policies.landmarks import require_sigmas
-from roco_env.schema import build, spec
+from roco_env.schema import spec
 
 __all__ = ["SmoothingParams", "TemporalSmoothing", "coalign_temporal", "roco_temporal"]
 
@@ -53,51 +52,32 @@ class SmoothingParams:
         require_sigmas(self.measurement_std, "measurement_std")
 
 
-class TemporalSmoothing:
+class TemporalSmoothing(PolicyWrapper):
     """``TemporalSmoothing(policy, **params)(obs, info=None) -> action (N, 3) float32``.
 
     policy: a policy name for ``make_policy`` or a callable (a plain function becomes a
     :class:`~roco_env.policies.base.Policy` through ``as_policy``); params: the fields of
     :class:`SmoothingParams`, and with a policy name the inner policy's parameters
-    (policy_params, passed to make_policy).
+    (policy_params, passed to make_policy). ``last_result``: the inner policy's.
     """
 
     # State kept across steps, per (ego, collaborator); ``roco-env list`` shows it.
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
 
     def __init__(self, policy: str | Callable, **params: Any) -> None:
-        own = {key: params.pop(key) for key in SmoothingParams.__dataclass_fields__
-               if key in params}
-        self.params = build(SmoothingParams, own, "temporal smoothing")
-        if isinstance(policy, str):
-            from roco_env.policies import make_policy
-
-            policy = make_policy(policy, **params)
-        elif params:
-            raise ValueError(f"policy_params ({sorted(params)}: not parameters of the "
-                             "smoothing) are only accepted with a policy name")
-        self.policy: Policy = as_policy(policy)
+        super().__init__(policy, *self.own_params(SmoothingParams, params,
+                                                  "temporal smoothing"))
         self.q = np.asarray(self.params.process_std)
         self.r = np.asarray(self.params.measurement_std)
         self.max_age = self.params.max_age
         self._filters: dict[Hashable, KalmanFilter] = {}
         self._age: dict[Hashable, int] = {}
 
-    @property
-    def last_result(self) -> AlignmentResult | None:
-        """The inner policy's last AlignmentResult (None if it keeps none)."""
-        return self.policy.last_result
-
-    def input_files(self) -> tuple[Path, ...]:
-        """The files the inner policy declares (:class:`roco_env.policies.base.ReadsFiles`),
-        so a sweep's resume check still covers them once the policy is wrapped."""
-        return policy_input_files(self.policy)
-
     def reset(self) -> None:
         """Forget every filter (call between episodes) and reset the inner policy."""
         self._filters.clear()
         self._age.clear()
-        self.policy.reset()
+        super().reset()
 
     def _new_filter(self, z: np.ndarray) -> KalmanFilter:
         kf = KalmanFilter(dim_x=3, dim_z=3)
@@ -106,8 +86,10 @@ class TemporalSmoothing:
         kf.x, kf.P = z.reshape(3, 1).copy(), np.diag(self.r**2)
         return kf
 
-    def _applied(self, action: np.ndarray) -> np.ndarray:
-        result = self.last_result
+    @staticmethod
+    def _applied(action: np.ndarray, result: AlignmentResult | None) -> np.ndarray:
+        """Per slot, whether the inner call corrected it: its result's ``applied``, or for a
+        call that reported no result, a nonzero action."""
         if result is not None and np.shape(result.applied) == (action.shape[0],):
             return np.asarray(result.applied, dtype=bool)
         return np.any(action != 0.0, axis=1)
@@ -115,8 +97,9 @@ class TemporalSmoothing:
     def __call__(self, observation: dict, info: dict | None = None) -> np.ndarray:
         filled = np.nonzero(np.asarray(observation["collab_mask"]) > 0)[0]
         keys = collaborator_keys(info, filled, "temporal smoothing")
-        action = np.asarray(self.policy(observation, info), dtype=float).reshape(-1, 3)
-        applied = self._applied(action)
+        action, result = act(self.policy, observation, info)
+        action = np.asarray(action, dtype=float).reshape(-1, 3)
+        applied = self._applied(action, result)
         out = action.copy()
         for slot, key in zip(filled, keys, strict=True):
             kf = self._filters.get(key)

@@ -7,7 +7,11 @@ from dataclasses import dataclass
 
 from roco_env.schema import spec
 
-__all__ = ["LearnedDetectorParams"]
+__all__ = ["FUSIONS", "LearnedDetectorParams"]
+
+# Intermediate fusion of the maps: the element-wise maximum, or the maximum after a learned
+# per-cell weight on each collaborator's map (roco_env.sensing.learned.network.FusionGate).
+FUSIONS = ("max", "gated")
 
 
 @dataclass

@@ -25,14 +25,14 @@ from __future__ import annotations
 import os
 import re
 import socket
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from roco_env.env import check_seed
+from roco_env.collab_env import check_seed
 from roco_env.flags import SpecFlags
 from roco_env.scenario import save_scenario
-from roco_env.schema import ConfigError, build, spec
+from roco_env.schema import ConfigError, check_fields, spec
 from roco_env.stress.objectives import OBJECTIVES, Infeasible, evaluate
 from roco_env.stress.space import SearchSpace, scenario_for, suggest
 from roco_env.sweeps.text_specs import parse_policy_spec
@@ -54,23 +54,58 @@ def import_optuna():
     return optuna
 
 
-@dataclass(frozen=True)
-class SearchSettings:
-    """Everything one search needs (plain data: process pools and Ray ship it).
+@dataclass(frozen=True, kw_only=True)
+class SearchOptions:
+    """The settings a search shares with the ``roco-env stress`` command, each declared once
+    here: :class:`StressOptions` (the command's options) and :class:`SearchSettings` (one
+    search) are these plus their own. Checked as constructed (every field's spec,
+    :func:`~roco_env.schema.check_fields`; then the seeds' values and the address's backend).
+    Noise inside the space is in m and deg."""
 
-    out: output folder (m: metres and deg for the noise inside the space); policy: a
-    canonical policy spec; budget: completed trials; seeds: episode seeds of every
-    evaluation; steps: env steps per episode; seed: the sampler's seed."""
+    objective: str = spec("harm", choices=OBJECTIVES, doc="what the search makes worst")
+    budget: int = spec(100, low=1, doc="completed evaluations per policy")
+    seeds: tuple[int, ...] = spec((0,), doc="episode seeds of every evaluation")
+    steps: int = spec(5, low=1, doc="env steps per episode")
+    out: str = spec("", doc="output folder (study.db, scenarios, report.md); re-running "
+                    "resumes")
+    backend: str = spec("local", choices=BACKENDS, doc="local processes or Ray tasks")
+    workers: int = spec(1, low=1, doc="parallel workers sharing the study")
+    address: str | None = spec(None, doc="Ray cluster address for --backend ray (none: a "
+                               "local Ray)")
+    sampler: str = spec("tpe", choices=SAMPLERS, doc="Optuna sampler")
+    seed: int = spec(0, low=0, doc="sampler seed")
 
-    out: str
+    def __post_init__(self) -> None:
+        check_fields(self, WHERE)
+        if not self.seeds:
+            raise ConfigError(f"{WHERE}: seeds must name at least one episode seed")
+        for seed in self.seeds:
+            check_seed(seed)
+        if self.address is not None and self.backend != "ray":
+            raise ConfigError(f"{WHERE}: --address needs --backend ray")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SearchSettings(SearchOptions):
+    """Everything one search needs (plain data: process pools and Ray ship it, and a copy
+    is not checked again).
+
+    policy: a policy spec, kept in its canonical form (parsed once, here); space: the
+    checked search space. Refused as constructed, besides :class:`SearchOptions`'s rules:
+    an unknown policy, ``sampler="cmaes"`` without the cmaes package."""
+
     policy: str
-    objective: str
-    budget: int
-    seeds: tuple[int, ...]
-    steps: int
     space: SearchSpace
-    sampler: str = "tpe"
-    seed: int = 0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "policy", parse_policy_spec(self.policy).label)
+        if self.sampler == "cmaes":
+            try:
+                import cmaes  # noqa: F401 - CmaEsSampler imports it when it samples
+            except ImportError as exc:
+                raise ValueError("--sampler cmaes needs the cmaes package: pip install cmaes "
+                                 "(or pip install 'roco-env[stress]')") from exc
 
     @property
     def study_name(self) -> str:
@@ -93,61 +128,29 @@ class SearchSettings:
                                 for p in self.space.params), "base": self.space.base}
 
 
-@dataclass
-class StressOptions:
-    """The options of ``roco-env stress`` (docs/stress.md); its command-line options are
-    generated from these fields (:data:`FLAGS`). Check them with
+@dataclass(frozen=True, kw_only=True)
+class StressOptions(SearchOptions):
+    """The options of ``roco-env stress`` (docs/stress.md): :class:`SearchOptions` plus the
+    command's own; its command-line options are generated from these fields (:data:`FLAGS`).
+    Checked as constructed (:class:`SearchOptions`), directly or by
     :func:`~roco_env.schema.build` (``build(StressOptions, values, WHERE)``)."""
 
     policy: list[str] = spec([], doc="policy spec(s), one search each, e.g. roco "
                              "roco_antialias coalign")
-    objective: str = spec("harm", choices=OBJECTIVES, doc="what the search makes worst")
-    budget: int = spec(100, low=1, doc="completed evaluations per policy")
     space: str | None = spec(None, path=True, doc="YAML file of parameter ranges (none: the "
                              "shipped default space)")
-    seeds: list[int] = spec([0], doc="episode seeds of every evaluation")
-    steps: int = spec(5, low=1, doc="env steps per episode")
-    out: str = spec("", doc="output folder (study.db, scenarios, report.md); re-running "
-                    "resumes")
-    backend: str = spec("local", choices=BACKENDS, doc="local processes or Ray tasks")
-    workers: int = spec(1, low=1, doc="parallel workers sharing the study")
-    address: str | None = spec(None, doc="Ray cluster address for --backend ray (none: a "
-                               "local Ray)")
-    sampler: str = spec("tpe", choices=SAMPLERS, doc="Optuna sampler")
-    seed: int = spec(0, low=0, doc="sampler seed")
     gif: bool = spec(True, doc="a GIF of the worst episode")
 
-    def __post_init__(self) -> None:
-        """The rules one field's spec cannot state: the seeds' values, the address's
-        backend."""
-        if not self.seeds:
-            raise ConfigError(f"{WHERE}: seeds must name at least one episode seed")
-        for seed in self.seeds:
-            check_seed(seed)
-        if self.address is not None and self.backend != "ray":
-            raise ConfigError(f"{WHERE}: --address needs --backend ray")
+    def searches(self, space: SearchSpace) -> list[SearchSettings]:
+        """One search per distinct policy (canonical spec) over ``space``; every bad
+        setting is refused before any search starts."""
+        shared = {f.name: getattr(self, f.name) for f in fields(SearchOptions)}
+        found = (SearchSettings(**shared, policy=policy, space=space) for policy in self.policy)
+        return list({settings.policy: settings for settings in found}.values())
 
 
 # The command line's options (roco-env stress), one per field.
 FLAGS = SpecFlags(StressOptions, WHERE, required=("policy", "out"))
-
-
-def check_settings(settings: SearchSettings, backend: str = "local", workers: int = 1,
-                   address: str | None = None) -> None:
-    """ValueError naming the bad setting and what is allowed: the rules of
-    :class:`StressOptions`, the policy spec, the sampler's package."""
-    build(StressOptions, {"policy": [settings.policy], "objective": settings.objective,
-                          "budget": settings.budget, "seeds": list(settings.seeds),
-                          "steps": settings.steps, "out": settings.out, "backend": backend,
-                          "workers": workers, "address": address, "sampler": settings.sampler,
-                          "seed": settings.seed}, WHERE)
-    parse_policy_spec(settings.policy)
-    if settings.sampler == "cmaes":
-        try:
-            import cmaes  # noqa: F401 - CmaEsSampler imports it when it samples
-        except ImportError as exc:
-            raise ValueError("--sampler cmaes needs the cmaes package: pip install cmaes "
-                             "(or pip install 'roco-env[stress]')") from exc
 
 
 def make_sampler(name: str, seed: int):
@@ -270,7 +273,8 @@ def run_worker(settings: SearchSettings, worker: int = 0) -> int:
     return count(study, "COMPLETE")
 
 
-def _run_local(settings: SearchSettings, workers: int) -> None:
+def _run_local(settings: SearchSettings) -> None:
+    workers = settings.workers
     if workers == 1:
         run_worker(settings, 0)
         return
@@ -293,7 +297,8 @@ def _run_local(settings: SearchSettings, workers: int) -> None:
         raise RuntimeError(f"{len(failed)} stress worker(s) failed (exit codes {failed})")
 
 
-def _run_ray(settings: SearchSettings, workers: int, address: str | None) -> None:
+def _run_ray(settings: SearchSettings) -> None:
+    workers, address = settings.workers, settings.address
     try:
         import ray
     except ImportError as exc:
@@ -305,17 +310,16 @@ def _run_ray(settings: SearchSettings, workers: int, address: str | None) -> Non
     ray.get([task.remote(settings, i) for i in range(workers)])
 
 
-def run_search(settings: SearchSettings, backend: str = "local", workers: int = 1,
-               address: str | None = None):
-    """Run (or resume) the search; returns the loaded study. ``backend``: ``local`` (this
-    process, or ``workers`` processes sharing the SQLite study) or ``ray`` (``workers``
-    Ray tasks; ``address`` a running cluster, None starts a local one): the study file
-    must be reachable from every worker (one machine or a shared file system)."""
-    check_settings(settings, backend, workers, address)
+def run_search(settings: SearchSettings):
+    """Run (or resume) the search; returns the loaded study. ``settings.backend``: ``local``
+    (this process, or ``settings.workers`` processes sharing the SQLite study) or ``ray``
+    (``workers`` Ray tasks; ``address`` a running cluster, None starts a local one): the
+    study file must be reachable from every worker (one machine or a shared file system).
+    The settings were checked when they were constructed."""
     study = open_study(settings)
     recover_interrupted(study)
-    if backend == "ray":
-        _run_ray(settings, workers, address)
+    if settings.backend == "ray":
+        _run_ray(settings)
     else:
-        _run_local(settings, workers)
+        _run_local(settings)
     return open_study(settings)

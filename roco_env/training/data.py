@@ -27,7 +27,7 @@ import numpy as np
 from roco_env.evaluation import ground_truths
 from roco_env.geometry import se2_inverse, se2_relative, transform_boxes
 from roco_env.scenario import ScenarioConfig, load_scenario
-from roco_env.sensing.features import BevGrid
+from roco_env.sensing.bev_grid import BevGrid
 from roco_env.sensing.lidar import (
     LIDAR_CHANNELS,
     ScanNoise,

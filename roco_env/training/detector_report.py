@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from roco_env.training.train import TrainResult
+from roco_env.training.train import TrainResult, fused_canvas
 
 __all__ = ["loss_curves_figure", "write_report"]
 
@@ -64,8 +64,8 @@ def write_report(result: TrainResult, out: Path, command: str, weights_sha256: s
              + ("detector frozen, only the fusion gate trained" if not cfg.train_detector
                 else "encoder frozen" if not cfg.train_encoder else "whole network trained"))
     fused = ("the detector grid" if cfg.fused_x_range is None and cfg.fused_y_range is None
-             else f"a canvas of x {list(cfg.fused_canvas.x_range)} m, "
-             f"y {list(cfg.fused_canvas.y_range)} m (fused validation AP decoded on it too)")
+             else f"a canvas of x {list(fused_canvas(cfg).x_range)} m, "
+             f"y {list(fused_canvas(cfg).y_range)} m (fused validation AP decoded on it too)")
     (out / "report.md").write_text(
         "# Learned BEV detector: training report\n\n"
         f"Command: `{command}`\n\n"

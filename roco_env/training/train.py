@@ -41,7 +41,7 @@ import multiprocessing
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -50,128 +50,38 @@ import torch.nn.functional as F
 from roco_env.fusion.intermediate import fuse_maps, fusion_canvas
 from roco_env.geometry import se2_compose, transform_boxes, wrap_angle
 from roco_env.metrics import APAccumulator
-from roco_env.schema import ConfigError, spec
 from roco_env.sensing.features import BevGrid, warp_bev
 from roco_env.sensing.learned.model import Checkpoint, build_network, load_checkpoint
-from roco_env.sensing.learned.network import FUSIONS, BevDetectorNet, NetConfig
+from roco_env.sensing.learned.network import BevDetectorNet, NetConfig
 from roco_env.sensing.learned.targets import Targets, build_targets, decode, feature_grid
-from roco_env.sensing.lidar import LIDAR_CHANNELS, ScanNoise
+from roco_env.sensing.lidar import LIDAR_CHANNELS
 from roco_env.training.data import (
-    TRAIN_SCENARIOS,
     TRAIN_SEED_BASE,
     VALIDATION_SEED_BASE,
     WORKER_CONTEXT,
     Scene,
     make_scenes,
 )
+from roco_env.training.detector_config import TrainConfig
 
-__all__ = ["WHERE", "TrainConfig", "TrainResult", "train", "evaluate", "init_checkpoint",
-           "mirror_rasters", "set_determinism"]
+__all__ = ["TrainResult", "evaluate", "feature_grid_of", "fused_canvas", "init_checkpoint",
+           "mirror_rasters", "set_determinism", "train"]
 
 # Loss weights: heatmap, offset, size, yaw, uncertainty NLL.
 _WEIGHTS = {"heatmap": 1.0, "offset": 1.0, "size": 1.0, "yaw": 1.0, "nll": 0.2}
 
 
-# Where the errors of a training configuration say they come from.
-WHERE = "train-detector"
+def feature_grid_of(config: TrainConfig) -> BevGrid:
+    """The encoder map's grid of ``config`` (the network's stride on ``config.grid``)."""
+    return feature_grid(config.grid, NetConfig().stride)
 
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that determines a training run (recorded in the weights and report).
-
-    Build it with :func:`~roco_env.schema.build` (``build(TrainConfig, values, WHERE)``)
-    to check every value; the fields' docs are the help of the options of ``roco-env
-    train-detector``, generated from them. ``noise``: the scan noise of the training scenes.
-    """
-
-    x_range: tuple[float, float] = spec((-70.4, 70.4), doc="detector raster extent along x, m")
-    y_range: tuple[float, float] = spec((-40.0, 40.0), doc="detector raster extent along y, m")
-    resolution: float = spec(0.8, low=0.0, low_open=True, doc="detector raster cell, m")
-    widths: tuple[int, int, int] = spec((32, 64, 48), doc="network widths W1 W2 C")
-    train_scenes: int = spec(800, low=1, doc="training scenes")
-    val_scenes: int = spec(20, low=0, doc="validation scenes (0: none)")
-    scenarios: tuple[str, ...] = spec(TRAIN_SCENARIOS, doc="training scenarios")
-    val_scenarios: tuple[str, ...] = spec(("urban_intersection",),
-                                          doc="validation scenarios")
-    steps: int = spec(1200, low=1, doc="optimiser steps")
-    scenes_per_step: int = spec(4, low=1, doc="scenes per batch")
-    lr: float = spec(3e-3, low=0.0, low_open=True, doc="peak learning rate")
-    pose_sigma_t: float = spec(0.2, low=0.0, doc="pose noise of the fused loss, translation "
-                               "std in m (the RoCo paper's training protocol)")
-    pose_sigma_r: float = spec(0.2, low=0.0, doc="pose noise of the fused loss, rotation std "
-                               "in degrees")
-    fused_x_range: tuple[float, float] | None = spec(
-        None, doc="ego-frame x extent LOW HIGH (m) the fused loss decodes: the detector grid "
-        "grown to cover it in whole feature cells, e.g. the evaluation range -140.8 140.8 "
-        "(none: the detector grid)")
-    fused_y_range: tuple[float, float] | None = spec(None, doc="the same along y")
-    init: str | None = spec(None, path=True, doc="weights file to start from; its widths "
-                            "must be --widths (none: random initialisation; --lr applies as "
-                            "given)")
-    train_encoder: bool = spec(True, doc="train the encoder; --no-train-encoder (or "
-                               "--freeze-encoder) trains the trunk and heads only (needs "
-                               "--init): a fine-tuning stage that keeps every encoder map")
-    fusion: str = spec("max", choices=FUSIONS, doc="intermediate fusion of the fused loss "
-                       "and of the weights: the maximum, or the maximum after a learned "
-                       "per-cell gate on each collaborator's map")
-    train_detector: bool = spec(True, doc="train the detector; --no-train-detector (or "
-                                "--freeze-detector) trains the fusion gate only (needs --init "
-                                "and --fusion gated): every detection of the start weights "
-                                "stays as it was")
-    warp_augment: float = spec(0.0, low=0.0, high=1.0, doc="share of single-agent maps "
-                               "decoded after a random rigid warp (any heading, a shift of up "
-                               "to one feature cell), so the network learns maps that survive "
-                               "the warp of fusion")
-    seed: int = spec(0, low=0, doc="training seed")
-    threads: int = spec(2, low=1, doc="torch CPU threads")
-    workers: int = spec(0, low=0, doc="processes generating scenes and batches (0: none; the "
-                        "weights do not depend on it)")
-    device: str = spec("cpu", choices=("cpu", "cuda"), doc="torch device")
-    noise: ScanNoise = field(default_factory=ScanNoise)
-
-    def __post_init__(self) -> None:
-        """The rules one field's spec cannot state: the fused ranges' values, and the
-        fields that go together."""
-        for name in ("fused_x_range", "fused_y_range"):
-            value = getattr(self, name)
-            if value is not None and not (len(value) == 2 and all(map(math.isfinite, value))
-                                          and value[0] < value[1]):
-                option = "--" + name.replace("_", "-")
-                raise ConfigError(f"{WHERE}: {name} must be None or two finite numbers (low, "
-                                  f"high) with low < high, in m ({option} LOW HIGH); got "
-                                  f"{value!r}")
-        if not self.train_encoder and self.init is None:
-            raise ConfigError(f"{WHERE}: train_encoder=False (a frozen encoder, "
-                              "--freeze-encoder) needs init, the weights file to start from "
-                              "(--init FILE)")
-        if not self.train_detector and (self.init is None or self.fusion != "gated"):
-            raise ConfigError(f"{WHERE}: train_detector=False (a frozen detector, "
-                              "--freeze-detector) trains the fusion gate alone: it needs "
-                              "init, the weights file to start from (--init FILE), and "
-                              "fusion='gated' (--fusion gated)")
-
-    @property
-    def trains_encoder(self) -> bool:
-        """Whether the encoder learns (not with a frozen encoder or detector)."""
-        return self.train_encoder and self.train_detector
-
-    @property
-    def grid(self) -> BevGrid:
-        return BevGrid(self.x_range, self.y_range, self.resolution)
-
-    @property
-    def feature_grid(self) -> BevGrid:
-        """The encoder map's grid (the network's stride on :attr:`grid`)."""
-        return feature_grid(self.grid, NetConfig().stride)
-
-    @property
-    def fused_canvas(self) -> BevGrid:
-        """The grid the fused loss decodes on: :attr:`feature_grid` grown to cover
-        ``fused_x_range`` x ``fused_y_range``."""
-        fgrid = self.feature_grid
-        return fusion_canvas(fgrid, self.fused_x_range or fgrid.x_range,
-                             self.fused_y_range or fgrid.y_range)[0]
+def fused_canvas(config: TrainConfig) -> BevGrid:
+    """The grid the fused loss decodes on: :func:`feature_grid_of` grown to cover
+    ``fused_x_range`` x ``fused_y_range`` (m)."""
+    fgrid = feature_grid_of(config)
+    return fusion_canvas(fgrid, config.fused_x_range or fgrid.x_range,
+                         config.fused_y_range or fgrid.y_range)[0]
 
 
 @dataclass
@@ -309,7 +219,7 @@ class _Batches(torch.utils.data.Dataset):
 
     def __init__(self, scenes: list[Scene], config: TrainConfig) -> None:
         self.scenes, self.config = scenes, config
-        self.fgrid, self.canvas = config.feature_grid, config.fused_canvas
+        self.fgrid, self.canvas = feature_grid_of(config), fused_canvas(config)
 
     def __len__(self) -> int:
         return self.config.steps
@@ -393,7 +303,7 @@ def _train(config: TrainConfig, progress: bool,
     set_determinism(config.seed, config.threads, config.device)
     device = torch.device(config.device)
     grid = config.grid
-    fgrid, canvas = config.feature_grid, config.fused_canvas
+    fgrid, canvas = feature_grid_of(config), fused_canvas(config)
     log = log or (lambda _msg: None)
     log(f"generating {config.train_scenes} training scenes")
     scenes = make_scenes(config.scenarios, config.train_scenes, TRAIN_SEED_BASE + config.seed,

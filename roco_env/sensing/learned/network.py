@@ -32,6 +32,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from roco_env.sensing.learned_params import FUSIONS
 from roco_env.sensing.lidar import LIDAR_CHANNELS
 
 __all__ = ["FUSIONS", "HEAD_CHANNELS", "BevDetectorNet", "FusionGate", "NetConfig"]
@@ -40,9 +41,6 @@ HEAD_CHANNELS = {"heatmap": 1, "offset": 2, "size": 3, "yaw": 2, "log_sigma": 3}
 
 # Initial heatmap bias: sigmoid(-2.19) = 0.1, the focal-loss prior of CenterNet.
 _HEATMAP_PRIOR = -2.19
-# Intermediate fusion of the maps: the element-wise maximum, or the maximum after a learned
-# per-cell weight on each collaborator's map (FusionGate).
-FUSIONS = ("max", "gated")
 # Initial gate logit: sigmoid(4) = 0.98, so an untrained gate fuses almost as the maximum.
 _GATE_OPEN = 4.0
 

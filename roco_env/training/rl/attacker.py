@@ -42,12 +42,12 @@ from gymnasium import spaces
 from roco_env.attacks.adversarial_env import AdversarialEnv
 from roco_env.attacks.learned_attack import LearnedAttackParams
 from roco_env.attacks.scoring import EpisodeLog, attack_scores
-from roco_env.env import CollabPerceptionEnv
+from roco_env.collab_env import CollabPerceptionEnv
 from roco_env.flags import SpecFlags
 from roco_env.policies.learned import scaled_observation
 from roco_env.policies.spec import merge_env_overrides, validate_policy_spec
 from roco_env.rollout import play_episode
-from roco_env.schema import ConfigError, build, spec
+from roco_env.schema import ConfigError, build, check_fields, spec
 from roco_env.training.rl.curriculum import INPUT_CLIP, observation_layout
 from roco_env.training.rl.ppo import sb3_missing
 
@@ -80,6 +80,7 @@ class AttackerTrainConfig:
     seed: int = spec(0, low=0, high=2**31 - 1, doc="training seed (weights, episodes)")
 
     def __post_init__(self) -> None:
+        check_fields(self, WHERE)
         build(LearnedAttackParams, self.attack(), WHERE, "attack.params.")
         try:
             validate_policy_spec(self.victims)

@@ -2,9 +2,11 @@
 allowed values and the command line's options (:data:`FLAGS`, generated from it).
 
 Every field is declared with :func:`roco_env.schema.spec`; :func:`build_config` checks a
-mapping of values (unknown keys, types, ranges, choices) and, in the dataclass's
-``__post_init__``, the rules one field's spec cannot state (list items, fields that go
-together), raising :class:`roco_env.schema.ConfigError` naming the field.
+mapping of values (unknown keys, types, ranges, choices). The dataclass's ``__post_init__``
+checks every field the same way (:func:`roco_env.schema.check_fields`, so a
+``PolicyTrainConfig(...)`` built directly is checked too) and then the rules one field's
+spec cannot state (list items, fields that go together), raising
+:class:`roco_env.schema.ConfigError` naming the field.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Any
 
 from roco_env.flags import SpecFlags
 from roco_env.scenario import OBSERVATION_MODES, list_scenarios
-from roco_env.schema import ConfigError, build, spec
+from roco_env.schema import ConfigError, build, check_fields, spec
 
 ACTION_MODES = ("correction", "residual", "select", "gate")
 NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
@@ -71,6 +73,7 @@ class PolicyTrainConfig:
     threads: int = spec(1, low=1, high=64, doc="torch CPU threads")
 
     def __post_init__(self) -> None:
+        check_fields(self, WHERE)
         _check_lists(self)
         _check_ties(self)
 

@@ -562,7 +562,7 @@ parallel_env = CollabPerceptionEnv
 
 
 def aec_env(*args: Any, **kwargs: Any) -> AECEnv:
-    """The AEC version (``roco_env.env``), built from the arguments of
+    """The AEC version (``roco_env.env``, PettingZoo's name), built from the arguments of
     :class:`CollabPerceptionEnv`: ``parallel_to_aec`` (which adds PettingZoo's
     OrderEnforcingWrapper).
 
