@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import episode_digest
+from conftest import episode_digest, run_python
 
 import roco_env
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
@@ -377,3 +377,14 @@ def test_lean_infos_keep_the_traffic():
     env.reset(seed=0)
     _, _, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
     assert set(infos["cav_0"]) == set(METRIC_INFO_KEYS) | set(NETWORK_INFO_KEYS)
+
+
+def test_only_compensation_loads_the_tracks_and_no_env_loads_filterpy():
+    code = ("import sys, roco_env\n"
+            "for comp in ('none', 'track'):\n"
+            "    env = roco_env.parallel_env('highway_dense', max_cycles=2, delay='fixed',\n"
+            "                                **{'comm.compensation': comp})\n"
+            "    env.reset(seed=0)\n"
+            "    print(comp, sorted(m for m in ('filterpy', 'roco_env.comm.tracking')\n"
+            "                       if m in sys.modules))\n")
+    assert run_python(code).splitlines() == ["none []", "track ['roco_env.comm.tracking']"]

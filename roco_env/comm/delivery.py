@@ -42,7 +42,6 @@ import numpy as np
 from roco_env.comm.delay import DelayModel, frames_late
 from roco_env.comm.loss import LossModel
 from roco_env.comm.payload import fit_budget, sends_as_computed
-from roco_env.comm.tracking import KeyedTracks, TrackingParams, moved_boxes
 from roco_env.scenario import CommConfig, ScenarioConfig
 from roco_env.schema import ConfigError
 from roco_env.sensing import AgentDetections, select_collaborators
@@ -127,6 +126,14 @@ def _stage(kind: str, config: CommConfig) -> Any:
     return stage(kind, name).load_factory()(config)
 
 
+def _tracks() -> Any:
+    """The ego's box tracks (``comm.compensation: track``); their module, and scipy's
+    assignment solver with it, loads only for them."""
+    from roco_env.comm.tracking import KeyedTracks, TrackingParams
+
+    return KeyedTracks(TrackingParams())
+
+
 def _offsets(config: CommConfig, agent_ids: Sequence[str]) -> np.ndarray:
     """(A,) sensor offsets in s; a ConfigError for an agent id the scenario does not have."""
     unknown = sorted(set(config.sensor_offset_ms) - set(agent_ids), key=str)
@@ -151,7 +158,7 @@ class Network:
         self.frame_s = config.traffic.dt
         self.max_collaborators = config.max_collaborators
         self.sends_maps = config.fusion.method == "intermediate"
-        self.tracks = KeyedTracks(TrackingParams()) if comm.compensation == "track" else None
+        self.tracks = _tracks() if comm.compensation == "track" else None
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
         self._pending: list[tuple[float, int, Scan]] = []  # (arrival time, receiver, scan)
         self._held: dict[tuple[int, int], Scan] = {}  # (receiver, sender) -> newest scan
@@ -231,6 +238,8 @@ class Network:
                 for receiver, received in enumerate(inbox)]
 
     def _moved(self, receiver: int, delivery: Delivery) -> Delivery:
+        from roco_env.comm.tracking import moved_boxes
+
         scan = delivery.scan
         velocity, _ = self.tracks.velocities((receiver, scan.sender), scan.boxes,
                                              scan.reported_pose, scan.time, delivery.new)
