@@ -11,7 +11,7 @@ from conftest import episode_digest, run_python
 
 import roco_env
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
-from roco_env.comm.delay import OpenCOODDelay, OpenCOODDelayParams
+from roco_env.comm.delay import FixedDelay, FixedDelayParams, OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
 from roco_env.env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.pipeline import Pipeline
@@ -388,3 +388,18 @@ def test_only_compensation_loads_the_tracks_and_no_env_loads_filterpy():
             "    print(comp, sorted(m for m in ('filterpy', 'roco_env.comm.tracking')\n"
             "                       if m in sys.modules))\n")
     assert run_python(code).splitlines() == ["none []", "track ['roco_env.comm.tracking']"]
+
+
+def test_a_delay_factory_gets_its_parameters_checked(registered):
+    seen = []
+
+    def factory(config):
+        seen.append(dict(config.delay_params))
+        return FixedDelay.from_config(config)
+
+    registered("delay", "watched", factory, FixedDelayParams)
+    Pipeline(load_scenario(SCENE, cavs=3, delay="watched", delay_ms=200))
+    assert seen == [{"delay_ms": 200.0}] and isinstance(seen[0]["delay_ms"], float)
+    with pytest.raises(ConfigError, match="comm.delay_params.delay_ms"):
+        Pipeline(load_scenario(SCENE, cavs=3, delay="watched", delay_ms=-1))
+    assert len(seen) == 1  # refused before the factory runs

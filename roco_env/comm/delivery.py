@@ -121,9 +121,11 @@ class NetworkStats:
 
 
 def _stage(kind: str, config: CommConfig) -> Any:
-    name = getattr(config, kind)
-    checked_params(kind, name, getattr(config, f"{kind}_params"), where="comm")
-    return stage(kind, name).load_factory()(config)
+    """The ``kind`` (delay or loss) model the config names, from its factory given the
+    config with that model's parameters checked (here, once)."""
+    name, field = getattr(config, kind), f"{kind}_params"
+    checked = checked_params(kind, name, getattr(config, field), where="comm")
+    return stage(kind, name).load_factory()(dataclasses.replace(config, **{field: checked}))
 
 
 def _tracks() -> Any:
