@@ -45,6 +45,9 @@ __all__ = ["BoxTracker", "KeyedTracks", "TrackSet", "TrackingParams", "moved_box
 _POSITION = [0, 2]  # the measured components of the state (x, y)
 _VELOCITY = [1, 3]
 _UNMATCHED = 1e9
+_I2, _I4 = np.eye(2), np.eye(4)
+_I2.setflags(write=False)
+_I4.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -69,7 +72,7 @@ def _motion(dt: np.ndarray, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
     """(F, Q), each (T, 4, 4), of constant-velocity steps of ``dt`` (T,) s (state x, vx,
     y, vy) with white acceleration of std ``accel_std`` m/s^2."""
     count = dt.shape[0]
-    F = np.tile(np.eye(4), (count, 1, 1))
+    F = np.tile(_I4, (count, 1, 1))
     F[:, 0, 1] = F[:, 2, 3] = dt
     var = accel_std ** 2
     Q = np.zeros((count, 4, 4))
@@ -82,6 +85,11 @@ def _motion(dt: np.ndarray, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _transposed(matrices: np.ndarray) -> np.ndarray:
     return np.swapaxes(matrices, -1, -2)
+
+
+def _applied(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(T, i) products of matrices (T, i, j) with vectors (T, j)."""
+    return (matrices @ vectors[:, :, None])[:, :, 0]
 
 
 @dataclass
@@ -127,19 +135,19 @@ class BoxTracker:
         if ahead.size == 0:
             return
         F, Q = _motion(np.round(time - tracks.time[ahead], 9), self.params.accel_std)
-        tracks.state[ahead] = np.einsum("tij,tj->ti", F, tracks.state[ahead])
+        tracks.state[ahead] = _applied(F, tracks.state[ahead])
         tracks.covariance[ahead] = F @ tracks.covariance[ahead] @ _transposed(F) + Q
         tracks.time[ahead] = time
 
     def _correct(self, rows: np.ndarray, centres: np.ndarray) -> None:
         """The Kalman update of the tracks ``rows`` (m,) with the centres (m, 2)."""
-        tracks, R = self.tracks, np.eye(2) * self.params.measurement_std ** 2
+        tracks, R = self.tracks, _I2 * self.params.measurement_std ** 2
         P = tracks.covariance[rows]
         innovation = centres - tracks.state[rows][:, _POSITION]
         PHT = P[:, :, _POSITION]  # P H^T, (m, 4, 2)
         gain = PHT @ np.linalg.inv(PHT[:, _POSITION, :] + R)  # (m, 4, 2)
-        tracks.state[rows] += np.einsum("tij,tj->ti", gain, innovation)
-        I_KH = np.tile(np.eye(4), (rows.shape[0], 1, 1))
+        tracks.state[rows] += _applied(gain, innovation)
+        I_KH = np.tile(_I4, (rows.shape[0], 1, 1))
         I_KH[:, :, _POSITION] -= gain
         tracks.covariance[rows] = I_KH @ P @ _transposed(I_KH) + gain @ R @ _transposed(gain)
         tracks.hits[rows] += 1
@@ -163,7 +171,7 @@ class BoxTracker:
         cost = np.full((len(tracks), n), _UNMATCHED)
         if len(tracks):
             spread = tracks.covariance[:, _POSITION][:, :, _POSITION] \
-                + np.eye(2) * self.params.measurement_std ** 2
+                + _I2 * self.params.measurement_std ** 2
             innovation = centres[None, :, :] - tracks.state[:, None, _POSITION]  # (T, n, 2)
             distance = np.einsum("tni,tij,tnj->tn", innovation, np.linalg.inv(spread),
                                  innovation)
@@ -174,7 +182,9 @@ class BoxTracker:
         tracks.missed += 1
         tracks.missed[rows] = 0
         self._correct(rows, centres[cols])
-        fresh = np.setdiff1d(np.arange(n), cols)
+        unmatched = np.ones(n, dtype=bool)
+        unmatched[cols] = False
+        fresh = np.flatnonzero(unmatched)
         assigned = np.empty(n, dtype=np.int64)
         assigned[cols] = rows
         assigned[fresh] = len(tracks) + np.arange(fresh.size)
