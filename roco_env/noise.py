@@ -43,15 +43,17 @@ import abc
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from roco_env.geometry import se2_relative, wrap_angle
 from roco_env.scenario import NoiseConfig
 from roco_env.schema import build, spec
 from roco_env.stages import available_stages, checked_params, stage
+
+if TYPE_CHECKING:  # filterpy loads with the first localization filter, not with every env
+    from filterpy.kalman import KalmanFilter
 
 __all__ = ["AR1Params", "LocalizationParams", "PoseNoise", "make_pose_noise"]
 
@@ -293,6 +295,8 @@ class LocalizationNoise(PoseNoise):
         return np.stack([kf.x[:, 0] for kf in self._filters])
 
     def _new_filter(self, k: int, first_fix: np.ndarray) -> KalmanFilter:
+        from filterpy.kalman import KalmanFilter
+
         kf = KalmanFilter(dim_x=3, dim_z=3)
         kf.x = first_fix.reshape(3, 1).copy()
         kf.R = np.diag(np.maximum(self.std[k] ** 2, _MIN_VARIANCE))

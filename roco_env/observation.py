@@ -32,7 +32,7 @@ class EgoView:
     their reported world poses; reported_relative (n, 3) reported T_{j->i};
     true_relative (n, 3) true T_{j->i}; collab_boxes / collab_uncertainty /
     collab_scores / collab_object_ids: per slot, in the collaborator's frame.
-    features: own BEV features, torch (C, H, W), or None; collab_features: per slot or None.
+    features: own BEV features, torch (C, H, W), or None (never sent to collaborators).
     With the network stage on (roco_env.comm): collab_age (n,) the age of each slot's
     scan, s; collab_new (n,) bool, whether it arrived this step; network: the agent's
     traffic info entries (time, bytes_sent, bytes_received, messages_lost);
@@ -58,7 +58,6 @@ class EgoView:
     collab_scores: tuple[np.ndarray, ...]
     collab_object_ids: tuple[np.ndarray, ...]
     features: Any = None
-    collab_features: tuple | None = None
     collab_age: np.ndarray | None = None
     collab_new: np.ndarray | None = None
     network: dict | None = None

@@ -5,9 +5,14 @@ it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Percepti
 the world, every agent's reported pose and detections, and each agent's
 :class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
 transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
-the same top-K of its own. The attack stage (:mod:`roco_env.attacks`, scenario
-section ``attack``) rewrites what attackers send honest egos. With ``noise.perturb_ego=False`` an ego's own pose
-in its view is its true pose (its collaborators' stay noisy).
+the same top-K of its own. The network stage (:mod:`roco_env.comm`, scenario section
+``comm``; off by default: :func:`~roco_env.comm.instant_inbox`) decides which scan of
+each collaborator an ego holds; the attack stage (:mod:`roco_env.attacks`, scenario
+section ``attack``) rewrites what attackers send honest egos, each scan once, when it
+arrives (a scan the ego holds on keeps its forged form); then the network's
+compensation (``comm.compensation: track``) moves what the ego received to its time.
+With ``noise.perturb_ego=False`` an ego's own pose in its view is its true pose (its
+collaborators' stay noisy).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from roco_env.comm import (
     Delivery,
     Network,
     NetworkStats,
+    Scan,
     instant_inbox,
     network_active,
     received_maps,
@@ -42,7 +48,6 @@ from roco_env.sensing import (
     Visibility,
     compute_visibility,
     make_detector,
-    select_collaborators,
 )
 from roco_env.traffic import make_traffic_source
 from roco_env.traffic.state import WorldState
@@ -122,7 +127,7 @@ class Pipeline:
         self.network = Network(config, self.agent_ids) if network_active(config.comm) else None
         self.attack = make_attack(config, self.agent_ids)
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
-        self._step = 0
+        self._forged: dict[tuple[int, int], Scan] = {}  # (ego, attacker) -> the held scan forged
 
     @property
     def feature_shape(self) -> tuple[int, int, int] | None:
@@ -136,7 +141,7 @@ class Pipeline:
         network and the attack (spawned after the others: theirs do not change)."""
         traffic_rng, noise_rng, sensing_rng, comm_rng = rng.spawn(4)
         self._rngs = (noise_rng, sensing_rng)
-        self._step = 0
+        self._forged.clear()
         if self.network is not None:
             self.network.reset(comm_rng)
         self.attack.reset(*rng.spawn(1))
@@ -165,7 +170,6 @@ class Pipeline:
             raise ValueError("advance() called before reset(rng)")
         with self.clock.measure("traffic"):
             state = self.traffic.step(self.config.traffic.dt)
-        self._step += 1
         return self._observe(state)
 
     def _observe(self, state: WorldState) -> PerceptionFrame:
@@ -184,16 +188,16 @@ class Pipeline:
                                  for a in range(state.num_agents))
         with self.clock.measure("messages"):
             stats, map_rows = None, None
+            own = reported if self.noise.perturb_ego else state.agent_poses
             if self.network is None:
-                inbox = instant_inbox(state, np.asarray(reported, dtype=float), detections,
-                                      features, self.config.max_collaborators)
+                inbox = self._tampered(state, detections, own, instant_inbox(
+                    state, np.asarray(reported, dtype=float), detections,
+                    self.config.max_collaborators))
             else:
-                inbox, stats = self.network.exchange(self._step, state, reported, detections,
-                                                     features, encoder_maps)
+                inbox, stats = self.network.exchange(state, reported, detections, encoder_maps)
                 if self.network.sends_maps:
                     encoder_maps, map_rows = received_maps(encoder_maps, inbox)
-            own = reported if self.noise.perturb_ego else state.agent_poses
-            inbox = self._tampered(state, detections, own, inbox)
+                inbox = self.network.compensated(self._tampered(state, detections, own, inbox))
             views = self._views(state, reported, detections, features, inbox, stats, map_rows)
         return PerceptionFrame(state, reported, visibility, detections, features, views,
                                own_footprints(state), encoder_maps)
@@ -234,8 +238,7 @@ class Pipeline:
                 "collab_new": np.array([d.new for d in received], dtype=bool),
                 "network": stats.info(ego),
                 "collab_map_rows": None if map_rows is None else map_rows[ego],
-                "in_range": tuple(select_collaborators(state, ego,
-                                                       self.config.max_collaborators))}
+                "in_range": stats.in_range[ego]}
             views.append(EgoView(
                 agent=ego,
                 pose=np.array(own[ego], dtype=float),
@@ -252,7 +255,6 @@ class Pipeline:
                 collab_scores=tuple(m.scores for m in sent),
                 collab_object_ids=tuple(m.object_ids for m in sent),
                 features=None if features is None else features[ego],
-                collab_features=None if features is None else tuple(m.features for m in sent),
                 **timing,
             ))
         return tuple(views)
@@ -262,21 +264,40 @@ class Pipeline:
                   own: np.ndarray, inbox: list[list[Delivery]]) -> list[list[Delivery]]:
         """The inbox with every attacker's scan to an honest ego rewritten by the attack
         stage (the forged boxes' object ids with it); the inbox itself when nobody attacks.
-        The attack forges with what it knows now, also a scan the network delivers late."""
+        A scan is forged once, when it arrives (``new``), with what the attack knows then;
+        a scan the ego holds on keeps that forged form (the ego received it once)."""
         if not self.attack.attackers:
             return inbox
+        out = [[self._held_forgery(ego, d) for d in received]
+               for ego, received in enumerate(inbox)]
+        todo = [[k for k, d in enumerate(row) if d is None] for row in out]
+        arriving = [[inbox[ego][k] for k in row] for ego, row in enumerate(todo)]
         messages = [[Message(self.agent_ids[d.scan.sender], d.scan.reported_pose, d.scan.boxes,
-                             d.scan.uncertainty, d.scan.scores, d.scan.features)
-                     for d in received] for received in inbox]
+                             d.scan.uncertainty, d.scan.scores) for d in received]
+                    for received in arriving]
         forged, ids = self.attack.tamper(state, detections, own, messages,
                                          [[d.scan.object_ids for d in received]
-                                          for received in inbox])
-        return [[d if m is original else Delivery(dataclasses.replace(
+                                          for received in arriving])
+        for ego, row in enumerate(todo):
+            for k, original, m, object_ids in zip(row, messages[ego], forged[ego], ids[ego],
+                                                  strict=True):
+                d = out[ego][k] = inbox[ego][k]
+                if m is original:
+                    self._forged.pop((ego, d.scan.sender), None)
+                    continue
+                scan = self._forged[(ego, d.scan.sender)] = dataclasses.replace(
                     d.scan, reported_pose=m.reported_pose, boxes=m.boxes,
-                    uncertainty=m.uncertainty, scores=m.scores, object_ids=object_ids),
-                    d.age, d.new)
-                 for d, original, m, object_ids in zip(received, sent, out, row_ids, strict=True)]
-                for received, sent, out, row_ids in zip(inbox, messages, forged, ids, strict=True)]
+                    uncertainty=m.uncertainty, scores=m.scores, object_ids=object_ids)
+                out[ego][k] = Delivery(scan, d.age, d.new)
+        return out
+
+    def _held_forgery(self, ego: int, delivery: Delivery) -> Delivery | None:
+        """``delivery`` as forged when it arrived, for a scan the ego holds on (not new)
+        that was forged then; None otherwise (a scan to forge now, or to leave)."""
+        forged = self._forged.get((ego, delivery.scan.sender))
+        if delivery.new or forged is None or forged.sent != delivery.scan.sent:
+            return None
+        return Delivery(forged, delivery.age, delivery.new)
 
 
 def _with_axial_yaw(boxes: np.ndarray, frame_yaw: float) -> np.ndarray:

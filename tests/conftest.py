@@ -13,6 +13,7 @@ import hashlib
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -199,15 +200,22 @@ def _feed(digest: Any, value: object) -> None:
         digest.update(repr(value).encode())
 
 
-def episode_digest(scenario: str, overrides: dict, seed: int, steps: int) -> str:
-    """sha256 of a seeded episode's observations, rewards and infos (zero actions in the
-    correction mode, the first choice in select mode)."""
+def episode_digest(scenario: str, overrides: dict, seed: int, steps: int,
+                   policy: Callable[[], Any] | None = None) -> str:
+    """sha256 of a seeded episode's observations, rewards and infos: the acts of
+    ``policy()`` (a new policy per agent, called with its observation and info), else
+    zero actions in the correction mode, the first choice in select mode. For equality
+    within one process only (numpy's SIMD functions differ by CPU)."""
     env = roco_env.parallel_env(scenario, max_cycles=steps, **overrides)
     digest = hashlib.sha256()
     observations, infos = env.reset(seed=seed)
     _feed(digest, [observations, infos])
+    policies = {a: policy() for a in env.agents} if policy is not None else {}
     while env.agents:
-        actions = {a: np.zeros(env.action_space(a).shape, dtype=env.action_space(a).dtype)
+        actions = {a: policies[a](observations[a], infos[a]) if policies else
+                   np.zeros(env.action_space(a).shape, dtype=env.action_space(a).dtype)
                    for a in env.agents}
-        _feed(digest, env.step(actions))
+        step = env.step(actions)
+        observations, infos = step[0], step[-1]
+        _feed(digest, [actions, step] if policies else step)
     return digest.hexdigest()

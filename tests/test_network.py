@@ -7,12 +7,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import episode_digest
+from conftest import episode_digest, run_python
 
 import roco_env
 from roco_env.collab_env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
-from roco_env.comm.delay import OpenCOODDelay, OpenCOODDelayParams
+from roco_env.comm.delay import FixedDelay, FixedDelayParams, OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
 from roco_env.pipeline import Pipeline
 from roco_env.scenario import MESSAGE_HEADER_BYTES, ConfigError, load_scenario
@@ -170,7 +170,7 @@ def test_reset_clears_every_buffer():
     again = pipeline.reset(np.random.default_rng(1))
     assert all(view.collaborators == () for view in again.views)  # nothing held, nothing late
     assert not pipeline.network._held
-    assert {scan.step for _, _, scan in pipeline.network._pending} == {0}  # sent just now
+    assert {scan.sent for _, _, scan in pipeline.network._pending} == {0.0}  # sent just now
     second = [again] + [pipeline.advance() for _ in range(4)]
     for a, b in zip(first, second, strict=True):
         for va, vb in zip(a.views, b.views, strict=True):
@@ -250,13 +250,28 @@ def test_the_budget_drops_the_lowest_scores_then_the_weakest_feature_cells():
     features = np.zeros((2, 2, 3), dtype=np.float32)
     features[:, 0, 0], features[:, 1, 2], features[:, 0, 1] = 3.0, 1.0, 2.0
     room = payload_bytes(4, features.shape, "sparse_f32", 2)
+    given = features.copy()
     kept, sent, size = fit_budget(scores, features, "sparse_f32", room + 11)
     assert kept.size == 4 and size == room
     np.testing.assert_array_equal(np.flatnonzero(sent[0]), [0, 1])  # the two largest cells
+    np.testing.assert_array_equal(features, given)  # the sender's map is left alone
     kept, sent, size = fit_budget(scores, features, "dense_f32", room)
     assert sent is None and size == payload_bytes(4)  # a dense map fits whole or not at all
     assert len(encode(Payload(0, 0.0, np.zeros(3), np.zeros((4, 7)), np.zeros((4, 3)), scores,
                               sent))) == size
+
+
+def test_a_map_the_codec_and_budget_leave_whole_is_sent_without_a_copy():
+    torch = pytest.importorskip("torch")
+    features = np.arange(24, dtype=np.float32).reshape(2, 3, 4)
+    assert fit_budget(np.ones(2), features, "dense_f32", None)[1] is features
+    assert fit_budget(np.ones(2), features, "sparse_f32", None)[1] is features
+    tensor = torch.from_numpy(features)  # a detector's map, on any device: only its shape read
+    _, sent, size = fit_budget(np.ones(2), tensor, "dense_f32", None)
+    assert sent is tensor and size == payload_bytes(2, (2, 3, 4))
+    _, sent, _ = fit_budget(np.ones(2), features, "dense_f16", None)
+    assert sent is not features and sent.dtype == np.float32
+    np.testing.assert_array_equal(sent, features.astype(np.float16))
 
 
 def test_maps_left_out_by_the_budget_fuse_as_zeros():
@@ -270,14 +285,15 @@ def test_maps_left_out_by_the_budget_fuse_as_zeros():
     from roco_env.comm.delivery import Delivery, Scan
 
     def delivery(sender, encoder_map):
-        scan = Scan(sender, 0, 0.0, np.zeros(3), np.zeros(3), np.zeros((0, 7)), np.zeros((0, 3)),
-                    np.zeros(0), np.zeros(0, dtype=np.int64), None, encoder_map, 44)
+        scan = Scan(sender, 0.0, 0.0, np.zeros(3), np.zeros(3), np.zeros((0, 7)),
+                    np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), encoder_map, 44)
         return Delivery(scan, 0.1, True)
 
     own = torch.ones((2, 3, 4, 5))
     sent = np.full((3, 4, 5), 7.0, dtype=np.float32)
-    maps, rows = received_maps(Maps(own), [[delivery(1, sent)], [delivery(0, None)]])
-    assert rows == [(2,), (3,)]
+    held = delivery(1, sent)  # two egos hold agent 1's scan: one row
+    maps, rows = received_maps(Maps(own), [[held], [delivery(0, None), held]])
+    assert rows == [(2,), (3, 2)] and maps.maps.shape[0] == 4
     assert torch.equal(maps.maps[2], torch.from_numpy(sent))
     assert not maps.maps[3].any()
 
@@ -361,3 +377,29 @@ def test_lean_infos_keep_the_traffic():
     env.reset(seed=0)
     _, _, _, _, infos = env.step({a: np.zeros((5, 3)) for a in env.agents})
     assert set(infos["cav_0"]) == set(METRIC_INFO_KEYS) | set(NETWORK_INFO_KEYS)
+
+
+def test_only_compensation_loads_the_tracks_and_no_env_loads_filterpy():
+    code = ("import sys, roco_env\n"
+            "for comp in ('none', 'track'):\n"
+            "    env = roco_env.parallel_env('highway_dense', max_cycles=2, delay='fixed',\n"
+            "                                **{'comm.compensation': comp})\n"
+            "    env.reset(seed=0)\n"
+            "    print(comp, sorted(m for m in ('filterpy', 'roco_env.comm.tracking')\n"
+            "                       if m in sys.modules))\n")
+    assert run_python(code).splitlines() == ["none []", "track ['roco_env.comm.tracking']"]
+
+
+def test_a_delay_factory_gets_its_parameters_checked(registered):
+    seen = []
+
+    def factory(config):
+        seen.append(dict(config.delay_params))
+        return FixedDelay.from_config(config)
+
+    registered("delay", "watched", factory, FixedDelayParams)
+    Pipeline(load_scenario(SCENE, cavs=3, delay="watched", delay_ms=200))
+    assert seen == [{"delay_ms": 200.0}] and isinstance(seen[0]["delay_ms"], float)
+    with pytest.raises(ConfigError, match="comm.delay_params.delay_ms"):
+        Pipeline(load_scenario(SCENE, cavs=3, delay="watched", delay_ms=-1))
+    assert len(seen) == 1  # refused before the factory runs

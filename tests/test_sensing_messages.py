@@ -6,17 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-import torch
 from conftest import car, make_state
 
+from roco_env.comm import instant_inbox
 from roco_env.scenario import DetectorConfig
-from roco_env.sensing import (
-    Message,
-    build_messages,
-    compute_visibility,
-    make_detector,
-    select_collaborators,
-)
+from roco_env.sensing import Message, compute_visibility, make_detector, select_collaborators
 
 # Agents at distances 0 (ego), 50, 10, 90, 30, 69.9 from the ego.
 POSES = [[0, 0, 0], [50, 0, 1], [0, 10, 2], [90, 0, 0], [-30, 0, 0], [0, -69.9, 0]]
@@ -45,30 +39,21 @@ def test_bad_selection_inputs_rejected(kwargs, name):
         select_collaborators(scene(), **kwargs)
 
 
-def test_messages_carry_reported_pose_and_own_frame_detections_only():
+def test_an_inbox_carries_reported_poses_and_own_frame_detections_only():
     state = scene()
     dets = make_detector(DetectorConfig()).detect(state, compute_visibility(state),
                                                  np.random.default_rng(0))
     reported = np.asarray(POSES, float) + 0.5
-    feats = [torch.full((3, 4, 4), float(i)) for i in range(len(POSES))]
-    msgs = build_messages(state, 0, reported, dets, max_collaborators=3, features=feats)
-    assert [m.sender for m in msgs] == ["cav_2", "cav_4", "cav_1"]
-    for msg, j in zip(msgs, (2, 4, 1), strict=True):
-        np.testing.assert_array_equal(msg.reported_pose, reported[j])
-        np.testing.assert_array_equal(msg.boxes, dets[j].boxes)
-        np.testing.assert_array_equal(msg.uncertainty, dets[j].uncertainty)
-        np.testing.assert_array_equal(msg.scores, dets[j].scores)
-        assert torch.equal(msg.features, feats[j])
+    inbox = instant_inbox(state, reported, dets, max_collaborators=3)
+    assert [[d.scan.sender for d in row] for row in inbox] == [
+        select_collaborators(state, ego, 3) for ego in range(len(POSES))]
+    assert [d.scan.sender for d in inbox[0]] == [2, 4, 1]
+    for delivery, j in zip(inbox[0], (2, 4, 1), strict=True):
+        assert delivery.new and delivery.age == 0.0 and delivery.scan.time == state.time
+        np.testing.assert_array_equal(delivery.scan.reported_pose, reported[j])
+        np.testing.assert_array_equal(delivery.scan.boxes, dets[j].boxes)
+        np.testing.assert_array_equal(delivery.scan.uncertainty, dets[j].uncertainty)
+        np.testing.assert_array_equal(delivery.scan.scores, dets[j].scores)
+        assert delivery.scan.encoder_map is None
     assert {f.name for f in dataclasses.fields(Message)} == {
-        "sender", "reported_pose", "boxes", "uncertainty", "scores", "features"}
-    assert build_messages(state, 0, reported, dets, 3)[0].features is None
-
-
-def test_bad_message_inputs_rejected():
-    state = scene()
-    dets = make_detector(DetectorConfig()).detect(state, compute_visibility(state),
-                                                 np.random.default_rng(0))
-    with pytest.raises(ValueError, match="reported_poses"):
-        build_messages(state, 0, np.zeros((2, 3)), dets, 3)
-    with pytest.raises(ValueError, match="detections"):
-        build_messages(state, 0, np.zeros((6, 3)), dets[:2], 3)
+        "sender", "reported_pose", "boxes", "uncertainty", "scores"}

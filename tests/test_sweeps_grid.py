@@ -108,6 +108,7 @@ def test_a_cell_without_a_noise_level_keeps_the_scenarios_own_noise():
 def test_grid_axes_parse_in_order_and_refuse_what_is_ambiguous():
     assert parse_grid(["comm.delay_params.delay_ms=0,100, 200", "comm.delay=fixed,uniform"]) == {
         "comm.delay_params.delay_ms": (0, 100, 200), "comm.delay": ("fixed", "uniform")}
+    assert parse_grid(["x=1,true,0,false"]) == {"x": (1, True, 0, False)}  # True == 1 in Python
     for items, fragment in [(["cavs"], "expected KEY=V1,V2"), (["cavs=2,"], "none empty"),
                             (["cavs=2", "cavs=3"], "given twice"),
                             (["cavs=2,2.0"], "value 2 given twice")]:

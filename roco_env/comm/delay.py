@@ -13,7 +13,8 @@ is sent (m) and the frame length (s); draws come from the generator passed in:
 * ``distance``: ``delay_ms`` + ``ms_per_m`` x the distance.
 
 The factory of each is called with the scenario's :class:`~roco_env.scenario.CommConfig`
-and reads ``delay_params`` through the model's parameter dataclass.
+whose ``delay_params`` the network checked against the model's parameter dataclass (the
+stage table's, :mod:`roco_env.stages`), once; it reads them into that dataclass.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from roco_env.scenario import CommConfig
-from roco_env.schema import build, spec
+from roco_env.schema import spec
 
 __all__ = ["DelayModel", "DistanceDelayParams", "FixedDelayParams", "OpenCOODDelayParams",
            "UniformDelayParams"]
@@ -76,7 +77,9 @@ class DistanceDelayParams:
 
 
 def _params(cls: type, config: CommConfig):
-    return build(cls, dict(config.delay_params), where="comm", prefix="comm.delay_params.")
+    """``config.delay_params`` (checked by the network: roco_env.stages.checked_params) as
+    the model's dataclass ``cls``."""
+    return cls(**config.delay_params)
 
 
 class NoDelay:
@@ -94,14 +97,12 @@ class NoDelay:
 class FixedDelay:
     """``fixed``: ``delay_ms`` for every message."""
 
-    PARAMS = FixedDelayParams
-
     def __init__(self, delay_ms: float) -> None:
         self.delay_s = delay_ms / 1000.0
 
     @classmethod
     def from_config(cls, config: CommConfig) -> FixedDelay:
-        return cls(_params(cls.PARAMS, config).delay_ms)
+        return cls(_params(FixedDelayParams, config).delay_ms)
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:
@@ -111,7 +112,9 @@ class FixedDelay:
 class UniformDelay(FixedDelay):
     """``uniform``: U(0, ``delay_ms``) per message."""
 
-    PARAMS = UniformDelayParams
+    @classmethod
+    def from_config(cls, config: CommConfig) -> UniformDelay:
+        return cls(_params(UniformDelayParams, config).delay_ms)
 
     def draw(self, rng: np.random.Generator, payload_bytes: np.ndarray, distances: np.ndarray,
              frame_s: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The network stage: which scan of each collaborator an ego holds, how old, how heavy.
 
 Every step each agent sends its scan (its top-K boxes in its own true frame, with its
-reported pose; the feature map too under intermediate fusion) to every agent in whose
+reported pose; the encoder map too under intermediate fusion) to every agent in whose
 communication range it is, one message per link, cut to ``comm.budget_bytes`` by
 :func:`roco_env.comm.payload.fit_budget`. Each message draws its delay
 (``comm.delay``) and whether it is lost (``comm.loss``); it reaches the ego at the
@@ -10,7 +10,8 @@ each collaborator (an older one arriving later, out of order, is dropped) and dr
 older than ``comm.max_age_ms``. With ``comm.compensation: track`` the ego tracks each
 collaborator's boxes over its messages (:class:`roco_env.comm.tracking.KeyedTracks`,
 from the reported poses: no truth) and moves them along their velocities to its own
-time, for alignment and fusion alike. An ego's collaborator slots are the agents in its
+time, for alignment and fusion alike (:meth:`Network.compensated`, after the attack
+stage: the tracks see what the ego receives). An ego's collaborator slots are the agents in its
 communication range now, nearest first, whose scan it holds, at most
 ``max_collaborators``. The ground truth stays the ego's present.
 
@@ -20,6 +21,9 @@ of its scan moves back along its object's true velocity (false positives stand s
 and j's true and reported poses along j's own, constant velocity over the offset,
 headings kept (an offset is a fraction of a frame). An ego's own boxes are of its own
 time.
+
+Clock: the world's, ``state.time`` (s); a message delayed by k frames arrives k frame
+lengths (``traffic.dt``) after it was sent.
 
 Draws: the generator given to :meth:`Network.reset` (the episode's fourth child
 stream) spawns one stream for the delays and one for the losses, so changing the loss
@@ -37,8 +41,7 @@ import numpy as np
 
 from roco_env.comm.delay import DelayModel, frames_late
 from roco_env.comm.loss import LossModel
-from roco_env.comm.payload import fit_budget
-from roco_env.comm.tracking import KeyedTracks, TrackingParams, moved_boxes
+from roco_env.comm.payload import fit_budget, sends_as_computed
 from roco_env.scenario import CommConfig, ScenarioConfig
 from roco_env.schema import ConfigError
 from roco_env.sensing import AgentDetections, select_collaborators
@@ -49,6 +52,9 @@ __all__ = ["Delivery", "Network", "NetworkStats", "Scan", "instant_inbox", "netw
            "received_maps"]
 
 
+_CLOCK_TOLERANCE = 1e-6  # s: a message due at a frame's time is delivered in that frame
+
+
 def network_active(config: CommConfig) -> bool:
     """Whether the network stage runs: any ``comm`` field differs from its default (with
     all defaults every message arrives at once, whole, and the env skips the stage)."""
@@ -57,18 +63,19 @@ def network_active(config: CommConfig) -> bool:
 
 @dataclass(frozen=True)
 class Scan:
-    """What agent ``sender`` sent at ``step``, as it was sent.
+    """What agent ``sender`` sent at world time ``sent`` (s, ``state.time``), as it was sent.
 
-    time: the instant its sweep shows, s since reset; reported_pose / true_pose (3,):
-    its world poses at that instant (x m, y m, yaw rad); boxes (k, 7), uncertainty (k, 3),
-    scores (k,) in its true frame then, object_ids (k,) the truth (never read by the
-    ego's policy); features: its BEV features (features.enabled) or None; encoder_map:
-    the feature map it sent, float32 numpy (C, h, w) (cells the budget left out zeroed),
-    or None; n_bytes: the message's size.
+    time: the instant its sweep shows (``sent`` less the sender's sensor offset), s;
+    reported_pose / true_pose (3,): its world poses at that instant (x m, y m, yaw rad);
+    boxes (k, 7), uncertainty (k, 3), scores (k,) in its true frame then, object_ids (k,)
+    the truth (never read by the ego's policy); encoder_map: the encoder map (C, h, w) it
+    sent, float32, or None: the detector's own tensor (on its device) under the
+    ``dense_f32`` codec when the budget keeps it whole, else numpy on the host (values
+    rounded to the codec, cells the budget left out zeroed); n_bytes: the message's size.
     """
 
     sender: int
-    step: int
+    sent: float
     time: float
     reported_pose: np.ndarray
     true_pose: np.ndarray
@@ -76,8 +83,7 @@ class Scan:
     uncertainty: np.ndarray
     scores: np.ndarray
     object_ids: np.ndarray
-    features: Any
-    encoder_map: np.ndarray | None
+    encoder_map: Any
     n_bytes: int
 
 
@@ -92,16 +98,18 @@ class Delivery:
 
 @dataclass(frozen=True)
 class NetworkStats:
-    """One step's traffic per agent: time (s since reset); bytes_sent (A,) of the messages
-    it sent this step (one per link, lost ones included); bytes_received (A,) of the
-    messages that reached it this step; messages_lost (A,) of those sent to it this step;
-    compensated: whether the slots' boxes were moved to the ego's time
-    (``comm.compensation: track``)."""
+    """One step's traffic per agent: time (s, ``state.time``); bytes_sent (A,) of the
+    messages it sent this step (one per link, lost ones included); bytes_received (A,) of
+    the messages that reached it this step; messages_lost (A,) of those sent to it this
+    step; in_range: per agent, the agents in its communication range now, nearest first,
+    at most ``max_collaborators`` (its slots over an instant, lossless link); compensated:
+    whether the slots' boxes are moved to the ego's time (``comm.compensation: track``)."""
 
     time: float
     bytes_sent: np.ndarray
     bytes_received: np.ndarray
     messages_lost: np.ndarray
+    in_range: tuple[tuple[int, ...], ...]
     compensated: bool = False
 
     def info(self, agent: int) -> dict:
@@ -113,9 +121,19 @@ class NetworkStats:
 
 
 def _stage(kind: str, config: CommConfig) -> Any:
-    name = getattr(config, kind)
-    checked_params(kind, name, getattr(config, f"{kind}_params"), where="comm")
-    return stage(kind, name).load_factory()(config)
+    """The ``kind`` (delay or loss) model the config names, from its factory given the
+    config with that model's parameters checked (here, once)."""
+    name, field = getattr(config, kind), f"{kind}_params"
+    checked = checked_params(kind, name, getattr(config, field), where="comm")
+    return stage(kind, name).load_factory()(dataclasses.replace(config, **{field: checked}))
+
+
+def _tracks() -> Any:
+    """The ego's box tracks (``comm.compensation: track``); their module, and scipy's
+    assignment solver with it, loads only for them."""
+    from roco_env.comm.tracking import KeyedTracks, TrackingParams
+
+    return KeyedTracks(TrackingParams())
 
 
 def _offsets(config: CommConfig, agent_ids: Sequence[str]) -> np.ndarray:
@@ -142,9 +160,9 @@ class Network:
         self.frame_s = config.traffic.dt
         self.max_collaborators = config.max_collaborators
         self.sends_maps = config.fusion.method == "intermediate"
-        self.tracks = KeyedTracks(TrackingParams()) if comm.compensation == "track" else None
+        self.tracks = _tracks() if comm.compensation == "track" else None
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
-        self._pending: list[tuple[int, int, Scan]] = []  # (arrival step, receiver, scan)
+        self._pending: list[tuple[float, int, Scan]] = []  # (arrival time, receiver, scan)
         self._held: dict[tuple[int, int], Scan] = {}  # (receiver, sender) -> newest scan
 
     def reset(self, rng: np.random.Generator) -> None:
@@ -156,22 +174,22 @@ class Network:
         self._pending.clear()
         self._held.clear()
 
-    def exchange(self, step: int, state: WorldState, reported: np.ndarray,
-                 detections: Sequence[AgentDetections], features: Sequence | None,
+    def exchange(self, state: WorldState, reported: np.ndarray,
+                 detections: Sequence[AgentDetections],
                  encoder_maps: Any) -> tuple[list[list[Delivery]], NetworkStats]:
         """Send this step's scans, deliver what arrives, and return per ego the deliveries
-        of its collaborator slots (nearest first) and the step's traffic.
+        of its collaborator slots (nearest first), as sent (:meth:`compensated` moves
+        them), and the step's traffic.
 
         reported (A, 3): the reported poses; detections: per agent, top-K, true frame;
-        features: per agent BEV features or None; encoder_maps: the learned detector's
-        maps (sent under intermediate fusion) or None."""
+        encoder_maps: the learned detector's maps (sent under intermediate fusion) or
+        None."""
         if self._rngs is None:
             raise ValueError("exchange() called before reset(rng)")
         delay_rng, loss_rng = self._rngs
-        now = step * self.frame_s
+        now = float(state.time)
         n_agents = state.num_agents
-        scans = [self._scan(j, step, now, state, reported, detections[j],
-                            None if features is None else features[j],
+        scans = [self._scan(j, now, state, reported, detections[j],
                             encoder_maps if self.sends_maps else None) for j in range(n_agents)]
         in_range = [select_collaborators(state, i, n_agents) for i in range(n_agents)]
         links = [(i, j) for i in range(n_agents) for j in in_range[i]]
@@ -186,19 +204,19 @@ class Network:
         lost = self.loss.lost(loss_rng, links)
         bytes_sent = np.bincount(senders, sizes, minlength=n_agents).astype(np.int64)
         messages_lost = np.bincount(receivers, lost, minlength=n_agents).astype(np.int64)
-        self._pending += [(step + int(k), i, scans[j]) for (i, j), k, gone
+        self._pending += [(now + k * self.frame_s, i, scans[j]) for (i, j), k, gone
                           in zip(links, late.tolist(), lost.tolist(), strict=True) if not gone]
         bytes_received = np.zeros(n_agents, dtype=np.int64)
         arrived = set()
         waiting = []
         for entry in self._pending:
             arrival, receiver, scan = entry
-            if arrival > step:
+            if arrival > now + _CLOCK_TOLERANCE:
                 waiting.append(entry)
                 continue
             bytes_received[receiver] += scan.n_bytes
             held = self._held.get((receiver, scan.sender))
-            if held is None or scan.step > held.step:
+            if held is None or scan.sent > held.sent:
                 self._held[(receiver, scan.sender)] = scan
                 arrived.add((receiver, scan.sender))
         self._pending = waiting
@@ -207,24 +225,31 @@ class Network:
         inbox = [[Delivery(self._held[(i, j)], now - self._held[(i, j)].time, (i, j) in arrived)
                   for j in in_range[i] if (i, j) in self._held][: self.max_collaborators]
                  for i in range(n_agents)]
-        if self.tracks is not None:
-            inbox = [[self._compensated(i, d) for d in received]
-                     for i, received in enumerate(inbox)]
-        return inbox, NetworkStats(now, bytes_sent, bytes_received, messages_lost,
+        slots = tuple(tuple(row[: self.max_collaborators]) for row in in_range)
+        return inbox, NetworkStats(now, bytes_sent, bytes_received, messages_lost, slots,
                                    self.tracks is not None)
 
-    def _compensated(self, receiver: int, delivery: Delivery) -> Delivery:
-        """``delivery`` with its boxes moved to the receiver's time along their tracks
+    def compensated(self, inbox: list[list[Delivery]]) -> list[list[Delivery]]:
+        """Per ego, its deliveries with their boxes moved to its time along their tracks
         (``comm.compensation: track``; a box whose track does not know its velocity yet
-        stays)."""
+        stays); ``inbox`` itself without compensation. Each new scan feeds its (ego,
+        sender) tracker."""
+        if self.tracks is None:
+            return inbox
+        return [[self._moved(receiver, d) for d in received]
+                for receiver, received in enumerate(inbox)]
+
+    def _moved(self, receiver: int, delivery: Delivery) -> Delivery:
+        from roco_env.comm.tracking import moved_boxes
+
         scan = delivery.scan
         velocity, _ = self.tracks.velocities((receiver, scan.sender), scan.boxes,
                                              scan.reported_pose, scan.time, delivery.new)
         boxes = moved_boxes(scan.boxes, scan.reported_pose, velocity, delivery.age)
         return dataclasses.replace(delivery, scan=dataclasses.replace(scan, boxes=boxes))
 
-    def _scan(self, sender: int, step: int, now: float, state: WorldState, reported: np.ndarray,
-              detections: AgentDetections, features: Any, encoder_maps: Any) -> Scan:
+    def _scan(self, sender: int, now: float, state: WorldState, reported: np.ndarray,
+              detections: AgentDetections, encoder_maps: Any) -> Scan:
         """Agent ``sender``'s scan as it sends it: moved back by its sensor offset, cut to
         the budget."""
         offset = float(self.offsets[sender])
@@ -233,22 +258,24 @@ class Network:
         if offset > 0.0:
             boxes, back = _earlier(detections, state, sender, offset)
             true_pose, reported_pose = true_pose - back, reported_pose - back
-        sent_map = None if encoder_maps is None else \
-            encoder_maps.maps[sender].detach().cpu().numpy()
+        sent_map = None if encoder_maps is None else encoder_maps.maps[sender].detach()
+        if sent_map is not None and not sends_as_computed(self.codec):
+            sent_map = sent_map.cpu().numpy()  # the codec rounds or the budget cuts cells
         kept, sent_map, n_bytes = fit_budget(detections.scores, sent_map, self.codec,
                                              self.budget)
-        return Scan(sender, step, now - offset, np.array(reported_pose, dtype=float),
+        return Scan(sender, now, now - offset, np.array(reported_pose, dtype=float),
                     np.array(true_pose, dtype=float), boxes[kept], detections.uncertainty[kept],
-                    detections.scores[kept], detections.object_ids[kept], features, sent_map,
-                    n_bytes)
+                    detections.scores[kept], detections.object_ids[kept], sent_map, n_bytes)
 
 
 def instant_inbox(state: WorldState, reported: np.ndarray, detections: Sequence[AgentDetections],
-                  features: Sequence | None, max_collaborators: int) -> list[list[Delivery]]:
+                  max_collaborators: int) -> list[list[Delivery]]:
     """Per ego, its collaborators' scans of now, whole (the network off): the agents in its
-    communication range, nearest first, at most ``max_collaborators``."""
-    scans = [Scan(j, -1, state.time, reported[j], state.agent_poses[j], d.boxes, d.uncertainty,
-                  d.scores, d.object_ids, None if features is None else features[j], None, 0)
+    communication range, nearest first, at most ``max_collaborators``
+    (:func:`~roco_env.sensing.select_collaborators`); each scan carries the sender's
+    reported pose and its detections in its own frame, never the truth of its pose."""
+    scans = [Scan(j, state.time, state.time, reported[j], state.agent_poses[j], d.boxes,
+                  d.uncertainty, d.scores, d.object_ids, None, 0)
              for j, d in enumerate(detections)]
     return [[Delivery(scans[j], 0.0, True)
              for j in select_collaborators(state, ego, max_collaborators)]
@@ -278,16 +305,20 @@ def _earlier(detections: AgentDetections, state: WorldState, sender: int,
 def received_maps(encoder_maps: Any, inbox: Sequence[Sequence[Delivery]]
                   ) -> tuple[Any, list[tuple[int, ...]]]:
     """The encoder maps intermediate fusion reads under the network: every agent's own map
-    of now, then every delivered map, and per ego the rows of its slots' maps (a map left
-    out by the budget is all zeros, which the maximum ignores)."""
+    of now, then every delivered map once (a scan several egos hold is one row), and per
+    ego the rows of its slots' maps (a map left out by the budget is all zeros, which the
+    maximum ignores)."""
     import torch
 
     maps = encoder_maps.maps
-    rows, extra = [], []
+    rows, extra, row_of = [], [], {}
     for deliveries in inbox:
-        rows.append(tuple(range(maps.shape[0] + len(extra),
-                                maps.shape[0] + len(extra) + len(deliveries))))
-        extra += [torch.zeros_like(maps[0]) if d.scan.encoder_map is None else
-                  torch.from_numpy(d.scan.encoder_map).to(maps.device) for d in deliveries]
+        for d in deliveries:
+            key = (d.scan.sender, d.scan.sent)
+            if key not in row_of:
+                row_of[key] = maps.shape[0] + len(extra)
+                extra.append(torch.zeros_like(maps[0]) if d.scan.encoder_map is None else
+                             torch.as_tensor(d.scan.encoder_map, device=maps.device))
+        rows.append(tuple(row_of[(d.scan.sender, d.scan.sent)] for d in deliveries))
     stacked = torch.cat([maps, torch.stack(extra)]) if extra else maps
     return dataclasses.replace(encoder_maps, maps=stacked), rows

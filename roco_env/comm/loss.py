@@ -23,7 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from roco_env.scenario import CommConfig
-from roco_env.schema import ConfigError, build, spec
+from roco_env.schema import ConfigError, spec
 
 __all__ = ["BernoulliLossParams", "GilbertElliottParams", "LossModel"]
 
@@ -88,9 +88,7 @@ class BernoulliLoss(NoLoss):
 
     @classmethod
     def from_config(cls, config: CommConfig) -> BernoulliLoss:
-        params = build(BernoulliLossParams, dict(config.loss_params), where="comm",
-                       prefix="comm.loss_params.")
-        return cls(params.loss_rate)
+        return cls(BernoulliLossParams(**config.loss_params).loss_rate)
 
     def lost(self, rng: np.random.Generator, links: Sequence[tuple[int, int]]) -> np.ndarray:
         return rng.random(len(links)) < self.loss_rate
@@ -108,8 +106,7 @@ class GilbertElliottLoss:
 
     @classmethod
     def from_config(cls, config: CommConfig) -> GilbertElliottLoss:
-        params = build(GilbertElliottParams, dict(config.loss_params), where="comm",
-                       prefix="comm.loss_params.")
+        params = GilbertElliottParams(**config.loss_params)
         return cls(params.loss_rate, params.burst_length)
 
     def reset(self) -> None:

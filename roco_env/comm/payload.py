@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from roco_env.scenario import FEATURE_CODECS, MESSAGE_HEADER_BYTES
 
-__all__ = ["BOX_BYTES", "Payload", "decode", "encode", "fit_budget", "payload_bytes"]
+__all__ = ["BOX_BYTES", "Payload", "decode", "encode", "fit_budget", "payload_bytes",
+           "sends_as_computed"]
 
 _HEADER = struct.Struct("<Id3dII")
 _FEATURE_SHAPE = struct.Struct("<3I")
@@ -146,14 +148,31 @@ def decode(data: bytes) -> Payload:
                    codec)
 
 
-def fit_budget(scores: np.ndarray, features: np.ndarray | None, codec: str,
-               budget: int | None) -> tuple[np.ndarray, np.ndarray | None, int]:
+def sends_as_computed(codec: str) -> bool:
+    """Whether a map sent with ``codec`` is the sender's values untouched: a dense float32
+    one (nothing rounded, and the budget sends a dense map whole or not at all, reading
+    only its shape)."""
+    sparse, dtype = _codec(codec)
+    return not sparse and dtype == np.float32
+
+
+def _rounded(features: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """float32 ``features`` rounded to ``dtype`` (the input itself when nothing rounds)."""
+    return np.asarray(features, dtype=np.float32).astype(dtype, copy=False).astype(
+        np.float32, copy=False)
+
+
+def fit_budget(scores: np.ndarray, features: Any, codec: str,
+               budget: int | None) -> tuple[np.ndarray, Any, int]:
     """What of a message fits ``budget`` bytes (None: everything), by the module's rule.
 
-    scores (n,): the boxes' scores; features (C, H, W) or None. Returns the indices of
-    the boxes kept (ascending), the map as sent (float32: cells left out zeroed, values
-    rounded to the codec's precision; None when the message carries no map: none given,
-    or too little room left for it) and the message's bytes.
+    scores (n,): the boxes' scores; features (C, H, W) or None: numpy, or any array with
+    a ``shape`` (a torch tensor, on any device) under a codec that
+    :func:`sends_as_computed`. Returns the indices of the boxes kept (ascending), the map
+    as sent (float32: cells left out zeroed, values rounded to the codec's precision; the
+    given map itself, never copied, when that changes nothing; None when the message
+    carries no map: none given, or too little room left for it) and the message's bytes.
+    The given map is never written to.
     """
     scores = np.asarray(scores, dtype=float).reshape(-1)
     room = np.inf if budget is None else budget - MESSAGE_HEADER_BYTES
@@ -167,17 +186,22 @@ def fit_budget(scores: np.ndarray, features: np.ndarray | None, codec: str,
         return kept, None, size
     room -= BOX_BYTES * n_boxes
     sparse, dtype = _codec(codec)
-    sent = np.asarray(features, dtype=np.float32).astype(dtype).astype(np.float32)
-    channels = sent.shape[0]
     if not sparse:
-        extra = payload_bytes(0, sent.shape, codec) - MESSAGE_HEADER_BYTES
-        return (kept, sent, size + extra) if extra <= room else (kept, None, size)
+        extra = payload_bytes(0, tuple(features.shape), codec) - MESSAGE_HEADER_BYTES
+        if extra > room:
+            return kept, None, size
+        sent = features if sends_as_computed(codec) else _rounded(features, dtype)
+        return kept, sent, size + extra
+    sent = _rounded(features, dtype)
+    channels = sent.shape[0]
     cells = _sent_cells(sent)
     per_cell = _INDEX_BYTES + channels * dtype.itemsize
     fit = int(min(cells.size, max(room - _FEATURE_SHAPE.size - _COUNT.size, -1) // per_cell))
     if fit < 0:
         return kept, None, size
     if fit < cells.size:
+        if np.may_share_memory(sent, features):
+            sent = sent.copy()
         flat = sent.reshape(channels, -1)
         magnitude = np.linalg.norm(flat[:, cells], axis=0)
         dropped = cells[np.argsort(-magnitude, kind="stable")[fit:]]

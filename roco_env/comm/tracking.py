@@ -4,18 +4,23 @@ A late message shows moving objects where they were, not where they are; a recei
 that tracks each collaborator's boxes over its messages knows their velocities and can
 move them to its own time, and knows which do not move (parked cars, stopped traffic),
 which a delay cannot displace. :class:`BoxTracker` keeps constant-velocity Kalman
-filters (filterpy; state x, vx, y, vy in the world frame, m and m/s) of one sender's box
-centres:
+filters (state x, vx, y, vy in the world frame, m and m/s) of one sender's box centres,
+all its tracks in arrays (:class:`TrackSet`) predicted and updated in one batch:
 
 * each message's centres (world frame, as the sender reports its pose) are matched to
   the tracks predicted to the message's instant by the Hungarian method on the squared
   Mahalanobis distance of the innovation, gated at ``gate`` (chi-square, 2 dof);
-* a matched track is updated; an unmatched centre starts a track at rest with speed
-  std ``initial_speed_std``; a track unmatched by more than ``max_missed`` messages in a
+* a matched track is updated (the Kalman update with the Joseph form of the
+  covariance); an unmatched centre starts a track at rest with speed std
+  ``initial_speed_std``; a track unmatched by more than ``max_missed`` messages in a
   row is dropped;
-* process noise: white acceleration of std ``accel_std`` (filterpy's
-  ``Q_discrete_white_noise``); measurement noise ``measurement_std`` per axis (box
-  noise plus the sender's pose noise).
+* process noise: white acceleration of std ``accel_std`` (the discrete white noise
+  model: per axis var * [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]); measurement noise
+  ``measurement_std`` per axis (box noise plus the sender's pose noise).
+
+These are filterpy's ``KalmanFilter.predict`` / ``update`` and ``Q_discrete_white_noise``
+equations, batched over the tracks (tests/test_network_tracking.py keeps a filterpy
+tracker as the reference: the same associations, states equal to rounding).
 
 A track's velocity counts once it has ``min_hits`` measurements (one centre says
 nothing about motion). :class:`KeyedTracks` keeps one tracker per (receiver, sender)
@@ -26,21 +31,23 @@ policy wrapper both use them.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
-from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
 from roco_env.schema import spec
 
-__all__ = ["BoxTracker", "KeyedTracks", "TrackingParams", "moved_boxes", "world_centres"]
+__all__ = ["BoxTracker", "KeyedTracks", "TrackSet", "TrackingParams", "moved_boxes",
+           "world_centres"]
 
-_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+_POSITION = [0, 2]  # the measured components of the state (x, y)
+_VELOCITY = [1, 3]
 _UNMATCHED = 1e9
+_I2, _I4 = np.eye(2), np.eye(4)
+_I2.setflags(write=False)
+_I4.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -61,25 +68,56 @@ class TrackingParams:
                          doc="measurements before a track's velocity counts")
 
 
-@functools.lru_cache(maxsize=256)
-def _motion(dt: float, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """(F, Q) of a constant-velocity step of ``dt`` s (state x, vx, y, vy) with white
-    acceleration of std ``accel_std`` m/s^2; read-only, shared by every track (messages
-    come at a few distinct intervals)."""
-    F = np.array([[1.0, dt, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0],
-                  [0.0, 0.0, 1.0, dt], [0.0, 0.0, 0.0, 1.0]])
-    Q = Q_discrete_white_noise(dim=2, dt=dt, var=accel_std ** 2, block_size=2)
-    F.setflags(write=False)
-    Q.setflags(write=False)
+def _motion(dt: np.ndarray, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, Q), each (T, 4, 4), of constant-velocity steps of ``dt`` (T,) s (state x, vx,
+    y, vy) with white acceleration of std ``accel_std`` m/s^2."""
+    count = dt.shape[0]
+    F = np.tile(_I4, (count, 1, 1))
+    F[:, 0, 1] = F[:, 2, 3] = dt
+    var = accel_std ** 2
+    Q = np.zeros((count, 4, 4))
+    for axis in (0, 2):
+        Q[:, axis, axis] = 0.25 * dt ** 4 * var
+        Q[:, axis, axis + 1] = Q[:, axis + 1, axis] = 0.5 * dt ** 3 * var
+        Q[:, axis + 1, axis + 1] = dt ** 2 * var
     return F, Q
 
 
+def _transposed(matrices: np.ndarray) -> np.ndarray:
+    return np.swapaxes(matrices, -1, -2)
+
+
+def _applied(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(T, i) products of matrices (T, i, j) with vectors (T, j)."""
+    return (matrices @ vectors[:, :, None])[:, :, 0]
+
+
 @dataclass
-class _Track:
-    kf: KalmanFilter
-    time: float
-    hits: int = 1
-    missed: int = 0
+class TrackSet:
+    """T tracks as arrays: state (T, 4) (x m, vx m/s, y m, vy m/s, world frame),
+    covariance (T, 4, 4), time (T,) s (the instant of the state), hits (T,) measurements
+    so far, missed (T,) messages in a row without a match."""
+
+    state: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    hits: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    missed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return self.state.shape[0]
+
+    def select(self, rows: np.ndarray) -> TrackSet:
+        """The tracks of ``rows`` (an index or bool array), in that order."""
+        return TrackSet(self.state[rows], self.covariance[rows], self.time[rows],
+                        self.hits[rows], self.missed[rows])
+
+    def joined(self, other: TrackSet) -> TrackSet:
+        """These tracks, then ``other``'s."""
+        return TrackSet(*(np.concatenate([mine, theirs]) for mine, theirs in zip(
+            (self.state, self.covariance, self.time, self.hits, self.missed),
+            (other.state, other.covariance, other.time, other.hits, other.missed),
+            strict=True)))
 
 
 @dataclass
@@ -87,69 +125,82 @@ class BoxTracker:
     """Constant-velocity tracks of one sender's box centres (module docstring)."""
 
     params: TrackingParams = field(default_factory=TrackingParams)
-    tracks: list[_Track] = field(default_factory=list)
+    tracks: TrackSet = field(default_factory=TrackSet)
 
-    def _predicted(self, track: _Track, time: float) -> KalmanFilter:
-        """``track``'s filter moved to ``time`` (s; no earlier than its last)."""
-        dt = max(time - track.time, 0.0)
-        if dt > 0.0:
-            kf = track.kf
-            kf.F, kf.Q = _motion(round(dt, 9), self.params.accel_std)
-            kf.predict()
-            track.time = time
-        return track.kf
+    def _predict(self, time: float) -> None:
+        """Every track moved to ``time`` (s); a track whose state is of ``time`` or later
+        stays."""
+        tracks = self.tracks
+        ahead = np.flatnonzero(tracks.time < time)
+        if ahead.size == 0:
+            return
+        F, Q = _motion(np.round(time - tracks.time[ahead], 9), self.params.accel_std)
+        tracks.state[ahead] = _applied(F, tracks.state[ahead])
+        tracks.covariance[ahead] = F @ tracks.covariance[ahead] @ _transposed(F) + Q
+        tracks.time[ahead] = time
 
-    def _new(self, centre: np.ndarray, time: float) -> _Track:
-        p = self.params
-        kf = KalmanFilter(dim_x=4, dim_z=2)
-        kf.H, kf.R = _H.copy(), np.eye(2) * p.measurement_std ** 2
-        kf.x = np.array([[centre[0]], [0.0], [centre[1]], [0.0]])
-        kf.P = np.diag([p.measurement_std, p.initial_speed_std] * 2) ** 2
-        return _Track(kf, time)
+    def _correct(self, rows: np.ndarray, centres: np.ndarray) -> None:
+        """The Kalman update of the tracks ``rows`` (m,) with the centres (m, 2)."""
+        tracks, R = self.tracks, _I2 * self.params.measurement_std ** 2
+        P = tracks.covariance[rows]
+        innovation = centres - tracks.state[rows][:, _POSITION]
+        PHT = P[:, :, _POSITION]  # P H^T, (m, 4, 2)
+        gain = PHT @ np.linalg.inv(PHT[:, _POSITION, :] + R)  # (m, 4, 2)
+        tracks.state[rows] += _applied(gain, innovation)
+        I_KH = np.tile(_I4, (rows.shape[0], 1, 1))
+        I_KH[:, :, _POSITION] -= gain
+        tracks.covariance[rows] = I_KH @ P @ _transposed(I_KH) + gain @ R @ _transposed(gain)
+        tracks.hits[rows] += 1
+
+    def _started(self, centres: np.ndarray, time: float) -> TrackSet:
+        """New tracks at rest at ``centres`` (n, 2) of ``time`` s."""
+        p, count = self.params, centres.shape[0]
+        state = np.zeros((count, 4))
+        state[:, _POSITION] = centres
+        covariance = np.tile(np.diag([p.measurement_std, p.initial_speed_std] * 2) ** 2,
+                             (count, 1, 1))
+        return TrackSet(state, covariance, np.full(count, time),
+                        np.ones(count, dtype=np.int64), np.zeros(count, dtype=np.int64))
 
     def update(self, time: float, centres: np.ndarray) -> np.ndarray:
         """Feed one message: its instant ``time`` (s) and its box centres (n, 2), world
         frame (m). Returns each centre's track, an index into ``tracks`` (n,)."""
         centres = np.asarray(centres, dtype=float).reshape(-1, 2)
-        filters = [self._predicted(track, time) for track in self.tracks]
-        cost = np.full((len(filters), centres.shape[0]), _UNMATCHED)
-        if filters:
-            means = np.stack([kf.x[[0, 2], 0] for kf in filters])  # (T, 2)
-            spread = np.stack([kf.P[np.ix_([0, 2], [0, 2])] + kf.R for kf in filters])
-            innovation = centres[None, :, :] - means[:, None, :]  # (T, n, 2)
+        self._predict(time)
+        tracks, n = self.tracks, centres.shape[0]
+        cost = np.full((len(tracks), n), _UNMATCHED)
+        if len(tracks):
+            spread = tracks.covariance[:, _POSITION][:, :, _POSITION] \
+                + _I2 * self.params.measurement_std ** 2
+            innovation = centres[None, :, :] - tracks.state[:, None, _POSITION]  # (T, n, 2)
             distance = np.einsum("tni,tij,tnj->tn", innovation, np.linalg.inv(spread),
                                  innovation)
             cost = np.where(distance <= self.params.gate, distance, _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
-        matched = {int(c): int(r) for r, c in zip(rows, cols, strict=True)
-                   if cost[r, c] < _UNMATCHED}
-        for row, track in enumerate(self.tracks):
-            track.missed = 0 if row in matched.values() else track.missed + 1
-        for col, row in matched.items():
-            self.tracks[row].kf.update(centres[col].reshape(2, 1))
-            self.tracks[row].hits += 1
-        assigned = np.empty(centres.shape[0], dtype=np.int64)
-        for col in range(centres.shape[0]):
-            if col not in matched:
-                self.tracks.append(self._new(centres[col], time))
-            assigned[col] = matched.get(col, len(self.tracks) - 1)
-        survivors = [k for k, t in enumerate(self.tracks) if t.missed <= self.params.max_missed]
-        renumber = np.full(len(self.tracks), -1, dtype=np.int64)
-        renumber[survivors] = np.arange(len(survivors))
-        self.tracks = [self.tracks[k] for k in survivors]
+        matched = cost[rows, cols] < _UNMATCHED
+        rows, cols = rows[matched], cols[matched]
+        tracks.missed += 1
+        tracks.missed[rows] = 0
+        self._correct(rows, centres[cols])
+        unmatched = np.ones(n, dtype=bool)
+        unmatched[cols] = False
+        fresh = np.flatnonzero(unmatched)
+        assigned = np.empty(n, dtype=np.int64)
+        assigned[cols] = rows
+        assigned[fresh] = len(tracks) + np.arange(fresh.size)
+        tracks = tracks.joined(self._started(centres[fresh], time))
+        survivors = np.flatnonzero(tracks.missed <= self.params.max_missed)
+        renumber = np.full(len(tracks), -1, dtype=np.int64)
+        renumber[survivors] = np.arange(survivors.size)
+        self.tracks = tracks.select(survivors)
         return renumber[assigned]  # a centre's own track was matched now: it survives
 
     def velocities(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(velocity (n, 2) m/s in the world frame, known (n,) bool) of the given tracks;
         unknown (zero) before ``min_hits`` measurements."""
         tracks = np.asarray(tracks, dtype=np.int64).reshape(-1)
-        velocity = np.zeros((tracks.shape[0], 2))
-        known = np.zeros(tracks.shape[0], dtype=bool)
-        for k, index in enumerate(tracks.tolist()):
-            track = self.tracks[index]
-            if track.hits >= self.params.min_hits:
-                velocity[k] = track.kf.x[[1, 3], 0]
-                known[k] = True
+        known = self.tracks.hits[tracks] >= self.params.min_hits
+        velocity = np.where(known[:, None], self.tracks.state[tracks][:, _VELOCITY], 0.0)
         return velocity, known
 
 
@@ -194,4 +245,9 @@ class KeyedTracks:
         if new or key not in self._rows:
             tracker = self._trackers.setdefault(key, BoxTracker(self.params))
             self._rows[key] = tracker.update(time, world_centres(boxes, pose))
+        elif len(boxes) != self._rows[key].shape[0]:
+            raise ValueError(
+                f"KeyedTracks: the held message of {key!r} has {len(boxes)} boxes, but "
+                f"{self._rows[key].shape[0]} when it was fed; a message that is not new must "
+                "be the one fed last (a changed message must come with new=True)")
         return self._trackers[key].velocities(self._rows[key])

@@ -1,10 +1,12 @@
-"""Sensing: what each agent sees and detects, its BEV features and its messages.
+"""Sensing: what each agent sees and detects, its BEV features, who it collaborates with.
 
 Pipeline per step: ``compute_visibility(state)`` (range, 2.5D ray-cast
 occlusion, expected LiDAR returns) -> ``make_detector(config).detect(state,
 visibility, rng)`` (boxes, uncertainties, scores in each agent's true frame) ->
-optional ``bev_features(visibility, agent, grid)`` -> ``build_messages(...)``
-(what collaborators send an ego). See docs/architecture.md, step 5.
+optional ``bev_features(visibility, agent, grid)`` (the ego's own; never sent).
+``select_collaborators`` says whose messages an ego uses (nearest first) and
+``Message`` is what one carries; the network stage (roco_env.comm) delivers them.
+See docs/architecture.md, step 5.
 """
 
 import importlib
@@ -12,7 +14,7 @@ from typing import Any
 
 from roco_env.sensing.bev_grid import BevGrid
 from roco_env.sensing.detector import PRESETS, AgentDetections, Detector, make_detector
-from roco_env.sensing.messages import Message, build_messages, select_collaborators
+from roco_env.sensing.messages import Message, select_collaborators
 from roco_env.sensing.visibility import LidarModel, RayHits, Visibility, compute_visibility
 
 __all__ = [
@@ -26,7 +28,6 @@ __all__ = [
     "RayHits",
     "Visibility",
     "bev_features",
-    "build_messages",
     "compute_visibility",
     "make_detector",
     "select_collaborators",

@@ -34,7 +34,8 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Scalar]:
 
 def parse_grid(items: Iterable[str]) -> dict[str, tuple[Scalar, ...]]:
     """Grid axes from ``KEY=V1,V2,...`` strings (``--grid comm.delay_params.delay_ms=0,100``):
-    each a scenario field and its values (YAML scalars), in the order given."""
+    each a scenario field and its values (YAML scalars), in the order given; a value given
+    twice (numbers by value: ``2,2.0``; ``true`` is not ``1``) is refused."""
     axes: dict[str, tuple[Scalar, ...]] = {}
     for item in items:
         key, sep, text = item.partition("=")
@@ -46,7 +47,10 @@ def parse_grid(items: Iterable[str]) -> dict[str, tuple[Scalar, ...]]:
         if key in axes:
             raise ValueError(f"--grid {key} given twice; give its values in one --grid")
         values = tuple(parse_scalar(word, f"--grid {key}") for word in words)
-        repeated = sorted({format_scalar(v) for v in values if values.count(v) > 1})
+        # a bool is not a number here (True == 1 in Python); 2 and 2.0 are one value
+        same = [(isinstance(v, bool), v) for v in values]
+        repeated = sorted({format_scalar(v) for v, k in zip(values, same, strict=True)
+                           if same.count(k) > 1})
         if repeated:
             raise ValueError(f"--grid {key}: value {repeated[0]} given twice")
         axes[key] = values
