@@ -4,8 +4,8 @@ A late message (the network stage, roco_env.comm; docs/network.md) shows moving 
 where they were when its sender scanned; every box-matching aligner reads that
 displacement as a pose error and "corrects" it. :class:`Compensate` tracks each
 collaborator's boxes over its messages (:class:`roco_env.comm.tracking.BoxTracker`:
-filterpy constant-velocity Kalman filters in the world frame, from the collaborator's
-reported pose of each scan) and, before the base aligner runs:
+constant-velocity Kalman filters, batched over the tracks, in the world frame, from the
+collaborator's reported pose of each scan) and, before the base aligner runs:
 
 * ``mode="extrapolate"`` (default): moves each box by its track's velocity times the
   message's age (``obs["collab_age"]``), into the sender's frame of the scan, so the
