@@ -152,8 +152,9 @@ class CollabPerceptionEnv(ParallelEnv):
     ``attacker``, whether the agent attacks, and ``collab_attackers`` (N,) bool, which
     collaborators do: the attack stage, scenario section ``attack``), and
     ``rejected`` (N,) bool by slot of the scored frame. With the network stage on, also
-    ``time`` (s: the frame's time, step x dt since reset for simulated traffic), ``bytes_sent`` (the bytes of the messages the agent sent,
-    one per link, lost ones included), ``bytes_received`` (of the messages that reached
+    ``time`` (s: the frame's time, step x dt since reset for simulated traffic),
+    ``bytes_sent`` (the bytes of the messages the agent sent, one per link, lost ones
+    included), ``bytes_received`` (of the messages that reached
     it) and ``messages_lost`` (of those sent to it), all of the observation's step, and
     ``compensated`` (``comm.compensation: track``: the slots' boxes are moved to now).
     ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
