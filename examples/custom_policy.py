@@ -19,8 +19,8 @@ from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_apply, se2_compose
 from roco_env.policies import correction_action, make_policy, reported_relative_poses
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 
 
 def rigid_fit_2d(source: np.ndarray, target: np.ndarray) -> np.ndarray:

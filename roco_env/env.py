@@ -23,6 +23,7 @@ from pettingzoo.utils import BaseWrapper
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from roco_env.action_modes import AlignerSet, Alignment, Decision, build_action_mode
+from roco_env.attacks import attack_truth
 from roco_env.evaluation import (
     evaluate_egos,
     info_capacity,
@@ -43,8 +44,8 @@ from roco_env.observation_modes import build_observation, mode_space
 from roco_env.pipeline import PerceptionFrame, Pipeline, StageClock
 from roco_env.registration import ENV_ID
 from roco_env.scenario import (
+    ConfigError,
     ScenarioConfig,
-    ScenarioError,
     apply_overrides,
     load_scenario,
     scenario_from_dict,
@@ -60,6 +61,8 @@ INFO_LEVELS = ("full", "metrics", "none")
 METRIC_INFO_KEYS = ("ap30", "ap50", "ap70", "n_gt", "n_pred", "rpe_before", "rpe_after",
                     "rejected", "evaluated", "evaluated_collaborators", "agent",
                     "collaborators", "n_collaborators")
+# The network stage's entries (with it on), which info_level="metrics" keeps too.
+NETWORK_INFO_KEYS = ("time", "bytes_sent", "bytes_received", "messages_lost", "compensated")
 # A scenario name, a YAML path, a plain mapping (the YAML keys) or a built config.
 ScenarioLike = str | os.PathLike | Mapping[str, Any] | ScenarioConfig
 
@@ -87,7 +90,11 @@ class CollabPerceptionEnv(ParallelEnv):
     poses, ``collab_rel_poses`` (N, 3) the reported ``T_{j->i}``, ``collab_mask``
     (N,); ``collab_boxes`` (N, K, 7), ``collab_uncertainty``, ``collab_scores``,
     ``collab_box_mask``, each collaborator's boxes in its own frame; ``features``
-    (C, H, W) BEV maps when ``features=True``.
+    (C, H, W) BEV maps when ``features=True``. With the network stage on (any field of the
+    scenario section ``comm`` changed; docs/network.md) each slot holds the newest scan
+    the agent has received from that collaborator (its boxes in the collaborator's frame
+    and its reported pose, both of the scan's instant) and two entries more:
+    ``collab_age`` (N,) its age in s and ``collab_new`` (N,) 1 where it arrived this step.
 
     ## Action
 
@@ -141,13 +148,20 @@ class CollabPerceptionEnv(ParallelEnv):
     scored frame) and, describing the observation returned with it: ``agent`` (the
     agent's own id), ``collaborators`` (agent ids by slot), ``n_collaborators`` and
     ``privileged`` (true and reported relative poses (N, 3) float64, object ids of
-    the observed boxes, -1 = false positive or empty slot; read by ``oracle``), and
-    ``rejected`` (N,) bool by slot of the scored frame.
-    ``reset()`` infos carry the last four and ``evaluated``.
+    the observed boxes, -1 = false positive, injected or empty slot; read by ``oracle``;
+    ``attacker``, whether the agent attacks, and ``collab_attackers`` (N,) bool, which
+    collaborators do: the attack stage, scenario section ``attack``), and
+    ``rejected`` (N,) bool by slot of the scored frame. With the network stage on, also
+    ``time`` (s since reset), ``bytes_sent`` (the bytes of the messages the agent sent,
+    one per link, lost ones included), ``bytes_received`` (of the messages that reached
+    it) and ``messages_lost`` (of those sent to it), all of the observation's step, and
+    ``compensated`` (``comm.compensation: track``: the slots' boxes are moved to now).
+    ``reset()`` infos carry the last four (and the network's entries) and ``evaluated``.
 
     ``info_level="metrics"`` keeps only :data:`METRIC_INFO_KEYS` (the APs, counts, pose
-    errors and ids), ``"none"`` nothing; ``privileged`` (default: only with ``"full"``)
-    adds the privileged truth at any level (the ``oracle`` policy reads it).
+    errors and ids) and :data:`NETWORK_INFO_KEYS`, ``"none"`` nothing; ``privileged``
+    (default: only with ``"full"``) adds the privileged truth at any level (the
+    ``oracle`` policy reads it).
 
     ## Fusion
 
@@ -195,9 +209,9 @@ class CollabPerceptionEnv(ParallelEnv):
       ``privileged``: whether infos carry the privileged truth (default: with ``"full"``).
     - ``**overrides``: validated scenario fields, by alias (``sigma_t=0.4``,
       ``sigma_r``, ``noise_model``, ``density``, ``cavs``, ``rsus``, ``detector``,
-      ``fusion``, ``reward``, ``features``) or dotted name
-      (``**{"traffic.min_gap": 1.0}``); a bad key or value raises ValueError naming
-      the field and the allowed values.
+      ``fusion``, ``reward``, ``features``, ``delay``, ``delay_ms``, ``loss``,
+      ``loss_rate``) or dotted name (``**{"traffic.min_gap": 1.0}``); a bad key or value
+      raises ValueError naming the field and the allowed values.
     """
 
     metadata = {
@@ -229,7 +243,7 @@ class CollabPerceptionEnv(ParallelEnv):
         elif isinstance(scenario, (str, os.PathLike)):
             config = load_scenario(scenario, **overrides)
         else:
-            raise ScenarioError(
+            raise ConfigError(
                 "scenario must be a name from roco_env.list_scenarios(), a .yaml path, a mapping "
                 f"of its keys or a ScenarioConfig; got {scenario!r} ({type(scenario).__name__})")
         if config.agents.cavs + config.agents.rsus < 1:
@@ -250,7 +264,8 @@ class CollabPerceptionEnv(ParallelEnv):
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
         self._observation_spaces = {  # one space object per agent: each samples its own seed
-            a: observation_space(k, n, feature_shape) if config.observation.mode == "raw"
+            a: observation_space(k, n, feature_shape, self.pipeline.network is not None)
+            if config.observation.mode == "raw"
             else mode_space(config.observation, k, n) for a in self.possible_agents}
         self.action_mode = build_action_mode(config.action, n, self.possible_agents)
         # The base aligner runs on every observation when the action or observation reads it.
@@ -443,16 +458,20 @@ class CollabPerceptionEnv(ParallelEnv):
             "collaborators": collaborators,
             "n_collaborators": len(collaborators),
         }
+        if view.network is not None:
+            info.update(view.network)
         if privileged:
-            info["privileged"] = privileged_truth(view, self.config.max_boxes,
-                                                  self.config.max_collaborators)
+            info["privileged"] = {
+                **privileged_truth(view, self.config.max_boxes, self.config.max_collaborators),
+                **attack_truth(self.pipeline.attack.attackers, view.agent, view.collaborators,
+                               self.config.max_collaborators)}
         return info
 
     def _lean(self, info: dict) -> dict:
         """``info`` cut to the entries ``info_level`` keeps (the privileged truth as asked)."""
         if self.info_level == "full":
             return info
-        keep = METRIC_INFO_KEYS if self.info_level == "metrics" else ()
+        keep = METRIC_INFO_KEYS + NETWORK_INFO_KEYS if self.info_level == "metrics" else ()
         return {k: v for k, v in info.items() if k in keep or k == "privileged"}
 
     def _score(self, frame: PerceptionFrame, decisions: dict[str, Decision],

@@ -6,7 +6,8 @@ collaborators' boxes got there through the corrected relative poses, so a
 wrong correction shows up as misplaced boxes. Ground truth for ego i
 (``evaluation.ground_truth``, docs/metrics.md): ``visible`` (default) = the
 objects visible to at least one agent of i's collaboration (i and its
-collaborator slots), minus i's own vehicle, kept only when all BEV corners lie
+collaborator slots; with the network stage on, the agents in its communication range
+now, whether their messages arrived or not), minus i's own vehicle, kept only when all BEV corners lie
 inside the evaluation range; ``opencood`` = OpenCOOD's convention: every
 object of the world state (i's own vehicle included, no occlusion filter) whose
 BEV corners lie inside the range and whose bottom and top lie inside
@@ -113,6 +114,13 @@ def ground_truth(state: WorldState, visible: np.ndarray, ego: int, collaborators
                          z_range)[0]
 
 
+def truth_collaborators(view: EgoView) -> tuple[int, ...]:
+    """The agents whose sight makes ``view``'s ego's ``visible`` ground truth besides its own:
+    its collaborator slots, or with the network stage on the agents it would hear now over
+    an instant, lossless link (a late or lost message costs what only they see)."""
+    return view.collaborators if view.in_range is None else view.in_range
+
+
 def slot_errors(views: Sequence[EgoView], corrected: Sequence[np.ndarray],
                 max_collaborators: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per view: RPE (N, 2) of the reported and of the corrected T_{j->i}, NaN rows for empty slots.
@@ -147,7 +155,7 @@ def evaluate_egos(views: Sequence[EgoView], fused: Sequence[FusedDetections],
     (:func:`ground_truths`). Transforms, range tests and the matching
     (:func:`~roco_env.metrics.match_frames`) are batched over the egos.
     """
-    gts = ground_truths(state, visible, [(v.agent, v.collaborators) for v in views],
+    gts = ground_truths(state, visible, [(v.agent, truth_collaborators(v)) for v in views],
                         x_range, y_range, convention, z_range)
     counts = [len(f) for f in fused]
     all_fused = np.concatenate([np.zeros((0, 7)), *(f.boxes for f in fused)])

@@ -33,6 +33,14 @@ class EgoView:
     true_relative (n, 3) true T_{j->i}; collab_boxes / collab_uncertainty /
     collab_scores / collab_object_ids: per slot, in the collaborator's frame.
     features: own BEV features, torch (C, H, W), or None; collab_features: per slot or None.
+    With the network stage on (roco_env.comm): collab_age (n,) the age of each slot's
+    scan, s; collab_new (n,) bool, whether it arrived this step; network: the agent's
+    traffic info entries (time, bytes_sent, bytes_received, messages_lost);
+    collab_map_rows: under intermediate fusion, each slot's row of the frame's encoder
+    maps; in_range: the agents whose messages the ego would use now over an instant,
+    lossless link (in communication range, nearest first, at most N: the collaboration
+    its ground truth counts). All None with the network off (collab_map_rows: the slots'
+    agent indices; in_range: the slots).
     """
 
     agent: int
@@ -51,6 +59,11 @@ class EgoView:
     collab_object_ids: tuple[np.ndarray, ...]
     features: Any = None
     collab_features: tuple | None = None
+    collab_age: np.ndarray | None = None
+    collab_new: np.ndarray | None = None
+    network: dict | None = None
+    collab_map_rows: tuple[int, ...] | None = None
+    in_range: tuple[int, ...] | None = None
 
 
 def top_k(scores: np.ndarray, k: int) -> np.ndarray:
@@ -62,8 +75,10 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
 
 
 def observation_space(max_boxes: int, max_collaborators: int,
-                      feature_shape: tuple[int, int, int] | None = None) -> spaces.Dict:
-    """The Dict observation space of the contract (``features`` only when a shape is given)."""
+                      feature_shape: tuple[int, int, int] | None = None,
+                      timing: bool = False) -> spaces.Dict:
+    """The Dict observation space of the contract (``features`` only when a shape is given;
+    ``collab_age`` and ``collab_new`` only with ``timing``: the network stage on)."""
     k, n = max_boxes, max_collaborators
 
     def real(*shape: int, low: float = -np.inf, high: float = np.inf) -> spaces.Box:
@@ -86,6 +101,9 @@ def observation_space(max_boxes: int, max_collaborators: int,
         "collab_scores": real(n, k, low=0.0, high=1.0),
         "collab_box_mask": mask(n, k),
     }
+    if timing:
+        entries["collab_age"] = real(n, low=0.0)
+        entries["collab_new"] = mask(n)
     if feature_shape is not None:
         entries["features"] = real(*feature_shape)
     return spaces.Dict(entries)
@@ -128,6 +146,11 @@ def pack_observation(view: EgoView, max_boxes: int, max_collaborators: int,
         obs["collab_uncertainty"][slot, :count] = view.collab_uncertainty[slot]
         obs["collab_scores"][slot, :count] = view.collab_scores[slot]
         obs["collab_box_mask"][slot, :count] = 1
+    if view.collab_age is not None:
+        obs["collab_age"] = np.zeros(n, dtype=_F32)
+        obs["collab_new"] = np.zeros(n, dtype=np.int8)
+        obs["collab_age"][:filled] = view.collab_age
+        obs["collab_new"][:filled] = view.collab_new
     if with_features:
         obs["features"] = view.features.numpy().astype(_F32)  # a copy: never aliases state
     return obs

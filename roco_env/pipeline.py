@@ -5,12 +5,14 @@ it (``reset(rng)`` then ``advance()`` once per step) and gets a :class:`Percepti
 the world, every agent's reported pose and detections, and each agent's
 :class:`~roco_env.observation.EgoView` (what its observation holds). Each agent
 transmits at most K = ``max_boxes`` boxes, its top-K by score; the ego keeps
-the same top-K of its own. With ``noise.perturb_ego=False`` an ego's own pose
+the same top-K of its own. The attack stage (:mod:`roco_env.attacks`, scenario
+section ``attack``) rewrites what attackers send honest egos. With ``noise.perturb_ego=False`` an ego's own pose
 in its view is its true pose (its collaborators' stay noisy).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import defaultdict
 from collections.abc import Sequence
@@ -21,16 +23,26 @@ from typing import Any
 import numpy as np
 
 from roco_env import sensing
+from roco_env.attacks import make_attack
+from roco_env.comm import (
+    Delivery,
+    Network,
+    NetworkStats,
+    instant_inbox,
+    network_active,
+    received_maps,
+)
 from roco_env.geometry import canonical_axial_yaw, se2_inverse, se2_relative, transform_boxes
 from roco_env.noise import make_pose_noise
 from roco_env.observation import EgoView, top_k
 from roco_env.scenario import ScenarioConfig
 from roco_env.sensing import (
     AgentDetections,
+    Message,
     Visibility,
-    build_messages,
     compute_visibility,
     make_detector,
+    select_collaborators,
 )
 from roco_env.traffic import make_traffic_source
 from roco_env.traffic.state import WorldState
@@ -107,7 +119,10 @@ class Pipeline:
                             config.features.resolution)
             if config.features.enabled else None
         )
+        self.network = Network(config, self.agent_ids) if network_active(config.comm) else None
+        self.attack = make_attack(config, self.agent_ids)
         self._rngs: tuple[np.random.Generator, np.random.Generator] | None = None
+        self._step = 0
 
     @property
     def feature_shape(self) -> tuple[int, int, int] | None:
@@ -117,9 +132,14 @@ class Pipeline:
         return (len(sensing.CHANNELS), self.grid.H, self.grid.W)
 
     def reset(self, rng: np.random.Generator) -> PerceptionFrame:
-        """Start an episode: independent child streams for traffic, noise and sensing."""
-        traffic_rng, noise_rng, sensing_rng = rng.spawn(3)
+        """Start an episode: independent child streams for traffic, noise, sensing and the
+        network and the attack (spawned after the others: theirs do not change)."""
+        traffic_rng, noise_rng, sensing_rng, comm_rng = rng.spawn(4)
         self._rngs = (noise_rng, sensing_rng)
+        self._step = 0
+        if self.network is not None:
+            self.network.reset(comm_rng)
+        self.attack.reset(*rng.spawn(1))
         with self.clock.measure("traffic"):
             state = self.traffic.reset(traffic_rng)
         if state.agent_ids != self.agent_ids:
@@ -145,6 +165,7 @@ class Pipeline:
             raise ValueError("advance() called before reset(rng)")
         with self.clock.measure("traffic"):
             state = self.traffic.step(self.config.traffic.dt)
+        self._step += 1
         return self._observe(state)
 
     def _observe(self, state: WorldState) -> PerceptionFrame:
@@ -162,38 +183,59 @@ class Pipeline:
                 features = tuple(sensing.bev_features(visibility, a, self.grid)
                                  for a in range(state.num_agents))
         with self.clock.measure("messages"):
-            views = self._views(state, reported, detections, features)
+            stats, map_rows = None, None
+            if self.network is None:
+                inbox = instant_inbox(state, np.asarray(reported, dtype=float), detections,
+                                      features, self.config.max_collaborators)
+            else:
+                inbox, stats = self.network.exchange(self._step, state, reported, detections,
+                                                     features, encoder_maps)
+                if self.network.sends_maps:
+                    encoder_maps, map_rows = received_maps(encoder_maps, inbox)
+            own = reported if self.noise.perturb_ego else state.agent_poses
+            inbox = self._tampered(state, detections, own, inbox)
+            views = self._views(state, reported, detections, features, inbox, stats, map_rows)
         return PerceptionFrame(state, reported, visibility, detections, features, views,
                                own_footprints(state), encoder_maps)
 
     def _views(self, state: WorldState, reported: np.ndarray,
-               detections: tuple[AgentDetections, ...],
-               features: tuple | None) -> tuple[EgoView, ...]:
-        """Every agent's view; the relative poses of all (ego, slot) pairs in one batch each."""
-        messages = [build_messages(state, ego, reported, detections,
-                                   self.config.max_collaborators, features)
-                    for ego in range(state.num_agents)]
-        slots = [tuple(self.agent_ids.index(m.sender) for m in sent) for sent in messages]
+               detections: tuple[AgentDetections, ...], features: tuple | None,
+               inbox: list[list[Delivery]], stats: NetworkStats | None,
+               map_rows: list[tuple[int, ...]] | None) -> tuple[EgoView, ...]:
+        """Every agent's view of the scans in its inbox; the relative poses of all (ego,
+        slot) pairs in one batch each. With the network on (``stats`` given) the views
+        carry each slot's age and whether it is new, and the step's traffic."""
+        slots = [tuple(d.scan.sender for d in received) for received in inbox]
         own = reported if self.noise.perturb_ego else state.agent_poses
         true = state.agent_poses
-        collab_poses = [np.array([m.reported_pose for m in sent]).reshape(-1, 3)
-                        for sent in messages]
+        collab_poses = [np.array([d.scan.reported_pose for d in received]).reshape(-1, 3)
+                        for received in inbox]
+        collab_true = [np.array([d.scan.true_pose for d in received]).reshape(-1, 3)
+                       for received in inbox]
         counts = [len(s) for s in slots]
         egos = np.repeat(np.arange(state.num_agents), counts)
         reported_relative = se2_relative(own[egos],
                                          np.concatenate([np.zeros((0, 3)), *collab_poses]))
-        true_relative = se2_relative(true[egos], true[np.array(sum(slots, ()), dtype=np.int64)])
+        true_relative = se2_relative(true[egos], np.concatenate([np.zeros((0, 3)), *collab_true]))
         start = np.concatenate([[0], np.cumsum(counts)]).tolist()
         axial = self.detector.axial_headings
         views = []
-        for ego, (sent, slot) in enumerate(zip(messages, slots, strict=True)):
+        for ego, (received, slot) in enumerate(zip(inbox, slots, strict=True)):
             mine, rows = detections[ego], slice(start[ego], start[ego + 1])
+            sent = [d.scan for d in received]
             own_boxes, collab_boxes = mine.boxes, tuple(m.boxes for m in sent)
             if axial:  # one world-anchored heading convention for the ego and its inbox
                 heading = float(own[ego][2])  # the ego's own (reported) heading
                 own_boxes = _with_axial_yaw(own_boxes, heading)
                 collab_boxes = tuple(_with_axial_yaw(b, heading + rel[2]) for b, rel in
                                      zip(collab_boxes, reported_relative[rows], strict=True))
+            timing = {} if stats is None else {
+                "collab_age": np.array([d.age for d in received], dtype=float),
+                "collab_new": np.array([d.new for d in received], dtype=bool),
+                "network": stats.info(ego),
+                "collab_map_rows": None if map_rows is None else map_rows[ego],
+                "in_range": tuple(select_collaborators(state, ego,
+                                                       self.config.max_collaborators))}
             views.append(EgoView(
                 agent=ego,
                 pose=np.array(own[ego], dtype=float),
@@ -208,11 +250,33 @@ class Pipeline:
                 collab_boxes=collab_boxes,
                 collab_uncertainty=tuple(m.uncertainty for m in sent),
                 collab_scores=tuple(m.scores for m in sent),
-                collab_object_ids=tuple(detections[j].object_ids for j in slot),
+                collab_object_ids=tuple(m.object_ids for m in sent),
                 features=None if features is None else features[ego],
                 collab_features=None if features is None else tuple(m.features for m in sent),
+                **timing,
             ))
         return tuple(views)
+
+
+    def _tampered(self, state: WorldState, detections: tuple[AgentDetections, ...],
+                  own: np.ndarray, inbox: list[list[Delivery]]) -> list[list[Delivery]]:
+        """The inbox with every attacker's scan to an honest ego rewritten by the attack
+        stage (the forged boxes' object ids with it); the inbox itself when nobody attacks.
+        The attack forges with what it knows now, also a scan the network delivers late."""
+        if not self.attack.attackers:
+            return inbox
+        messages = [[Message(self.agent_ids[d.scan.sender], d.scan.reported_pose, d.scan.boxes,
+                             d.scan.uncertainty, d.scan.scores, d.scan.features)
+                     for d in received] for received in inbox]
+        forged, ids = self.attack.tamper(state, detections, own, messages,
+                                         [[d.scan.object_ids for d in received]
+                                          for received in inbox])
+        return [[d if m is original else Delivery(dataclasses.replace(
+                    d.scan, reported_pose=m.reported_pose, boxes=m.boxes,
+                    uncertainty=m.uncertainty, scores=m.scores, object_ids=object_ids),
+                    d.age, d.new)
+                 for d, original, m, object_ids in zip(received, sent, out, row_ids, strict=True)]
+                for received, sent, out, row_ids in zip(inbox, messages, forged, ids, strict=True)]
 
 
 def _with_axial_yaw(boxes: np.ndarray, frame_yaw: float) -> np.ndarray:

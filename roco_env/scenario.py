@@ -2,7 +2,7 @@
 
 A scenario file in ``scenarios/`` is a YAML mapping whose keys mirror the
 dataclasses below. Every key is checked: an unknown key, a wrong type or an
-out-of-range value raises :class:`ScenarioError` naming the file, the key and
+out-of-range value raises :class:`ConfigError` naming the file, the key and
 what is allowed. Overrides (``roco_env.parallel_env(scenario, **overrides)``)
 use the same checks; they accept dotted names (``traffic.min_gap=1.0``) and the
 stable top-level aliases in :data:`ALIASES` (``sigma_t=0.4``).
@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.resources
 import os
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -24,7 +25,7 @@ import numpy as np
 import yaml
 
 from roco_env.schema import (
-    ScenarioError,
+    ConfigError,
     build,
     check_value,
     load_yaml,
@@ -197,6 +198,61 @@ class ObservationConfig:
                                   doc="bev mode: raster cell side, m")
 
 
+# Bytes of a message's fixed header (sender, scan time, pose, box count, feature codec):
+# the payload encoder of roco_env.comm.payload writes exactly these (a test checks it).
+MESSAGE_HEADER_BYTES = 44
+# How a message carries a feature map (roco_env.comm.payload): every cell or only the
+# non-zero ones (with their indices), as 32- or 16-bit floats.
+FEATURE_CODECS: tuple[str, ...] = ("dense_f32", "dense_f16", "sparse_f32", "sparse_f16")
+# What the receiving ego does about a late message's moving boxes (roco_env.comm.delivery).
+COMPENSATIONS: tuple[str, ...] = ("none", "track")
+
+
+@dataclass
+class CommConfig:
+    """The network between the collaborators' messages and the ego (roco_env.comm,
+    docs/network.md). The defaults switch it off: every message arrives at once, whole."""
+
+    delay: str = _spec("none", choices=partial(available_stages, "delay"),
+                       doc="the delay stage (roco_env.comm.delay): none | fixed | uniform | "
+                       "opencood | distance | a registered one")
+    delay_params: dict = _spec({}, doc="the delay model's parameters (its dataclass)")
+    loss: str = _spec("none", choices=partial(available_stages, "loss"),
+                      doc="the loss stage (roco_env.comm.loss): none | bernoulli | "
+                      "gilbert_elliott | a registered one")
+    loss_params: dict = _spec({}, doc="the loss model's parameters (its dataclass)")
+    budget_bytes: int | None = _spec(
+        None, low=MESSAGE_HEADER_BYTES, high=10**9,
+        doc=f"per-link budget of one message, bytes (at least the {MESSAGE_HEADER_BYTES}-byte "
+        "header); what does not fit is dropped: the lowest-scoring boxes first, then feature "
+        "cells by magnitude; null = unlimited")
+    feature_codec: str = _spec("dense_f32", choices=FEATURE_CODECS,
+                               doc="how a feature map is sent: every cell (dense) or the "
+                               "non-zero cells with their indices (sparse), 32- or 16-bit")
+    sensor_offset_ms: dict = _spec({}, doc="agent id -> ms by which its LiDAR sweep ends "
+                                   "before the receiving ego's, in [0, 500]")
+    max_age_ms: float = _spec(1000.0, low=0.0, high=60000.0, low_open=True,
+                              doc="an ego drops a collaborator's message older than this, ms")
+    compensation: str = _spec("none", choices=COMPENSATIONS,
+                              doc="none: each slot's boxes as sent; track: the ego tracks each "
+                              "collaborator's boxes over its messages and moves them to its "
+                              "own time, for alignment and fusion")
+
+
+@dataclass
+class AttackConfig:
+    """Collaborators that lie in what they send (roco_env.attacks; docs/attacks.md)."""
+
+    kind: str = _spec("none", choices=partial(available_stages, "attack"),
+                      doc="the attack stage (roco_env.attacks, roco_env.stages): none | "
+                      "pose_spoof | ghost | erase | learned | a registered one")
+    agents: list = _spec([], doc="the attackers' agent ids; empty = `count` agents drawn "
+                         "per episode from the seed")
+    count: int = _spec(1, low=1, high=32, doc="attackers drawn per episode when `agents` is "
+                       "empty")
+    params: dict = _spec({}, doc="the attack's parameters (its dataclass), checked on load")
+
+
 @dataclass
 class ScenarioConfig:
     name: str = _spec("custom")
@@ -210,6 +266,8 @@ class ScenarioConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
+    comm: CommConfig = field(default_factory=CommConfig)
+    attack: AttackConfig = field(default_factory=AttackConfig)
     max_boxes: int = _spec(64, low=1, high=1024, doc="K: padded boxes per agent in observations")
     max_collaborators: int = _spec(5, low=0, high=32, doc="N: collaborator slots per ego")
     max_objects: int = _spec(256, low=1, high=4096,
@@ -228,6 +286,10 @@ ALIASES: dict[str, str] = {
     "fusion": "fusion.method",
     "reward": "evaluation.reward",
     "features": "features.enabled",
+    "delay": "comm.delay",
+    "delay_ms": "comm.delay_params.delay_ms",
+    "loss": "comm.loss",
+    "loss_rate": "comm.loss_params.loss_rate",
 }
 
 
@@ -256,20 +318,20 @@ def list_scenarios() -> list[str]:
 def scenario_path(name_or_path: str | os.PathLike) -> Path:
     """Resolve a scenario name (``urban_intersection``) or a YAML path to a file."""
     if not isinstance(name_or_path, (str, os.PathLike)):
-        raise ScenarioError("scenario must be a name from roco_env.list_scenarios() or a .yaml "
+        raise ConfigError("scenario must be a name from roco_env.list_scenarios() or a .yaml "
                             f"path; got {name_or_path!r} ({type(name_or_path).__name__})")
     candidate = Path(name_or_path)
     if candidate.is_dir():
-        raise ScenarioError(f"{candidate} is a folder, not a scenario .yaml file")
+        raise ConfigError(f"{candidate} is a folder, not a scenario .yaml file")
     if candidate.suffix in (".yaml", ".yml") or candidate.exists():
         if not candidate.is_file():
-            raise ScenarioError(f"scenario file {candidate} does not exist")
+            raise ConfigError(f"scenario file {candidate} does not exist")
         return candidate
     for folder in scenario_dirs():
         path = folder / f"{name_or_path}.yaml"
         if path.is_file():
             return path
-    raise ScenarioError(
+    raise ConfigError(
         f"unknown scenario {str(name_or_path)!r}; available: {', '.join(list_scenarios())} "
         "(or give a path to a .yaml file)"
     )
@@ -286,15 +348,15 @@ def load_scenario(name_or_path: str | os.PathLike = "urban_intersection",
     try:
         raw = load_yaml(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as exc:
-        raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); "
+        raise ConfigError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); "
                             "save the scenario file as UTF-8") from exc
     except yaml.YAMLError as exc:
-        raise ScenarioError(f"{path}: malformed YAML: {exc}") from exc
+        raise ConfigError(f"{path}: malformed YAML: {exc}") from exc
     if raw is None:
-        raise ScenarioError(f"{path}: the file is empty; a scenario needs at least one key "
+        raise ConfigError(f"{path}: the file is empty; a scenario needs at least one key "
                             "(see the shipped scenarios for every field)")
     if not isinstance(raw, dict):
-        raise ScenarioError(f"{path}: top level must be a mapping of keys, got {type(raw).__name__}")
+        raise ConfigError(f"{path}: top level must be a mapping of keys, got {type(raw).__name__}")
     raw.setdefault("name", path.stem)
     config = _build_scenario(raw, where=str(path), base=path.parent)
     return apply_overrides(config, overrides)
@@ -304,11 +366,11 @@ def scenario_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> Scenar
     """Validate a plain mapping into a config.
 
     The keys are those of the YAML files (``{"traffic": {"density": 5}, "agents":
-    {"cavs": 3}}``); a missing key keeps its default. Raises :class:`ScenarioError`
+    {"cavs": 3}}``); a missing key keeps its default. Raises :class:`ConfigError`
     naming ``where``, the key and the allowed values, as :func:`load_scenario` does.
     """
     if not isinstance(data, Mapping):
-        raise ScenarioError(f"{where}: a scenario mapping needs the YAML keys (traffic, agents, "
+        raise ConfigError(f"{where}: a scenario mapping needs the YAML keys (traffic, agents, "
                             f"...); got {type(data).__name__} ({data!r})")
     return _build_scenario(dict(data), where=where)
 
@@ -317,7 +379,7 @@ def scenario_to_dict(config: ScenarioConfig) -> dict:
     """Plain nested dict of a config, every field included; ``scenario_from_dict`` of it
     (or the YAML :func:`save_scenario` writes) gives the same config back."""
     if not isinstance(config, ScenarioConfig):
-        raise ScenarioError("a ScenarioConfig is needed (load_scenario(name) or "
+        raise ConfigError("a ScenarioConfig is needed (load_scenario(name) or "
                             f"scenario_from_dict(mapping)); got {type(config).__name__}")
     return dataclasses.asdict(config)
 
@@ -334,11 +396,11 @@ def save_scenario(config: ScenarioConfig, path: str | os.PathLike) -> Path:
 
 
 def scenario_file_name(path: str | os.PathLike, who: str) -> Path:
-    """``path`` as a Path if it names a scenario file (.yaml or .yml), else a ScenarioError
+    """``path`` as a Path if it names a scenario file (.yaml or .yml), else a ConfigError
     naming ``who`` (the caller about to write it): the library lists only such files."""
     path = Path(path)
     if path.suffix not in (".yaml", ".yml"):
-        raise ScenarioError(f"{who}: {path} must end in .yaml or .yml")
+        raise ConfigError(f"{who}: {path} must end in .yaml or .yml")
     return path
 
 
@@ -353,17 +415,17 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
             if f"{dotted}.".startswith(f"{other_dotted}.") \
                     or f"{other_dotted}.".startswith(f"{dotted}."):
                 outer = min(dotted, other_dotted, key=len)
-                raise ScenarioError(f"override: {other!r} and {key!r} both set {outer}; give one")
+                raise ConfigError(f"override: {other!r} and {key!r} both set {outer}; give one")
         fields[key] = dotted
         parts = dotted.split(".")
         node = data
         for depth, part in enumerate(parts[:-1]):
             if not isinstance(node.get(part), dict):
-                raise ScenarioError(unknown_key_message("override", ".".join(parts[: depth + 1]),
+                raise ConfigError(unknown_key_message("override", ".".join(parts[: depth + 1]),
                                                          _valid_override_names()))
             node = node[part]
-        if parts[-1] not in node and parts[-2:-1] not in (["params"], ["per_agent"]):
-            raise ScenarioError(unknown_key_message("override", key, _valid_override_names()))
+        if parts[-1] not in node and ".".join(parts[:-1]) not in _mapping_fields():
+            raise ConfigError(unknown_key_message("override", key, _valid_override_names()))
         node[parts[-1]] = value
     config = _build_scenario(data, where="override")
     traffic = config.traffic
@@ -371,7 +433,7 @@ def apply_overrides(config: ScenarioConfig, overrides: dict[str, Any]) -> Scenar
     if "traffic.density" in fields.values() and traffic.density != base_density \
             and traffic.layout not in DENSITY_LAYOUTS.get(traffic.source, ()):
         scene = f" with layout {traffic.layout!r}" if traffic.source in DENSITY_LAYOUTS else ""
-        raise ScenarioError(
+        raise ConfigError(
             f"override: traffic.density has no effect with traffic.source={traffic.source!r}"
             f"{scene}; leave it out (it sizes the traffic of " + ", ".join(
                 f"{source!r} ({' | '.join(layouts)})" for source, layouts in DENSITY_LAYOUTS.items())
@@ -386,35 +448,41 @@ def _build_scenario(data: dict, where: str, base: Path | None = None) -> Scenari
     traffic = config.traffic
     allowed = SOURCE_LAYOUTS.get(traffic.source)
     if allowed is not None and traffic.layout not in allowed:
-        raise ScenarioError(
+        raise ConfigError(
             f"{where}: traffic.layout={traffic.layout!r} is not allowed with "
             f"traffic.source={traffic.source!r}; choose one of {list(allowed)}"
         )
     if traffic.source == "synthetic" and traffic.layout == "parking_lot" \
             and traffic.density > 1.0:
-        raise ScenarioError(
+        raise ConfigError(
             f"{where}: traffic.density={traffic.density!r} is out of range for layout "
             "'parking_lot', where it is the fill ratio of the stalls; allowed [0, 1]")
     if traffic.source == "highway_env" and config.agents.cavs < 1:
-        raise ScenarioError(f"{where}: agents.cavs must be >= 1 with traffic.source="
+        raise ConfigError(f"{where}: agents.cavs must be >= 1 with traffic.source="
                             "'highway_env' (its controlled vehicle is a CAV); got 0")
     for name in ("x_range", "y_range", "z_range"):
         setattr(config.evaluation, name,
                 _check_range(getattr(config.evaluation, name), where, f"evaluation.{name}"))
     config.noise.per_agent = _per_agent_levels(config.noise.per_agent, where)
+    config.comm.sensor_offset_ms = _sensor_offsets(config.comm.sensor_offset_ms, where)
     config.action.scale = _check_scale(config.action.scale, where)
     config.action.choices = _check_choices(config.action.choices, where)
     for kind in SCENARIO_FIELDS:
         _check_stage_params(config, kind, where, base)
     if config.fusion.method == "intermediate" and config.detector.preset != "learned":
-        raise ScenarioError(
+        raise ConfigError(
             f"{where}: fusion.method='intermediate' fuses and decodes the learned detector's BEV "
             f"feature maps, so it needs detector.preset='learned' (detector='learned'); got "
             f"detector.preset={config.detector.preset!r}"
         )
+    if config.comm.sensor_offset_ms and config.fusion.method == "intermediate":
+        raise ConfigError(
+            f"{where}: comm.sensor_offset_ms moves a sender's boxes to the earlier instant of its "
+            "sweep, which a feature map cannot follow, so it needs fusion.method='late'; got "
+            "fusion.method='intermediate' (leave comm.sensor_offset_ms empty)")
     gate = config.detector.params.get("gate") if config.detector.preset == "learned" else None
     if gate is not None and config.fusion.method != "intermediate":
-        raise ScenarioError(
+        raise ConfigError(
             f"{where}: detector.params.gate={gate!r} chooses how intermediate fusion fuses the "
             f"feature maps, so it needs fusion.method='intermediate'; got "
             f"fusion.method={config.fusion.method!r} (with it leave the gate unset, or set "
@@ -442,30 +510,38 @@ def _per_agent_levels(per_agent: dict, where: str) -> dict:
     for agent, pair in per_agent.items():
         key = f"noise.per_agent.{agent}"
         if not isinstance(pair, (list, tuple)) or len(pair) != 2:
-            raise ScenarioError(f"{where}: {key} must be [sigma_t m, sigma_r deg]; got {pair!r}")
+            raise ConfigError(f"{where}: {key} must be [sigma_t m, sigma_r deg]; got {pair!r}")
         checked[agent] = [check_value(value, float, bounds[name], where, f"{key}[{k}] ({name})")
                           for k, (value, name) in enumerate(zip(pair, ("sigma_t", "sigma_r"),
                                                                 strict=True))]
     return checked
 
 
+def _sensor_offsets(offsets: dict, where: str) -> dict:
+    """comm.sensor_offset_ms (agent id -> ms) with each offset a number in [0, 500]; the
+    agent ids are checked when the env knows its agents."""
+    meta = {"low": 0.0, "high": 500.0}
+    return {agent: check_value(value, float, meta, where, f"comm.sensor_offset_ms.{agent}")
+            for agent, value in offsets.items()}
+
+
 def _check_scale(value: list, where: str) -> list[float]:
-    """action.scale as three finite numbers > 0 (m, m, degrees), else a ScenarioError."""
+    """action.scale as three finite numbers > 0 (m, m, degrees), else a ConfigError."""
     ok = isinstance(value, list) and len(value) == 3 and all(
         isinstance(v, Real) and not isinstance(v, bool) and np.isfinite(v) and v > 0
         for v in value)
     if not ok:
-        raise ScenarioError(f"{where}: action.scale must be three finite numbers > 0, the "
+        raise ConfigError(f"{where}: action.scale must be three finite numbers > 0, the "
                             f"residual of action 1 as [dx m, dy m, dyaw degrees]; got {value!r}")
     return [float(v) for v in value]
 
 
 def _check_choices(value: list, where: str) -> list[str]:
-    """action.choices as a non-empty list of distinct policy-spec strings, else a ScenarioError
+    """action.choices as a non-empty list of distinct policy-spec strings, else a ConfigError
     (the policies themselves are checked when an env builds them)."""
     ok = isinstance(value, list) and value and all(isinstance(v, str) and v for v in value)
     if not ok or len(set(value)) != len(value):
-        raise ScenarioError(f"{where}: action.choices must be a non-empty list of distinct "
+        raise ConfigError(f"{where}: action.choices must be a non-empty list of distinct "
                             f"policy specs (e.g. [identity, coalign, roco]); got {value!r}")
     return list(value)
 
@@ -475,9 +551,19 @@ def _check_range(value: list, where: str, key: str) -> list[float]:
     numbers = len(value) == 2 and all(isinstance(v, Real) and not isinstance(v, (bool, np.bool_))
                                       for v in value)
     if not numbers or not value[0] < value[1]:
-        raise ScenarioError(f"{where}: {key} must be [low, high] in m with low < high; "
+        raise ConfigError(f"{where}: {key} must be [low, high] in m with low < high; "
                             f"got {value!r}")
     return [float(v) for v in value]
+
+
+def _mapping_fields() -> set[str]:
+    """Dotted names of the fields holding a free mapping (``noise.params``,
+    ``comm.sensor_offset_ms``, ...): an override may add a key below them."""
+    return {f"{top.name}.{name}" for top in dataclasses.fields(ScenarioConfig)
+            if top.default_factory is not dataclasses.MISSING
+            and dataclasses.is_dataclass(top.default_factory)
+            for name, hint in typing.get_type_hints(top.default_factory).items()
+            if hint is dict}
 
 
 def _valid_override_names() -> list[str]:

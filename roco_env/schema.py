@@ -30,15 +30,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-__all__ = ["ConfigError", "ScenarioError", "build", "check_value", "load_yaml", "spec"]
+__all__ = ["ConfigError", "build", "check_value", "load_yaml", "spec"]
 
 
 class ConfigError(ValueError):
     """A configuration value is invalid; the message names where, the key and why."""
-
-
-# The name scenario code has always raised and caught.
-ScenarioError = ConfigError
 
 
 def spec(default: Any, *, choices: tuple | Callable[[], tuple] | None = None, low: float | None = None,
@@ -74,18 +70,18 @@ def allowed_choices(meta: Mapping[str, Any]) -> tuple | None:
 def build(cls: type, data: Any, where: str, prefix: str = "",
           base: str | os.PathLike | None = None) -> Any:
     """An instance of dataclass ``cls`` from ``data`` (a mapping; missing keys keep their
-    defaults), nested dataclasses included. Raises :class:`ScenarioError`.
+    defaults), nested dataclasses included. Raises :class:`ConfigError`.
 
     base: the folder relative values of ``path`` fields are relative to (a scenario
     file's folder); None keeps them as given (relative to the working directory)."""
     if not isinstance(data, Mapping):
-        raise ScenarioError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping of "
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'top level'} must be a mapping of "
                             f"keys; got {type(data).__name__} ({data!r})")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     unknown = sorted(set(data) - set(fields), key=str)
     if unknown:
-        raise ScenarioError(unknown_key_message(where, prefix + str(unknown[0]),
+        raise ConfigError(unknown_key_message(where, prefix + str(unknown[0]),
                                                 [prefix + name for name in fields]))
     values = {}
     for name, value in data.items():
@@ -124,7 +120,7 @@ def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key:
     if value is None:
         if type(None) in allowed_types:
             return None
-        raise ScenarioError(f"{where}: {key} must not be null")
+        raise ConfigError(f"{where}: {key} must not be null")
     base = next(t for t in allowed_types if t is not type(None))
     base = typing.get_origin(base) or base
     if isinstance(value, np.generic):
@@ -134,18 +130,18 @@ def check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, key:
     if base in (list, tuple) and isinstance(value, (list, tuple)):
         value = base(value)
     if not isinstance(value, base) or (base in (int, float) and isinstance(value, bool)):
-        raise ScenarioError(f"{where}: {key} expects {_EXPECTS.get(base, base.__name__)}; "
+        raise ConfigError(f"{where}: {key} expects {_EXPECTS.get(base, base.__name__)}; "
                             f"got {value!r} ({type(value).__name__})")
     if base is float and not math.isfinite(value):
-        raise ScenarioError(f"{where}: {key}={value!r} must be finite")
+        raise ConfigError(f"{where}: {key}={value!r} must be finite")
     choices, low, high = allowed_choices(meta), meta.get("low"), meta.get("high")
     if choices is not None and value not in choices:
-        raise ScenarioError(f"{where}: {key}={value!r} is not allowed; choose "
+        raise ConfigError(f"{where}: {key}={value!r} is not allowed; choose "
                             f"{allowed_text(meta)}")
     below = low is not None and (value <= low if meta.get("low_open") else value < low)
     above = high is not None and (value >= high if meta.get("high_open") else value > high)
     if below or above:
-        raise ScenarioError(f"{where}: {key}={value!r} is out of range; allowed "
+        raise ConfigError(f"{where}: {key}={value!r} is out of range; allowed "
                             f"{allowed_text(meta)}")
     return value
 

@@ -8,6 +8,9 @@ A scenario names one implementation per stage kind and gives it parameters (the
     detector:  {preset: realistic, params: {sigma_xy: 0.1}}
     fusion:    {method: late, params: {}}
     evaluation: {reward: ap70, reward_params: {}}
+    comm:      {delay: fixed, delay_params: {delay_ms: 100},
+                loss: bernoulli, loss_params: {loss_rate: 0.1}}
+    attack:    {kind: none, params: {}}
 
 The names a scenario accepts are the registry's; the parameters are checked by the
 implementation's own parameter dataclass (declared with :func:`roco_env.schema.spec`,
@@ -27,6 +30,12 @@ detector   ``(config: DetectorConfig, region)``                a ``Detector`` pr
 fusion     ``(config: ScenarioConfig, detector)``              a ``Fusion`` (roco_env.fusion)
 reward     ``(config: EvaluationConfig)``                      a ``Reward``
                                                                (roco_env.evaluation)
+delay      ``(config: CommConfig)``                            a ``DelayModel``
+                                                               (roco_env.comm.delay)
+loss       ``(config: CommConfig)``                            a ``LossModel``
+                                                               (roco_env.comm.loss)
+attack     ``(config: ScenarioConfig, agent_ids)``             an ``Attack``
+                                                               (roco_env.attacks)
 =========  ==================================================  ==========================
 
 Three ways make a name of your own selectable from a scenario YAML:
@@ -72,12 +81,17 @@ SCENARIO_FIELDS: dict[str, tuple[str, str, str]] = {
     "detector": ("detector", "preset", "params"),
     "fusion": ("fusion", "method", "params"),
     "reward": ("evaluation", "reward", "reward_params"),
+    "delay": ("comm", "delay", "delay_params"),
+    "loss": ("comm", "loss", "loss_params"),
+    "attack": ("attack", "kind", "params"),
 }
 KINDS: tuple[str, ...] = tuple(SCENARIO_FIELDS)
 
 _SENSING = "roco_env.sensing.detector"
 _LEARNED_PARAMS = "roco_env.sensing.learned_params:LearnedDetectorParams"
 _REWARDS = "roco_env.evaluation"
+_DELAY = "roco_env.comm.delay"
+_LOSS = "roco_env.comm.loss"
 
 # kind -> name -> (factory target, params: a target, "dict" or None). Imported on first use.
 _BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
@@ -112,6 +126,27 @@ _BUILT_IN: dict[str, dict[str, tuple[str, str | None]]] = {
         **{f"{name}_gain": (f"{_REWARDS}:APGainReward.from_config", None)
            for name in ("ap30", "ap50", "ap70")},
         "neg_rpe": (f"{_REWARDS}:NegativeRPEReward.from_config", None),
+    },
+    "delay": {
+        "none": (f"{_DELAY}:NoDelay.from_config", None),
+        "fixed": (f"{_DELAY}:FixedDelay.from_config", f"{_DELAY}:FixedDelayParams"),
+        "uniform": (f"{_DELAY}:UniformDelay.from_config", f"{_DELAY}:UniformDelayParams"),
+        "opencood": (f"{_DELAY}:OpenCOODDelay.from_config", f"{_DELAY}:OpenCOODDelayParams"),
+        "distance": (f"{_DELAY}:DistanceDelay.from_config", f"{_DELAY}:DistanceDelayParams"),
+    },
+    "loss": {
+        "none": (f"{_LOSS}:NoLoss.from_config", None),
+        "bernoulli": (f"{_LOSS}:BernoulliLoss.from_config", f"{_LOSS}:BernoulliLossParams"),
+        "gilbert_elliott": (f"{_LOSS}:GilbertElliottLoss.from_config",
+                            f"{_LOSS}:GilbertElliottParams"),
+    },
+    "attack": {
+        "none": ("roco_env.attacks.attack_stage:NoAttack", None),
+        "pose_spoof": ("roco_env.attacks.pose:PoseSpoof", "roco_env.attacks.pose:PoseSpoofParams"),
+        "ghost": ("roco_env.attacks.ghost:Ghost", "roco_env.attacks.ghost:GhostParams"),
+        "erase": ("roco_env.attacks.erase:Erase", "roco_env.attacks.erase:EraseParams"),
+        "learned": ("roco_env.attacks.learned_attack:LearnedAttack",
+                    "roco_env.attacks.learned_attack:LearnedAttackParams"),
     },
 }
 

@@ -1,6 +1,7 @@
 """Shared test setup and helpers: headless plotting, the `slow` marker policy,
-hand-built scenes for the sensing tests, a stand-in sweep cell for the bench tests, and
-the references compiled kernels are compared with (to rounding; RoCo's assignment).
+hand-built scenes for the sensing tests, a stand-in sweep cell for the bench tests,
+stages registered for one test, digests of whole episodes and the references compiled
+kernels are compared with (to rounding; RoCo's assignment).
 
 Tests marked ``@pytest.mark.slow`` run only when ROCO_SLOW=1; the default run
 (and CI) keeps a representative fast sample so the suite stays well under ten
@@ -8,10 +9,12 @@ minutes on a 2-core machine. Test modules take the helpers from here
 (``from conftest import car, make_state``), never from one another.
 """
 
+import hashlib
 import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -19,7 +22,9 @@ import pytest
 from hypothesis import settings
 from scipy.optimize import linear_sum_assignment
 
-from roco_env.sweeps.grid import Cell
+import roco_env
+from roco_env import stages
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import ok_record
 from roco_env.traffic.state import WorldState
 
@@ -41,6 +46,21 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def registered():
+    """Registers stages (``registered(kind, name, factory, params)``) that are forgotten
+    after the test."""
+    added: list[tuple[str, str]] = []
+
+    def register(kind, name, factory, params=None):
+        roco_env.register_stage(kind, name, factory, params)
+        added.append((kind, name))
+
+    yield register
+    for kind, name in added:
+        stages.unregister_stage(kind, name)
 
 
 def run_python(code: str) -> str:
@@ -159,3 +179,35 @@ def kuhn_munkres_matches(cand_p, cand_q, score, tau1: float):
     r, c = linear_sum_assignment(weights, maximize=True)
     keep = valid[r, c] & (weights[r, c] >= tau1)
     return rows[r[keep]], cols[c[keep]], weights[r[keep], c[keep]]
+
+
+def _feed(digest: Any, value: object) -> None:
+    """Every number, array and text of ``value`` (nested dicts by sorted key) into the digest."""
+    if isinstance(value, dict):
+        for key in sorted(value, key=str):
+            digest.update(str(key).encode())
+            _feed(digest, value[key])
+    elif isinstance(value, (list, tuple)):
+        digest.update(f"[{len(value)}".encode())
+        for item in value:
+            _feed(digest, item)
+    elif isinstance(value, (np.ndarray, np.generic, float, int, bool)):
+        array = np.asarray(value)
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    else:
+        digest.update(repr(value).encode())
+
+
+def episode_digest(scenario: str, overrides: dict, seed: int, steps: int) -> str:
+    """sha256 of a seeded episode's observations, rewards and infos (zero actions in the
+    correction mode, the first choice in select mode)."""
+    env = roco_env.parallel_env(scenario, max_cycles=steps, **overrides)
+    digest = hashlib.sha256()
+    observations, infos = env.reset(seed=seed)
+    _feed(digest, [observations, infos])
+    while env.agents:
+        actions = {a: np.zeros(env.action_space(a).shape, dtype=env.action_space(a).dtype)
+                   for a in env.agents}
+        _feed(digest, env.step(actions))
+    return digest.hexdigest()

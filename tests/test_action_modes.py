@@ -20,7 +20,7 @@ from roco_env.env import METRIC_INFO_KEYS
 from roco_env.fusion import merge_many, suppress
 from roco_env.metrics import in_range_mask
 from roco_env.policies import make_policy
-from roco_env.scenario import ScenarioError
+from roco_env.scenario import ConfigError
 from roco_env.wrappers import EgoEnv
 
 MODES = ("residual", "select", "gate")
@@ -266,7 +266,7 @@ def test_the_ego_env_registered_with_gymnasium_takes_a_mode():
     ({"action.max_translation": 140.0}, "action.max_translation"),
 ])
 def test_bad_action_settings_name_the_field(overrides, field):
-    with pytest.raises((ValueError, ScenarioError), match=field.replace(".", r"\.")):
+    with pytest.raises((ValueError, ConfigError), match=field.replace(".", r"\.")):
         roco_env.parallel_env("urban_intersection", **overrides)
 
 

@@ -9,7 +9,7 @@ from roco_env.noise import make_pose_noise
 from roco_env.scenario import (
     LAYOUTS,
     SOURCE_LAYOUTS,
-    ScenarioError,
+    ConfigError,
     load_scenario,
     scenario_from_dict,
 )
@@ -38,7 +38,7 @@ def test_yaml_exponent_is_a_number(tmp_path):
 def test_empty_yaml_is_an_error(tmp_path):
     path = tmp_path / "empty.yaml"
     path.write_text("# nothing yet\n")
-    with pytest.raises(ScenarioError, match="empty.yaml: the file is empty"):
+    with pytest.raises(ConfigError, match="empty.yaml: the file is empty"):
         load_scenario(path)
 
 
@@ -48,14 +48,14 @@ def test_a_scene_needs_an_agent():
 
 
 def test_parking_density_is_a_fill_ratio():
-    with pytest.raises(ScenarioError, match=r"density=1.5.*parking_lot.*allowed \[0, 1\]"):
+    with pytest.raises(ConfigError, match=r"density=1.5.*parking_lot.*allowed \[0, 1\]"):
         load_scenario("parking_lot", density=1.5)
     assert load_scenario("parking_lot", density=0.9).traffic.density == 0.9
 
 
 @pytest.mark.parametrize("bad", [[40.0, -40.0], [1.0], [0.0, 0.0], ["a", 3]])
 def test_reversed_or_malformed_evaluation_range_fails_at_construction(bad):
-    with pytest.raises(ScenarioError, match=r"evaluation.y_range must be \[low, high\]"):
+    with pytest.raises(ConfigError, match=r"evaluation.y_range must be \[low, high\]"):
         roco_env.parallel_env(**{"evaluation.y_range": bad})
 
 
@@ -80,14 +80,14 @@ def test_complex_and_bool_actions_are_rejected(action, fragment):
 def test_bad_noise_params_fail_when_the_yaml_loads(tmp_path, key, value, fragment):
     path = tmp_path / "ar1.yaml"
     path.write_text(f"noise:\n  model: ar1\n  params:\n    {key}: {value}\n")
-    with pytest.raises(ScenarioError, match=fragment):
+    with pytest.raises(ConfigError, match=fragment):
         load_scenario(path)
 
 
 def test_bad_detector_params_fail_when_the_yaml_loads(tmp_path):
     path = tmp_path / "det.yaml"
     path.write_text("detector:\n  params:\n    p_max: 1.5\n")
-    with pytest.raises(ScenarioError, match=r"det.yaml: detector.params.p_max=1.5 .*\[0.0, 1.0\]"):
+    with pytest.raises(ConfigError, match=r"det.yaml: detector.params.p_max=1.5 .*\[0.0, 1.0\]"):
         load_scenario(path)
 
 
@@ -98,9 +98,9 @@ def test_one_schema_serves_the_scenario_and_the_components():
     for model in available_stages("noise"):
         cfg = scenario_from_dict({"noise": {"model": model}})
         make_pose_noise(cfg.noise, ("cav_0", "cav_1"), 0.1)
-    with pytest.raises(ScenarioError, match="unknown key 'traffic.params.lanes_count'; allowed: none"):
+    with pytest.raises(ConfigError, match="unknown key 'traffic.params.lanes_count'; allowed: none"):
         scenario_from_dict({"traffic": {"params": {"lanes_count": 2}}})
-    with pytest.raises(ScenarioError, match="agents.cavs must be >= 1 with traffic.source"):
+    with pytest.raises(ConfigError, match="agents.cavs must be >= 1 with traffic.source"):
         scenario_from_dict({"traffic": {"source": "highway_env", "layout": "merge"},
                             "agents": {"cavs": 0, "rsus": 1}})
 

@@ -174,8 +174,8 @@ def test_train_detector_on_cuda_without_a_cuda_device_exits_2_before_any_work(
 
 
 def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_path, capsys):
-    from roco_env.traffic.export import scenario_folder
     from roco_env.traffic.generate import generate
+    from roco_env.traffic.opv2v_export import scenario_folder
 
     generate("traffic_jam", 12.0, 2, 0, seed=0, export_dir=tmp_path / "scene", frames=2)
     scene = scenario_folder(tmp_path / "scene")
@@ -195,3 +195,19 @@ def test_run_and_compare_say_when_a_replay_ends_before_the_steps_asked_for(tmp_p
     assert "Episodes of 5 steps;" in report
     assert "Episodes that ran out of frames ended sooner: opv2v_replay after 2 of 5 steps." in report
     assert "ran out of frames" not in (tmp_path / "synthetic" / "report.md").read_text()
+
+
+def test_compare_sweeps_any_scenario_field_with_grid_and_resumes(capsys, tmp_path):
+    argv = ["compare", "--policies", "identity", "--noise", "0", "--seeds", "1", "--steps", "2",
+            "--workers", "1", "--quiet", "--no-plots", "--out", str(tmp_path), *TINY,
+            "--set", "delay=fixed", "--grid", "delay_ms=0,100,200"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "### AP@0.7 (%) vs delay_ms (noise 0.0/0.0)" in out
+    assert "| Policy \\ delay_ms | 0 | 100 | 200 |" in out
+    assert "### Bytes received per agent-step vs delay_ms (noise 0.0/0.0)" in out
+    assert "(3 run, 0 resumed" in out
+    assert main(argv) == 0
+    assert "(0 run, 3 resumed" in capsys.readouterr().out
+    assert main([*argv[:-1], "delay_ms=100,-5"]) == 2
+    assert "comm.delay_params.delay_ms=-5" in capsys.readouterr().err

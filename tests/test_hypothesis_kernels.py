@@ -23,6 +23,7 @@ from roco_env.policies.hypotheses import (
 )
 from roco_env.policies.hypothesis_kernels import best_pair_gains, close_pairs, pairwise_sum
 from roco_env.policies.landmarks import UncertaintyParams, prepare_inputs
+from roco_env.policies.pose_kernels import pair_information
 from roco_env.testing.constructed_scenes import (
     benchmark_scene,
     make_scene,
@@ -322,6 +323,45 @@ def test_decisions_match_the_python_path(with_track):
     # Decided and ambiguous slots, one and several refined hypotheses.
     assert {ambiguous for ambiguous, _ in outcomes} == {False, True}
     assert min(count for _, count in outcomes) == 1 < max(count for _, count in outcomes)
+
+
+def numpy_pair_information(ego, collab, pose, gate, slack_t, slack_r):
+    """The array path of pose_kernels.pair_information: (information (3, 3), pairs)."""
+    if ego.poses.shape[0] == 0:
+        return np.zeros((3, 3)), 0
+    mapped = numpy_map(pose, collab.poses)
+    distance = np.hypot(mapped[:, None, 0] - ego.poses[None, :, 0],
+                        mapped[:, None, 1] - ego.poses[None, :, 1])
+    nearest = np.argmin(distance, axis=1)
+    paired = distance[np.arange(mapped.shape[0]), nearest] < gate
+    q, p = np.nonzero(paired)[0], nearest[paired]
+    w_t = 1.0 / (ego.var_t[p] + collab.var_t[q] + slack_t)
+    w_r = 1.0 / (ego.var_r[p] + collab.var_r[q] + slack_r)
+    lever = np.column_stack([-(mapped[q, 1] - pose[1]), mapped[q, 0] - pose[0]])
+    info = np.zeros((3, 3))
+    info[0, 0] = info[1, 1] = w_t.sum()
+    info[0, 2] = info[2, 0] = (w_t * lever[:, 0]).sum()
+    info[1, 2] = info[2, 1] = (w_t * lever[:, 1]).sum()
+    info[2, 2] = (w_t * (lever**2).sum(axis=1)).sum() + w_r.sum()
+    return info, int(q.size)
+
+
+def test_pair_information_matches_the_numpy_path():
+    rng = np.random.default_rng(23)
+    counts = set()
+    for scene in _scenes():
+        sets = _box_sets(scene)
+        for j, true in enumerate(scene.true):
+            for pose in (true, true + rng.normal(size=3) * [0.4, 0.4, 0.01], scene.reported[j]):
+                args = (sets[0], sets[j + 1], pose, 1.0, 0.01, 3e-5)
+                info, count = pair_information(
+                    (sets[0].poses, sets[0].var_t, sets[0].var_r),
+                    (sets[j + 1].poses, sets[j + 1].var_t, sets[j + 1].var_r), pose, *args[3:])
+                expected, expected_count = numpy_pair_information(*args)
+                assert count == expected_count
+                assert_equal_to_rounding(info, expected, rtol=1e-10)
+                counts.add(count)
+    assert 0 in counts and max(counts) > 20  # unmatched and well matched poses both occur
 
 
 def test_box_sets_in_one_pass_are_the_per_agent_sets():

@@ -16,7 +16,7 @@ from roco_env.geometry import transform_boxes
 from roco_env.metrics import APAccumulator
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.spec import merge_env_overrides
-from roco_env.scenario import ScenarioError
+from roco_env.scenario import ConfigError
 from roco_env.sensing import BevGrid, warp_bev
 from roco_env.sensing.learned import (
     BevDetectorNet,
@@ -360,7 +360,7 @@ def test_learned_detector_options_are_checked():
         roco_env.parallel_env(detector="learned", **{"detector.params": {"sigma_xy": 0.1}})
     with pytest.raises(ValueError, match=r"device='tpu' is not allowed; choose one of \['cpu', 'cuda'\]"):
         roco_env.parallel_env(detector="learned", **{"detector.params": {"device": "tpu"}})
-    with pytest.raises(ScenarioError, match="needs detector.preset='learned'"):
+    with pytest.raises(ConfigError, match="needs detector.preset='learned'"):
         roco_env.parallel_env(fusion="intermediate")
 
 

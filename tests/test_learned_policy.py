@@ -19,8 +19,8 @@ import roco_env
 from roco_env.policies import make_policy
 from roco_env.policies.learned import SHIPPED, WEIGHTS_DIR, LearnedPolicy
 from roco_env.policies.spec import merge_env_overrides
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 from roco_env.wrappers import EgoEnv
 
 SHIPPED_SHA256 = "270601ec264998f49cdb9438c6f564d012e64514cfe0452e8c4703023dcebaa0"

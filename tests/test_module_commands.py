@@ -9,7 +9,9 @@ import pytest
 
 @pytest.mark.parametrize("module", ["roco_env.benchmarks.__main__",
                                     "roco_env.training.assessment",
-                                    "roco_env.sweeps.baselines"])
+                                    "roco_env.sweeps.baselines",
+                                    "roco_env.sweeps.attack_protocol",
+                                    "roco_env.training.rl.attacker"])
 def test_usage_names_the_command_to_type(module, capsys):
     command = module.removesuffix(".__main__")
     with pytest.raises(SystemExit) as exit_info:

@@ -22,8 +22,8 @@ import roco_env
 from roco_env.evaluation import ground_truths
 from roco_env.scenario import AgentsConfig, scenario_from_dict
 from roco_env.traffic import export_opv2v, make_traffic_source
-from roco_env.traffic.export import scenario_folder
 from roco_env.traffic.frames import Frame, frame_to_state
+from roco_env.traffic.opv2v_export import scenario_folder
 
 OPENCOOD_RANGE = np.array([-140.8, -40.0, -3.0, 140.8, 40.0, 1.0])  # x, y, z low; x, y, z high
 
@@ -185,9 +185,9 @@ def test_env_scores_against_the_opencood_ground_truth_when_asked():
 
 @pytest.mark.parametrize("value", ["everything", 3])
 def test_a_bad_ground_truth_convention_names_the_field(value):
-    from roco_env.scenario import ScenarioError
+    from roco_env.scenario import ConfigError
 
-    with pytest.raises(ScenarioError, match="evaluation.ground_truth"):
+    with pytest.raises(ConfigError, match="evaluation.ground_truth"):
         scenario_from_dict({"evaluation": {"ground_truth": value}})
-    with pytest.raises(ScenarioError, match="evaluation.z_range"):
+    with pytest.raises(ConfigError, match="evaluation.z_range"):
         scenario_from_dict({"evaluation": {"z_range": [1.0, -3.0]}})

@@ -83,7 +83,7 @@ def test_rpe_histogram_spans_every_error_and_counts_the_exact_zeros():
 
 def test_loss_curves_have_labelled_linear_axes_for_a_negative_loss():
     pytest.importorskip("torch")
-    from roco_env.training.report import loss_curves_figure
+    from roco_env.training.detector_report import loss_curves_figure
 
     steps = 90
     history = {name: list(np.linspace(0.5, 0.2, steps))

@@ -9,7 +9,7 @@ import roco_env
 from roco_env.cli import main
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.spec import merge_env_overrides
-from roco_env.sweeps.spec import parse_policy_spec, validate_policy_spec
+from roco_env.sweeps.text_specs import parse_policy_spec, validate_policy_spec
 
 PLUGIN = textwrap.dedent('''
     import numpy as np
@@ -139,7 +139,8 @@ def test_list_names_the_stateful_policies(capsys):
     assert main(["list", "policies"]) == 0
     lines = capsys.readouterr().out.splitlines()
     stateful = {line.split()[0] for line in lines if "stateful" in line}
-    assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias"}
+    assert stateful == {"roco_temporal", "coalign_temporal", "roco_antialias", "defend",
+                        "compensate"}
 
 
 def test_a_plugin_without_a_policy_is_refused_before_the_sweep(plugin):

@@ -129,7 +129,7 @@ def test_gif_stream_round_trips_every_frame(tmp_path):
 def test_render_cli_streams_frames_instead_of_holding_them(tmp_path, monkeypatch):
     """Every drawn frame is written and dropped: at most one is alive when the next is drawn
     (the old CLI kept a list of all of them until the GIF was saved)."""
-    import roco_env.cli.render as render_cli
+    import roco_env.cli.render_command as render_cli
     from roco_env.cli import main
 
     live, most = set(), [0]

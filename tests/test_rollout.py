@@ -11,8 +11,8 @@ from roco_env.action_modes import CorrectionMode
 from roco_env.policies import available_policies, make_policy
 from roco_env.policies.base import AlignmentResult, Policy, PolicyAdapter, act, as_policy
 from roco_env.rollout import play_episode
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 
 SMALL = dict(scenario="crowded_intersection", cavs=2, rsus=1, max_boxes=24)
 

@@ -4,8 +4,8 @@ import pytest
 
 import roco_env
 from roco_env.scenario import (
+    ConfigError,
     ScenarioConfig,
-    ScenarioError,
     load_scenario,
     save_scenario,
     scenario_from_dict,
@@ -25,32 +25,32 @@ def test_parallel_env_accepts_a_mapping_or_a_config(make):
 
 
 def test_a_bad_mapping_names_the_key():
-    with pytest.raises(ScenarioError, match=r"<dict>: unknown key 'agents.cars'"):
+    with pytest.raises(ConfigError, match=r"<dict>: unknown key 'agents.cars'"):
         roco_env.parallel_env({"agents": {"cars": 2}})
 
 
 @pytest.mark.parametrize("scenario", [123, None, ["urban_intersection"]])
 def test_a_scenario_of_the_wrong_type_says_what_is_accepted(scenario):
-    with pytest.raises(ScenarioError, match=r"scenario must be a name from "
+    with pytest.raises(ConfigError, match=r"scenario must be a name from "
                                             r"roco_env.list_scenarios\(\), a \.yaml path, a mapping"
                                             r" of its keys or a ScenarioConfig; got"):
         roco_env.parallel_env(scenario)
-    with pytest.raises(ScenarioError, match=r"scenario must be a name .* or a \.yaml path; got"):
+    with pytest.raises(ConfigError, match=r"scenario must be a name .* or a \.yaml path; got"):
         load_scenario(scenario)
 
 
 def test_a_folder_is_not_a_scenario_file(tmp_path):
-    with pytest.raises(ScenarioError, match=r"is a folder, not a scenario \.yaml file"):
+    with pytest.raises(ConfigError, match=r"is a folder, not a scenario \.yaml file"):
         load_scenario(tmp_path)
 
 
 def test_the_helpers_name_what_they_need(tmp_path):
-    with pytest.raises(ScenarioError, match=r"a ScenarioConfig is needed \(load_scenario\(name\) "
+    with pytest.raises(ConfigError, match=r"a ScenarioConfig is needed \(load_scenario\(name\) "
                                             r"or scenario_from_dict\(mapping\)\); got dict"):
         save_scenario(SMALL, tmp_path / "mine.yaml")
-    with pytest.raises(ScenarioError, match="got str"):
+    with pytest.raises(ConfigError, match="got str"):
         scenario_to_dict("urban_intersection")
-    with pytest.raises(ScenarioError, match=r"<dict>: a scenario mapping needs the YAML keys "
+    with pytest.raises(ConfigError, match=r"<dict>: a scenario mapping needs the YAML keys "
                                             r"\(traffic, agents, \.\.\.\); got str"):
         scenario_from_dict("urban_intersection")
 
@@ -65,7 +65,7 @@ def test_save_scenario_round_trips(tmp_path):
 
 
 def test_save_scenario_wants_a_yaml_name(tmp_path):
-    with pytest.raises(ScenarioError, match=r"must end in \.yaml or \.yml"):
+    with pytest.raises(ConfigError, match=r"must end in \.yaml or \.yml"):
         save_scenario(ScenarioConfig(), tmp_path / "mine.txt")
 
 

@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from roco_env.scenario import ScenarioError, list_scenarios, load_scenario
+from roco_env.scenario import ConfigError, list_scenarios, load_scenario
 from roco_env.traffic import make_traffic_source
 
 REQUIRED = {"highway_dense", "urban_intersection", "parking_lot", "traffic_jam", "v2x_crossroad",
@@ -58,7 +58,7 @@ def test_replay_without_path_is_a_clear_error():
 def test_overrides_reach_traffic_fields():
     config = load_scenario("highway_dense", density=2.0, **{"traffic.speed_limit": 20.0})
     assert config.traffic.density == 2.0 and config.traffic.speed_limit == 20.0
-    with pytest.raises(ScenarioError, match="traffic.speed_limit"):
+    with pytest.raises(ConfigError, match="traffic.speed_limit"):
         load_scenario("highway_dense", **{"traffic.speed_limit": 500.0})
 
 
@@ -70,7 +70,7 @@ def test_overrides_reach_traffic_fields():
 ])
 def test_two_overrides_of_one_field_are_refused(overrides, fragment):
     """Either would win silently depending on the order the keywords were written in."""
-    with pytest.raises(ScenarioError, match=re.escape(fragment) + "; give one"):
+    with pytest.raises(ConfigError, match=re.escape(fragment) + "; give one"):
         load_scenario("urban_intersection", **overrides)
 
 
@@ -82,7 +82,7 @@ def test_two_overrides_of_one_field_are_refused(overrides, fragment):
 ])
 def test_a_density_the_traffic_does_not_read_is_refused(scenario, overrides, fragment):
     """A crowding sweep over it would report identical scenes under different densities."""
-    with pytest.raises(ScenarioError, match=re.escape(f"override: traffic.density has no effect "
+    with pytest.raises(ConfigError, match=re.escape(f"override: traffic.density has no effect "
                                                       f"with {fragment}")):
         load_scenario(scenario, **overrides)
 
@@ -131,7 +131,7 @@ def test_a_density_the_traffic_reads_is_taken():
 def test_validation_errors_name_file_key_and_allowed(tmp_path, text, fragments):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
-    with pytest.raises(ScenarioError) as info:
+    with pytest.raises(ConfigError) as info:
         load_scenario(path)
     message = str(info.value)
     assert str(path) in message
@@ -148,5 +148,5 @@ def test_yaml_merge_keys_still_load():
 def test_yaml_is_loaded_safely(tmp_path):
     path = tmp_path / "evil.yaml"
     path.write_text("name: !!python/object/apply:os.system ['echo hacked']\n")
-    with pytest.raises(ScenarioError, match="malformed YAML"):
+    with pytest.raises(ConfigError, match="malformed YAML"):
         load_scenario(path)

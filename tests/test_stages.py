@@ -17,7 +17,7 @@ from roco_env.evaluation import make_reward
 from roco_env.fusion import make_fusion
 from roco_env.fusion.late import LateFusion
 from roco_env.noise import GaussianNoise, make_pose_noise
-from roco_env.scenario import ScenarioError, load_scenario, scenario_from_dict
+from roco_env.scenario import ConfigError, load_scenario, scenario_from_dict
 from roco_env.schema import spec
 from roco_env.sensing.detector import (
     AgentDetections,
@@ -26,20 +26,6 @@ from roco_env.sensing.detector import (
     realistic_detector,
 )
 from roco_env.traffic import make_traffic_source
-
-
-@pytest.fixture
-def registered():
-    """Names registered by a test are forgotten after it."""
-    added: list[tuple[str, str]] = []
-
-    def register(kind, name, factory, params=None):
-        roco_env.register_stage(kind, name, factory, params)
-        added.append((kind, name))
-
-    yield register
-    for kind, name in added:
-        stages.unregister_stage(kind, name)
 
 
 @pytest.mark.parametrize("kind", stages.KINDS)
@@ -52,7 +38,7 @@ def test_every_built_in_stage_loads(kind):
 
 
 def test_scenario_choices_are_the_registry_names():
-    with pytest.raises(ScenarioError) as info:
+    with pytest.raises(ConfigError) as info:
         scenario_from_dict({"detector": {"preset": "lidar9000"}})
     message = str(info.value)
     assert "detector.preset='lidar9000'" in message
@@ -89,10 +75,10 @@ def test_a_registered_detector_is_selected_by_name_and_its_params_checked(regist
     agent = env.agents[0]
     assert 0 < observations[agent]["box_mask"].sum() < reference[agent]["box_mask"].sum()
     path.write_text("detector:\n  preset: halving\n  params: {keep: 2.0}\n")
-    with pytest.raises(ScenarioError, match=r"mine.yaml: detector.params.keep=2.0 .*\[0.0, 1.0\]"):
+    with pytest.raises(ConfigError, match=r"mine.yaml: detector.params.keep=2.0 .*\[0.0, 1.0\]"):
         load_scenario(path)
     path.write_text("detector:\n  preset: halving\n  params: {sigma_xy: 0.1}\n")
-    with pytest.raises(ScenarioError, match="sigma_xy is a parameter of detector.preset "
+    with pytest.raises(ConfigError, match="sigma_xy is a parameter of detector.preset "
                                             "'ideal' / 'realistic', not of 'halving'"):
         load_scenario(path)
 
@@ -172,27 +158,27 @@ def test_an_installed_package_entry_point_is_found(tmp_path, monkeypatch):
     config = scenario_from_dict({"noise": {"model": "scaled", "params": {"factor": 3.0}}})
     noise = make_pose_noise(config.noise, ("cav_0",), 0.1)
     assert np.allclose(noise.std, [[0.6, 0.6, np.radians(0.6)]])
-    with pytest.raises(ScenarioError, match="noise.params.factor=-1.0 is out of range"):
+    with pytest.raises(ConfigError, match="noise.params.factor=-1.0 is out of range"):
         scenario_from_dict({"noise": {"model": "scaled", "params": {"factor": -1.0}}})
 
 
 def test_built_in_names_and_bad_registrations_are_refused():
-    with pytest.raises(ScenarioError, match="built in"):
+    with pytest.raises(ConfigError, match="built in"):
         roco_env.register_stage("fusion", "late", LateFusion)
-    with pytest.raises(ScenarioError, match="unknown stage kind 'comms'; allowed: traffic"):
+    with pytest.raises(ConfigError, match="unknown stage kind 'comms'; allowed: traffic"):
         roco_env.register_stage("comms", "x", LateFusion)
-    with pytest.raises(ScenarioError, match="factory must be callable"):
+    with pytest.raises(ConfigError, match="factory must be callable"):
         roco_env.register_stage("fusion", "x", 3)
-    with pytest.raises(ScenarioError, match="params must be a dataclass, dict or None"):
+    with pytest.raises(ConfigError, match="params must be a dataclass, dict or None"):
         roco_env.register_stage("fusion", "x", LateFusion, params=3)
-    with pytest.raises(ScenarioError, match="name must be an identifier"):
+    with pytest.raises(ConfigError, match="name must be an identifier"):
         roco_env.register_stage("fusion", "a b", LateFusion)
 
 
 def test_a_stage_that_cannot_load_names_itself(registered):
     registered("fusion", "ghost", "no_such_module_here:Fusion")
     config = scenario_from_dict({"fusion": {"method": "ghost"}})
-    with pytest.raises(ScenarioError, match="fusion 'ghost': cannot load "
+    with pytest.raises(ConfigError, match="fusion 'ghost': cannot load "
                                             "'no_such_module_here:Fusion'"):
         make_fusion(config, None)
 

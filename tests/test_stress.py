@@ -19,7 +19,6 @@ import roco_env
 from roco_env.cli import main
 from roco_env.schema import ConfigError
 from roco_env.stress.objectives import HARM_MARGIN, Infeasible, evaluate, harm_share
-from roco_env.stress.report import export_worst
 from roco_env.stress.space import (
     CAR_LENGTH,
     lane_density,
@@ -29,6 +28,7 @@ from roco_env.stress.space import (
     scenario_for,
     suggest,
 )
+from roco_env.stress.stress_report import export_worst
 from roco_env.stress.study import SearchSettings, count, open_study, run_search
 
 TINY = {

@@ -11,7 +11,7 @@ import pytest
 from roco_env.cli import build_parser
 from roco_env.cli.compare import grid_from_args
 from roco_env.sweeps.baselines import EXPERIMENTS, experiment, main
-from roco_env.sweeps.grid import validate_grid
+from roco_env.sweeps.cells import validate_grid
 
 
 @pytest.mark.parametrize("item", EXPERIMENTS, ids=lambda e: e.name)
@@ -64,6 +64,6 @@ def test_antialias_ablation_switches_every_component_off():
 
     own = {f.name for f in fields(AntiAliasParams)} - {f.name for f in fields(RoCoParams)}
     switches = {name for name in own if name.startswith("use_")}
-    assert len(switches) == 5
+    assert len(switches) == 6
     policies = set(experiment("ablation_antialias").policies)
     assert {f"roco_antialias:{s}=false" for s in switches} | {"roco", "roco_antialias"} == policies

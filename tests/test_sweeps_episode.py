@@ -9,8 +9,8 @@ import pytest
 
 from roco_env.metrics import APAccumulator
 from roco_env.policies import make_policy
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_cell, run_episode
-from roco_env.sweeps.grid import Cell
 
 TINY = (("cavs", 2), ("rsus", 1))
 

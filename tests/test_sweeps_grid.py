@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from roco_env.sweeps.grid import Cell, build_grid
-from roco_env.sweeps.spec import format_scalar, parse_overrides, parse_policy_spec
+from roco_env.sweeps.cells import Cell, build_grid
+from roco_env.sweeps.text_specs import format_scalar, parse_grid, parse_overrides, parse_policy_spec
 
 
 def test_policy_spec_is_canonical_and_typed():
@@ -103,3 +103,29 @@ def test_a_cell_without_a_noise_level_keeps_the_scenarios_own_noise():
     assert "noise=default" in cell.key
     assert "sigma_t" not in cell.env_overrides() and "sigma_r" not in cell.env_overrides()
     assert Cell("urban_intersection", 0.4, "roco", 0, 3).env_overrides()["sigma_r"] == 0.4
+
+
+def test_grid_axes_parse_in_order_and_refuse_what_is_ambiguous():
+    assert parse_grid(["comm.delay_params.delay_ms=0,100, 200", "comm.delay=fixed,uniform"]) == {
+        "comm.delay_params.delay_ms": (0, 100, 200), "comm.delay": ("fixed", "uniform")}
+    for items, fragment in [(["cavs"], "expected KEY=V1,V2"), (["cavs=2,"], "none empty"),
+                            (["cavs=2", "cavs=3"], "given twice"),
+                            (["cavs=2,2.0"], "value 2 given twice")]:
+        with pytest.raises(ValueError, match=fragment):
+            parse_grid(items)
+
+
+def test_a_grid_axis_is_one_more_dimension_of_the_cells():
+    axes = {"comm.delay_params.delay_ms": (0, 100, 200)}
+    cells = build_grid(["a"], [0.0], ["identity", "roco"], [0, 1], 2,
+                       overrides={"comm.delay": "fixed"}, axes=axes)
+    assert len(cells) == 3 * 2 * 2
+    assert cells[0].key == ("a|density=default|noise=0.0|policy=identity|seed=0|steps=2|"
+                            "comm.delay=fixed|comm.delay_params.delay_ms=0")
+    assert [dict(c.overrides)["comm.delay_params.delay_ms"] for c in cells[::4]] == [0, 100, 200]
+    with pytest.raises(ValueError, match="both an override and a grid axis"):
+        build_grid(["a"], [0.0], ["roco"], [0], 2, overrides={"cavs": 2}, axes={"cavs": (2, 3)})
+    with pytest.raises(ValueError, match="set by the grid; use the noise/density lists"):
+        build_grid(["a"], [0.0], ["roco"], [0], 2, axes={"sigma_t": (0.1, 0.2)})
+    with pytest.raises(ValueError, match="grid axis cavs must not be empty"):
+        build_grid(["a"], [0.0], ["roco"], [0], 2, axes={"cavs": ()})

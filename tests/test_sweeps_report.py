@@ -8,7 +8,7 @@ import numpy as np
 from conftest import FAILING_NOISE, fake_cell
 from PIL import Image
 
-from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report
 
@@ -66,3 +66,30 @@ def test_report_files_parse_back(tmp_path):
     assert np.isclose(float(good[0]["rpe_t_median"]), float(good[0]["rpe_t_median_before"]) / 10)
     bad = [r for r in summary if r["noise"] == "1.5"]
     assert all(int(r["seeds"]) == 0 and int(r["failed"]) == 2 for r in bad)
+
+
+def test_a_grid_axis_gets_its_tables_and_plot(tmp_path):
+    cells = build_grid(["s"], noises=[0.0, 0.4], policies=["identity", "roco"], seeds=[0],
+                       steps=2, overrides={"comm.delay": "fixed"},
+                       axes={"comm.delay_params.delay_ms": (0, 100, 1000),
+                             "comm.loss": ("none", "bernoulli")})
+    outcome = run_sweep(cells, tmp_path / "results.jsonl", workers=1, cell_fn=fake_cell,
+                        progress=False)
+    report = write_report(outcome.records, tmp_path / "out")
+    names = sorted(p.name for p in report.files)
+    assert "ap70_vs_comm_delay_params_delay_ms.png" in names
+    assert "ap70_vs_comm_loss.png" in names
+    tables = _markdown_tables(report.markdown)
+    block = tables["AP@0.7 (%) vs comm.delay_params.delay_ms (noise 0.4/0.4, comm.loss=none)"]
+    assert block[0] == ["Policy \\ comm.delay_params.delay_ms", "0", "100", "1000"]
+    assert block[1][0] == "identity" and block[1][1:] == [f"{100 * 0.5:.1f}"] * 3
+    assert tables["AP@0.5 (%) vs comm.loss (noise 0.0/0.0, comm.delay_params.delay_ms=100)"][0] \
+        == ["Policy \\ comm.loss", "bernoulli", "none"]
+    assert "## s (density default; comm.delay=fixed)" in report.markdown
+    pose = tables["Relative pose error and success"]
+    assert pose[0][:4] == ["Policy", "Noise", "comm.delay_params.delay_ms", "comm.loss"]
+    assert "Worse by > 0.5 m (%)" in pose[0]
+    assert len(pose) == 1 + 2 * 2 * 3 * 2
+    with (tmp_path / "out" / "summary.csv").open() as handle:
+        summary = list(csv.DictReader(handle))
+    assert {r["comm.delay_params.delay_ms"] for r in summary} == {"0", "100", "1000"}

@@ -13,7 +13,7 @@ from conftest import CALLS, FAILING_NOISE, fake_cell
 
 import roco_env
 from roco_env.sweeps import provenance
-from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.records import WALL_TIME_FIELDS, error_record, ok_record
 from roco_env.sweeps.store import ResultStore
 from roco_env.sweeps.sweep import run_sweep, stored_results

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from roco_env.sweeps.backends import run_local
-from roco_env.sweeps.grid import Cell, build_grid
+from roco_env.sweeps.cells import Cell, build_grid
 from roco_env.sweeps.records import WALL_TIME_FIELDS
 from roco_env.sweeps.store import ResultStore
 from roco_env.sweeps.sweep import run_sweep
@@ -125,7 +125,7 @@ def test_cells_run_in_this_process_get_one_torch_thread_as_the_pool_workers_do()
 HANG_SCRIPT = """
 import torch
 from roco_env.sweeps.backends import run_local
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 
 def cell_fn(cell):
     torch.set_num_threads(2)

@@ -20,7 +20,7 @@ from test_sweeps_sweep import _alive, _children
 
 from roco_env.cli import main
 from roco_env.sweeps import provenance
-from roco_env.sweeps.grid import Cell, build_grid
+from roco_env.sweeps.cells import Cell, build_grid
 from roco_env.sweeps.store import ResultsInUse, ResultStore
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report

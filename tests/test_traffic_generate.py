@@ -8,8 +8,8 @@ from roco_env.cli import main
 from roco_env.geometry import box_corners_bev
 from roco_env.scenario import load_scenario, scenario_from_dict
 from roco_env.traffic import make_traffic_source
-from roco_env.traffic.export import scenario_folder
 from roco_env.traffic.generate import generate, nearest_gaps
+from roco_env.traffic.opv2v_export import scenario_folder
 
 
 def test_nearest_gaps_match_shapely_oracle():
@@ -112,7 +112,7 @@ def test_the_scenario_output_must_be_a_yaml_file(tmp_path, capsys):
 def test_overwrite_replaces_an_export_of_the_older_flat_layout(tmp_path):
     """Exports written before the OpenCOOD layout put the agent folders straight into the
     folder (``<folder>/<agent id>/*.yaml``): --overwrite replaces them too."""
-    from roco_env.traffic.export import prepare_export_folder
+    from roco_env.traffic.opv2v_export import prepare_export_folder
 
     export = tmp_path / "opv2v"
     for agent in ("641", "650", "-1"):

@@ -63,7 +63,7 @@ def test_a_tiny_run_writes_weights_report_and_command(tmp_path):
 def test_the_exported_policy_acts_as_the_sb3_policy(tmp_path):
     config = build_config(TINY)
     result = train(config, tmp_path, progress=False, log=lambda m: None)
-    from roco_env.training.rl.export import save_policy
+    from roco_env.training.rl.policy_export import save_policy
     save_policy(tmp_path / "w.pt", result.model.policy, result.env, config, {})
     learned, sb3 = LearnedPolicy(str(tmp_path / "w.pt")), greedy(result.model, result.env)
     env = condition_env(config, draw_condition(config, 3))

@@ -114,11 +114,11 @@ def test_relative_paths_in_a_scenario_file_are_relative_to_its_folder(tmp_path, 
 
 
 def test_a_scenario_file_that_is_not_utf8_is_an_error_naming_it(tmp_path):
-    from roco_env.scenario import ScenarioError, load_scenario
+    from roco_env.scenario import ConfigError, load_scenario
 
     path = tmp_path / "latin1.yaml"
     path.write_bytes("description: caf\u00e9\n".encode("latin-1"))
-    with pytest.raises(ScenarioError, match=rf"{re.escape(str(path))}: not UTF-8 text"):
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(path))}: not UTF-8 text"):
         load_scenario(path)
 
 
@@ -130,12 +130,12 @@ def test_a_scenario_file_that_is_not_utf8_is_an_error_naming_it(tmp_path):
     ([0.5], r"noise.per_agent.cav_1 must be \[sigma_t m, sigma_r deg\]"),
 ], ids=["sigma_t", "sigma_r", "pair"])
 def test_per_agent_noise_has_the_global_caps(tmp_path, pair, message):
-    from roco_env.scenario import ScenarioError, load_scenario
+    from roco_env.scenario import ConfigError, load_scenario
 
     path = _write_scenario(tmp_path, f"noise:\n  per_agent:\n    cav_1: {pair}\n")
-    with pytest.raises(ScenarioError, match=rf"{re.escape(str(path))}: {message}"):
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(path))}: {message}"):
         load_scenario(path)
-    with pytest.raises(ScenarioError, match=rf"override: {message}"):
+    with pytest.raises(ConfigError, match=rf"override: {message}"):
         load_scenario("urban_intersection", **{"noise.per_agent": {"cav_1": pair}})
     assert load_scenario("urban_intersection", **{"noise.per_agent": {"cav_1": [20, 45]}}
                          ).noise.per_agent == {"cav_1": [20.0, 45.0]}

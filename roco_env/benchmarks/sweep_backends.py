@@ -19,7 +19,7 @@ from pathlib import Path
 
 from roco_env.benchmarks._timing import median_seconds
 from roco_env.sweeps.backends import default_workers
-from roco_env.sweeps.grid import build_grid
+from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.sweep import run_sweep
 
 

@@ -1,4 +1,5 @@
-"""``roco-env compare``: sweep policies x noise x density x seeds, then tables and plots.
+"""``roco-env compare``: sweep policies x noise x density x any scenario field x seeds,
+then tables and plots.
 
 Results go to ``OUT/results.jsonl`` as cells finish; re-running the same command
 resumes (finished cells are skipped, failed ones retried, and results produced by
@@ -20,13 +21,13 @@ import sys
 from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS, check_backend
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.options import DEFAULT_SCENARIO
 from roco_env.sweeps.provenance import Provenance
-from roco_env.sweeps.spec import parse_overrides
 from roco_env.sweeps.store import ResultsInUse
 from roco_env.sweeps.sweep import SweepStopped, run_sweep, stored_results
 from roco_env.sweeps.sweep_report import write_report
+from roco_env.sweeps.text_specs import parse_grid, parse_overrides
 
 # Defaults, and the `--demo` preset (crowded default scenario, the four built-in
 # policies plus roco_antialias, three noise levels).
@@ -52,7 +53,7 @@ def grid_from_args(args: argparse.Namespace) -> list[Cell]:
     return build_grid(
         _setting(args, "scenario"), _setting(args, "noise"), _setting(args, "policies"),
         list(range(seeds)), _setting(args, "steps"), densities=_setting(args, "density"),
-        overrides=parse_overrides(args.overrides))
+        overrides=parse_overrides(args.overrides), axes=parse_grid(args.grid))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -93,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "compare", help="compare alignment policies over noise levels, densities and seeds",
+        "compare", help="compare alignment policies over noise levels, densities, any "
+        "scenario field and seeds",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     grid = parser.add_argument_group("grid (lists are space separated)")
     grid.add_argument("--scenario", nargs="+", metavar="NAME",
@@ -113,6 +115,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help=f"env steps per episode (default: {DEFAULTS['steps']})")
     grid.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                       help="scenario override for every cell, repeatable (e.g. --set detector=ideal)")
+    grid.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2,...",
+                      help="a scenario field as one more axis of the grid, repeatable (e.g. "
+                      "--grid comm.delay_params.delay_ms=0,100,200 --grid cavs=2,4); the "
+                      "report shows AP against it")
     grid.add_argument("--demo", action="store_true",
                       help=f"preset for a quick demo: {DEMO['seeds']} seeds, {DEMO['steps']} steps, "
                       "identity/coalign/roco/roco_antialias/oracle at noise 0, 0.4, 0.8, output in runs/demo "

@@ -55,7 +55,7 @@ def _generate(args: argparse.Namespace) -> int:
     for line in summary.lines():
         print(line)
     if args.export_opv2v:
-        from roco_env.traffic.export import scenario_folder
+        from roco_env.traffic.opv2v_export import scenario_folder
 
         print(f"exported {frames} frames to {scenario_folder(args.export_opv2v)} (OpenCOOD "
               f"layout <dir>/<split>/<scenario>; replay with traffic.path=that folder)")

@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 
-from roco_env.cli.render import render_episode
-from roco_env.stress.report import evaluate_reference, export_worst, section, write_report
+from roco_env.cli.render_command import render_episode
 from roco_env.stress.space import load_space
+from roco_env.stress.stress_report import evaluate_reference, export_worst, section, write_report
 from roco_env.stress.study import FLAGS, SearchSettings, check_settings, run_search
-from roco_env.sweeps.grid import Cell
-from roco_env.sweeps.spec import parse_policy_spec
+from roco_env.sweeps.cells import Cell
+from roco_env.sweeps.text_specs import parse_policy_spec
 
 
 def run(args: argparse.Namespace) -> int:

@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from roco_env.sensing.learned.model import WEIGHTS_FILE, save_checkpoint, sha256_of
-    from roco_env.training.report import write_report
+    from roco_env.training.detector_report import write_report
     from roco_env.training.train import init_checkpoint, train
 
     flags = _flags()

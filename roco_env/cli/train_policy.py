@@ -30,9 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from roco_env.sensing.learned.model import sha256_of
     from roco_env.training.rl.config import FLAGS
-    from roco_env.training.rl.export import save_policy
+    from roco_env.training.rl.policy_export import save_policy
+    from roco_env.training.rl.policy_report import write_report
     from roco_env.training.rl.ppo import train
-    from roco_env.training.rl.report import write_report
 
     config = FLAGS.parse(args)
     command = "roco-env train-policy " + shlex.join([f"--out={args.out}", *FLAGS.argv(config)])

@@ -27,8 +27,8 @@ import torch
 from roco_env.fusion.late import EGO_SOURCE, FusedDetections, kept_items
 from roco_env.fusion.warp_kernels import Gate, Warp, warp_gate_max_into, warp_max_into
 from roco_env.sensing import BevGrid, warp_bev
+from roco_env.sensing.bev_grid import affine_theta
 from roco_env.sensing.features import zero_padded
-from roco_env.sensing.grid import affine_theta
 from roco_env.sensing.learned.network import FusionGate
 from roco_env.sensing.lidar import ground_references
 from roco_env.traffic.state import WorldState
@@ -275,6 +275,13 @@ class IntermediateFusion:
              poses: Sequence[np.ndarray]) -> list[FusedDetections]:
         return intermediate_fusion(
             self.detector, frame.encoder_maps, frame.state, egos,
-            [kept_items(frame.views[k].collaborators, keep) for k, keep in zip(egos, kept,
-                                                                               strict=True)],
+            [kept_items(_map_rows(frame.views[k]), keep) for k, keep in zip(egos, kept,
+                                                                            strict=True)],
             poses, self.x_range, self.y_range)
+
+
+def _map_rows(view: Any) -> tuple[int, ...]:
+    """The rows of the frame's encoder maps holding each collaborator slot's map: the slots'
+    agents, or the delivered maps' rows under the network stage (roco_env.comm)."""
+    rows = getattr(view, "collab_map_rows", None)
+    return view.collaborators if rows is None else rows

@@ -52,6 +52,10 @@ _REGISTRY: dict[str, str] = {
     "v2i_calib": "roco_env.policies.v2i_calib:V2ICalibPolicy",
     "freealign": "roco_env.policies.freealign:FreeAlignPolicy",
     "roco_fallback": "roco_env.policies.fallback:RoCoFallbackPolicy",
+    # a base aligner on boxes brought to the ego's time (the network stage's late messages)
+    "compensate": "roco_env.policies.compensate:Compensate",
+    # acts in action.mode gate with observation.mode aligned (its env_overrides)
+    "defend": "roco_env.policies.defend:Defend",
     # acts in action.mode select (its env_overrides; roco_env.policies.learned)
     "learned_select": "roco_env.policies.learned:learned_select",
 }

@@ -17,7 +17,17 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
 3. the best hypothesis is trusted only when it beats the best *distinct* one (more than
    ``distinct_t`` m or ``distinct_r_deg`` deg away) by ``min_margin``; then it becomes
    the starting point of RoCo's matching rounds; when the margin is too small the
-   collaborator is left out of RoCo and keeps its reported pose (do no harm).
+   collaborator is left out of RoCo and keeps its reported pose (do no harm);
+4. (``use_ambiguity``) the best hypothesis is also diagnosed
+   (:func:`~roco_env.policies.ambiguity.diagnose`): which directions of the pose the boxes
+   (and the track) determine without the reported pose's prior. A hypothesis that wins
+   only thanks to that prior (a lattice alias, a shift along an evenly spaced queue) is
+   not trusted: the collaborator is left out of RoCo, and its pose keeps the reported one
+   along the undetermined directions and takes the best hypothesis's determined part
+   (:meth:`~roco_env.policies.ambiguity.Ambiguity.projected`), if that part wins by
+   ``min_margin`` and is significant (a Wald test with the pairs' information at RoCo's
+   ``significance``); with nothing determined, or a translation the pairs themselves pin
+   poorly, it keeps the reported pose.
 
 RoCo (unchanged, with all its parameters: the prior edges and the significance test still
 refer to the reported poses) then matches and solves the joint pose graph from those
@@ -39,6 +49,7 @@ import numpy as np
 
 from roco_env.geometry import wrap_angle
 from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
+from roco_env.policies.ambiguity import Ambiguity, diagnose
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
     BoxSet,
@@ -65,7 +76,8 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     min_margin / 2). distinct_t (m) / distinct_r_deg (deg): when two hypotheses are
     distinct. use_track: the temporal prior;
     track_sigma_t (m) / track_sigma_r_deg (deg): std of its prediction per step of age;
-    track_max_age: steps a track survives without a decision.
+    track_max_age: steps a track survives without a decision. use_ambiguity: the
+    diagnosis of step 4 (module docstring; False = the decision alone).
     """
 
     use_hypotheses: bool = True
@@ -76,6 +88,7 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     track_sigma_t: float = 0.5
     track_sigma_r_deg: float = 1.0
     track_max_age: int = 10
+    use_ambiguity: bool = True
 
     def __post_init__(self) -> None:
         RoCoParams.__post_init__(self)
@@ -105,15 +118,19 @@ _ROCO_FIELDS = tuple(f.name for f in fields(RoCoParams))
 class Decision:
     """The decision stage's outcome for one collaborator.
 
-    pose (3,) or None: the chosen hypothesis (None = ambiguous or no evidence);
+    pose (3,) or None: the chosen hypothesis (None = ambiguous, not determined in every
+    direction, or no evidence);
     margin: its score minus the best distinct hypothesis's (chi2 units; nan when
     nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
-    runs from the reported pose).
+    runs from the reported pose); ambiguity: the diagnosis of the best hypothesis
+    (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
+    ``use_ambiguity`` is off).
     """
 
     pose: np.ndarray | None
     margin: float
     hypotheses: int
+    ambiguity: Ambiguity | None = None
 
 
 @lru_cache(maxsize=16)
@@ -146,7 +163,9 @@ def _decide(
     (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
     0.3 deg of an earlier one is dropped); evidence, priors and margin in another
-    (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`)."""
+    (:func:`~roco_env.policies.hypothesis_kernels.decision_margin`); then the best one's
+    diagnosis (step 4) from those scores: rivals by the scores without the reported
+    pose's prior (the track's kept), the determined part's margin with it."""
     refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
@@ -159,14 +178,38 @@ def _decide(
     poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
     if poses.shape[0] == 0:
         return Decision(None, float("nan"), 0)
-    best, margin = decision_margin(
+    best, margin, scores, unreported = decision_margin(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
         poses, reported, centre, track is not None, evidence, priors, distinct,
     )
-    if margin < p.min_margin:
-        return Decision(None, float(margin), poses.shape[0])
-    return Decision(poses[best], float(margin), poses.shape[0])
+    ambiguity = None
+    if p.use_ambiguity:
+        ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
+                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches)
+    trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
+    return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
+
+
+def _kept_out(
+    decision: Decision, reported: np.ndarray, p: AntiAliasParams
+) -> tuple[str, np.ndarray | None]:
+    """Why a collaborator left out of RoCo keeps (part of) its reported pose (3,), and its
+    projected pose (None: the reported pose is kept in full): step 4 of the module
+    docstring when its diagnosis finds undetermined directions, else the margin's note."""
+    ambiguity = decision.ambiguity
+    if ambiguity is None or ambiguity.determined == 3:
+        note = f"ambiguous (margin {decision.margin:.1f} < {p.min_margin:g}), reported pose kept"
+        return note, None
+    if not ambiguity.applicable:
+        return f"{ambiguity.describe()}, reported pose kept", None
+    pronoun = "it" if ambiguity.determined == 2 else "them"
+    note = f"{ambiguity.describe()}, reported pose kept along {pronoun}"
+    if not ambiguity.margin >= p.min_margin:
+        return f"{note} and elsewhere (margin {ambiguity.margin:.1f} < {p.min_margin:g})", None
+    if not ambiguity.significant(reported, p.significance):
+        return f"{note}; the determined part is not significant", None
+    return note, ambiguity.projected(reported)
 
 
 def antialias_align(
@@ -207,17 +250,18 @@ def antialias_align(
         if decision.pose is not None:
             start[j] = decision.pose
     ambiguous = [j for j, d in enumerate(decisions) if d.pose is None and d.hypotheses]
-    # An ambiguous collaborator is left out: RoCo keeps its reported pose.
+    # An ambiguous collaborator is left out of RoCo: it keeps its reported pose, or along
+    # its undetermined directions only (step 4).
     result = roco_solve(inputs, roco_p, start, frozenset(ambiguous))
-    notes = [
-        f"slot {j}: ambiguous (margin {decisions[j].margin:.1f} < {p.min_margin:g}), "
-        "reported pose kept"
-        for j in ambiguous
-    ]
-    emptied = {f"slot {j}: no boxes" for j in ambiguous}
-    notes += [r for r in result.reason.split("; ") if r and r not in emptied]
-    reason = "; ".join(notes)
-    return replace(result, reason=reason), decisions
+    corrected, applied = result.corrected.copy(), result.applied.copy()
+    reasons = list(result.slot_reasons)
+    for j in ambiguous:
+        reasons[j], pose = _kept_out(decisions[j], inputs.reported[j], p)
+        if pose is not None:
+            corrected[j], applied[j] = pose, True
+    reason = "; ".join(f"slot {j}: {r}" for j, r in enumerate(reasons) if r)
+    return replace(result, corrected=corrected, applied=applied, reason=reason,
+                   slot_reasons=tuple(reasons)), decisions
 
 
 class AntiAliasPolicy(ArrayAlignmentPolicy):

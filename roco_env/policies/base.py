@@ -42,8 +42,9 @@ class AlignmentResult:
     landmarks: (L, 3) landmark poses in the ego frame after optimisation.
     outer_iterations: matching/optimisation rounds; solver_iterations: LM iterations.
     reason: short text on why a prior was kept (empty when applied).
-    slot_reasons: per collaborator slot, why its prior was kept ("" where applied or
-        where the aligner does not say); ``reason`` is their readable summary.
+    slot_reasons: per collaborator slot, why its prior was kept, in full or along some
+        directions ("" where applied in full or where the aligner does not say);
+        ``reason`` is their readable summary.
     slot_statistics: per collaborator slot, the statistic of the aligner's do-no-harm
         significance test (chi-square with 3 dof when the reported pose is right; NaN
         where it was not computed); empty for an aligner without such a test.

@@ -455,17 +455,21 @@ def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, c
     one by one.)
 
     Returns (index of the best hypothesis, its score minus the best distinct one's, 0
-    without a distinct one).
+    without a distinct one), the scores (H,) and the scores without the reported pose's
+    prior term (H,) (the ambiguity diagnosis finds rivals with those).
     """
     ego = BoxTerms(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range)
     collab = BoxTerms(col_poses, col_log_sizes, col_var_t, col_var_r, col_range)
     scores = hypothesis_scores(ego, collab, poses, score)
     count = poses.shape[0]
+    unreported = scores.copy()
     for h in range(count):
         scores[h] -= _prior_chi2(poses[h], reported, priors[0], priors[1])
     if use_track:
         for h in range(count):
-            scores[h] -= _prior_chi2(poses[h], track, priors[2], priors[3])
+            track_term = _prior_chi2(poses[h], track, priors[2], priors[3])
+            scores[h] -= track_term
+            unreported[h] -= track_term
     best = np.argmax(scores)
     runner_up, found = 0.0, False
     for h in range(count):
@@ -473,4 +477,4 @@ def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, c
         if far or abs(_wrap(poses[h, 2] - poses[best, 2])) > distinct[1]:
             runner_up = scores[h] if not found else max(runner_up, scores[h])
             found = True
-    return best, scores[best] - runner_up
+    return best, scores[best] - runner_up, scores, unreported

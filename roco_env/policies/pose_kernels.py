@@ -55,8 +55,8 @@ __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMa
            "attempt_rounds", "committed_map", "compact_pairs", "damped_step",
            "edge_similarity", "edge_similarity_sums", "empty_match_cache", "evaluate_edges",
            "gated_pairs", "inverse_covariances", "max_weight_assignment", "normal_sums",
-           "placed_centres", "placed_landmarks", "pose_edges", "prior_terms", "refine_pose",
-           "refine_starts", "rotate_information", "scored_pairs",
+           "pair_information", "placed_centres", "placed_landmarks", "pose_edges",
+           "prior_terms", "refine_pose", "refine_starts", "rotate_information", "scored_pairs",
            "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
@@ -831,23 +831,14 @@ def _refine_sorted(initial, sorted_land, own_poses, own_info, settings):
         return pose, False
     previous = np.full(n_own, -2, dtype=np.int64)
     nearest = np.empty(n_own, dtype=np.int64)
-    reach = gate * (1.0 + 1e-6)
     for _ in range(2):
         c, s = math.cos(pose[2]), math.sin(pose[2])
         count = 0
         for q in range(n_own):
             x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
             y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
-            best, best_p = gate, -1
-            for k in range(np.searchsorted(sorted_x, x - reach), n_land):
-                if sorted_x[k] > x + reach:
-                    break
-                p = by_x[k]
-                d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
-                if d < best or (d == best and 0 <= p < best_p):
-                    best, best_p = d, p
-            nearest[q] = best_p
-            count += best_p >= 0
+            nearest[q] = _nearest(x, y, land_poses, by_x, sorted_x, gate)
+            count += nearest[q] >= 0
         if count < min_matches:
             return initial.copy(), False
         if np.array_equal(nearest, previous):
@@ -857,6 +848,63 @@ def _refine_sorted(initial, sorted_land, own_poses, own_info, settings):
         edges = pose_edges(land_poses[nearest[box]], own_poses[box], own_info[box])
         pose = solve_pose(pose, edges, _no_prior(), settings.solver)[0]
     return pose, True
+
+
+@njit(cache=True)
+def _nearest(x, y, land_poses, by_x, sorted_x, gate):
+    """The landmark (index into land_poses (L, 3)) nearest the centre (x, y) and closer than
+    ``gate`` m, the lowest index among equal distances; -1 when none is. by_x (L,): the
+    landmarks' order by x, sorted_x (L,) their sorted x: only those within the gate in x
+    (with a margin far above rounding) are measured."""
+    reach = gate * (1.0 + 1e-6)
+    best, best_p = gate, -1
+    for k in range(np.searchsorted(sorted_x, x - reach), land_poses.shape[0]):
+        if sorted_x[k] > x + reach:
+            break
+        p = by_x[k]
+        d = math.sqrt((land_poses[p, 0] - x) ** 2 + (land_poses[p, 1] - y) ** 2)
+        if d < best or (d == best and 0 <= p < best_p):
+            best, best_p = d, p
+    return best_p
+
+
+@njit(cache=True)
+def pair_information(landmarks, own, pose, gate, slack_t, slack_r):
+    """Information (3, 3) of the agent's pose (3,) (x m, y m, yaw rad) from the pairs of each
+    of its boxes (``own`` = (poses (K, 3) in its frame, mapped by ``pose``, var_t (K,),
+    var_r (K,))) with the nearest landmark (``landmarks``, the same three arrays, L rows)
+    closer than ``gate`` m, as the refinement pairs them, and the number of pairs (the
+    ambiguity diagnosis, ``roco_env.policies.ambiguity``, step 1).
+
+    A pair's position residual has variance ``land_var_t + own_var_t + slack_t`` (m^2) in x
+    and y, its heading residual ``land_var_r + own_var_r + slack_r`` (rad^2); the mapped
+    centre's derivative in yaw is its offset from the agent's origin turned by 90 degrees."""
+    land_poses, land_var_t, land_var_r = landmarks
+    own_poses, own_var_t, own_var_r = own
+    info = np.zeros((3, 3))
+    if land_poses.shape[0] == 0:
+        return info, 0
+    by_x = np.argsort(land_poses[:, 0])
+    sorted_x = land_poses[by_x, 0]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    count = 0
+    for q in range(own_poses.shape[0]):
+        x = c * own_poses[q, 0] - s * own_poses[q, 1] + pose[0]
+        y = s * own_poses[q, 0] + c * own_poses[q, 1] + pose[1]
+        p = _nearest(x, y, land_poses, by_x, sorted_x, gate)
+        if p < 0:
+            continue
+        w_t = 1.0 / (land_var_t[p] + own_var_t[q] + slack_t)
+        w_r = 1.0 / (land_var_r[p] + own_var_r[q] + slack_r)
+        lever_x, lever_y = -(y - pose[1]), x - pose[0]
+        info[0, 0] += w_t
+        info[0, 2] += w_t * lever_x
+        info[1, 2] += w_t * lever_y
+        info[2, 2] += w_t * (lever_x * lever_x + lever_y * lever_y) + w_r
+        count += 1
+    info[1, 1] = info[0, 0]
+    info[2, 0], info[2, 1] = info[0, 2], info[1, 2]
+    return info, count
 
 
 @njit(cache=True)

@@ -10,8 +10,8 @@ optional ``bev_features(visibility, agent, grid)`` -> ``build_messages(...)``
 import importlib
 from typing import Any
 
+from roco_env.sensing.bev_grid import BevGrid
 from roco_env.sensing.detector import PRESETS, AgentDetections, Detector, make_detector
-from roco_env.sensing.grid import BevGrid
 from roco_env.sensing.messages import Message, build_messages, select_collaborators
 from roco_env.sensing.visibility import LidarModel, RayHits, Visibility, compute_visibility
 

@@ -1,6 +1,6 @@
 """BEV feature maps per agent (torch) and their warping between agent frames.
 
-Maps are float32 tensors (C, H, W) on a :class:`~roco_env.sensing.grid.BevGrid`, in
+Maps are float32 tensors (C, H, W) on a :class:`~roco_env.sensing.bev_grid.BevGrid`, in
 an agent's sensor frame, with that module's axis convention (used by
 :func:`bev_features` and :func:`warp_bev` alike). Values live at cell centres, which
 is exactly torch's ``align_corners=False`` convention, so :func:`warp_bev` uses
@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from roco_env.sensing.grid import BevGrid, affine_theta, cell_polar
+from roco_env.sensing.bev_grid import BevGrid, affine_theta, cell_polar
 from roco_env.sensing.visibility import Visibility
 
 __all__ = ["CHANNELS", "BevGrid", "bev_features", "placement", "warp_bev", "zero_padded"]

@@ -21,7 +21,7 @@ minus mast height in replays). So a detector sees the same heights for a car nex
 it on a hill as on flat ground.
 
 The raster (:data:`LIDAR_CHANNELS`, (C, H, W) float32 on a :class:`BevGrid`,
-the axis convention of :mod:`roco_env.sensing.grid`):
+the axis convention of :mod:`roco_env.sensing.bev_grid`):
   0 ``log_points``: log(1 + sampled points in the cell);
   1 ``max_height``: highest point in the cell (m above the reference, 0 if none);
   2 ``mean_height``: mean point height in the cell (m, 0 if none);
@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.sensing.grid import BevGrid, cell_polar
+from roco_env.sensing.bev_grid import BevGrid, cell_polar
 from roco_env.sensing.lidar_kernels import Cells, CellSums, bin_points
 from roco_env.sensing.visibility import Visibility
 from roco_env.traffic.state import WorldState

@@ -4,6 +4,6 @@
 :mod:`~roco_env.stress.space` (the parameters and their ranges, the scenario of one
 evaluation), :mod:`~roco_env.stress.objectives` (an evaluation's objective from episode
 samples), :mod:`~roco_env.stress.study` (the Optuna study in SQLite, workers, resuming)
-and :mod:`~roco_env.stress.report` (the worst scenarios, report.md, plot, importances).
+and :mod:`~roco_env.stress.stress_report` (the worst scenarios, report.md, plot, importances).
 See docs/stress.md.
 """

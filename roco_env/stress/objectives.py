@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from roco_env.metrics import success_rate
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 
 OBJECTIVES = ("harm", "success", "ap70", "gap")
 HARM_MARGIN = 0.5  # m: a pose counts as harmed when its error grew by more than this

@@ -35,7 +35,7 @@ from roco_env.scenario import save_scenario
 from roco_env.schema import ConfigError, build, spec
 from roco_env.stress.objectives import OBJECTIVES, Infeasible, evaluate
 from roco_env.stress.space import SearchSpace, scenario_for, suggest
-from roco_env.sweeps.spec import parse_policy_spec
+from roco_env.sweeps.text_specs import parse_policy_spec
 
 SAMPLERS = ("tpe", "cmaes")
 BACKENDS = ("local", "ray")

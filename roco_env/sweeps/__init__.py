@@ -7,7 +7,7 @@
     print(write_report(outcome.records, "runs/cmp").markdown)
 """
 
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report
 

@@ -4,7 +4,8 @@ A setting is a cell without its seed (scenario, density, noise, policy, steps,
 overrides). Per setting: AP@0.3/0.5/0.7 = mean over seeds of each episode's
 dataset AP (and the std of AP@0.7); RPE median/p95 and Success@1/@2/@3 are
 computed on the pooled samples of all seeds (so the tail is not averaged away);
-matching precision/recall, the correction share and the time per policy call (each
+matching precision/recall, the correction share, the bytes received per step (the
+network stage on; NaN without) and the time per policy call (each
 episode's median warm call, see :mod:`roco_env.sweeps.episode`) are means over
 seeds; ``steps_played`` is the fewest env steps a seed's episode played (below
 ``steps`` when a replay's frames ran out).
@@ -20,7 +21,7 @@ import numpy as np
 from roco_env.sweeps.stats import nanmean, nanstd, pose_error_summary
 
 AP_KEYS = ("ap30", "ap50", "ap70")
-MEAN_KEYS = ("match_precision", "match_recall", "correction_share")
+MEAN_KEYS = ("match_precision", "match_recall", "correction_share", "bytes_received")
 
 
 @dataclass
@@ -40,10 +41,10 @@ class SummaryRow:
     after: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def flat(self) -> dict:
-        """Plain dict for CSV/JSON (no samples)."""
+        """Plain dict for CSV/JSON (no samples; each override a column of its own)."""
         return {"scenario": self.scenario, "density": self.density, "noise": self.noise,
                 "policy": self.policy, "steps": self.steps, "seeds": self.seeds,
-                "failed": self.failed, **self.metrics}
+                "failed": self.failed, **self.overrides, **self.metrics}
 
 
 def _value(metrics: dict, key: str) -> float:

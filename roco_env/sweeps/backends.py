@@ -23,7 +23,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 
 from roco_env.policies import register_policy, registered_policies
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import error_record
 
 BACKENDS = ("local", "ray")

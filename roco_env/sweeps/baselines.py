@@ -21,17 +21,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from roco_env.sweeps.backends import BACKENDS
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.spec import Scalar, format_scalar
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
 from roco_env.sweeps.sweep import run_sweep
 from roco_env.sweeps.sweep_report import write_report
+from roco_env.sweeps.text_specs import Scalar, format_scalar
 
 PAPER_NOISE = (0.0, 0.2, 0.4, 0.6, 0.8)
 BUILTIN = ("identity", "coalign", "roco", "oracle")
 WITH_ANTIALIAS = ("identity", "coalign", "roco", "roco_antialias", "oracle")
 ANTIALIAS_NOISE = (0.0, 0.4, 0.8, 1.2, 1.5)
 ANTIALIAS_SWITCHES = ("use_hypotheses", "use_size", "use_free_space", "use_mutual_detection",
-                      "use_track")
+                      "use_track", "use_ambiguity")
 LARGE_NOISE = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
 ROSTER = ("identity", "coalign", "roco", "ransac", "v2i_calib", "freealign", "roco_fallback",
           "oracle")
@@ -42,6 +42,12 @@ PAPER_TABLE1_POLICIES = ("identity", "coalign", "roco", "roco_antialias", "roco_
 ROCO_POOLED = "roco:pooled_significance=0.9999"
 POOLED_POLICIES = ("coalign", "roco", ROCO_POOLED)
 SMOKE = {"steps": 2, "seeds": 1, "overrides": {"cavs": 2}}
+# The network stage (docs/network.md): late messages and the aligners that know it.
+LATE = {"delay": "fixed"}
+DELAY_POLICIES = ("identity", "roco", "compensate:base=roco")
+MOTION_POLICIES = ("coalign", "roco", "compensate:base=coalign", "compensate:base=roco",
+                   "compensate:base=roco,mode=static")
+BUDGETS = (100, 300, 1000, 3000, 10000, 30000, 100000, 300000, 1000000)
 # The realistic preset's box-centre and yaw noise (roco_env.sensing.detector.DetectorParams) times 1.5:
 # clean AP@0.7 on dair_like falls to the RoCo paper's DAIR-V2X level (about 60).
 DETECTOR_NOISE_X15 = {"detector.params.sigma_xy": 0.09, "detector.params.sigma_xy_per_m": 0.003,
@@ -79,6 +85,7 @@ class Experiment:
     steps: int = 40
     densities: tuple[float | None, ...] = (None,)
     overrides: dict[str, Scalar] = field(default_factory=lambda: dict(PROTOCOL))
+    grid: dict[str, tuple[Scalar, ...]] = field(default_factory=dict)
 
     def cells(self, smoke: bool = False, seeds: int | None = None,
               steps: int | None = None) -> list[Cell]:
@@ -89,7 +96,7 @@ class Experiment:
         seeds, steps = seeds or self.seeds, steps or self.steps
         overrides = {**self.overrides, **(SMOKE["overrides"] if smoke else {})}
         return build_grid(self.scenarios, self.noises, self.policies, list(range(seeds)), steps,
-                          densities=self.densities, overrides=overrides)
+                          densities=self.densities, overrides=overrides, axes=self.grid)
 
     def command(self, out: str) -> str:
         """The equivalent ``roco-env compare`` command line."""
@@ -101,6 +108,8 @@ class Experiment:
             words += ["--density", *(format_scalar(float(d)) for d in self.densities)]
         for key, value in self.overrides.items():
             words += ["--set", f"{key}={format_scalar(value)}"]
+        for key, values in self.grid.items():
+            words += ["--grid", f"{key}={','.join(map(format_scalar, values))}"]
         words += ["--out", f"{out}/{self.name}", "--title", self.name]
         return shlex.join(words)
 
@@ -201,6 +210,44 @@ EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("late_knob_detector", "Knob: 1.5 x the detector's localisation noise",
                ("dair_like",), (0.0, 0.4, 0.8), BUILTIN[:3],
                overrides={**PROTOCOL, **DETECTOR_NOISE_X15}),
+    Experiment("v2xvit_protocol",
+               "V2X-ViT's protocol: 0.2 m / 0.2 deg pose noise and a 100 ms delay, late and "
+               "learned intermediate fusion of the learned detector",
+               ("v2xset_like",), (0.2,),
+               ("identity", "coalign", "roco", "compensate:base=roco", "oracle"), seeds=1,
+               steps=10, overrides={**PROTOCOL, "detector": "learned", **LATE},
+               grid={"delay_ms": (0, 100), "fusion": ("late", "intermediate"),
+                     "comm.compensation": ("none", "track")}),
+    Experiment("delay_sweep",
+               "AP against a fixed delay of 0-400 ms, without and with the ego's compensation",
+               ("highway_dense", "v2xset_like"), (0.0,), DELAY_POLICIES, seeds=1, steps=20,
+               overrides={**PROTOCOL, **LATE},
+               grid={"delay_ms": (0, 100, 200, 300, 400),
+                     "comm.compensation": ("none", "track")}),
+    Experiment("delay_motion",
+               "Motion read as pose error: the pose error each aligner adds at pose noise 0 "
+               "and 100-300 ms, without and with compensation",
+               ("highway_dense",), (0.0,), MOTION_POLICIES, seeds=1, steps=20,
+               overrides={**PROTOCOL, **LATE}, grid={"delay_ms": (100, 200, 300)}),
+    Experiment("loss_sweep",
+               "AP against the loss rate, independent and bursty losses; the ego fusing only "
+               "this step's messages (max age 50 ms) or the newest it holds (1000 ms)",
+               ("v2xset_like",), (0.2,), ("identity", "roco"), seeds=2, steps=20,
+               grid={"loss": ("bernoulli", "gilbert_elliott"),
+                     "loss_rate": (0.0, 0.1, 0.2, 0.3, 0.5, 0.7),
+                     "comm.max_age_ms": (50, 1000)}),
+    Experiment("loss_limit",
+               "Loss towards 1: late fusion against the no-fusion reference",
+               ("v2xset_like",), (0.2,), ("identity", "roco"), seeds=2, steps=20,
+               overrides={**PROTOCOL, "loss": "bernoulli"},
+               grid={"loss_rate": (0.5, 0.8, 0.9, 0.95, 1.0), "comm.max_age_ms": (50, 1000),
+                     "fusion": ("late", "none")}),
+    Experiment("bandwidth",
+               "AP against the per-link budget (bytes per message): boxes (late fusion) vs "
+               "feature maps (intermediate fusion, sparse float16)",
+               ("v2xset_like",), (0.0,), ("identity",), seeds=1, steps=10,
+               overrides={**PROTOCOL, "detector": "learned", "comm.feature_codec": "sparse_f16"},
+               grid={"comm.budget_bytes": BUDGETS, "fusion": ("late", "intermediate")}),
 )
 
 

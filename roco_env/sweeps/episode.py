@@ -14,6 +14,8 @@ Scores (docs/metrics.md), pooled over every evaluated agent and step:
   ids of the info returned *with* the observation the policy saw;
 * correction share: frames (agent-steps with >= 1 collaborator) where the action
   changed a filled slot's reported pose;
+* with the network stage on (docs/network.md): the bytes an agent receives per step,
+  mean over agent-steps;
 * time per call: median wall time (ms) of one *warm* policy call, stored beside the
   metrics (a wall time, not reproducible): each agent's first call is left out, as it
   includes one-off costs (numba compiling the kernels in a fresh worker, the policy's
@@ -36,10 +38,10 @@ from roco_env.metrics import DEFAULT_IOU_THRESHOLDS, APAccumulator, matching_pre
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.spec import merge_env_overrides
 from roco_env.rollout import play_episode
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.records import error_record, ok_record
-from roco_env.sweeps.spec import parse_policy_spec
 from roco_env.sweeps.stats import nanmean, pose_error_summary
+from roco_env.sweeps.text_specs import parse_policy_spec
 
 SAMPLE_DECIMALS = 3  # RPE samples are stored to 1 mm / 0.001 deg (plots, pooled percentiles)
 _ACTION_EPS = 1e-9  # |correction| below this counts as "kept the reported pose"
@@ -58,6 +60,7 @@ class EpisodeScorer:
     precision: list = field(default_factory=list)
     recall: list = field(default_factory=list)
     applied: list = field(default_factory=list)
+    received: list = field(default_factory=list)  # bytes per agent-step (network on)
     call_seconds: dict[str, list[float]] = field(default_factory=dict)  # by agent, in order
     decisions: int = 0  # agent-steps with >= 1 collaborator
     steps: int = 0  # env steps played (fewer than asked when a replay's frames run out)
@@ -91,6 +94,8 @@ class EpisodeScorer:
         if "rpe_before" in info:
             self.before.append(filled_rpe_rows(info["rpe_before"]))
             self.after.append(filled_rpe_rows(info["rpe_after"]))
+        if "bytes_received" in info:
+            self.received.append(info["bytes_received"])
 
     def add_call(self, agent: str, seconds: float) -> None:
         """Record the wall time (s) of one call of ``agent``'s policy."""
@@ -112,6 +117,8 @@ class EpisodeScorer:
         metrics["match_precision"] = nanmean(self.precision)
         metrics["match_recall"] = nanmean(self.recall)
         metrics["correction_share"] = nanmean(self.applied)
+        if self.received:
+            metrics["bytes_received"] = nanmean(self.received)
         metrics["frames"] = self.ap.n_frames  # evaluated agent-steps
         metrics["decisions"] = self.decisions  # agent-steps with >= 1 collaborator
         metrics["matched_frames"] = len(self.precision)  # decisions with an alignment result

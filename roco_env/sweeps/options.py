@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import argparse
 
-from roco_env.sweeps.grid import Cell, build_grid, validate_grid
-from roco_env.sweeps.spec import parse_overrides
+from roco_env.sweeps.cells import Cell, build_grid, validate_grid
+from roco_env.sweeps.text_specs import parse_overrides
 
 DEFAULT_SCENARIO = "crowded_intersection"
 

@@ -3,6 +3,10 @@
 * AP@0.7 vs noise level, one line per policy, one panel per scenario/density;
 * AP@0.7 vs density, one line per policy, one panel per scenario/noise level;
   panels of both share their y axis, so heights compare across panels;
+* AP@0.7 vs a grid axis (any scenario field a sweep varies), one line per policy, one
+  panel per scenario, density, noise level and the other overrides; numbers on a linear
+  axis (logarithmic when they are all > 0 and span two decades or more), other values
+  (names, null) as evenly spaced categories;
 * relative-pose-error distribution without and with correction (the paper's
   Figure 7 analogue): histograms of translation (m) and rotation (deg) error, one
   row of panels per noise level. Bins are log-spaced and span every sample (no
@@ -25,7 +29,7 @@ from matplotlib.figure import Figure
 
 from roco_env.sweeps.aggregate import SummaryRow
 from roco_env.sweeps.episode import SAMPLE_DECIMALS
-from roco_env.sweeps.tables import density_label, noise_label
+from roco_env.sweeps.tables import axis_label, density_label, is_number, noise_label, value_order
 
 MAX_NOISE_ROWS = 4  # Figure-7 panels: at most this many noise levels (the highest ones)
 RPE_BINS = 40  # log-spaced histogram bins from the resolution to the largest error
@@ -94,6 +98,35 @@ def ap_vs_density_figure(rows: Sequence[SummaryRow]) -> Figure:
 
 def ap_vs_density(rows: Sequence[SummaryRow], path: Path) -> Path:
     return _save(ap_vs_density_figure(rows), path)
+
+
+def axis_plot_name(axis: str) -> str:
+    """The file name of the plot of AP@0.7 against grid axis ``axis``."""
+    return "ap70_vs_" + "".join(c if c.isalnum() else "_" for c in axis) + ".png"
+
+
+def ap_vs_axis_figure(rows: Sequence[SummaryRow], axis: str) -> Figure:
+    """AP@0.7 against the values of override ``axis``."""
+    values = sorted({axis_label(r.overrides.get(axis)): r.overrides.get(axis)
+                     for r in rows}.values(), key=value_order)
+    numeric = all(is_number(v) for v in values)
+    position = {axis_label(v): float(v) if numeric else float(k) for k, v in enumerate(values)}
+    fig = _line_figure(
+        rows, lambda r: (r.scenario, r.density, r.noise,
+                         tuple((k, axis_label(v)) for k, v in r.overrides.items() if k != axis)),
+        lambda p: ", ".join([p[0], f"density {density_label(p[1])}", f"noise {noise_label(p[2])}",
+                             *(f"{k}={v}" for k, v in p[3])]),
+        lambda r: position[axis_label(r.overrides.get(axis))], axis)
+    for ax in fig.axes:
+        if numeric and min(values) > 0 and max(values) >= 100 * min(values):
+            ax.set_xscale("log")
+        elif not numeric:
+            ax.set_xticks(list(position.values()), list(position))
+    return fig
+
+
+def ap_vs_axis(rows: Sequence[SummaryRow], axis: str, path: Path) -> Path:
+    return _save(ap_vs_axis_figure(rows, axis), path)
 
 
 def _error_histogram(ax: Axes, errors: np.ndarray, bins: np.ndarray, unit: str, label: str,

@@ -26,8 +26,8 @@ from typing import Any
 import roco_env
 from roco_env.policies.base import policy_input_files as declared_files
 from roco_env.scenario import ScenarioConfig, load_scenario, scenario_to_dict
-from roco_env.sweeps.grid import Cell
-from roco_env.sweeps.spec import parse_policy_spec
+from roco_env.sweeps.cells import Cell
+from roco_env.sweeps.text_specs import parse_policy_spec
 
 PACKAGE_ROOT = Path(roco_env.__file__).resolve().parent
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from roco_env.schema import ConfigError, build, spec
-from roco_env.sweeps.grid import Cell
+from roco_env.sweeps.cells import Cell
 
 RECORD_VERSION = 1
 TRACEBACK_FRAMES = 6
@@ -86,14 +86,24 @@ class RecordMetrics:
     success1_before: float | None = _share()
     success2_before: float | None = _share()
     success3_before: float | None = _share()
+    worse_share: float | None = _share("pairs whose correction added > 0.5 m of translation "
+                                       "error")
     match_precision: float | None = _share()
     match_recall: float | None = _share()
     correction_share: float | None = _share()
+    bytes_received: float | None = spec(None, low=0.0, doc="bytes an agent received per step "
+                                        "(the network stage on), mean")
     frames: int | None = _count()
     decisions: int | None = _count()
     matched_frames: int | None = _count()
     pairs: int | None = _count()
     steps: int | None = _count()
+    # cells under attack (roco_env.sweeps.attack): over the honest egos
+    ap70_clean: float | None = _share("dataset AP@0.7 of the same egos without the attack")
+    attack_success: float | None = _share("ego-steps whose AP@0.7 fell by > 5 points")
+    detection_rate: float | None = _share("attackers' slots rejected")
+    honest_rejected: float | None = _share("honest collaborators' slots rejected")
+    clean_rejected: float | None = _share("the same without the attack")
 
 
 @dataclass
@@ -115,7 +125,7 @@ class RecordHead:
 
 @dataclass
 class RecordCell:
-    """A record's ``cell`` (:meth:`roco_env.sweeps.grid.Cell.to_dict`): noise level s
+    """A record's ``cell`` (:meth:`roco_env.sweeps.cells.Cell.to_dict`): noise level s
     (sigma_t = s m, sigma_r = s deg), env steps, traffic density (null = the scenario's)."""
 
     scenario: str = spec("")

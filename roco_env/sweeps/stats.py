@@ -38,15 +38,24 @@ def _percentiles(samples: np.ndarray, suffix: str) -> dict[str, float]:
     return out
 
 
-def pose_error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
-    """RPE median/p95 and Success@1m1deg / @2m2deg / @3m3deg before and after correction.
+WORSE_BY_M = 0.5  # a correction that adds more than this to the translation error made it worse
 
-    ``before``/``after``: (P, 2) finite rows [translation m, rotation deg]. Keys:
-    ``rpe_t_median`` (m), ``rpe_r_p95`` (deg), ``success1``, ... and the same with
-    a ``_before`` suffix. NaN where there are no samples.
+
+def pose_error_summary(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
+    """RPE median/p95 and Success@1m1deg / @2m2deg / @3m3deg before and after correction,
+    and the share of pairs whose correction made the translation error more than
+    :data:`WORSE_BY_M` m worse than the reported pose's.
+
+    ``before``/``after``: (P, 2) finite rows [translation m, rotation deg], row k of both
+    the same pair. Keys: ``rpe_t_median`` (m), ``rpe_r_p95`` (deg), ``success1``, ... and
+    the same with a ``_before`` suffix, and ``worse_share``. NaN where there are no samples.
     """
-    out = _percentiles(np.asarray(before, dtype=float).reshape(-1, 2), "_before")
-    out.update(_percentiles(np.asarray(after, dtype=float).reshape(-1, 2), ""))
+    before = np.asarray(before, dtype=float).reshape(-1, 2)
+    after = np.asarray(after, dtype=float).reshape(-1, 2)
+    out = _percentiles(before, "_before")
+    out.update(_percentiles(after, ""))
+    out["worse_share"] = float(np.mean(after[:, 0] - before[:, 0] > WORSE_BY_M)) \
+        if after.shape[0] and after.shape == before.shape else float("nan")
     for lam in SUCCESS_THRESHOLDS:
         out[f"success{lam}_before"] = success_rate(np.reshape(before, (-1, 2)), lam)
         out[f"success{lam}"] = success_rate(np.reshape(after, (-1, 2)), lam)

@@ -27,8 +27,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from roco_env.sweeps.backends import CellFn, run_cells
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_cell
-from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.provenance import Provenance
 from roco_env.sweeps.store import ResultStore
 

@@ -32,7 +32,7 @@ _LAZY = {
     "DairReplay": "roco_env.traffic.replay",
     "FramesSource": "roco_env.traffic.frames",
     "Frame": "roco_env.traffic.frames",
-    "export_opv2v": "roco_env.traffic.export",
+    "export_opv2v": "roco_env.traffic.opv2v_export",
 }
 
 __all__ = ["make_traffic_source", "WorldState", "TrafficSource", "OBJECT_CLASSES",

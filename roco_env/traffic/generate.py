@@ -25,7 +25,7 @@ from roco_env.scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
-from roco_env.traffic.export import export_opv2v, prepare_export_folder
+from roco_env.traffic.opv2v_export import export_opv2v, prepare_export_folder
 from roco_env.traffic.state import WorldState
 from roco_env.traffic.synthetic import make_synthetic
 
@@ -113,7 +113,7 @@ def generate(layout: str, density: float, cavs: int, rsus: int, seed: int,
 
     output: YAML path to write (re-validated by loading it back). export_dir: write
     ``frames`` preview frames there as OPV2V label folders (a non-empty folder only
-    with ``overwrite``, see :func:`roco_env.traffic.export.export_opv2v`).
+    with ``overwrite``, see :func:`roco_env.traffic.opv2v_export.export_opv2v`).
     """
     config = stress_config(layout, density, cavs, rsus, seed, min_gap)
     path = None if output is None else scenario_file_name(output, "scenario output")

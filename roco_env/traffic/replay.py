@@ -12,7 +12,7 @@ OPV2V / V2XSet (``traffic.source: opv2v``, ``traffic.path`` = one scenario folde
   sizes), speed (km/h)}}``; box centre = location + center. Converted with
   y -> -y, yaw -> -yaw (radians). Agent folders with id >= 0 are CAVs (sorted by
   id; a folder named ``+<id>`` comes first: cav_0, the OpenCOOD ego of an
-  export, see :mod:`roco_env.traffic.export`), negative ids are RSUs (V2XSet;
+  export, see :mod:`roco_env.traffic.opv2v_export`), negative ids are RSUs (V2XSet;
   ordered -1, -2, ...). Every agent folder is replayed: ``agents.cavs`` and
   ``agents.rsus`` must equal the folder counts, and every folder must hold the
   same frames (both checked at load, errors naming the fields / the folder and

@@ -17,8 +17,8 @@ import numpy as np
 from PIL import Image
 
 from roco_env.render import GifStream
+from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
-from roco_env.sweeps.grid import Cell
 from roco_env.sweeps.options import add_episode_options, episode_cell
 
 

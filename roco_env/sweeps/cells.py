@@ -1,8 +1,11 @@
-"""The sweep grid: scenario x density x noise level x policy x seed, one episode per cell.
+"""The sweep grid: scenario x density x grid axes x noise level x policy x seed, one
+episode per cell.
 
 A :class:`Cell` is plain data (picklable, JSON-able) with a stable text ``key``
 used for resuming: the same settings always give the same key.
-Noise level ``s`` means sigma_t = s m and sigma_r = s deg (the paper's "s/s").
+Noise level ``s`` means sigma_t = s m and sigma_r = s deg (the paper's "s/s"). A grid
+axis (``roco-env compare --grid KEY=V1,V2``) makes any other scenario field an axis: each
+cell carries its value among its overrides (so its key, and resuming, see it).
 """
 
 from __future__ import annotations
@@ -14,7 +17,12 @@ from typing import Any
 
 from roco_env.env import check_seed
 from roco_env.scenario import load_scenario
-from roco_env.sweeps.spec import Scalar, format_scalar, parse_policy_spec, validate_policy_spec
+from roco_env.sweeps.text_specs import (
+    Scalar,
+    format_scalar,
+    parse_policy_spec,
+    validate_policy_spec,
+)
 
 # Overrides the grid sets itself; a grid-level override may not fight them.
 GRID_OWNED_OVERRIDES = ("sigma_t", "sigma_r", "density", "noise.sigma_t", "noise.sigma_r",
@@ -26,7 +34,7 @@ class Cell:
     """One episode of the sweep.
 
     scenario: scenario name or YAML path; noise: level s (sigma_t = s m, sigma_r = s deg),
-    None = the scenario's own sigma_t / sigma_r (``roco-env stress`` cells); policy: canonical policy spec (see :mod:`roco_env.sweeps.spec`); seed: env reset seed;
+    None = the scenario's own sigma_t / sigma_r (``roco-env stress`` cells); policy: canonical policy spec (see :mod:`roco_env.sweeps.text_specs`); seed: env reset seed;
     steps: env steps (max_cycles); density: traffic density override, None = scenario
     default; overrides: further scenario overrides as sorted (key, value) pairs.
     """
@@ -85,15 +93,19 @@ def build_grid(
     steps: int,
     densities: Sequence[float | None] = (None,),
     overrides: Mapping[str, Scalar] | None = None,
+    axes: Mapping[str, Sequence[Scalar]] | None = None,
 ) -> list[Cell]:
-    """All cells of the grid in a stable order (scenario, density, noise, policy, seed).
+    """All cells of the grid in a stable order (scenario, density, axes, noise, policy,
+    seed). ``axes``: scenario field -> its values, one more dimension each.
 
     Checks shapes and ranges that need no env (non-empty lists, steps >= 1, noise >= 0,
     density >= 0, seeds >= 0, registered policy names); see :func:`validate_grid` for the
     full check.
     """
+    axes = dict(axes or {})
     for name, values in (("scenarios", scenarios), ("noises", noises), ("policies", policies),
-                         ("seeds", seeds), ("densities", densities)):
+                         ("seeds", seeds), ("densities", densities),
+                         *((f"grid axis {key}", values) for key, values in axes.items())):
         if len(values) == 0:
             raise ValueError(f"{name} must not be empty")
     if int(steps) != steps or steps < 1:
@@ -107,18 +119,24 @@ def build_grid(
     for seed in seeds:
         check_seed(seed)
     extra = dict(overrides or {})
-    clash = sorted(set(extra) & set(GRID_OWNED_OVERRIDES))
+    clash = sorted((set(extra) | set(axes)) & set(GRID_OWNED_OVERRIDES))
     if clash:
         raise ValueError(
             f"override {clash[0]!r} is set by the grid; use the noise/density lists instead "
             "(roco-env: --noise / --density)"
         )
+    both = sorted(set(extra) & set(axes))
+    if both:
+        raise ValueError(f"{both[0]!r} is both an override and a grid axis; give it once "
+                         "(roco-env: --set or --grid)")
     labels = [parse_policy_spec(p).label for p in policies]
-    extra_items = tuple(sorted(extra.items()))
+    settings = [tuple(sorted({**extra, **dict(zip(axes, values, strict=True))}.items()))
+                for values in itertools.product(*axes.values())]
     cells = [
         Cell(scenario=s, noise=float(n), policy=p, seed=int(seed), steps=int(steps),
-             density=None if d is None else float(d), overrides=extra_items)
-        for s, d, n, p, seed in itertools.product(scenarios, densities, noises, labels, seeds)
+             density=None if d is None else float(d), overrides=items)
+        for s, d, items, n, p, seed in itertools.product(scenarios, densities, settings, noises,
+                                                         labels, seeds)
     ]
     unique = {c.key: c for c in cells}
     return list(unique.values())

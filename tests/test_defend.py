@@ -1,0 +1,163 @@
+"""The ``defend`` policy wrapper: consistency after alignment, consensus and the correction
+test reject liars through the gate mode's explicit reject, and keep honest collaborators."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import roco_env
+from roco_env.policies import make_policy
+from roco_env.policies.defend import EGO, Defend, PairEvidence, clear_view, pair_evidence
+from roco_env.policies.spec import merge_env_overrides
+
+CAR = (4.5, 1.9, 1.6)
+
+
+def cars(*xy: tuple[float, float]) -> np.ndarray:
+    """Car boxes (k, 7) at the given centres, heading along x."""
+    return np.array([[x, y, 0.8, *CAR, 0.0] for x, y in xy], dtype=float).reshape(-1, 7)
+
+
+def observation(own: np.ndarray, collaborators: list[tuple[np.ndarray, np.ndarray]],
+                slots: int = 4, k: int = 32) -> dict:
+    """An aligned observation: the ego's boxes and, per collaborator, (boxes, pose) in the
+    ego frame; diagnostics all zero (no correction)."""
+    obs = {"boxes": np.zeros((k, 7)), "box_mask": np.zeros(k, np.int8),
+           "collab_mask": np.zeros(slots, np.int8), "collab_rel_poses": np.zeros((slots, 3)),
+           "collab_boxes": np.zeros((slots, k, 7)), "collab_box_mask": np.zeros((slots, k), np.int8),
+           "diagnostics": np.zeros((slots, 8))}
+    obs["boxes"][: len(own)], obs["box_mask"][: len(own)] = own, 1
+    for slot, (boxes, pose) in enumerate(collaborators):
+        obs["collab_mask"][slot] = 1
+        obs["collab_rel_poses"][slot] = pose
+        obs["collab_boxes"][slot, : len(boxes)] = boxes
+        obs["collab_box_mask"][slot, : len(boxes)] = 1
+        obs["diagnostics"][slot, 6] = np.hypot(*pose[:2])
+    return obs
+
+
+def info(slots: int) -> dict:
+    return {"agent": "ego", "collaborators": [f"c{j}" for j in range(slots)]}
+
+
+# A scene every source sees whole: a row of cars along y = 0 and y = 8, 10 m apart.
+SCENE = [(x, y) for x in range(-30, 31, 10) for y in (0.0, 8.0)]
+
+
+def test_clear_view_is_blocked_by_a_box_on_the_sight_line_only():
+    occluders = np.array([[10.0, 0.0], [20.0, 0.0], [0.0, 0.0]])
+    seen = clear_view(np.zeros(2), np.array([[20.0, 0.0], [10.0, 0.0], [0.0, 15.0],
+                                             [50.0, 0.0]]),
+                      occluders, reach=40.0, radius=1.5, own=1.0)
+    assert seen.tolist() == [False, True, True, False]  # behind a car; the car; aside; far
+
+
+def test_pair_evidence_counts_matches_conflicts_and_unconfirmed_boxes():
+    mine = cars((10, 0), (20, 5), (30, -5))
+    theirs = cars((10.3, 0), (22.5, 5))  # the first agrees, the second overlaps 2.5 m off
+    evidence = pair_evidence(mine, theirs, np.zeros(2), np.concatenate([mine, theirs])[:, :2],
+                             match_m=1.0, view_m=40.0, occlusion_m=1.5)
+    assert evidence == PairEvidence(1, 1, 1)  # the third is in their clear view, not seen
+
+
+def test_a_collaborator_that_disagrees_with_everyone_is_rejected_and_the_rest_kept():
+    honest = [(cars(*SCENE), np.array([5.0, 4.0, 0.0])) for _ in range(2)]
+    liar = (cars(*[(x + 3.0, y) for x, y in SCENE]), np.array([-5.0, 4.0, 0.0]))
+    defend = Defend(use_correction=False)
+    action = defend(observation(cars(*SCENE), [honest[0], liar, honest[1]]), info(4))
+    assert action.tolist() == [0, 1, 0, 0]
+    assert defend.last_reasons[1] == "consistency"
+
+
+def test_the_consensus_clears_the_honest_collaborator_a_liar_disagrees_with():
+    """The ego sees only the left half; a liar and an honest collaborator cover the right
+    half and disagree there. Tested against everyone, the honest one carries the liar's
+    disagreement too; the consensus set without the liar clears it."""
+    left = [p for p in SCENE if p[0] < 0]
+    right = [p for p in SCENE if p[0] > 0]
+    ego = cars(*left)
+    honest = (cars(*left, *right), np.array([20.0, 4.0, 0.0]))
+    witness = (cars(*left, *right), np.array([25.0, 4.0, 0.0]))
+    liar = (cars(*left, *[(x + 2.5, y) for x, y in right]), np.array([15.0, 4.0, 0.0]))
+    obs = observation(ego, [honest, liar, witness])
+    assert Defend(use_correction=False)(obs, info(4)).tolist() == [0, 1, 0, 0]
+    alone = Defend(use_correction=False, use_consensus=False)
+    assert alone(obs, info(4)).tolist() == [1, 1, 1, 0]
+
+
+def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
+    """A collaborator misaligned on the first step only (the aligner corrected it since):
+    its window still fails the test, this step's evidence does not, so it is kept; with
+    ``recent=1`` the window decides alone and it stays rejected."""
+    scene = cars(*SCENE)
+    early = observation(scene, [(cars(*[(x + 2.5, y) for x, y in SCENE]),
+                                 np.array([5.0, 4.0, 0.0]))])
+    later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
+        defend = Defend(use_correction=False, recent=recent)
+        assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
+        assert defend(later, info(1)).tolist() == verdict
+
+
+def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():
+    scene = cars(*SCENE)
+    obs = observation(scene, [(scene, np.array([5.0, 4.0, 0.0])), (scene, np.array([6.0, 4, 0]))])
+    obs["diagnostics"][0, 4] = 6.0  # the aligner moved slot 0 by 6 m: sigma_t = 0.4 says no
+    obs["diagnostics"][1, 4] = 0.5
+    defend = Defend(use_consistency=False)
+    assert defend(obs, info(4)).tolist() == [1, 0, 0, 0]
+    assert defend.last_reasons[0] == "correction"
+
+
+def test_history_is_kept_per_ego_and_collaborator_and_reset_forgets_it():
+    scene = cars(*SCENE)
+    obs = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    defend = Defend()
+    for _ in range(3):
+        defend(obs, info(1))
+    assert len(defend._q[("ego", "c0")]) == 3
+    assert len(defend._pairs[("ego", frozenset((EGO, "c0")))]) == 3
+    defend.reset()
+    assert not defend._q and not defend._pairs
+
+
+def test_defend_acts_in_gate_mode_with_the_aligned_observation_of_its_base():
+    policy = make_policy("defend", base="roco_antialias")
+    assert policy.env_overrides == {"action.mode": "gate", "action.base": "roco_antialias",
+                                    "observation.mode": "aligned"}
+    with pytest.raises(ValueError, match="action.mode"):
+        merge_env_overrides({"action.mode": "correction"}, policy, "defend")
+
+
+def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
+    env = roco_env.parallel_env("urban_intersection", max_cycles=4, sigma_t=0.4, sigma_r=0.4,
+                                **merge_env_overrides({
+                                    "attack.kind": "pose_spoof", "attack.agents": ["cav_1"],
+                                    "attack.params": {"offset_m": 10.0}},
+                                    make_policy("defend")))
+    policies = {agent: make_policy("defend") for agent in env.possible_agents}
+    observations, infos = env.reset(seed=0)
+    checked = 0
+    while env.agents:
+        actions = {a: policies[a](observations[a], infos[a]) for a in env.agents}
+        observations, _, _, _, infos = env.step(actions)
+        for agent, one in infos.items():
+            if agent == "cav_1":
+                continue
+            for slot, sender in enumerate(one["evaluated_collaborators"]):
+                assert one["rejected"][slot] == (sender == "cav_1"), (agent, sender)
+                checked += sender == "cav_1"
+    assert checked >= 4
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"base": "defend:base=roco"}, "base must be the policy spec of an aligner"),
+    ({"sigma_t": 0.0}, r"sigma_t=0.0 is out of range; allowed \(0.0, inf\)"),
+    ({"alpha": 1.5}, r"alpha=1.5 is out of range; allowed \(0.0, 1.0\)"),
+    ({"window": 0}, r"window=0 is out of range"),
+    ({"n_ghost": 3}, r"unknown defend parameter\(s\) \['n_ghost'\]"),
+])
+def test_bad_parameters_are_refused_naming_them(params, match):
+    with pytest.raises(ValueError, match=match):
+        make_policy("defend", **params)
