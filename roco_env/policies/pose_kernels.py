@@ -56,9 +56,8 @@ __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMa
            "edge_similarity", "edge_similarity_sums", "empty_match_cache", "evaluate_edges",
            "gated_pairs", "inverse_covariances", "max_weight_assignment", "normal_sums",
            "pair_information", "placed_centres", "placed_landmarks", "pose_edges",
-           "prior_terms", "refine_pose", "refine_starts", "resume_rounds",
-           "rotate_information", "scored_pairs", "solve_graph", "solve_pose",
-           "solve_pose_edges", "wald_statistic"]
+           "prior_terms", "refine_pose", "refine_starts", "rotate_information", "scored_pairs",
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -1201,13 +1200,20 @@ def max_weight_assignment(weights):
     included: its shortest augmenting path algorithm (Crouse 2016) on the negated weights,
     transposed when there are fewer columns than rows, step for step."""
     transpose = weights.shape[1] < weights.shape[0]
-    cost = -np.ascontiguousarray(weights.T) if transpose else -weights
-    n_rows, n_cols = cost.shape
+    n_rows, n_cols = min(weights.shape), max(weights.shape)
+    cost = np.empty((n_rows, n_cols))  # negated (and transposed) by loops: compiles faster
+    for i in range(n_rows):
+        for j in range(n_cols):
+            cost[i, j] = -weights[j, i] if transpose else -weights[i, j]
     u, v = np.zeros(n_rows), np.zeros(n_cols)
     shortest = np.empty(n_cols)
-    path = np.full(n_cols, -1, dtype=np.int64)
-    col4row = np.full(n_rows, -1, dtype=np.int64)
-    row4col = np.full(n_cols, -1, dtype=np.int64)
+    path = np.empty(n_cols, dtype=np.int64)
+    col4row = np.empty(n_rows, dtype=np.int64)
+    row4col = np.empty(n_cols, dtype=np.int64)
+    for j in range(n_cols):
+        path[j] = row4col[j] = -1
+    for i in range(n_rows):
+        col4row[i] = -1
     seen_rows = np.empty(n_rows, dtype=np.bool_)
     seen_cols = np.empty(n_cols, dtype=np.bool_)
     remaining = np.empty(n_cols, dtype=np.int64)
@@ -1217,12 +1223,13 @@ def max_weight_assignment(weights):
         n_remaining = n_cols
         for it in range(n_cols):
             remaining[it] = n_cols - it - 1  # reversed: a constant matrix gives the identity
-        seen_rows[:] = False
-        seen_cols[:] = False
-        shortest[:] = np.inf
+            seen_cols[it] = False
+            shortest[it] = math.inf
+        for i in range(n_rows):
+            seen_rows[i] = False
         sink, i = -1, current
         while sink == -1:
-            index, lowest = -1, np.inf
+            index, lowest = -1, math.inf
             seen_rows[i] = True
             for it in range(n_remaining):
                 j = remaining[it]
@@ -1235,7 +1242,7 @@ def max_weight_assignment(weights):
                     lowest = shortest[j]
                     index = it
             min_val = lowest
-            if min_val == np.inf:
+            if min_val == math.inf:
                 raise ValueError("infeasible assignment")
             j = remaining[index]
             if row4col[j] == -1:
@@ -1260,10 +1267,21 @@ def max_weight_assignment(weights):
             col4row[i], j = j, col4row[i]
             if i == current:
                 break
-    if transpose:
-        order = np.argsort(col4row)
-        return col4row[order], order
-    return np.arange(n_rows), col4row
+    if not transpose:
+        return np.arange(n_rows), col4row
+    # Transposed: col4row maps each column of weights to its row; listed by row.
+    by_row = np.empty(n_cols, dtype=np.int64)
+    for row in range(n_cols):
+        by_row[row] = -1
+    for col in range(n_rows):
+        by_row[col4row[col]] = col
+    rows, cols = np.empty(n_rows, dtype=np.int64), np.empty(n_rows, dtype=np.int64)
+    count = 0
+    for row in range(n_cols):
+        if by_row[row] >= 0:
+            rows[count], cols[count] = row, by_row[row]
+            count += 1
+    return rows, cols
 
 
 @njit(cache=True)
@@ -1342,12 +1360,12 @@ def _matches(pose, boxes, land_xy, world, tau2, match, cache):
 
 
 @njit(cache=True)
-def attempt_rounds(start, boxes, world, settings, match, solver):
-    """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the pose
-    estimate ``start`` (3,) (T_{j->i}): its :class:`AgentBoxes` against the
-    :class:`LandmarkMap`, with the :class:`RoundSettings`, the matcher's
-    :class:`MatchSettings` and the rounds' :class:`Solver` (records as plain tuples, module
-    docstring).
+def attempt_rounds(state, boxes, world, settings, match, solver):
+    """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the
+    :class:`RoundState` ``state`` (to start: the first pose estimate T_{j->i}, no matches,
+    no rounds): its :class:`AgentBoxes` against the :class:`LandmarkMap`, with the
+    :class:`RoundSettings`, the matcher's :class:`MatchSettings` and the rounds'
+    :class:`Solver` (records as plain tuples, module docstring).
 
     Each round matches the boxes placed by the estimate (``StarGraphMatcher``; a first
     round with fewer than min_matches matches is redone with coarse_tau2 when it is > 0);
@@ -1357,7 +1375,8 @@ def attempt_rounds(start, boxes, world, settings, match, solver):
     pose, each edge with the information of box minus landmark, ``(own_cov +
     land_cov)^-1``, when ``difference`` (the landmark held fixed has the error of the box
     that created it), else the box's own), or, when ``joint``, the caller's joint solve of
-    the whole graph: the rounds then pause before it (:func:`resume_rounds` goes on).
+    the whole graph: the rounds then pause before it, and the caller goes on with the
+    returned state, its pose, chi2, landmarks and iterations those of the joint solve.
 
     When the rounds end solved with at least min_matches edges of chi2 <= inlier_chi2 and
     fit_tolerance > 0, also the significance test's statistic (:func:`wald_statistic` with
@@ -1365,25 +1384,8 @@ def attempt_rounds(start, boxes, world, settings, match, solver):
 
     Returns (:class:`RoundState` as a plain tuple, statistic, paused for a joint solve).
     """
-    empty = np.zeros(0, dtype=np.int64)
-    state = RoundState(start.copy(), empty, empty.copy(), False, np.zeros(0), np.zeros((0, 3)),
-                       0, 0)
-    return _rounds(state, AgentBoxes(*boxes), LandmarkMap(*world), RoundSettings(*settings),
-                   MatchSettings(*match), Solver(*solver))
-
-
-@njit(cache=True)
-def resume_rounds(state, boxes, world, settings, match, solver):
-    """:func:`attempt_rounds` after a pause: ``state`` is the paused :class:`RoundState`
-    with the joint solve's pose, chi2, landmarks and iterations."""
-    return _rounds(RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world),
-                   RoundSettings(*settings), MatchSettings(*match), Solver(*solver))
-
-
-@njit(cache=True)
-def _rounds(state, boxes, world, settings, match, solver):
-    """The rounds of :func:`attempt_rounds` from ``state`` on (arguments, as records, and
-    result as there)."""
+    state, boxes, world = RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world)
+    settings, match, solver = RoundSettings(*settings), MatchSettings(*match), Solver(*solver)
     land_xy = np.ascontiguousarray(world.poses[:, :2])
     pose, match_land, match_box = state.pose, state.match_land, state.match_box
     solved, chi2, landmarks = state.solved, state.chi2, state.landmarks
