@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 import roco_env
-from roco_env.fusion.late import LateFusion, merge_many
+from roco_env.fusion.late import LateFusion, kept_items, merge_many
 from roco_env.policies import make_policy
 from roco_env.schema import spec
 from roco_env.sensing.detector import AgentDetections, Perception, realistic_detector
@@ -70,9 +70,8 @@ class DiscountedLateFusion(LateFusion):
              poses: list[np.ndarray]) -> list:
         return merge_many([
             (frame.views[k].boxes, frame.views[k].scores,
-             [b for b, keep in zip(frame.views[k].collab_boxes, mask, strict=True) if keep],
-             [self.weight * s for s, keep in zip(frame.views[k].collab_scores, mask,
-                                                  strict=True) if keep], pose)
+             kept_items(frame.views[k].collab_boxes, mask),
+             [self.weight * s for s in kept_items(frame.views[k].collab_scores, mask)], pose)
             for k, mask, pose in zip(egos, kept, poses, strict=True)])
 
 
