@@ -32,8 +32,8 @@ as a plain tuple, ``tuple(record)``: numba types a named tuple argument field by
 Python on every call, a plain one in C (several times faster, docs/performance.md); the
 kernels name it again on entry (``Record(*argument)``, free once compiled), so either form
 is accepted. The other way, a named tuple is boxed by calling its class, so the rounds and
-the commit, called per collaborator, return their records as plain tuples
-(:func:`_plain`) for the caller to name.
+the commit, called per collaborator, return their records' fields as plain tuple literals
+(in the record's field order) for the caller to name.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -45,9 +45,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, types
-from numba.core.imputils import impl_ret_borrowed
-from numba.extending import intrinsic
+from numba import njit
 
 __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMap",
            "Linearisation", "MatchSettings", "Observations", "PoseEdges", "PriorEdge",
@@ -243,19 +241,6 @@ class RoundState(NamedTuple):
     landmarks: np.ndarray
     outer: int
     iterations: int
-
-
-@intrinsic
-def _plain(typingctx, record):
-    """The fields of a record (a named tuple) as a plain tuple: the same value, typed as
-    a tuple, so that it is boxed in C when returned to Python."""
-    if not isinstance(record, types.BaseNamedTuple):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return impl_ret_borrowed(context, builder, signature.return_type, args[0])
-
-    return types.Tuple(record.types)(record), codegen
 
 
 @njit(cache=True)
@@ -1404,9 +1389,9 @@ def attempt_rounds(state, boxes, world, settings, match, solver):
         if not solved:
             break
         if settings.joint:
-            paused = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer,
-                                iterations)
-            return _plain(paused), np.nan, True
+            # The RoundState's fields, as a plain tuple (module docstring).
+            paused = (pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+            return paused, np.nan, True
         landmarks = world.poses[match_land]
         if settings.difference:
             edge_info = inverse_covariances(boxes.covariance[match_box]
@@ -1427,8 +1412,8 @@ def attempt_rounds(state, boxes, world, settings, match, solver):
             Solver(solver.kernel, solver.delta, solver.max_iterations, settings.fit_tolerance,
                    solver.min_diag),
         )
-    final = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
-    return _plain(final), statistic, False
+    final = (pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+    return final, statistic, False
 
 
 @njit(cache=True)
@@ -1503,5 +1488,5 @@ def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observat
     for k in range(n_new):
         box_ids[n_obs + match_box.size + k] = new_boxes[k]
         lands[n_obs + match_box.size + k] = n_land + k
-    return (_plain(LandmarkMap(poses, features, land_cov)),
-            _plain(Observations(agents, box_ids, lands)))
+    # The LandmarkMap's and the Observations' fields, as plain tuples (module docstring).
+    return (poses, features, land_cov), (agents, box_ids, lands)
