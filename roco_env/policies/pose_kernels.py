@@ -795,11 +795,17 @@ def refine_pose(initial, land_poses, own_poses, own_info, settings):
     second round runs only when the pairs changed. Returns (pose (3,), True), or
     (initial, False) when fewer than ``min_matches`` boxes match in a round.
     """
-    settings = RefineSettings(*settings)
-    settings = RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
     by_x = np.argsort(land_poses[:, 0])
     return _refine_sorted(initial, (land_poses, by_x, land_poses[by_x, 0]), own_poses, own_info,
-                          settings)
+                          _refine_settings(settings))
+
+
+@njit(cache=True)
+def _refine_settings(settings):
+    """The :class:`RefineSettings` (or its plain tuple, with the solver's as a plain tuple)
+    named again, its :class:`Solver` too."""
+    settings = RefineSettings(*settings)
+    return RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
 
 
 @njit(cache=True)
@@ -903,15 +909,14 @@ def _close(a, b, tolerance):
 
 
 @njit(cache=True)
-def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, min_matches, solver):
+def refine_starts(peaks, seeds, land_poses, own_poses, own_info, settings):
     """The refined hypotheses (R, 3) of one collaborator (``roco_env.policies.antialias``,
     step 1): the vote peaks (H, 3), then each seed (S, 3) (the reported pose, a track's
     prediction) unless within 0.5 m / 0.5 deg of a peak (it would refine to the same
-    pose), refined in turn by :func:`refine_pose` (arguments as there; the last three are
-    the fields of its :class:`RefineSettings`, which callers unpack into this call); a
-    start matching too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier
-    result, adds none."""
-    settings = RefineSettings(gate, min_matches, Solver(*solver))
+    pose), refined in turn by :func:`refine_pose` (arguments as there, ``settings`` its
+    :class:`RefineSettings`); a start matching too few boxes, or refining to within
+    0.3 m / 0.3 deg of an earlier result, adds none."""
+    settings = _refine_settings(settings)
     n_peaks = peaks.shape[0]
     starts = np.empty((n_peaks + seeds.shape[0], 3))
     starts[:n_peaks] = peaks

@@ -495,8 +495,7 @@ def roco_solve(
             f"initial must be finite with the shape of reported {inputs.reported.shape}; "
             f"got {start.shape}"
         )
-    # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
-    # np.linalg.inv does for any subset).
+    # Each agent's box covariances (K_a, 3, 3), rows of the inputs' all_covariance.
     covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
