@@ -165,7 +165,7 @@ class RefineSettings(NamedTuple):
 
 
 class MatchSettings(NamedTuple):
-    """``matching.StarGraphMatcher``'s settings (:func:`scored_pairs`): weight ``lam`` of
+    """The star-graph matching's settings (:func:`scored_pairs`): weight ``lam`` of
     S_dis (0: not used), whether S_edge is used, the squared star-graph radius radius2
     (m^2; < 0: no radius) and the bar tau1 on S."""
 
@@ -1276,7 +1276,7 @@ def max_weight_assignment(weights):
 
 @njit(cache=True)
 def scored_pairs(land_xy, centres, tau2, land_features, box_features, settings, cached):
-    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    """One star-graph matching (``matching``'s module docstring): the gated candidate pairs
     (:func:`gated_pairs`, gate tau2 m) scored S = lam * S_dis + S_edge (settings:
     :class:`MatchSettings`; with ``use_edge``, :func:`edge_similarity` from the pose
     features (5, L) / (5, K), reused from ``cached`` = (:class:`GatedPairs`, S_edge) of an
@@ -1337,10 +1337,10 @@ def empty_match_cache():
 
 @njit(cache=True)
 def _matches(pose, boxes, land_xy, world, tau2, match, cache):
-    """One ``StarGraphMatcher.match`` of the :class:`AgentBoxes` under ``pose`` (3,) with
-    gate ``tau2`` (m) and the :class:`MatchSettings` against the :class:`LandmarkMap`
-    (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no landmarks or no
-    boxes: no matches, the cache kept."""
+    """One star-graph matching (:func:`scored_pairs`) of the :class:`AgentBoxes` under
+    ``pose`` (3,) with gate ``tau2`` (m) and the :class:`MatchSettings` against the
+    :class:`LandmarkMap` (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no
+    landmarks or no boxes: no matches, the cache kept."""
     if land_xy.shape[0] == 0 or boxes.poses.shape[0] == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty.copy(), cache
@@ -1357,7 +1357,7 @@ def attempt_rounds(state, boxes, world, settings, match, solver):
     :class:`RoundSettings`, the matcher's :class:`MatchSettings` and the rounds'
     :class:`Solver` (records as plain tuples, module docstring).
 
-    Each round matches the boxes placed by the estimate (``StarGraphMatcher``; a first
+    Each round matches the boxes placed by the estimate (:func:`scored_pairs`; a first
     round with fewer than min_matches matches is redone with coarse_tau2 when it is > 0);
     the rounds stop when a matching repeats the previous one, has fewer than min_matches
     pairs, or after ``rounds``. Otherwise the round solves the pose: the single vertex
