@@ -139,13 +139,15 @@ def test_committed_map_is_the_array_path():
             pose, match_land, match_box, boxes, agent,
             LandmarkMap(land, features, land_covariance), Observations(obs_agent, obs_box, obs_land))
         landmarks, observations = LandmarkMap(*landmarks), Observations(*observations)
-        for got, expected in zip((*landmarks, *observations), numpy_committed_map(*args),
-                                 strict=True):
+        want_poses, want_features, *want_rest = numpy_committed_map(*args)
+        assert landmarks.poses.dtype == want_poses.dtype == landmarks.features.dtype
+        for got_column, expected_column in zip(landmarks.poses.T, want_poses.T, strict=True):
+            assert_equal_to_rounding(got_column, expected_column)  # x, y, yaw each at its own
+        for got_row, expected_row in zip(landmarks.features, want_features, strict=True):
+            assert_equal_to_rounding(got_row, expected_row)  # magnitude (cos, sin: to 1e-12)
+        for got, expected in zip((landmarks.covariance, *observations), want_rest, strict=True):
             assert got.dtype == expected.dtype
-            if got.dtype.kind == "f":  # placed poses, features; covariances copied as they are
-                assert_equal_to_rounding(got, expected)
-            else:  # observation ids
-                np.testing.assert_array_equal(got, expected)
+            np.testing.assert_array_equal(got, expected)  # covariances copied, observation ids
 
 
 def _edge_similarity_reference(land, box, cand_p, cand_q, leaves, partner):

@@ -172,8 +172,8 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     derived in one pass over all agents' boxes (per-agent calls cost more in overhead;
     every value depends on its own box only). The centres' covariances are the xy blocks
     of ``inputs.all_covariance``, which RoCo computes anyway (the information has no
-    xy-yaw terms, so they are the inverses of the information's xy blocks; LAPACK gives
-    the same values, tested)."""
+    xy-yaw terms, so they are the inverses of the information's xy blocks, to rounding:
+    tests/test_hypothesis_kernels.py)."""
     arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
                          inputs.all_covariance[:, :2, :2])
     log_sizes, var_t, var_r = (split_rows(values, inputs.offsets) for values in arrays[:3])
