@@ -191,7 +191,7 @@ def test_scored_pairs_match_the_array_path(terms):
     settings = p.match_settings()
     rng = np.random.default_rng(12)
     cache = empty_match_cache()
-    shortcuts = 0
+    shortcuts = below = 0
     for trial in range(30):
         lands = np.column_stack([rng.uniform(-120, 120, (40, 2)), rng.uniform(-3, 3, 40)])
         own = lands[rng.choice(40, 25, replace=False)] + rng.normal(0, [0.4, 0.4, 0.02], (25, 3))
@@ -212,8 +212,11 @@ def test_scored_pairs_match_the_array_path(terms):
         np.testing.assert_array_equal(land, want_land)
         np.testing.assert_array_equal(box, want_box)
         assert_equal_to_rounding(score, want_score)
-        shortcuts += np.unique(ref_p).size == ref_p.size and np.unique(ref_q).size == ref_q.size
+        single = np.unique(ref_p).size == ref_p.size and np.unique(ref_q).size == ref_q.size
+        shortcuts += single
+        below += single and bool((expected > 0).all() and (expected < p.similarity_threshold).any())
     assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised
+    assert below > 0  # and the shortcut's bar on S drops pairs
 
 
 @pytest.mark.parametrize("ties", [False, True])

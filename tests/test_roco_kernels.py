@@ -232,6 +232,7 @@ def test_matcher_rounds_agree_with_fresh_matching():
     poses = [truth + np.array(error) for error in
              ([2.0, 0.0, 0.0], [0.3, 0.1, 0.0], [0.3, 0.1, 0.0], [3.5, -1.0, 0.05], [0.0] * 3)]
     gates = [None] * len(poses) + [8.0]
+    sizes = []
     poses.append(truth + [5.0, 0.0, 0.0])  # the coarse gate
     for pose, tau2 in zip(poses, gates, strict=True):
         got = matcher.match(pose, tau2=tau2)
@@ -240,4 +241,5 @@ def test_matcher_rounds_agree_with_fresh_matching():
         np.testing.assert_array_equal(got[0], expected[0])
         np.testing.assert_array_equal(got[1], expected[1])
         assert_equal_to_rounding(got[2], expected[2])
-        assert got[0].size >= 10  # the rounds match
+        sizes.append(got[0].size)
+    assert min(sizes) >= 5 and max(sizes) == own.shape[0]  # every round matches, some all boxes
