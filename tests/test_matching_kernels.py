@@ -139,13 +139,15 @@ def test_committed_map_is_the_array_path():
             pose, match_land, match_box, boxes, agent,
             LandmarkMap(land, features, land_covariance), Observations(obs_agent, obs_box, obs_land))
         landmarks, observations = LandmarkMap(*landmarks), Observations(*observations)
-        for got, expected in zip((*landmarks, *observations), numpy_committed_map(*args),
-                                 strict=True):
+        want_poses, want_features, *want_rest = numpy_committed_map(*args)
+        assert landmarks.poses.dtype == want_poses.dtype == landmarks.features.dtype
+        for got_column, expected_column in zip(landmarks.poses.T, want_poses.T, strict=True):
+            assert_equal_to_rounding(got_column, expected_column)  # x, y, yaw each at its own
+        for got_row, expected_row in zip(landmarks.features, want_features, strict=True):
+            assert_equal_to_rounding(got_row, expected_row)  # magnitude (cos, sin: to 1e-12)
+        for got, expected in zip((landmarks.covariance, *observations), want_rest, strict=True):
             assert got.dtype == expected.dtype
-            if got.dtype.kind == "f":  # placed poses, features; covariances copied as they are
-                assert_equal_to_rounding(got, expected)
-            else:  # observation ids
-                np.testing.assert_array_equal(got, expected)
+            np.testing.assert_array_equal(got, expected)  # covariances copied, observation ids
 
 
 def _edge_similarity_reference(land, box, cand_p, cand_q, leaves, partner):
@@ -189,7 +191,7 @@ def test_scored_pairs_match_the_array_path(terms):
     settings = p.match_settings()
     rng = np.random.default_rng(12)
     cache = empty_match_cache()
-    shortcuts = 0
+    shortcuts = below = 0
     for trial in range(30):
         lands = np.column_stack([rng.uniform(-120, 120, (40, 2)), rng.uniform(-3, 3, 40)])
         own = lands[rng.choice(40, 25, replace=False)] + rng.normal(0, [0.4, 0.4, 0.02], (25, 3))
@@ -210,8 +212,11 @@ def test_scored_pairs_match_the_array_path(terms):
         np.testing.assert_array_equal(land, want_land)
         np.testing.assert_array_equal(box, want_box)
         assert_equal_to_rounding(score, want_score)
-        shortcuts += np.unique(ref_p).size == ref_p.size and np.unique(ref_q).size == ref_q.size
+        single = np.unique(ref_p).size == ref_p.size and np.unique(ref_q).size == ref_q.size
+        shortcuts += single
+        below += single and bool((expected > 0).all() and (expected < p.similarity_threshold).any())
     assert 0 < shortcuts < 30  # both the shortcut and the full assignment are exercised
+    assert below > 0  # and the shortcut's bar on S drops pairs
 
 
 @pytest.mark.parametrize("ties", [False, True])

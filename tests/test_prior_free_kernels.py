@@ -112,7 +112,7 @@ def test_matching_pairs_match_the_searchsorted_path(yaw_tol):
     elen, clen = rng.uniform(4, 80, 500), rng.uniform(4, 80, 200)
     erel, ebear, crel, cbear = (rng.uniform(-np.pi, np.pi, n) for n in (500, 500, 200, 200))
     order = np.argsort(elen)
-    got = matching_pairs(PairInvariants(elen, erel, ebear), order,
+    got = matching_pairs(PairInvariants(elen[order], erel[order], ebear[order]), order,
                          PairInvariants(clen, crel, cbear), Gates(0.6, yaw_tol))
     lo = np.searchsorted(elen[order], clen - 0.6, "left")
     hi = np.searchsorted(elen[order], clen + 0.6, "right")

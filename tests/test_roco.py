@@ -4,7 +4,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import kuhn_munkres_matches
 
 from roco_env.geometry import se2_compose
 from roco_env.metrics import matching_precision_recall, relative_pose_error
@@ -13,7 +12,6 @@ from roco_env.policies.base import AlignmentResult, apply_correction
 from roco_env.policies.coalign import coalign_align
 from roco_env.policies.matching import (
     MatchingParams,
-    StarGraphMatcher,
     edge_consistency,
     match_star_graphs,
     pose_features,
@@ -386,47 +384,3 @@ def test_coarse_gate_catches_errors_beyond_tau2():
     single_gate = roco_align(*scene.args(), coarse_tau2=None)
     assert recovered.applied.all() and errors(recovered, scene)[0, 0] < 0.1
     assert not single_gate.applied.any()
-
-
-def test_matcher_rounds_agree_with_fresh_matching():
-    """The matcher reuses S_edge between rounds only when candidates and initial matches
-    repeat: every round must equal a from-scratch match_star_graphs call."""
-    rng = np.random.default_rng(6)
-    lands = np.column_stack([rng.uniform(-30, 30, (30, 2)), rng.uniform(-3, 3, 30)])
-    own = se2_compose(pose_error(0.0, 20.0), lands[:25] + rng.normal(0, [0.1, 0.1, 0.02], (25, 3)))
-    params = MatchingParams(tau2=4.0)
-    matcher = StarGraphMatcher(lands, own, params)
-    truth = se2_compose(np.zeros(3), pose_error(0.0, -20.0))
-    for error in ([2.0, 0.0, 0.0], [0.3, 0.1, 0.0], [0.3, 0.1, 0.0], [3.5, -1.0, 0.05], [0.0] * 3):
-        pose = truth + np.array(error)
-        expected = match_star_graphs(lands, own, se2_compose(pose, own), params)
-        got = matcher.match(pose)
-        assert all(np.allclose(a, b, atol=1e-12) for a, b in zip(got, expected, strict=True))
-    coarse = matcher.match(truth + [5.0, 0.0, 0.0], tau2=8.0)
-    expected = match_star_graphs(
-        lands, own, se2_compose(truth + [5.0, 0.0, 0.0], own), MatchingParams(tau2=8.0)
-    )
-    assert all(np.allclose(a, b) for a, b in zip(coarse, expected, strict=True))
-
-
-def test_assignment_shortcut_agrees_with_kuhn_munkres():
-    """The compiled matcher's shortcut (pose_kernels.scored_pairs): when every landmark and
-    every box has a single candidate and every score is > 0, Kuhn-Munkres takes every pair,
-    so the pairs with S >= tau1 are its matches."""
-    rng = np.random.default_rng(7)
-    singles = 0
-    for trial in range(60):
-        n = int(rng.integers(1, 10))
-        cand_p = np.sort(rng.choice(15, n, replace=trial % 2 == 0))  # odd trials: one-to-one
-        cand_q = rng.permutation(15)[:n] if trial % 2 else rng.integers(0, 15, n)
-        pairs = np.unique(np.column_stack([cand_p, cand_q]), axis=0)
-        cand_p, cand_q = pairs[:, 0], pairs[:, 1]
-        if np.unique(cand_p).size < cand_p.size or np.unique(cand_q).size < cand_q.size:
-            continue
-        singles += 1
-        score = rng.uniform(0.05, 2.0, cand_p.size)
-        keep = score >= 0.5
-        land, box, s = kuhn_munkres_matches(cand_p, cand_q, score, 0.5)
-        assert land.tolist() == cand_p[keep].tolist() and box.tolist() == cand_q[keep].tolist()
-        assert np.array_equal(s, score[keep])
-    assert singles >= 30

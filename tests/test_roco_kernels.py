@@ -2,7 +2,8 @@
 joint solves of ``joint_every_round``) against a Python loop of the same steps, and the
 compiled box placement against numpy's.
 
-The loop (:func:`_python_rounds`) matches with the same matcher, solves with
+The loop (:func:`_python_rounds`) matches with the same compiled matching
+(:class:`ReferenceMatcher`, which keeps its S_edge cache between rounds in Python), solves with
 ``optimize_pose`` (or RoCo's joint solve) and computes the significance statistic with
 ``wald_statistic``: what the compiled rounds replace is the loop, its stopping rules and
 bookkeeping. Matches, flags and iteration counts compare exactly; float results (poses,
@@ -14,15 +15,18 @@ import numpy as np
 import pytest
 from conftest import assert_equal_to_rounding
 
+from roco_env.geometry import se2_compose
 from roco_env.policies import roco
 from roco_env.policies.landmarks import prepare_inputs, split_rows
-from roco_env.policies.matching import StarGraphMatcher
+from roco_env.policies.matching import MatchingParams, match_star_graphs, pose_features
 from roco_env.policies.pose_kernels import (
     AgentBoxes,
     RoundState,
     compact_pairs,
+    empty_match_cache,
     gated_pairs,
     placed_centres,
+    scored_pairs,
     wald_statistic,
 )
 from roco_env.policies.posegraph import optimize_pose, solver_settings
@@ -33,6 +37,36 @@ from roco_env.testing.constructed_scenes import (
     parking_rows,
     pose_error,
 )
+
+
+class ReferenceMatcher:
+    """The star-graph matching of one collaborator's rounds, round by round in Python (what
+    the compiled rounds do in ``pose_kernels._matches``): landmarks (L, 3) in the ego frame
+    and the collaborator's boxes (K, 3) in its own frame, with their pose features
+    (5, L) / (5, K) (``matching.pose_features``). :meth:`match` places the boxes by a pose
+    estimate T_{j->i} and matches them (``pose_kernels.scored_pairs``), reusing S_edge of
+    its last call while the candidate pairs and the initial matches repeat."""
+
+    def __init__(self, landmarks, boxes_own, params, land_features, box_features):
+        self.boxes_own, self.params = boxes_own, params
+        self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
+        self._features = land_features, box_features
+        self._settings = tuple(params.match_settings())
+        pairs, edge = empty_match_cache()
+        self._cache = tuple(pairs), edge
+
+    def match(self, pose, tau2=None):
+        """(landmark index (P,), box index (P,), S (P,)) under the pose (3,) with gate tau2
+        (m; default ``params.tau2``), sorted by landmark; no landmarks or boxes: none."""
+        if self._land_xy.shape[0] == 0 or self.boxes_own.shape[0] == 0:
+            empty = np.zeros(0, dtype=np.int64)
+            return empty, empty, np.zeros(0)
+        land, box, score, (pairs, edge) = scored_pairs(
+            self._land_xy, placed_centres(np.asarray(pose, dtype=float), self.boxes_own),
+            float(self.params.tau2 if tau2 is None else tau2), *self._features, self._settings,
+            self._cache)
+        self._cache = tuple(pairs), edge  # plain tuples: pose_kernels' module docstring
+        return land, box, score
 
 
 def _scenes():
@@ -58,7 +92,7 @@ def _python_rounds(inputs, world, agent, p, start):
     """``roco._attempt`` round by round in Python: its :class:`RoundState`, statistic (None
     when not computed) and last joint solve, as ``roco._Attempt``."""
     landmarks_map = world.landmarks
-    matcher = StarGraphMatcher(landmarks_map.poses, inputs.poses[agent], p,
+    matcher = ReferenceMatcher(landmarks_map.poses, inputs.poses[agent], p,
                                landmarks_map.features, world.box_features[agent])
     empty = np.zeros(0, dtype=np.int64)
     pose, match_land, match_box = np.array(start, dtype=float), empty, empty
@@ -184,3 +218,28 @@ def test_placed_centres_are_numpys_placement_to_rounding():
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
         x = own[:, 0] * c + own[:, 1] * -s + pose[0]  # the documented order
         assert_equal_to_rounding(got[:, 0], x)  # np.cos / np.sin: SIMD on AVX-512
+
+
+def test_matcher_rounds_agree_with_fresh_matching():
+    """The rounds' matching reuses S_edge between rounds only when candidates and initial
+    matches repeat: every round must equal a from-scratch match_star_graphs call."""
+    rng = np.random.default_rng(6)
+    lands = np.column_stack([rng.uniform(-30, 30, (30, 2)), rng.uniform(-3, 3, 30)])
+    own = se2_compose(pose_error(0.0, 20.0), lands[:25] + rng.normal(0, [0.1, 0.1, 0.02], (25, 3)))
+    params = MatchingParams(tau2=4.0)
+    matcher = ReferenceMatcher(lands, own, params, pose_features(lands), pose_features(own))
+    truth = se2_compose(np.zeros(3), pose_error(0.0, -20.0))
+    poses = [truth + np.array(error) for error in
+             ([2.0, 0.0, 0.0], [0.3, 0.1, 0.0], [0.3, 0.1, 0.0], [3.5, -1.0, 0.05], [0.0] * 3)]
+    gates = [None] * len(poses) + [8.0]
+    sizes = []
+    poses.append(truth + [5.0, 0.0, 0.0])  # the coarse gate
+    for pose, tau2 in zip(poses, gates, strict=True):
+        got = matcher.match(pose, tau2=tau2)
+        fresh = params if tau2 is None else MatchingParams(tau2=tau2)
+        expected = match_star_graphs(lands, own, se2_compose(pose, own), fresh)
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
+        assert_equal_to_rounding(got[2], expected[2])
+        sizes.append(got[0].size)
+    assert min(sizes) >= 5 and max(sizes) == own.shape[0]  # every round matches, some all boxes

@@ -175,13 +175,12 @@ def _decide(
         centre, age = np.ascontiguousarray(track[0], dtype=float), track[1]
         seeds = np.stack([reported, centre])
         priors = prior + (float((track_t * age) ** 2), float((track_r * age) ** 2))
-    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
+    poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, refine)
     if poses.shape[0] == 0:
         return Decision(None, float("nan"), 0)
     best, margin, scores, unreported = decision_margin(
-        ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
-        collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
-        poses, reported, centre, track is not None, evidence, priors, distinct,
+        ego.terms, collab.terms, poses, reported, None if track is None else centre, evidence,
+        priors, distinct,
     )
     ambiguity = None
     if p.use_ambiguity:

@@ -172,8 +172,8 @@ def box_sets(boxes: Sequence[np.ndarray], inputs: AlignmentInputs) -> list[BoxSe
     derived in one pass over all agents' boxes (per-agent calls cost more in overhead;
     every value depends on its own box only). The centres' covariances are the xy blocks
     of ``inputs.all_covariance``, which RoCo computes anyway (the information has no
-    xy-yaw terms, so they are the inverses of the information's xy blocks; LAPACK gives
-    the same values, tested)."""
+    xy-yaw terms, so they are the inverses of the information's xy blocks, to rounding:
+    tests/test_hypothesis_kernels.py)."""
     arrays = _box_arrays(np.concatenate(boxes), inputs.all_poses, inputs.all_information,
                          inputs.all_covariance[:, :2, :2])
     log_sizes, var_t, var_r = (split_rows(values, inputs.offsets) for values in arrays[:3])
@@ -241,17 +241,17 @@ def generate_hypotheses(
 
 def refine_terms(
     p: EvidenceParams, kernel: str | None, kernel_delta: float, min_matches: int
-) -> RefineSettings:
+) -> tuple:
     """The refinement's settings (module docstring, step 2) as
-    :func:`~roco_env.policies.pose_kernels.refine_pose` takes them
-    (:class:`~roco_env.policies.pose_kernels.RefineSettings`: gate m, min_matches, the
-    solver's kernel, LM iteration cap and relative-decrease stop, a plain tuple as the
-    compiled call takes it). Up to two rounds of
+    :func:`~roco_env.policies.pose_kernels.refine_pose` and ``refine_starts`` take them:
+    the :class:`~roco_env.policies.pose_kernels.RefineSettings` (gate m, min_matches, the
+    solver's settings) as a plain tuple, the solver's a plain tuple too (numba types a
+    plain tuple argument in C: pose_kernels' module docstring). Up to two rounds of
     nearest matching within ``refine_gate`` and a robust pose solve (the second only when
     the matches changed); a start matching fewer than ``min_matches`` boxes refines to
     nothing."""
     solver = solver_settings(kernel, kernel_delta, _REFINE_ITERATIONS, _REFINE_TOLERANCE)
-    return RefineSettings(float(p.refine_gate), int(min_matches), tuple(solver))
+    return tuple(RefineSettings(float(p.refine_gate), int(min_matches), tuple(solver)))
 
 
 def evidence_terms(p: EvidenceParams) -> tuple:

@@ -442,30 +442,25 @@ def _prior_chi2(pose, centre, sigma_t2, sigma_r2):
 
 
 @njit(cache=True)
-def decision_margin(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range, col_poses,
-                    col_log_sizes, col_var_t, col_var_r, col_range, poses, reported, track,
-                    use_track, score, priors, distinct):
+def decision_margin(ego, collab, poses, reported, track, evidence, priors, distinct):
     """Step 2-3 of ``roco_env.policies.antialias`` for one collaborator's refined hypotheses
     (H, 3), H >= 1: their evidence (:func:`hypothesis_scores` of the ego's and the
-    collaborator's boxes, given field by field as :class:`BoxTerms` holds them, with the
-    :class:`EvidenceSettings` ``score``) minus the prior terms of the reported pose (3,)
-    and, with ``use_track``, of the track's prediction ``track`` (3,), ``priors`` = their
-    variances (m^2, rad^2, m^2, rad^2). Two poses are distinct when farther apart than
-    ``distinct`` = (m, rad). (Its caller, ``antialias._decide``, passes the boxes' arrays
-    one by one.)
+    collaborator's boxes, :class:`BoxTerms` ego and collab, with the
+    :class:`EvidenceSettings` ``evidence``) minus the prior terms of the reported pose (3,)
+    and, unless ``track`` is None, of the track's prediction ``track`` (3,), ``priors`` =
+    their variances (m^2, rad^2, m^2, rad^2). Two poses are distinct when farther apart
+    than ``distinct`` = (m, rad).
 
     Returns (index of the best hypothesis, its score minus the best distinct one's, 0
     without a distinct one), the scores (H,) and the scores without the reported pose's
     prior term (H,) (the ambiguity diagnosis finds rivals with those).
     """
-    ego = BoxTerms(ego_poses, ego_log_sizes, ego_var_t, ego_var_r, ego_range)
-    collab = BoxTerms(col_poses, col_log_sizes, col_var_t, col_var_r, col_range)
-    scores = hypothesis_scores(ego, collab, poses, score)
+    scores = hypothesis_scores(ego, collab, poses, evidence)
     count = poses.shape[0]
     unreported = scores.copy()
     for h in range(count):
         scores[h] -= _prior_chi2(poses[h], reported, priors[0], priors[1])
-    if use_track:
+    if track is not None:
         for h in range(count):
             track_term = _prior_chi2(poses[h], track, priors[2], priors[3])
             scores[h] -= track_term

@@ -30,10 +30,12 @@ candidates). S_edge is a sum over the leaves of products of a candidate factor a
 factor: with d_pm = t_m - t_p (ego frame), d_qn = t_n - t_q (own frame), u_m = yaw_m -
 yaw_n and v_pq = yaw_p - yaw_q, ``||T_pm T_qn^{-1} - I||_F^2 = 4 (1 - cos(u_m - v_pq)) +
 |d_pm|^2 + |d_qn|^2 - 2 d_pm^T R(u_m) d_qn``, every term a (C, 11) by (11, H) product of
-:func:`pose_features`. :class:`StarGraphMatcher` serves the re-matching rounds of one
-collaborator against one landmark set: per-box features are computed once, and S_edge is
-reused while the candidate pairs and the initial matches stay the same (it does not
-depend on the pose otherwise).
+:func:`pose_features`. RoCo's re-matching rounds of one collaborator against one landmark
+set match inside their compiled loop (:func:`~roco_env.policies.pose_kernels.attempt_rounds`):
+per-box features are computed once, and S_edge is reused while the candidate pairs and
+the initial matches stay the same (it does not depend on the pose otherwise).
+:func:`match_star_graphs` is one such matching on its own (the tests' and the ablation
+checks' entry).
 """
 
 from __future__ import annotations
@@ -42,17 +44,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roco_env.policies.pose_kernels import (
-    MatchSettings,
-    empty_match_cache,
-    placed_centres,
-    scored_pairs,
-)
+from roco_env.policies.pose_kernels import MatchSettings, empty_match_cache, scored_pairs
 from roco_env.schema import spec
 
 __all__ = [
     "MatchingParams",
-    "StarGraphMatcher",
     "edge_consistency",
     "match_star_graphs",
     "pose_features",
@@ -133,71 +129,27 @@ def pose_features(poses: np.ndarray) -> np.ndarray:
     return np.stack([x, y, x * x + y * y, np.cos(yaw), np.sin(yaw)])
 
 
-class StarGraphMatcher:
-    """Matching of one collaborator's boxes against a fixed landmark set, for several
-    pose estimates (RoCo's re-matching rounds).
-
-    landmarks (L, 3): poses in the ego frame; boxes_own (K, 3): the collaborator's box
-    poses in its own frame; land_features (5, L) / box_features (5, K): their
-    :func:`pose_features` when the caller keeps them (computed here otherwise).
-    :meth:`match` takes the current pose estimate T_{j->i}.
-    """
-
-    def __init__(
-        self,
-        landmarks: np.ndarray,
-        boxes_own: np.ndarray,
-        params: MatchingParams,
-        land_features: np.ndarray | None = None,
-        box_features: np.ndarray | None = None,
-    ):
-        self.landmarks, self.boxes_own, self.params = landmarks, boxes_own, params
-        self._land_features = (
-            pose_features(landmarks) if land_features is None else land_features
-        )
-        self._land_xy = np.ascontiguousarray(landmarks[:, :2], dtype=float)
-        self._box_features = pose_features(boxes_own) if box_features is None else box_features
-        self._settings = tuple(params.match_settings())
-        # S_edge of the last candidate pairs and initial matches (reused while they stay).
-        pairs, edge = empty_match_cache()
-        self._cache = tuple(pairs), edge
-
-    def match(
-        self, pose: np.ndarray, tau2: float | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Match under the pose estimate ``pose`` (3,) with gate ``tau2`` (m; default
-        ``params.tau2``). Returns (landmark index (P,), box index (P,), similarity S (P,)),
-        sorted by landmark index."""
-        xy = placed_centres(np.asarray(pose, dtype=float), self.boxes_own)
-        return self.match_centres(xy, self.params.tau2 if tau2 is None else tau2)
-
-    def match_centres(
-        self, centres: np.ndarray, tau2: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """As :meth:`match`, with the box centres (K, 2) already in the ego frame."""
-        if self.landmarks.shape[0] == 0 or self.boxes_own.shape[0] == 0:
-            return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
-        land, box, score, (pairs, edge) = scored_pairs(
-            self._land_xy,
-            np.ascontiguousarray(centres, dtype=float),
-            float(tau2),
-            self._land_features,
-            self._box_features,
-            self._settings,
-            self._cache,
-        )
-        self._cache = tuple(pairs), edge  # plain tuples: pose_kernels' module docstring
-        return land, box, score
-
-
 def match_star_graphs(
     landmarks: np.ndarray, boxes_own: np.ndarray, boxes_ego: np.ndarray, params: MatchingParams
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Match landmarks (L, 3) to a collaborator's boxes.
+    """Match landmarks (L, 3) to a collaborator's boxes: one compiled matching
+    (:func:`~roco_env.policies.pose_kernels.scored_pairs`; module docstring).
 
-    boxes_own (K, 3): box poses in the collaborator's frame; boxes_ego (K, 3): the same
-    boxes in the ego frame under the current pose estimate. Returns (landmark index (P,),
-    box index (P,), similarity S (P,)), sorted by landmark index.
+    landmarks in the ego frame; boxes_own (K, 3): box poses in the collaborator's frame;
+    boxes_ego (K, 3): the same boxes in the ego frame under the current pose estimate.
+    Returns (landmark index (P,), box index (P,), similarity S (P,)), sorted by landmark
+    index.
     """
-    matcher = StarGraphMatcher(landmarks, boxes_own, params)
-    return matcher.match_centres(np.asarray(boxes_ego)[:, :2], params.tau2)
+    if landmarks.shape[0] == 0 or boxes_own.shape[0] == 0:
+        return _EMPTY_INDEX, _EMPTY_INDEX, np.zeros(0)
+    pairs, edge = empty_match_cache()
+    land, box, score, _ = scored_pairs(
+        np.ascontiguousarray(landmarks[:, :2], dtype=float),
+        np.ascontiguousarray(np.asarray(boxes_ego)[:, :2], dtype=float),
+        float(params.tau2),
+        pose_features(landmarks),
+        pose_features(boxes_own),
+        tuple(params.match_settings()),
+        (tuple(pairs), edge),  # plain tuples: pose_kernels' module docstring
+    )
+    return land, box, score

@@ -32,8 +32,8 @@ as a plain tuple, ``tuple(record)``: numba types a named tuple argument field by
 Python on every call, a plain one in C (several times faster, docs/performance.md); the
 kernels name it again on entry (``Record(*argument)``, free once compiled), so either form
 is accepted. The other way, a named tuple is boxed by calling its class, so the rounds and
-the commit, called per collaborator, return their records as plain tuples
-(:func:`_plain`) for the caller to name.
+the commit, called per collaborator, return their records' fields as plain tuple literals
+(in the record's field order) for the caller to name.
 
 Kernel codes: 0 = least squares, 1 = Huber, 2 = Cauchy (as
 :func:`~roco_env.policies.posegraph.robust_kernel`, delta in whitened units).
@@ -45,9 +45,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, types
-from numba.core.imputils import impl_ret_borrowed
-from numba.extending import intrinsic
+from numba import njit
 
 __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMap",
            "Linearisation", "MatchSettings", "Observations", "PoseEdges", "PriorEdge",
@@ -56,9 +54,8 @@ __all__ = ["KERNEL_CODES", "AgentBoxes", "GatedPairs", "GraphEdges", "LandmarkMa
            "edge_similarity", "edge_similarity_sums", "empty_match_cache", "evaluate_edges",
            "gated_pairs", "inverse_covariances", "max_weight_assignment", "normal_sums",
            "pair_information", "placed_centres", "placed_landmarks", "pose_edges",
-           "prior_terms", "refine_pose", "refine_starts", "resume_rounds",
-           "rotate_information", "scored_pairs", "solve_graph", "solve_pose",
-           "solve_pose_edges", "wald_statistic"]
+           "prior_terms", "refine_pose", "refine_starts", "rotate_information", "scored_pairs",
+           "solve_graph", "solve_pose", "solve_pose_edges", "wald_statistic"]
 
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
@@ -168,7 +165,7 @@ class RefineSettings(NamedTuple):
 
 
 class MatchSettings(NamedTuple):
-    """``matching.StarGraphMatcher``'s settings (:func:`scored_pairs`): weight ``lam`` of
+    """The star-graph matching's settings (:func:`scored_pairs`): weight ``lam`` of
     S_dis (0: not used), whether S_edge is used, the squared star-graph radius radius2
     (m^2; < 0: no radius) and the bar tau1 on S."""
 
@@ -244,19 +241,6 @@ class RoundState(NamedTuple):
     landmarks: np.ndarray
     outer: int
     iterations: int
-
-
-@intrinsic
-def _plain(typingctx, record):
-    """The fields of a record (a named tuple) as a plain tuple: the same value, typed as
-    a tuple, so that it is boxed in C when returned to Python."""
-    if not isinstance(record, types.BaseNamedTuple):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return impl_ret_borrowed(context, builder, signature.return_type, args[0])
-
-    return types.Tuple(record.types)(record), codegen
 
 
 @njit(cache=True)
@@ -811,11 +795,17 @@ def refine_pose(initial, land_poses, own_poses, own_info, settings):
     second round runs only when the pairs changed. Returns (pose (3,), True), or
     (initial, False) when fewer than ``min_matches`` boxes match in a round.
     """
-    settings = RefineSettings(*settings)
-    settings = RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
     by_x = np.argsort(land_poses[:, 0])
     return _refine_sorted(initial, (land_poses, by_x, land_poses[by_x, 0]), own_poses, own_info,
-                          settings)
+                          _refine_settings(settings))
+
+
+@njit(cache=True)
+def _refine_settings(settings):
+    """The :class:`RefineSettings` (or its plain tuple, with the solver's as a plain tuple)
+    named again, its :class:`Solver` too."""
+    settings = RefineSettings(*settings)
+    return RefineSettings(settings.gate, settings.min_matches, Solver(*settings.solver))
 
 
 @njit(cache=True)
@@ -919,15 +909,14 @@ def _close(a, b, tolerance):
 
 
 @njit(cache=True)
-def refine_starts(peaks, seeds, land_poses, own_poses, own_info, gate, min_matches, solver):
+def refine_starts(peaks, seeds, land_poses, own_poses, own_info, settings):
     """The refined hypotheses (R, 3) of one collaborator (``roco_env.policies.antialias``,
     step 1): the vote peaks (H, 3), then each seed (S, 3) (the reported pose, a track's
     prediction) unless within 0.5 m / 0.5 deg of a peak (it would refine to the same
-    pose), refined in turn by :func:`refine_pose` (arguments as there; the last three are
-    the fields of its :class:`RefineSettings`, which callers unpack into this call); a
-    start matching too few boxes, or refining to within 0.3 m / 0.3 deg of an earlier
-    result, adds none."""
-    settings = RefineSettings(gate, min_matches, Solver(*solver))
+    pose), refined in turn by :func:`refine_pose` (arguments as there, ``settings`` its
+    :class:`RefineSettings`); a start matching too few boxes, or refining to within
+    0.3 m / 0.3 deg of an earlier result, adds none."""
+    settings = _refine_settings(settings)
     n_peaks = peaks.shape[0]
     starts = np.empty((n_peaks + seeds.shape[0], 3))
     starts[:n_peaks] = peaks
@@ -1201,13 +1190,20 @@ def max_weight_assignment(weights):
     included: its shortest augmenting path algorithm (Crouse 2016) on the negated weights,
     transposed when there are fewer columns than rows, step for step."""
     transpose = weights.shape[1] < weights.shape[0]
-    cost = -np.ascontiguousarray(weights.T) if transpose else -weights
-    n_rows, n_cols = cost.shape
+    n_rows, n_cols = min(weights.shape), max(weights.shape)
+    cost = np.empty((n_rows, n_cols))  # negated (and transposed) by loops: compiles faster
+    for i in range(n_rows):
+        for j in range(n_cols):
+            cost[i, j] = -weights[j, i] if transpose else -weights[i, j]
     u, v = np.zeros(n_rows), np.zeros(n_cols)
     shortest = np.empty(n_cols)
-    path = np.full(n_cols, -1, dtype=np.int64)
-    col4row = np.full(n_rows, -1, dtype=np.int64)
-    row4col = np.full(n_cols, -1, dtype=np.int64)
+    path = np.empty(n_cols, dtype=np.int64)
+    col4row = np.empty(n_rows, dtype=np.int64)
+    row4col = np.empty(n_cols, dtype=np.int64)
+    for j in range(n_cols):
+        path[j] = row4col[j] = -1
+    for i in range(n_rows):
+        col4row[i] = -1
     seen_rows = np.empty(n_rows, dtype=np.bool_)
     seen_cols = np.empty(n_cols, dtype=np.bool_)
     remaining = np.empty(n_cols, dtype=np.int64)
@@ -1217,12 +1213,13 @@ def max_weight_assignment(weights):
         n_remaining = n_cols
         for it in range(n_cols):
             remaining[it] = n_cols - it - 1  # reversed: a constant matrix gives the identity
-        seen_rows[:] = False
-        seen_cols[:] = False
-        shortest[:] = np.inf
+            seen_cols[it] = False
+            shortest[it] = math.inf
+        for i in range(n_rows):
+            seen_rows[i] = False
         sink, i = -1, current
         while sink == -1:
-            index, lowest = -1, np.inf
+            index, lowest = -1, math.inf
             seen_rows[i] = True
             for it in range(n_remaining):
                 j = remaining[it]
@@ -1235,7 +1232,7 @@ def max_weight_assignment(weights):
                     lowest = shortest[j]
                     index = it
             min_val = lowest
-            if min_val == np.inf:
+            if min_val == math.inf:
                 raise ValueError("infeasible assignment")
             j = remaining[index]
             if row4col[j] == -1:
@@ -1260,15 +1257,26 @@ def max_weight_assignment(weights):
             col4row[i], j = j, col4row[i]
             if i == current:
                 break
-    if transpose:
-        order = np.argsort(col4row)
-        return col4row[order], order
-    return np.arange(n_rows), col4row
+    if not transpose:
+        return np.arange(n_rows), col4row
+    # Transposed: col4row maps each column of weights to its row; listed by row.
+    by_row = np.empty(n_cols, dtype=np.int64)
+    for row in range(n_cols):
+        by_row[row] = -1
+    for col in range(n_rows):
+        by_row[col4row[col]] = col
+    rows, cols = np.empty(n_rows, dtype=np.int64), np.empty(n_rows, dtype=np.int64)
+    count = 0
+    for row in range(n_cols):
+        if by_row[row] >= 0:
+            rows[count], cols[count] = row, by_row[row]
+            count += 1
+    return rows, cols
 
 
 @njit(cache=True)
 def scored_pairs(land_xy, centres, tau2, land_features, box_features, settings, cached):
-    """One matching of ``matching.StarGraphMatcher``: the gated candidate pairs
+    """One star-graph matching (``matching``'s module docstring): the gated candidate pairs
     (:func:`gated_pairs`, gate tau2 m) scored S = lam * S_dis + S_edge (settings:
     :class:`MatchSettings`; with ``use_edge``, :func:`edge_similarity` from the pose
     features (5, L) / (5, K), reused from ``cached`` = (:class:`GatedPairs`, S_edge) of an
@@ -1329,10 +1337,10 @@ def empty_match_cache():
 
 @njit(cache=True)
 def _matches(pose, boxes, land_xy, world, tau2, match, cache):
-    """One ``StarGraphMatcher.match`` of the :class:`AgentBoxes` under ``pose`` (3,) with
-    gate ``tau2`` (m) and the :class:`MatchSettings` against the :class:`LandmarkMap`
-    (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no landmarks or no
-    boxes: no matches, the cache kept."""
+    """One star-graph matching (:func:`scored_pairs`) of the :class:`AgentBoxes` under
+    ``pose`` (3,) with gate ``tau2`` (m) and the :class:`MatchSettings` against the
+    :class:`LandmarkMap` (centres land_xy (L, 2)): (landmark (P,), box (P,), new cache); no
+    landmarks or no boxes: no matches, the cache kept."""
     if land_xy.shape[0] == 0 or boxes.poses.shape[0] == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty.copy(), cache
@@ -1342,14 +1350,14 @@ def _matches(pose, boxes, land_xy, world, tau2, match, cache):
 
 
 @njit(cache=True)
-def attempt_rounds(start, boxes, world, settings, match, solver):
-    """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the pose
-    estimate ``start`` (3,) (T_{j->i}): its :class:`AgentBoxes` against the
-    :class:`LandmarkMap`, with the :class:`RoundSettings`, the matcher's
-    :class:`MatchSettings` and the rounds' :class:`Solver` (records as plain tuples, module
-    docstring).
+def attempt_rounds(state, boxes, world, settings, match, solver):
+    """RoCo's match-optimise rounds for one collaborator (``roco._attempt``) from the
+    :class:`RoundState` ``state`` (to start: the first pose estimate T_{j->i}, no matches,
+    no rounds): its :class:`AgentBoxes` against the :class:`LandmarkMap`, with the
+    :class:`RoundSettings`, the matcher's :class:`MatchSettings` and the rounds'
+    :class:`Solver` (records as plain tuples, module docstring).
 
-    Each round matches the boxes placed by the estimate (``StarGraphMatcher``; a first
+    Each round matches the boxes placed by the estimate (:func:`scored_pairs`; a first
     round with fewer than min_matches matches is redone with coarse_tau2 when it is > 0);
     the rounds stop when a matching repeats the previous one, has fewer than min_matches
     pairs, or after ``rounds``. Otherwise the round solves the pose: the single vertex
@@ -1357,7 +1365,8 @@ def attempt_rounds(start, boxes, world, settings, match, solver):
     pose, each edge with the information of box minus landmark, ``(own_cov +
     land_cov)^-1``, when ``difference`` (the landmark held fixed has the error of the box
     that created it), else the box's own), or, when ``joint``, the caller's joint solve of
-    the whole graph: the rounds then pause before it (:func:`resume_rounds` goes on).
+    the whole graph: the rounds then pause before it, and the caller goes on with the
+    returned state, its pose, chi2, landmarks and iterations those of the joint solve.
 
     When the rounds end solved with at least min_matches edges of chi2 <= inlier_chi2 and
     fit_tolerance > 0, also the significance test's statistic (:func:`wald_statistic` with
@@ -1365,25 +1374,8 @@ def attempt_rounds(start, boxes, world, settings, match, solver):
 
     Returns (:class:`RoundState` as a plain tuple, statistic, paused for a joint solve).
     """
-    empty = np.zeros(0, dtype=np.int64)
-    state = RoundState(start.copy(), empty, empty.copy(), False, np.zeros(0), np.zeros((0, 3)),
-                       0, 0)
-    return _rounds(state, AgentBoxes(*boxes), LandmarkMap(*world), RoundSettings(*settings),
-                   MatchSettings(*match), Solver(*solver))
-
-
-@njit(cache=True)
-def resume_rounds(state, boxes, world, settings, match, solver):
-    """:func:`attempt_rounds` after a pause: ``state`` is the paused :class:`RoundState`
-    with the joint solve's pose, chi2, landmarks and iterations."""
-    return _rounds(RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world),
-                   RoundSettings(*settings), MatchSettings(*match), Solver(*solver))
-
-
-@njit(cache=True)
-def _rounds(state, boxes, world, settings, match, solver):
-    """The rounds of :func:`attempt_rounds` from ``state`` on (arguments, as records, and
-    result as there)."""
+    state, boxes, world = RoundState(*state), AgentBoxes(*boxes), LandmarkMap(*world)
+    settings, match, solver = RoundSettings(*settings), MatchSettings(*match), Solver(*solver)
     land_xy = np.ascontiguousarray(world.poses[:, :2])
     pose, match_land, match_box = state.pose, state.match_land, state.match_box
     solved, chi2, landmarks = state.solved, state.chi2, state.landmarks
@@ -1402,9 +1394,9 @@ def _rounds(state, boxes, world, settings, match, solver):
         if not solved:
             break
         if settings.joint:
-            paused = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer,
-                                iterations)
-            return _plain(paused), np.nan, True
+            # The RoundState's fields, as a plain tuple (module docstring).
+            paused = (pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+            return paused, np.nan, True
         landmarks = world.poses[match_land]
         if settings.difference:
             edge_info = inverse_covariances(boxes.covariance[match_box]
@@ -1425,8 +1417,8 @@ def _rounds(state, boxes, world, settings, match, solver):
             Solver(solver.kernel, solver.delta, solver.max_iterations, settings.fit_tolerance,
                    solver.min_diag),
         )
-    final = RoundState(pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
-    return _plain(final), statistic, False
+    final = (pose, match_land, match_box, solved, chi2, landmarks, outer, iterations)
+    return final, statistic, False
 
 
 @njit(cache=True)
@@ -1501,5 +1493,5 @@ def committed_map(pose, match_land, match_box, boxes, agent, landmarks, observat
     for k in range(n_new):
         box_ids[n_obs + match_box.size + k] = new_boxes[k]
         lands[n_obs + match_box.size + k] = n_land + k
-    return (_plain(LandmarkMap(poses, features, land_cov)),
-            _plain(Observations(agents, box_ids, lands)))
+    # The LandmarkMap's and the Observations' fields, as plain tuples (module docstring).
+    return (poses, features, land_cov), (agents, box_ids, lands)

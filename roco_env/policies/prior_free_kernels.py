@@ -191,12 +191,13 @@ def matching_pairs(ego, order, own, tolerance):
     (``tolerance.yaw`` >= 0) whose relative heading and bearing agree within
     ``tolerance.yaw`` rad modulo pi (a :class:`Gates`).
 
-    ego (E,) / own (C,): the :class:`PairInvariants`; ``order`` (E,): the ego pairs by
-    increasing length. Order: by own pair, then by ego length (the order of a
-    searchsorted range per own pair).
+    ego (E,) / own (C,): the :class:`PairInvariants`, the ego's sorted by increasing
+    length (once per frame, by the caller); ``order`` (E,): each sorted ego pair's index
+    among the ego pairs (the index returned). Order: by own pair, then by ego length (the
+    order of a searchsorted range per own pair).
     """
     ego, own, tolerance = PairInvariants(*ego), PairInvariants(*own), Gates(*tolerance)
-    elen_sorted, erel, ebear = ego.length[order], ego.relative, ego.bearing
+    elen_sorted, erel_sorted, ebear_sorted = ego.length, ego.relative, ego.bearing
     clen, crel, cbear = own.length, own.relative, own.bearing
     tol, yaw_tol = tolerance.distance, tolerance.yaw
     ego_idx = []
@@ -205,13 +206,11 @@ def matching_pairs(ego, order, own, tolerance):
         low, high = clen[j] - tol, clen[j] + tol
         q = np.searchsorted(elen_sorted, low)
         while q < elen_sorted.size and elen_sorted[q] <= high:
-            e = order[q]
+            if yaw_tol < 0.0 or (axial_within(erel_sorted[q], crel[j], yaw_tol)
+                                 and axial_within(ebear_sorted[q], cbear[j], yaw_tol)):
+                ego_idx.append(order[q])
+                own_idx.append(j)
             q += 1
-            if yaw_tol >= 0.0 and not (axial_within(erel[e], crel[j], yaw_tol)
-                                       and axial_within(ebear[e], cbear[j], yaw_tol)):
-                continue
-            ego_idx.append(e)
-            own_idx.append(j)
     return np.array(ego_idx, dtype=np.int64), np.array(own_idx, dtype=np.int64)
 
 

@@ -119,7 +119,7 @@ def ransac_search(ego_boxes: np.ndarray, p: RansacParams) -> Proposer:
     ego = ego_boxes[:, [0, 1, 6]]
     ea, eb, elen, erel, ebear, eang = _pairs(ego, True, p)
     order = np.argsort(elen)
-    ego_pairs = tuple(PairInvariants(elen, erel, ebear))
+    ego_pairs = tuple(PairInvariants(elen[order], erel[order], ebear[order]))  # by length
     yaw_tol = float(np.deg2rad(p.yaw_tolerance_deg)) if p.use_yaw_invariants else -1.0
     tolerance = tuple(Gates(float(p.pair_tolerance), yaw_tol))
     inlier_gates = tuple(Gates(float(p.inlier_distance), float(np.deg2rad(p.inlier_yaw_deg))))

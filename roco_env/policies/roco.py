@@ -93,7 +93,6 @@ from roco_env.policies.pose_kernels import (
     attempt_rounds,
     committed_map,
     inverse_covariances,
-    resume_rounds,
 )
 from roco_env.policies.posegraph import (
     ROBUST_KERNELS,
@@ -128,6 +127,10 @@ ROUND_INFORMATION = ("difference", "box")
 _ROUND_TOLERANCE = 1e-4
 # Relative cost decrease that ends the significance test's fit (the solver's default).
 _FIT_TOLERANCE = 1e-6
+
+# A collaborator's rounds start without matches, chi2 or landmarks (never written: the
+# rounds replace them with new arrays).
+_NO_INDEX, _NO_CHI2, _NO_LANDMARKS = np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3))
 
 
 @dataclass(frozen=True)
@@ -348,13 +351,17 @@ def _attempt(
     (:func:`~roco_env.policies.pose_kernels.attempt_rounds`, which also computes the
     significance test's statistic). When the rounds solve the whole graph, they pause
     before each solve, made here (:func:`_joint_solve`), and go on from its result."""
-    settings = _round_settings(p)
+    rounds, match, solver = _round_settings(p)
     boxes, landmarks = tuple(boxes), tuple(world.landmarks)
-    state, statistic, paused = attempt_rounds(np.array(start, dtype=float), boxes, landmarks,
-                                              *settings)
-    state = RoundState(*state)
+    state = RoundState(np.array(start, dtype=float), _NO_INDEX, _NO_INDEX, False, _NO_CHI2,
+                       _NO_LANDMARKS, 0, 0)
     joint = None
-    while paused:
+    while True:
+        state, statistic, paused = attempt_rounds(tuple(state), boxes, landmarks, rounds, match,
+                                                  solver)
+        state = RoundState(*state)
+        if not paused:
+            break
         joint = _joint_solve(inputs, world, p, state, agent)
         solution, _, shared = joint
         state = state._replace(
@@ -363,8 +370,6 @@ def _attempt(
             landmarks=solution.landmarks[np.searchsorted(shared, state.match_land)],
             iterations=state.iterations + solution.iterations,
         )
-        state, statistic, paused = resume_rounds(tuple(state), boxes, landmarks, *settings)
-        state = RoundState(*state)
     return _Attempt(state, None if np.isnan(statistic) else float(statistic), joint)
 
 
@@ -490,8 +495,7 @@ def roco_solve(
             f"initial must be finite with the shape of reported {inputs.reported.shape}; "
             f"got {start.shape}"
         )
-    # Box covariances, inverted once for every agent's boxes (matrix by matrix, as
-    # np.linalg.inv does for any subset).
+    # Each agent's box covariances (K_a, 3, 3), rows of the inputs' all_covariance.
     covariance = split_rows(inputs.all_covariance, inputs.offsets)
     world = _Map(inputs, covariance[0])
     n = inputs.n_collaborators
