@@ -47,14 +47,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy.special import bdtrc, chdtrc
 
 from roco_env.geometry import bev_iou_pairs
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["Defend", "DefendParams", "PairEvidence", "clear_view", "pair_evidence"]
+__all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "clear_view",
+           "pair_evidence"]
 
 EGO = "__ego__"  # the ego's key among the sources
 _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagnostics
@@ -86,30 +87,51 @@ def clear_view(origin: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
     car) block nothing. Metres, one frame."""
     ray = targets - origin
     length2 = np.maximum(np.sum(ray**2, axis=1), 1e-12)
+    near = np.sqrt(length2) < reach
+    seen = np.zeros(targets.shape[0], dtype=bool)
+    if not near.any():
+        return seen
     rel = occluders - origin
+    close = np.hypot(*rel.T) < reach + radius  # no farther occluder is near a sight line
+    rel, occluders = rel[close], occluders[close]
+    ray, length2, targets = ray[near], length2[near], targets[near]
     along = (ray @ rel.T) / length2[:, None]  # (k, M): position on the sight line, 0..1
     across = np.hypot(rel[None, :, 0] - along * ray[:, None, 0],
                       rel[None, :, 1] - along * ray[:, None, 1])
     own_box = np.hypot(*(occluders[None, :, :] - targets[:, None, :]).transpose(2, 0, 1)) < own
     viewer = np.hypot(*rel.T) < own
     blocked = (along > 0.0) & (along < 1.0) & (across < radius) & ~own_box & ~viewer[None, :]
-    return (np.sqrt(length2) < reach) & ~blocked.any(axis=1)
+    seen[near] = ~blocked.any(axis=1)
+    return seen
+
+
+def centre_distances(boxes: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """(k, M) BEV distances (m) between the centres of ``boxes`` (k, 7) and ``other``
+    (M, 7), one frame; the other way round is its transpose."""
+    return np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
 
 
 def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
                   occluders: np.ndarray, match_m: float, view_m: float,
-                  occlusion_m: float) -> PairEvidence:
+                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
     """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
-    ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view."""
+    ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
+    ``distance``: their :func:`centre_distances`, when already computed."""
     if boxes.shape[0] == 0:
         return NO_EVIDENCE
     if other.shape[0] == 0:
         seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
         return PairEvidence(0, 0, int(seen.sum()))
-    distance = np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
+    if distance is None:
+        distance = centre_distances(boxes, other)
     nearest = np.argmin(distance, axis=1)
     matched = distance[np.arange(boxes.shape[0]), nearest] < match_m
-    overlap = bev_iou_pairs(boxes, other[nearest]) > 0.0
+    # only an unmatched box can conflict, and only with a box its circumscribed circle meets
+    reach = np.hypot(boxes[:, 3], boxes[:, 4]) / 2 + np.hypot(other[nearest, 3], other[nearest, 4]) / 2
+    close = ~matched & (distance[np.arange(boxes.shape[0]), nearest] < reach)
+    overlap = np.zeros_like(matched)
+    if close.any():
+        overlap[close] = bev_iou_pairs(boxes[close], other[nearest[close]]) > 0.0
     conflict = ~matched & overlap
     loose = ~matched & ~overlap
     seen = np.zeros_like(loose)
@@ -172,6 +194,7 @@ class Defend:
         self.env_overrides = {"action.mode": "gate", "action.base": p.base,
                               "observation.mode": "aligned"}
         self.sigma_r = np.radians(p.sigma_r)
+        self._geometry = (p.match_m, p.view_m, p.occlusion_m)  # pair_evidence's thresholds
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
                     "consensus": p.use_consensus}
         self._q: dict[Hashable, deque] = {}
@@ -213,7 +236,7 @@ class Defend:
             + np.radians(float(diagnostics[_TURN])) ** 2 / (2.0 * self.sigma_r**2)
         history = self._q.setdefault(key, deque(maxlen=self.params.window))
         history.append(q)
-        return bool(stats.chi2.sf(sum(history), 3 * len(history)) < self.params.alpha)
+        return bool(chdtrc(3 * len(history), sum(history)) < self.params.alpha)
 
     def _consensus(self, observation: Mapping[str, Any], filled: np.ndarray,
                    names: list[str], ego: Hashable) -> set[int]:
@@ -224,10 +247,10 @@ class Defend:
         self.last_pairs, self.last_now = {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
-            evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, self.params.match_m,
-                                     self.params.view_m, self.params.occlusion_m) + pair_evidence(
-                boxes_b, boxes_a, origin_a, occluders, self.params.match_m, self.params.view_m,
-                self.params.occlusion_m)
+            distance = centre_distances(boxes_a, boxes_b)
+            evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
+                                     distance) + pair_evidence(
+                boxes_b, boxes_a, origin_a, occluders, *self._geometry, distance.T)
             history = self._pairs.setdefault((ego, frozenset((ids[a], ids[b]))),
                                              deque(maxlen=self.params.window))
             history.append(evidence)
@@ -270,8 +293,8 @@ class Defend:
         if total == 0:
             return 1.0
         return float(min(1.0, 2.0 * min(
-            stats.binom.sf(evidence.conflicts - 1, total, self.params.conflict_rate),
-            stats.binom.sf(evidence.unconfirmed - 1, total, self.params.miss_rate))))
+            bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate),
+            bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate))))
 
 
 def _sources(observation: Mapping[str, Any], filled: np.ndarray
