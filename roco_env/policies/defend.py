@@ -52,6 +52,7 @@ from scipy.special import bdtrc, chdtrc
 from roco_env.geometry import bev_iou_pairs
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.landmarks import params_from_kwargs
+from roco_env.policies.privileged_gate import GATES
 from roco_env.schema import spec
 
 __all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "clear_view",
@@ -174,7 +175,7 @@ class DefendParams:
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
 
     def __post_init__(self) -> None:
-        if not self.base or self.base.split(":")[0] == "defend":
+        if not self.base or self.base.split(":")[0] in GATES:
             raise ValueError(f"defend: base must be the policy spec of an aligner (e.g. "
                              f"'roco'); got {self.base!r}")
 
