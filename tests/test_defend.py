@@ -16,6 +16,7 @@ from roco_env.policies.defend import (
     Defend,
     PairEvidence,
     centre_distances,
+    claim_evidence,
     clear_view,
     pair_evidence,
 )
@@ -229,3 +230,53 @@ def test_the_special_functions_give_the_distributions_tail_probabilities():
     for dof in (3, 6, 30):
         for q in (0.0, 2.5, 40.0):
             assert chdtrc(dof, q) == stats.chi2.sf(q, dof)
+
+
+def _claim_scene(liar_name: str) -> tuple[dict, dict]:
+    """Two honest vehicles at (5, 4) and (-5, 4) and a liar whose pose claims (15, 4),
+    where nobody sees a car; its boxes agree with everyone's (a consistent spoof)."""
+    truth = [*SCENE, (5.0, 4.0), (-5.0, 4.0)]
+    honest = [(cars(*[p for p in truth if p != own]), np.array([*own, 0.0]))
+              for own in ((5.0, 4.0), (-5.0, 4.0))]
+    liar = (cars(*truth), np.array([15.0, 4.0, 0.0]))
+    names = {"agent": "cav_0", "collaborators": ["cav_1", liar_name, "cav_3"]}
+    return observation(cars(*truth), [honest[0], liar, honest[1]]), names
+
+
+def test_a_vehicle_whose_claimed_place_is_empty_is_rejected_and_an_rsu_is_not_tested():
+    """The claimed-position test: the liar's boxes agree with everyone's, but the ego and
+    the honest vehicle with a clear view of where its pose puts its car see nothing there."""
+    for liar_name, params, verdict in (("cav_2", {}, [0, 1, 0, 0]),
+                                       ("rsu_0", {}, [0, 0, 0, 0]),
+                                       ("cav_2", {"use_claim": False}, [0, 0, 0, 0])):
+        defend = Defend(use_correction=False, **params)
+        obs, names = _claim_scene(liar_name)
+        for _ in range(2):
+            action = defend(obs, names)
+        assert action.tolist() == verdict, (liar_name, params)
+
+
+def test_claim_evidence_counts_a_claim_only_in_clear_view():
+    witness = cars((10.0, 0.0), (20.0, 0.0))
+    occluders = witness[:, :2]
+    args = (occluders, 2.0, 40.0, 1.5)
+    assert claim_evidence(np.array([10.5, 0.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 1, 0)  # a car there
+    assert claim_evidence(np.array([10.0, 5.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 1, 1)  # in view, empty
+    assert claim_evidence(np.array([30.0, 0.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 0, 0)  # behind a car
+
+
+def test_a_strong_correction_fails_at_once_after_a_quiet_window():
+    """Nine steps without correction, then the aligner moves the collaborator 2.5 m (a
+    drift that has just grown): the window's sum passes, this step's q alone does not."""
+    scene = cars(*SCENE)
+    quiet = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    jump = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    jump["diagnostics"][0, 4] = 2.5
+    for strong, verdict in ((0.001, [1, 0, 0, 0]), (0.0, [0, 0, 0, 0])):
+        defend = Defend(use_consistency=False, strong=strong)
+        for _ in range(9):
+            assert defend(quiet, info(1)).tolist() == [0, 0, 0, 0]
+        assert defend(jump, info(1)).tolist() == verdict
