@@ -6,13 +6,15 @@ recorded observations (one process, the machine's load shared by both).
 Records every agent's aligned observation and info of an urban_intersection episode
 (noise 0.4, a 10 m spoof by cav_1, ``--steps`` steps), then replays them through a fresh
 ``Defend`` of this tree and one of ``git show REF:roco_env/policies/defend.py``,
-interleaved ``--repeats`` times, and prints each one's median wall time per call (ms),
+interleaved ``--repeats`` times (``--old-tests``: this tree's without the claimed-position
+and strong single-step tests), and prints each one's median wall time per call (ms),
 their ratio, and whether their actions agree on every call.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import subprocess
 import sys
@@ -73,9 +75,13 @@ def main() -> int:
     parser.add_argument("--against", default="main", help="git ref of the other defend.py")
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--old-tests", action="store_true",
+                        help="this tree's Defend without the tests main lacks "
+                        "(use_claim=False, strong=0): the speed-up alone")
     args = parser.parse_args()
     calls = record(args.steps)
-    versions = {"this tree": Defend, args.against: load_defend(args.against)}
+    mine = functools.partial(Defend, use_claim=False, strong=0.0) if args.old_tests else Defend
+    versions = {"this tree": mine, args.against: load_defend(args.against)}
     times: dict[str, list[float]] = {name: [] for name in versions}
     actions: dict[str, list] = {}
     for _ in range(args.repeats):
