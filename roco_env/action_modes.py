@@ -16,7 +16,10 @@ what it would have added. docs/learning.md describes the modes for RL users.
   poses exactly.
 * ``select``: a MultiDiscrete (N,) of indices: ``k < len(action.choices)`` fuses the slot
   with the pose the k-th choice computes, ``len(action.choices)`` rejects it.
-* ``gate``: a MultiDiscrete (N,) of 0 (keep the base aligner's pose) or 1 (reject).
+* ``gate``: a MultiDiscrete (N,) of 0 (keep the base aligner's pose) or 1 (reject). When
+  a slot is rejected, the base aligner runs again without the rejected collaborators
+  (once per agent and step), so a rejected collaborator influences no kept one's pose
+  (a joint aligner such as roco's pose graph would otherwise let its boxes pull on them).
 
 The aligners a mode names run inside the env, one instance per agent (several keep
 state per ego), on the same (raw) observation and info the agent received; the base
@@ -26,6 +29,7 @@ aligner runs when the env builds each observation (:class:`AlignerSet`), so the
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -96,9 +100,30 @@ class AlignerSet:
     def align(self, agent: str, index: int, view: EgoView, observation: dict,
               info: dict) -> Alignment:
         """What the ``index``-th aligner computes for ``agent``'s filled slots."""
+
+        return self._run(self.instances[agent][index], agent, index, view, observation, info)
+
+    def align_without(self, agent: str, index: int, view: EgoView, observation: dict,
+                      info: dict, left_out: np.ndarray) -> Alignment:
+        """What the ``index``-th aligner computes for ``agent``'s filled slots when the
+        collaborators of the (n,) bool ``left_out`` are not there (their slots emptied in
+        ``observation``; their poses come back reported). A stateful aligner runs on a copy
+        of its instance: its state follows the step's first call only."""
+        policy = self.instances[agent][index]
+        if self.stateful[index]:
+            policy = copy.deepcopy(policy)
+        mask = np.array(observation["collab_mask"], copy=True)
+        mask[: left_out.shape[0]][left_out] = 0
+        alignment = self._run(policy, agent, index, view, {**observation, "collab_mask": mask},
+                              info)
+        alignment.corrected[left_out] = view.reported_relative[left_out]
+        return alignment
+
+    def _run(self, policy: Policy, agent: str, index: int, view: EgoView, observation: dict,
+             info: dict) -> Alignment:
         from roco_env.policies.base import act
 
-        action, result = act(self.instances[agent][index], observation, info)
+        action, result = act(policy, observation, info)
         action = check_action(action, f"{agent} ({self.specs[index].label})",
                               len(observation["collab_mask"]))
         n = len(view.collaborators)
@@ -119,6 +144,9 @@ class ActionMode:
 
     def reset(self) -> None:
         """Start an episode (stateful aligners forget the last one)."""
+
+    def bind_base(self, base: AlignerSet | None) -> None:
+        """The env's base aligner (None without one), for a mode that runs it again."""
 
     def neutral_action(self) -> np.ndarray:
         """The action that changes nothing the mode decides (zeros)."""
@@ -207,13 +235,20 @@ class SelectMode(ActionMode):
 
 
 class GateMode(ActionMode):
-    """Per slot, keep the base aligner's pose (0) or reject the collaborator (1)."""
+    """Per slot, keep the base aligner's pose (0) or reject the collaborator (1); with a
+    slot rejected, the kept slots take the base aligner's poses solved without the
+    rejected collaborators (module docstring)."""
 
     needs_base = True
+    runs_aligners = True  # the base aligner runs again on the agent's observation and info
 
     def __init__(self, max_collaborators: int) -> None:
         self.n = max_collaborators
         self.space = spaces.MultiDiscrete(np.full(max_collaborators, 2))
+        self.base: AlignerSet | None = None
+
+    def bind_base(self, base: AlignerSet | None) -> None:
+        self.base = base
 
     def check(self, action: object, agent: str) -> np.ndarray:
         return check_indices(action, agent, self.n, 2)
@@ -222,9 +257,10 @@ class GateMode(ActionMode):
                info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         kept = action[:n] != REJECT_GATE
-        corrected = base.copy()
-        corrected[~kept] = view.reported_relative[:n][~kept]
-        return Decision(corrected, kept)
+        if kept.all():
+            return Decision(base.copy(), kept)
+        return Decision(self.base.align_without(agent, 0, view, observation, info,
+                                                ~kept).corrected, kept)
 
 
 def build_action_mode(config: ActionConfig, max_collaborators: int,

@@ -272,6 +272,7 @@ class CollabPerceptionEnv(ParallelEnv):
         # The base aligner runs on every observation when the action or observation reads it.
         self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
             if self.action_mode.needs_base or config.observation.mode == "aligned" else None
+        self.action_mode.bind_base(self.base_aligner)  # gate mode solves again without rejects
         self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
                                for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)

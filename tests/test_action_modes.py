@@ -115,6 +115,41 @@ def test_select_reject_index_and_gate_reject_agree():
     assert reject_all_select == reject_all_gate == alone
 
 
+LIAR = {"attack.kind": "ghost", "attack.agents": ["cav_1"],
+        "attack.params": {"n_ghost": 20, "placement": "aliasing"}}
+
+
+def _honest_poses(attack, reject_liar, base="roco"):
+    """Per step and honest ego, the pose errors after (rpe_after) of its honest collaborator
+    slots, in gate mode behind ``base``, cav_1 rejected by every ego or kept."""
+    env = env_in("gate", steps=3, **{"action.base": base, **attack})
+    observations, infos = env.reset(seed=0)
+    poses = []
+    while env.agents:
+        slots = {a: infos[a]["collaborators"] for a in env.agents}
+        actions = {a: np.array([int(reject_liar and s == "cav_1") for s in slots[a]]
+                               + [0] * (5 - len(slots[a]))) for a in env.agents}
+        observations, _, _, _, infos = env.step(actions)
+        poses.append({a: infos[a]["rpe_after"][[k for k, s in enumerate(slots[a])
+                                                 if s != "cav_1"]]
+                      for a in env.possible_agents if a != "cav_1"})
+    return poses
+
+
+def _same(a, b):
+    return all(x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) for k in x)
+               for x, y in zip(a, b, strict=True))
+
+
+@pytest.mark.parametrize("base", ["roco", "roco_antialias"])
+def test_a_rejected_collaborator_no_longer_moves_the_kept_ones(base):
+    """Behind a joint aligner the liar's boxes pull the honest collaborators' poses; once
+    the gate rejects it, they are solved again without it: exactly the poses of the same
+    episode without the attack (the attack changes only the liar's messages)."""
+    assert not _same(_honest_poses(LIAR, False, base), _honest_poses({}, False, base))
+    assert _same(_honest_poses(LIAR, True, base), _honest_poses({}, True, base))
+
+
 def _one_ego_env(fusion_overrides):
     return roco_env.parallel_env("urban_intersection", max_cycles=2,
                                  **{"action.mode": "gate", "action.base": "identity",

@@ -5,10 +5,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import stats
+from scipy.special import bdtrc, chdtrc
 
 import roco_env
+from roco_env.geometry import bev_iou_pairs
 from roco_env.policies import make_policy
-from roco_env.policies.defend import EGO, Defend, PairEvidence, clear_view, pair_evidence
+from roco_env.policies.defend import (
+    EGO,
+    Defend,
+    PairEvidence,
+    centre_distances,
+    claim_evidence,
+    clear_view,
+    pair_evidence,
+)
 from roco_env.policies.spec import merge_env_overrides
 
 CAR = (4.5, 1.9, 1.6)
@@ -161,3 +172,111 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
         make_policy("defend", **params)
+
+
+def _reference_evidence(boxes, other, origin, occluders, match_m, view_m, occlusion_m):
+    """pair_evidence as first written: every row's IoU, every target's sight line."""
+    distance = np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
+    nearest = np.argmin(distance, axis=1)
+    matched = distance[np.arange(len(boxes)), nearest] < match_m
+    overlap = bev_iou_pairs(boxes, other[nearest]) > 0.0
+    seen = clear_view(origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
+    return PairEvidence(int(matched.sum()), int((~matched & overlap).sum()),
+                        int((~matched & ~overlap & seen).sum()))
+
+
+def _reference_view(origin, targets, occluders, reach, radius, own):
+    ray, rel = targets - origin, occluders - origin
+    length2 = np.maximum(np.sum(ray**2, axis=1), 1e-12)
+    along = (ray @ rel.T) / length2[:, None]
+    across = np.hypot(rel[None, :, 0] - along * ray[:, None, 0],
+                      rel[None, :, 1] - along * ray[:, None, 1])
+    own_box = np.hypot(*(occluders[None, :, :] - targets[:, None, :]).transpose(2, 0, 1)) < own
+    viewer = np.hypot(*rel.T) < own
+    blocked = (along > 0.0) & (along < 1.0) & (across < radius) & ~own_box & ~viewer[None, :]
+    return (np.sqrt(length2) < reach) & ~blocked.any(axis=1)
+
+
+def test_the_fast_evidence_counts_what_every_row_and_sight_line_would():
+    """pair_evidence skips the IoU of matched rows and of boxes too far to overlap, and
+    clear_view the targets beyond reach and occluders far from every sight line: the
+    counts are those of the full computation, on crowded random scenes."""
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        own = cars(*rng.uniform(-50, 50, (30, 2)))
+        own[:, 6] = rng.uniform(-np.pi, np.pi, len(own))
+        other = np.concatenate([own[:20] + rng.normal(0, 1.0, (20, 7)) * [1, 1, 0, 0, 0, 0, 0.1],
+                                cars(*rng.uniform(-50, 50, (10, 2)))])
+        origin = rng.uniform(-20, 20, 2)
+        occluders = np.concatenate([own, other])[:, :2]
+        args = (occluders, 1.0, 40.0, 1.5)
+        assert pair_evidence(own, other, origin, *args) == \
+            _reference_evidence(own, other, origin, *args)
+        assert pair_evidence(own, other, origin, *args, centre_distances(own, other)) == \
+            pair_evidence(own, other, origin, *args)
+        np.testing.assert_array_equal(clear_view(origin, own[:, :2], occluders, 40.0, 1.5, 1.0),
+                                      _reference_view(origin, own[:, :2], occluders, 40.0, 1.5,
+                                                      1.0))
+
+
+def test_the_special_functions_give_the_distributions_tail_probabilities():
+    """bdtrc / chdtrc (no scipy.stats dispatch) are binom.sf / chi2.sf to rounding, zero
+    conflicts (k = -1) included."""
+    for k in range(-1, 12):
+        for n in (k + 1, 12, 60):
+            for p in (0.03, 0.12):
+                assert bdtrc(k, n, p) == pytest.approx(stats.binom.sf(k, n, p), rel=1e-12,
+                                                       abs=1e-300)
+    for dof in (3, 6, 30):
+        for q in (0.0, 2.5, 40.0):
+            assert chdtrc(dof, q) == stats.chi2.sf(q, dof)
+
+
+def _claim_scene(liar_name: str) -> tuple[dict, dict]:
+    """Two honest vehicles at (5, 4) and (-5, 4) and a liar whose pose claims (15, 4),
+    where nobody sees a car; its boxes agree with everyone's (a consistent spoof)."""
+    truth = [*SCENE, (5.0, 4.0), (-5.0, 4.0)]
+    honest = [(cars(*[p for p in truth if p != own]), np.array([*own, 0.0]))
+              for own in ((5.0, 4.0), (-5.0, 4.0))]
+    liar = (cars(*truth), np.array([15.0, 4.0, 0.0]))
+    names = {"agent": "cav_0", "collaborators": ["cav_1", liar_name, "cav_3"]}
+    return observation(cars(*truth), [honest[0], liar, honest[1]]), names
+
+
+def test_a_vehicle_whose_claimed_place_is_empty_is_rejected_and_an_rsu_is_not_tested():
+    """The claimed-position test: the liar's boxes agree with everyone's, but the ego and
+    the honest vehicle with a clear view of where its pose puts its car see nothing there."""
+    for liar_name, params, verdict in (("cav_2", {}, [0, 1, 0, 0]),
+                                       ("rsu_0", {}, [0, 0, 0, 0]),
+                                       ("cav_2", {"use_claim": False}, [0, 0, 0, 0])):
+        defend = Defend(use_correction=False, **params)
+        obs, names = _claim_scene(liar_name)
+        for _ in range(2):
+            action = defend(obs, names)
+        assert action.tolist() == verdict, (liar_name, params)
+
+
+def test_claim_evidence_counts_a_claim_only_in_clear_view():
+    witness = cars((10.0, 0.0), (20.0, 0.0))
+    occluders = witness[:, :2]
+    args = (occluders, 2.0, 40.0, 1.5)
+    assert claim_evidence(np.array([10.5, 0.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 1, 0)  # a car there
+    assert claim_evidence(np.array([10.0, 5.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 1, 1)  # in view, empty
+    assert claim_evidence(np.array([30.0, 0.0]), witness, np.zeros(2), *args) == \
+        PairEvidence(0, 0, 0, 0, 0)  # behind a car
+
+
+def test_a_strong_correction_fails_at_once_after_a_quiet_window():
+    """Nine steps without correction, then the aligner moves the collaborator 2.5 m (a
+    drift that has just grown): the window's sum passes, this step's q alone does not."""
+    scene = cars(*SCENE)
+    quiet = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    jump = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
+    jump["diagnostics"][0, 4] = 2.5
+    for strong, verdict in ((0.001, [1, 0, 0, 0]), (0.0, [0, 0, 0, 0])):
+        defend = Defend(use_consistency=False, strong=strong)
+        for _ in range(9):
+            assert defend(quiet, info(1)).tolist() == [0, 0, 0, 0]
+        assert defend(jump, info(1)).tolist() == verdict

@@ -129,7 +129,8 @@ def test_the_protocol_grid_covers_every_scene_attack_policy_and_seed():
         * len(attack_protocol.POLICIES) * 2
     labels = {attack_protocol.attack_label(c.to_dict()) for c in cells}
     assert labels == set(attack_protocol.ATTACKS)
-    assert {c.policy for c in cells} == set(attack_protocol.POLICIES)
+    assert {attack_protocol.policy_label(c.to_dict()) for c in cells} \
+        == set(attack_protocol.POLICIES)  # no_fusion: identity, fusion none
     assert all(dict(c.overrides).get("cavs") == 4 for c in cells if c.scenario == "v2xset_like")
 
 

@@ -56,6 +56,8 @@ _REGISTRY: dict[str, str] = {
     "compensate": "roco_env.policies.compensate:Compensate",
     # acts in action.mode gate with observation.mode aligned (its env_overrides)
     "defend": "roco_env.policies.defend:Defend",
+    # the perfect rejection (info["privileged"]): a reference for defences, in gate mode
+    "privileged_gate": "roco_env.policies.privileged_gate:PrivilegedGate",
     # acts in action.mode select (its env_overrides; roco_env.policies.learned)
     "learned_select": "roco_env.policies.learned:learned_select",
 }

@@ -5,7 +5,8 @@
 :attr:`Defend.env_overrides`; sweeps and ``EgoEnv`` merge them): the env runs the base
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
-the gate mode. Three tests, each a statistical test at level ``alpha``:
+the gate mode (which solves the kept collaborators' poses again without the rejected ones).
+Four tests, each a statistical test at level ``alpha``:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -15,7 +16,8 @@ the gate mode. Three tests, each a statistical test at level ``alpha``:
   chi-square with 3 dof for an honest collaborator. Rejected when the sum of q over its
   last ``window`` steps exceeds the chi-square quantile of 3 x steps dof: a jump fails at
   once, a slow drift once it has grown, a fixed spoof the aligner corrects within a few
-  steps.
+  steps. A step whose q alone has a p-value below ``strong`` fails at once, however
+  quiet the window (a drift that has just grown large).
 * **Consistency after alignment**: every pair of sources (the ego and its collaborators,
   all in the ego frame) is compared box by box: a box matches the other source's nearest
   box within ``match_m`` m; it conflicts with it when their footprints overlap without
@@ -24,10 +26,18 @@ the gate mode. Three tests, each a statistical test at level ``alpha``:
   origin, no other box's centre within ``occlusion_m`` m of the sight line). A
   collaborator's counts against the ego and every other collaborator, summed over the
   last ``window`` steps, are tested against the shares an honest one shows
-  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the two).
+  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the tests).
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts.
+* **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
+  has no car) aligned pose puts its own car at a place in the ego frame; every other
+  vehicle source (the ego included when it is one; an RSU is no witness) with that place
+  in its clear view should have a box within ``claim_m`` m of it. Each such (claim,
+  witness) is a trial of the pair's evidence, its misses tested against
+  ``claim_miss_rate`` (one-sided binomial, a third test of the same Bonferroni,
+  window and ``recent`` rule). Forged boxes cannot move the liar's real car: a spoofed
+  pose the aligner keeps leaves its claimed place empty.
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -47,14 +57,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy.special import bdtrc, chdtrc
 
 from roco_env.geometry import bev_iou_pairs
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.landmarks import params_from_kwargs
+from roco_env.policies.privileged_gate import GATES
 from roco_env.schema import spec
 
-__all__ = ["Defend", "DefendParams", "PairEvidence", "clear_view", "pair_evidence"]
+__all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "claim_evidence",
+           "clear_view", "pair_evidence"]
 
 EGO = "__ego__"  # the ego's key among the sources
 _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagnostics
@@ -64,15 +76,19 @@ _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagn
 class PairEvidence:
     """What one source's boxes say about another's: counts of boxes that match, conflict
     (overlap without matching) or are unconfirmed (in the other's clear view, nothing
-    there)."""
+    there); and of claimed places (a vehicle collaborator's car where its pose puts it) in
+    the other's clear view, and of those where the other sees no car."""
 
     matches: int
     conflicts: int
     unconfirmed: int
+    claims: int = 0
+    claims_missed: int = 0
 
     def __add__(self, other: PairEvidence) -> PairEvidence:
         return PairEvidence(self.matches + other.matches, self.conflicts + other.conflicts,
-                            self.unconfirmed + other.unconfirmed)
+                            self.unconfirmed + other.unconfirmed, self.claims + other.claims,
+                            self.claims_missed + other.claims_missed)
 
 
 NO_EVIDENCE = PairEvidence(0, 0, 0)
@@ -86,30 +102,52 @@ def clear_view(origin: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
     car) block nothing. Metres, one frame."""
     ray = targets - origin
     length2 = np.maximum(np.sum(ray**2, axis=1), 1e-12)
+    near = np.sqrt(length2) < reach
+    seen = np.zeros(targets.shape[0], dtype=bool)
+    if not near.any():
+        return seen
     rel = occluders - origin
+    close = np.hypot(*rel.T) < reach + radius  # no farther occluder is near a sight line
+    rel, occluders = rel[close], occluders[close]
+    ray, length2, targets = ray[near], length2[near], targets[near]
     along = (ray @ rel.T) / length2[:, None]  # (k, M): position on the sight line, 0..1
     across = np.hypot(rel[None, :, 0] - along * ray[:, None, 0],
                       rel[None, :, 1] - along * ray[:, None, 1])
     own_box = np.hypot(*(occluders[None, :, :] - targets[:, None, :]).transpose(2, 0, 1)) < own
     viewer = np.hypot(*rel.T) < own
     blocked = (along > 0.0) & (along < 1.0) & (across < radius) & ~own_box & ~viewer[None, :]
-    return (np.sqrt(length2) < reach) & ~blocked.any(axis=1)
+    seen[near] = ~blocked.any(axis=1)
+    return seen
+
+
+def centre_distances(boxes: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """(k, M) BEV distances (m) between the centres of ``boxes`` (k, 7) and ``other``
+    (M, 7), one frame; the other way round is its transpose."""
+    return np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
 
 
 def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
                   occluders: np.ndarray, match_m: float, view_m: float,
-                  occlusion_m: float) -> PairEvidence:
+                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
     """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
-    ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view."""
+    ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
+    ``distance``: their :func:`centre_distances`, when already computed."""
     if boxes.shape[0] == 0:
         return NO_EVIDENCE
     if other.shape[0] == 0:
         seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
         return PairEvidence(0, 0, int(seen.sum()))
-    distance = np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
+    if distance is None:
+        distance = centre_distances(boxes, other)
     nearest = np.argmin(distance, axis=1)
-    matched = distance[np.arange(boxes.shape[0]), nearest] < match_m
-    overlap = bev_iou_pairs(boxes, other[nearest]) > 0.0
+    gap = distance[np.arange(boxes.shape[0]), nearest]
+    matched = gap < match_m
+    # only an unmatched box can conflict, and only with a box its circumscribed circle meets
+    radii = np.hypot(boxes[:, 3], boxes[:, 4]) + np.hypot(other[nearest, 3], other[nearest, 4])
+    close = ~matched & (gap < radii / 2)
+    overlap = np.zeros_like(matched)
+    if close.any():
+        overlap[close] = bev_iou_pairs(boxes[close], other[nearest[close]]) > 0.0
     conflict = ~matched & overlap
     loose = ~matched & ~overlap
     seen = np.zeros_like(loose)
@@ -117,6 +155,21 @@ def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray
         seen[loose] = clear_view(other_origin, boxes[loose, :2], occluders, view_m, occlusion_m,
                                  match_m)
     return PairEvidence(int(matched.sum()), int(conflict.sum()), int(seen.sum()))
+
+
+def claim_evidence(claimed: np.ndarray, witness: np.ndarray, witness_origin: np.ndarray,
+                   occluders: np.ndarray, claim_m: float, view_m: float,
+                   occlusion_m: float) -> PairEvidence:
+    """What a witness's boxes ``witness`` (M, 7), seen from ``witness_origin`` (2,), say
+    about the place ``claimed`` (2,) where a vehicle collaborator's pose puts its own car
+    (one frame, metres): nothing when the place is out of the witness's clear view, else
+    one claim, missed when no witness box centre lies within ``claim_m`` of it."""
+    if not clear_view(witness_origin, claimed[None, :], occluders, view_m, occlusion_m,
+                      claim_m)[0]:
+        return NO_EVIDENCE
+    there = witness.shape[0] > 0 and bool(
+        np.min(np.hypot(*(witness[:, :2] - claimed).T)) < claim_m)
+    return PairEvidence(0, 0, 0, 1, int(not there))
 
 
 def _positive(default: float, doc: str) -> Any:
@@ -147,12 +200,22 @@ class DefendParams:
     recent: float = spec(0.5, low=0.0, high=1.0, doc="a collaborator failing the test over "
                          "the window is kept when this step's evidence alone has a p-value "
                          "above this (1: the window decides alone)")
+    strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
+                         "(this step alone) is below this fails at once, however quiet "
+                         "the window (0: the window decides alone)")
     use_correction: bool = spec(True, doc="the correction (temporal) test")
     use_consistency: bool = spec(True, doc="the consistency test after alignment")
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
+    use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
+    claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
+    claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
+                                         "clear view where an honest vehicle's car is not "
+                                         "seen")
+    car_prefix: str = spec("cav_", doc="agent ids of vehicles start so (the others, RSUs, "
+                           "have no car to see)")
 
     def __post_init__(self) -> None:
-        if not self.base or self.base.split(":")[0] == "defend":
+        if not self.base or self.base.split(":")[0] in GATES:
             raise ValueError(f"defend: base must be the policy spec of an aligner (e.g. "
                              f"'roco'); got {self.base!r}")
 
@@ -161,7 +224,8 @@ class Defend:
     """``Defend(base="roco", **params)(obs, info) -> (N,) int64`` gate action (1 = reject),
     params the fields of :class:`DefendParams`. Measured on clean episodes, the shares of
     unconfirmed and conflicting boxes an honest collaborator shows behind roco at noise 0.4
-    are about 0.06 and 0.016 (docs/attacks.md)."""
+    are about 0.06 and 0.016, of its claimed places a vehicle ego sees empty 0.02-0.05
+    (docs/attacks.md)."""
 
     PARAMS = DefendParams
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
@@ -172,8 +236,10 @@ class Defend:
         self.env_overrides = {"action.mode": "gate", "action.base": p.base,
                               "observation.mode": "aligned"}
         self.sigma_r = np.radians(p.sigma_r)
+        self._geometry = (p.match_m, p.view_m, p.occlusion_m)  # pair_evidence's thresholds
+        self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
-                    "consensus": p.use_consensus}
+                    "consensus": p.use_consensus, "claim": p.use_claim}
         self._q: dict[Hashable, deque] = {}
         self._pairs: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
@@ -206,14 +272,15 @@ class Defend:
 
     def _implausible(self, key: Hashable, diagnostics: np.ndarray) -> bool:
         """Record this step's correction statistic q of ``key``; whether the window's sum
-        fails the chi-square test."""
+        fails the chi-square test, or this step's q alone fails it at level ``strong``."""
         distance = float(diagnostics[_DISTANCE])
         s_t2 = 2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2
         q = float(diagnostics[_SHIFT]) ** 2 / s_t2 \
             + np.radians(float(diagnostics[_TURN])) ** 2 / (2.0 * self.sigma_r**2)
         history = self._q.setdefault(key, deque(maxlen=self.params.window))
         history.append(q)
-        return bool(stats.chi2.sf(sum(history), 3 * len(history)) < self.params.alpha)
+        return bool(chdtrc(3 * len(history), sum(history)) < self.params.alpha
+                    or chdtrc(3, q) < self.params.strong)
 
     def _consensus(self, observation: Mapping[str, Any], filled: np.ndarray,
                    names: list[str], ego: Hashable) -> set[int]:
@@ -221,13 +288,20 @@ class Defend:
         sources = _sources(observation, filled)
         occluders = np.concatenate([boxes[:, :2] for boxes, _ in sources.values()])
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
+        # vehicles claim a place and witness others' claims (an RSU's view misses cars)
+        cars = {key for key, name in ids.items() if self.use["claim"] and str(
+            ego if key == EGO else name).startswith(self.params.car_prefix)}
         self.last_pairs, self.last_now = {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
-            evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, self.params.match_m,
-                                     self.params.view_m, self.params.occlusion_m) + pair_evidence(
-                boxes_b, boxes_a, origin_a, occluders, self.params.match_m, self.params.view_m,
-                self.params.occlusion_m)
+            distance = centre_distances(boxes_a, boxes_b)
+            evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
+                                     distance) + pair_evidence(
+                boxes_b, boxes_a, origin_a, occluders, *self._geometry, distance.T)
+            if a in cars and b in cars and a != EGO:
+                evidence += claim_evidence(origin_a, boxes_b, origin_b, occluders, *self._claim)
+            if a in cars and b in cars:
+                evidence += claim_evidence(origin_b, boxes_a, origin_a, occluders, *self._claim)
             history = self._pairs.setdefault((ego, frozenset((ids[a], ids[b]))),
                                              deque(maxlen=self.params.window))
             history.append(evidence)
@@ -260,18 +334,22 @@ class Defend:
 
     def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
                  pairs: dict[frozenset, PairEvidence]) -> float:
-        """How likely an honest collaborator shows the conflicts or unconfirmed boxes that
-        ``slot`` shows against the ego and the other collaborators of ``group`` in
-        ``pairs``: twice the smaller p-value of two one-sided binomial tests (Bonferroni;
-        1 without boxes)."""
+        """How likely an honest collaborator shows the conflicts, unconfirmed boxes or
+        missed claims that ``slot`` shows against the ego and the other collaborators of
+        ``group`` in ``pairs``: the smallest p-value of the one-sided binomial tests times
+        their number (Bonferroni: two, three with the claim test; 1 without evidence)."""
         evidence = sum((pairs[frozenset((slot, other))]
                         for other in (EGO, *group) if other != slot), NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
-        if total == 0:
+        tails = [bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate),
+                 bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
+        if evidence.claims:
+            tails.append(bdtrc(evidence.claims_missed - 1, evidence.claims,
+                               self.params.claim_miss_rate))
+        if not tails:
             return 1.0
-        return float(min(1.0, 2.0 * min(
-            stats.binom.sf(evidence.conflicts - 1, total, self.params.conflict_rate),
-            stats.binom.sf(evidence.unconfirmed - 1, total, self.params.miss_rate))))
+        tests = 3 if self.use["claim"] else 2
+        return float(min(1.0, tests * min(tails)))
 
 
 def _sources(observation: Mapping[str, Any], filled: np.ndarray

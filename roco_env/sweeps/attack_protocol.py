@@ -6,7 +6,9 @@
 
 One agent of five attacks (drawn per episode from the seed) on urban_intersection and
 v2xset_like (4 CAVs + 1 RSU), noise 0.4 (sigma_t 0.4 m, sigma_r 0.4 deg on every agent),
-realistic detector, late fusion. Each cell is scored by
+realistic detector, late fusion; the references: no fusion (each ego's own boxes), the
+oracle and ``privileged_gate:base=roco`` (the attacker rejected from the truth). Each cell
+is scored by
 :func:`roco_env.sweeps.attack.run_attack_cell` against its clean twin; ``report.md`` holds
 the attack tables (AP@0.7 under attack and clean, attack success, detection rate, honest
 rejections) and the targets of ``defend:base=roco``.
@@ -50,7 +52,11 @@ ATTACKS: dict[str, dict[str, Scalar]] = {
 # scenario -> its overrides: five agents each
 SCENES: dict[str, dict[str, Scalar]] = {"urban_intersection": {}, "v2xset_like": {"cavs": 4}}
 ALIGNERS = ("identity", "coalign", "roco", "roco_antialias")
-POLICIES = (*ALIGNERS, *(f"defend:base={name}" for name in ALIGNERS))
+# The references: each ego's own boxes alone (identity with fusion none, whatever is sent),
+# the true poses, and the perfect rejection of the attacker behind roco.
+NO_FUSION = "no_fusion"
+POLICIES = (NO_FUSION, *ALIGNERS, "oracle", *(f"defend:base={name}" for name in ALIGNERS),
+            "privileged_gate:base=roco")
 PROTOCOL: dict[str, Scalar] = {"detector": "realistic", "noise.perturb_ego": True}
 SEEDS, STEPS = 2, 10
 # The targets of defend:base=roco (docs/attacks.md): AP@0.7 points kept, detection, honest
@@ -60,10 +66,21 @@ TARGET_AP_POINTS, TARGET_DETECTION, TARGET_HONEST, TARGET_CLEAN_COST = 2.0, 0.95
 
 def protocol_cells(seeds: int = SEEDS, steps: int = STEPS,
                    policies: Sequence[str] = POLICIES) -> list[Cell]:
-    """Every (scene, attack, policy, seed) cell of the protocol."""
+    """Every (scene, attack, policy, seed) cell of the protocol; :data:`NO_FUSION` is
+    ``identity`` with ``fusion: none``."""
+    aligned = [policy for policy in policies if policy != NO_FUSION]
+    runs = [(aligned, {})] if aligned else []
+    if NO_FUSION in policies:
+        runs.append((["identity"], {"fusion": "none"}))
     return [cell for scene, extra in SCENES.items() for attack in ATTACKS.values()
-            for cell in build_grid([scene], [NOISE], policies, list(range(seeds)), steps,
-                                   overrides={**PROTOCOL, **extra, **attack})]
+            for chosen, fusion in runs
+            for cell in build_grid([scene], [NOISE], chosen, list(range(seeds)), steps,
+                                   overrides={**PROTOCOL, **extra, **attack, **fusion})]
+
+
+def policy_label(cell: dict) -> str:
+    """The :data:`POLICIES` entry of a record's cell (:data:`NO_FUSION` for fusion none)."""
+    return NO_FUSION if cell["overrides"].get("fusion") == "none" else cell["policy"]
 
 
 def attack_label(cell: dict) -> str:
@@ -79,7 +96,7 @@ def summary(records: Sequence[dict]) -> dict[tuple[str, str, str], dict[str, flo
     for record in records:
         if record["status"] == "ok":
             cell = record["cell"]
-            key = (cell["scenario"], attack_label(cell), cell["policy"])
+            key = (cell["scenario"], attack_label(cell), policy_label(cell))
             groups.setdefault(key, []).append(record["metrics"])
     return {key: {name: float(np.nanmean([np.nan if m.get(name) is None else m[name]
                                           for m in rows]))
@@ -136,7 +153,8 @@ def targets(rows: dict, scenario: str) -> list[str]:
 def render(records: Sequence[dict], title: str = "Attack protocol") -> str:
     """The attack tables of ``records`` as Markdown."""
     rows = summary(records)
-    policies = list(dict.fromkeys(policy for _, _, policy in rows))
+    found = {policy for _, _, policy in rows}
+    policies = [p for p in POLICIES if p in found] + sorted(found - set(POLICIES))
     seeds = sorted({r["cell"]["seed"] for r in records})
     steps = sorted({r["cell"]["steps"] for r in records})
     failed = [r for r in records if r["status"] != "ok"]
