@@ -224,6 +224,11 @@ EXPERIMENTS: tuple[Experiment, ...] = (
                overrides={**PROTOCOL, **LATE},
                grid={"delay_ms": (0, 100, 200, 300, 400),
                      "comm.compensation": ("none", "track")}),
+    Experiment("delay_baselines",
+               "Beside the delay sweep: the oracle and the ego alone (fusion none) at 0-400 ms",
+               ("highway_dense", "v2xset_like"), (0.0,), ("identity", "oracle"), seeds=1,
+               steps=20, overrides={**PROTOCOL, **LATE},
+               grid={"delay_ms": (0, 100, 400), "fusion": ("late", "none")}),
     Experiment("delay_motion",
                "Motion read as pose error: the pose error each aligner adds at pose noise 0 "
                "and 100-300 ms, without and with compensation",
