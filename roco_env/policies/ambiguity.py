@@ -211,6 +211,7 @@ def diagnose(
     margin: float,
     distinct: tuple[float, float],
     min_matches: int,
+    beyond: np.ndarray | None = None,
 ) -> Ambiguity:
     """The undetermined directions of collaborator j's pose ``candidates[best]`` (module
     docstring).
@@ -225,7 +226,9 @@ def diagnose(
     ``search_radius`` / ``search_yaw_deg`` bound the spectrum's stds); margin (chi2
     units): how close a rival's score must come; distinct (m, rad): when two poses differ,
     and the units of the scaled coordinates; min_matches: the fewest pairs that determine
-    anything.
+    anything; beyond (R, 3): rivals found outside the candidates (in roco_antialias: poses
+    beyond the hypotheses' search that explain the boxes far better than the pose, step 2),
+    their shifts open directions as the candidates' rivals do.
     """
     candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)
     pose = candidates[best]
@@ -241,24 +244,33 @@ def diagnose(
     limits = ((p.search_radius / scale[0]) ** 2, (np.deg2rad(p.search_yaw_deg) / scale[2]) ** 2)
     moves, yaw_open = _spectrum(information, limits)
     weak_translation = bool(moves)
-    offset = candidates - pose
-    offset[:, 2] = (offset[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # the turn, wrapped
-    offset /= scale
+    offset = _scaled_offsets(candidates, pose, scale)
     distinct_rows = _distinct(offset)
     rival = (rival_score >= rival_score[best] - margin) & distinct_rows
+    beyond = np.zeros((0, 3)) if beyond is None else np.asarray(beyond, dtype=float).reshape(-1, 3)
+    rivals = np.concatenate([offset[rival], _scaled_offsets(beyond, pose, scale)])
     # Step 3: translation directions (largest rival shift first) and the yaw axis.
-    if rival.any():
-        shifts = offset[rival, :2]
+    if rivals.shape[0]:
+        shifts = rivals[:, :2]
         for shift in shifts[np.argsort(-np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]:
             rest = shift - sum(((m @ shift) * m for m in moves), np.zeros(2))
             if len(moves) < 2 and np.hypot(*rest) > 1.0:
                 moves.append(rest / np.hypot(*rest))
-        yaw_open = yaw_open or np.abs(offset[rival, 2]).max() > 1.0
+        yaw_open = yaw_open or np.abs(rivals[:, 2]).max() > 1.0
     directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
     undetermined = np.array(directions, dtype=float).reshape(-1, 3)
-    return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
+    return Ambiguity(pose, scale, undetermined, information, matches,
+                     np.concatenate([candidates[rival], beyond]),
                      _determined_margin(offset, undetermined, score, distinct_rows),
                      weak_translation)
+
+
+def _scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Offsets (H, 3) of ``poses`` (H, 3) from ``pose`` (3,), the turn wrapped, in the
+    scaled coordinates of ``scale`` (3,)."""
+    offset = poses - pose
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    return offset / scale
 
 
 def _spectrum(

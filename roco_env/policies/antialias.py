@@ -58,6 +58,7 @@ from roco_env.policies.hypotheses import (
     evidence_terms,
     generate_hypotheses,
     refine_terms,
+    score_hypotheses,
 )
 from roco_env.policies.hypothesis_kernels import decision_margin
 from roco_env.policies.landmarks import prepare_inputs, require_positive
@@ -65,6 +66,10 @@ from roco_env.policies.pose_kernels import refine_starts
 from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
+
+# How many times the hypotheses' translation search (``search_radius``) the search for
+# better explanations beyond it reaches (module docstring, step 4).
+BEYOND = 2.0
 
 
 @dataclass(frozen=True)
@@ -124,13 +129,16 @@ class Decision:
     nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
     runs from the reported pose); ambiguity: the diagnosis of the best hypothesis
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
-    ``use_ambiguity`` is off).
+    ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
+    was overruled by the evidence (step 5 of the module docstring), so the decision was
+    taken without it and the track is to be forgotten.
     """
 
     pose: np.ndarray | None
     margin: float
     hypotheses: int
     ambiguity: Ambiguity | None = None
+    track_dropped: bool = False
 
 
 @lru_cache(maxsize=16)
@@ -148,6 +156,52 @@ def _decision_terms(p: AntiAliasParams) -> tuple:
         (p.track_sigma_t, np.deg2rad(p.track_sigma_r_deg)),
         (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
     )
+
+
+@lru_cache(maxsize=16)
+def _wide_search(p: AntiAliasParams) -> EvidenceParams:
+    """The evidence settings of ``p`` with ``BEYOND`` times its translation search: the
+    search beyond the hypotheses' (module docstring, step 4)."""
+    return EvidenceParams(**{f.name: getattr(p, f.name) for f in fields(EvidenceParams)}
+                          | {"search_radius": BEYOND * p.search_radius})
+
+
+def _beyond_search(
+    ego: BoxSet, collab: BoxSet, reported: np.ndarray, poses: np.ndarray, best: int,
+    p: AntiAliasParams,
+) -> np.ndarray:
+    """Poses (R, 3) beyond the hypotheses ``poses`` (H, 3) that explain the boxes far
+    better than ``poses[best]`` (module docstring, step 4): the vote peaks of a search
+    ``BEYOND`` times as wide around ``reported`` (3,), refined as the hypotheses are, that
+    are distinct from every hypothesis and whose evidence beats the best's by ``min_margin``
+    (scored together with it, on the boxes both can see)."""
+    refine, *_, distinct = _decision_terms(p)
+    peaks = generate_hypotheses(ego, collab, reported, _wide_search(p))
+    far = refine_starts(peaks, np.zeros((0, 3)), ego.poses, collab.poses, collab.information,
+                        *refine)
+    far = far[~_near_any(far, poses, distinct)]
+    if far.shape[0] == 0:
+        return far
+    evidence = score_hypotheses(ego, collab, np.concatenate([poses[best:best + 1], far]), p)
+    return far[evidence[1:] >= evidence[0] + p.min_margin]
+
+
+def _near_any(poses: np.ndarray, others: np.ndarray, distinct: tuple[float, float]) -> np.ndarray:
+    """Which of ``poses`` (R, 3) lie within ``distinct`` (m, rad) of one of ``others``
+    (H, 3) (bool (R,))."""
+    gap = poses[:, None, :] - others[None, :, :]
+    close = (np.hypot(gap[..., 0], gap[..., 1]) <= distinct[0]) & (
+        np.abs(wrap_angle(gap[..., 2])) <= distinct[1])
+    return close.any(axis=1)
+
+
+def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
+               p: AntiAliasParams) -> bool:
+    """Whether another hypothesis of ``poses`` (H, 3) explains the boxes better than
+    ``poses[best]`` by ``min_margin`` (evidence alone, chi2 units): the pick of a prior
+    (the track's) that the evidence overrules (module docstring, step 5)."""
+    evidence = score_hypotheses(ego, collab, poses, p)
+    return bool(evidence.max() >= evidence[best] + p.min_margin)
 
 
 def _decide(
@@ -183,10 +237,14 @@ def _decide(
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
         poses, reported, centre, track is not None, evidence, priors, distinct,
     )
+    if track is not None and _overruled(ego, collab, poses, int(best), p):
+        return replace(_decide(ego, collab, reported, None, p), track_dropped=True)
     ambiguity = None
     if p.use_ambiguity:
+        beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
-                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches)
+                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches,
+                             beyond=beyond)
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
@@ -320,6 +378,8 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
         tracks = [self._prediction(k, step) for k in slot_keys]
         result, decisions = antialias_align(*view.arrays, tracks=tracks, **self._kwargs)
         for key, decision in zip(slot_keys, decisions, strict=True):
+            if key is not None and decision.track_dropped:
+                self._tracks.pop(key, None)
             if key is not None and decision.pose is not None:
                 self._tracks[key] = [*self._tracks.get(key, [])[-1:], (step, decision.pose.copy())]
         self.last_decisions = decisions
