@@ -163,7 +163,8 @@ def _wide_search(p: AntiAliasParams) -> EvidenceParams:
     """The evidence settings of ``p`` with ``BEYOND`` times its translation search: the
     search beyond the hypotheses' (module docstring, step 4)."""
     return EvidenceParams(**{f.name: getattr(p, f.name) for f in fields(EvidenceParams)}
-                          | {"search_radius": BEYOND * p.search_radius})
+                          | {"search_radius": BEYOND * p.search_radius,
+                             "max_hypotheses": int(BEYOND**2 * p.max_hypotheses)})
 
 
 def _beyond_search(
