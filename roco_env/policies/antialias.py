@@ -61,9 +61,11 @@ from roco_env.policies.hypotheses import (
     score_hypotheses,
 )
 from roco_env.policies.hypothesis_kernels import decision_margin
-from roco_env.policies.landmarks import prepare_inputs, require_positive
+from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs
 from roco_env.policies.pose_kernels import refine_starts
-from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
+from roco_env.policies.prior_free import poses_distinct
+from roco_env.policies.roco import RoCoParams, roco_solve
+from roco_env.schema import spec
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
 
@@ -85,25 +87,22 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     diagnosis of step 4 (module docstring; False = the decision alone).
     """
 
-    use_hypotheses: bool = True
-    min_margin: float = 20.0
-    distinct_t: float = 1.0
-    distinct_r_deg: float = 1.0
-    use_track: bool = True
-    track_sigma_t: float = 0.5
-    track_sigma_r_deg: float = 1.0
-    track_max_age: int = 10
-    use_ambiguity: bool = True
-
-    def __post_init__(self) -> None:
-        RoCoParams.__post_init__(self)
-        EvidenceParams.__post_init__(self)
-        require_positive(
-            self,
-            ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg"),
-        )
-        if int(self.track_max_age) < 1:
-            raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
+    use_hypotheses: bool = spec(True, doc="the decision stage (False: plain RoCo)")
+    min_margin: float = spec(20.0, low=0.0, low_open=True,
+                             doc="chi2 units the best hypothesis must beat the best distinct "
+                             "one by")
+    distinct_t: float = spec(1.0, low=0.0, low_open=True,
+                             doc="translation apart (m) that makes two hypotheses distinct")
+    distinct_r_deg: float = spec(1.0, low=0.0, low_open=True,
+                                 doc="rotation apart (deg) that makes two hypotheses distinct")
+    use_track: bool = spec(True, doc="the temporal prior of the track")
+    track_sigma_t: float = spec(0.5, low=0.0, low_open=True,
+                                doc="std of the track's prediction per step of age, m")
+    track_sigma_r_deg: float = spec(1.0, low=0.0, low_open=True,
+                                    doc="std of the track's prediction per step of age, deg")
+    track_max_age: int = spec(10, low=1, doc="steps a track survives without a decision")
+    use_ambiguity: bool = spec(True, doc="the ambiguity diagnosis (step 4; False: the "
+                               "decision alone)")
 
     # The names under which :func:`~roco_env.policies.prior_free.poses_distinct` reads the
     # distinctness thresholds (m, deg).
@@ -176,24 +175,14 @@ def _beyond_search(
     ``BEYOND`` times as wide around ``reported`` (3,), refined as the hypotheses are, that
     are distinct from every hypothesis and whose evidence beats the best's by ``min_margin``
     (scored together with it, on the boxes both can see)."""
-    refine, *_, distinct = _decision_terms(p)
     peaks = generate_hypotheses(ego, collab, reported, _wide_search(p))
     far = refine_starts(peaks, np.zeros((0, 3)), ego.poses, collab.poses, collab.information,
-                        *refine)
-    far = far[~_near_any(far, poses, distinct)]
+                        *_decision_terms(p)[0])
+    far = far[poses_distinct(far[:, None], poses, p).all(axis=1)]
     if far.shape[0] == 0:
         return far
     evidence = score_hypotheses(ego, collab, np.concatenate([poses[best:best + 1], far]), p)
     return far[evidence[1:] >= evidence[0] + p.min_margin]
-
-
-def _near_any(poses: np.ndarray, others: np.ndarray, distinct: tuple[float, float]) -> np.ndarray:
-    """Which of ``poses`` (R, 3) lie within ``distinct`` (m, rad) of one of ``others``
-    (H, 3) (bool (R,))."""
-    gap = poses[:, None, :] - others[None, :, :]
-    close = (np.hypot(gap[..., 0], gap[..., 1]) <= distinct[0]) & (
-        np.abs(wrap_angle(gap[..., 2])) <= distinct[1])
-    return close.any(axis=1)
 
 
 def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
@@ -244,8 +233,7 @@ def _decide(
     if p.use_ambiguity:
         beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
-                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches,
-                             beyond=beyond)
+                             slack=evidence[:2], beyond=beyond)
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
@@ -286,9 +274,9 @@ def antialias_align(
     (predicted T_{j->i} (3,), age in steps >= 1) from earlier decisions. params: fields of
     :class:`AntiAliasParams`. Returns the result and one :class:`Decision` per collaborator.
     """
-    p = checked_params(AntiAliasParams, params, "roco_antialias")
+    p = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
     # RoCo's stage gets its own parameters (checked as roco_align checks them).
-    roco_p = checked_params(
+    roco_p = params_from_kwargs(
         RoCoParams, {k: v for k, v in params.items() if k in _ROCO_FIELDS}, "roco"
     )
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
@@ -329,9 +317,10 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     last call's :class:`Decision` per filled slot."""
 
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+    PARAMS = AntiAliasParams
 
     def __init__(self, **params) -> None:
-        checked = checked_params(AntiAliasParams, params, "roco_antialias")
+        checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
         super().__init__(antialias_align, checked, params)
         self._tracks: dict[Hashable, list[tuple[int, np.ndarray]]] = {}
         self._steps: dict[Hashable, int] = {}
