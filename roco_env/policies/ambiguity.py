@@ -26,9 +26,10 @@ reported pose, the reported pose and the track's prediction), which directions a
    within ``min_margin`` of the pose's, ``E(h) - c(h) >= E(pose) - c(pose) - min_margin``
    (E the evidence of :func:`~roco_env.policies.hypotheses.score_hypotheses`, chi2 units;
    c any prior other than the reported pose's, e.g. a temporal track's), explains the
-   boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Only
-   the candidates are compared: an alias the search did not reach (in roco_antialias,
-   farther than ``search_radius`` from the reported pose) goes unnoticed.
+   boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Poses
+   found outside the candidates (``beyond``; in roco_antialias those beyond the
+   hypotheses' search that explain the boxes far better) are rivals too; an alias beyond
+   every search that explains them no better goes unnoticed.
 3. **Subspace.** Translations and the yaw are kept apart (a direction mixing metres and
    degrees would trade a heading error for a position error): the undetermined
    translation directions are those of step 1, then the rivals' shifts, largest first,

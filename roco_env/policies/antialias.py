@@ -27,7 +27,17 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    (:meth:`~roco_env.policies.ambiguity.Ambiguity.projected`), if that part wins by
    ``min_margin`` and is significant (a Wald test with the pairs' information at RoCo's
    ``significance``); with nothing determined, or a translation the pairs themselves pin
-   poorly, it keeps the reported pose.
+   poorly, it keeps the reported pose. The diagnosis also looks ``BEYOND`` (2) times as far
+   as the hypotheses (votes over twice ``search_radius``, four times ``max_hypotheses``
+   peaks, refined alike): a pose there whose evidence beats the best hypothesis's by
+   ``min_margin`` (scored together, on the boxes both can see) shows that the best one
+   explains far less than the scene supports (a reported error beyond the search, the
+   best hypothesis an alias near the reported pose); its shift is left open like a
+   rival's, so the reported pose is kept along it;
+5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
+   made with the track's prior is beaten by another hypothesis's evidence alone by
+   ``min_margin``, the decision is taken again without the track
+   (:attr:`Decision.track_dropped`) and the policy forgets that track.
 
 RoCo (unchanged, with all its parameters: the prior edges and the significance test still
 refer to the reported poses) then matches and solves the joint pose graph from those
