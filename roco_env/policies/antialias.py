@@ -33,9 +33,7 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    ``min_margin`` (scored together, on the boxes both can see) shows that the best one
    explains far less than the scene supports (a reported error beyond the search, the
    best hypothesis an alias near the reported pose); its shift is left open like a
-   rival's, so the reported pose is kept along it. With no hypothesis at all (nothing
-   refines within the search), such a pose beating the reported one keeps the
-   collaborator out of RoCo with its reported pose (:attr:`Decision.beyond`);
+   rival's, so the reported pose is kept along it;
 5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
    made with the track's prior is beaten by another hypothesis's evidence alone by
    ``min_margin``, the decision is taken again without the track
@@ -142,9 +140,7 @@ class Decision:
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
     ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
     was overruled by the evidence (step 5 of the module docstring), so the decision was
-    taken without it and the track is to be forgotten; beyond: with no hypothesis, how many
-    poses beyond the search explain the boxes far better than the reported pose (step 4:
-    then the reported pose is kept, RoCo does not start from it).
+    taken without it and the track is to be forgotten.
     """
 
     pose: np.ndarray | None
@@ -152,7 +148,6 @@ class Decision:
     hypotheses: int
     ambiguity: Ambiguity | None = None
     track_dropped: bool = False
-    beyond: int = 0
 
 
 @lru_cache(maxsize=16)
@@ -236,9 +231,7 @@ def _decide(
         priors = prior + (float((track_t * age) ** 2), float((track_r * age) ** 2))
     poses = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information, *refine)
     if poses.shape[0] == 0:
-        beyond = _beyond_search(ego, collab, reported, reported[None], 0, p) if (
-            p.use_ambiguity) else poses
-        return Decision(None, float("nan"), 0, beyond=beyond.shape[0])
+        return Decision(None, float("nan"), 0)
     best, margin, scores, unreported = decision_margin(
         ego.poses, ego.log_sizes, ego.var_t, ego.var_r, float(ego.range),
         collab.poses, collab.log_sizes, collab.var_t, collab.var_r, float(collab.range),
@@ -262,9 +255,6 @@ def _kept_out(
     projected pose (None: the reported pose is kept in full): step 4 of the module
     docstring when its diagnosis finds undetermined directions, else the margin's note."""
     ambiguity = decision.ambiguity
-    if decision.beyond:
-        return (f"no hypothesis within search_radius, {decision.beyond} beyond it explaining "
-                "the boxes far better, reported pose kept"), None
     if ambiguity is None or ambiguity.determined == 3:
         note = f"ambiguous (margin {decision.margin:.1f} < {p.min_margin:g}), reported pose kept"
         return note, None
@@ -316,8 +306,7 @@ def antialias_align(
         decisions.append(decision)
         if decision.pose is not None:
             start[j] = decision.pose
-    ambiguous = [j for j, d in enumerate(decisions)
-                 if d.pose is None and (d.hypotheses or d.beyond)]
+    ambiguous = [j for j, d in enumerate(decisions) if d.pose is None and d.hypotheses]
     # An ambiguous collaborator is left out of RoCo: it keeps its reported pose, or along
     # its undetermined directions only (step 4).
     result = roco_solve(inputs, roco_p, start, frozenset(ambiguous))
