@@ -74,6 +74,8 @@ __all__ = [
     "in_range_mask",
     "relative_pose_error",
     "success_rate",
+    "HARM_MARGIN",
+    "harm_share",
     "matching_precision_recall",
 ]
 
@@ -509,6 +511,23 @@ def success_rate(errors: np.ndarray, lam: float) -> float:
     if valid.shape[0] == 0:
         return float("nan")
     return float(np.mean((valid[:, 0] < lam) & (valid[:, 1] < lam)))
+
+
+# m: a pose counts as made worse than reported (harmed) when its translation error grew by
+# more than this (the stress search's ``harm``, roco_antialias's lattice benchmark).
+HARM_MARGIN = 0.5
+
+
+def harm_share(before: np.ndarray, after: np.ndarray, margin: float = HARM_MARGIN) -> float:
+    """Share of rows whose translation error (m, column 0 of errors (N, 2) as returned by
+    :func:`relative_pose_error`) grew by more than ``margin`` m from ``before`` (the
+    reported poses') to ``after`` (the corrected ones'); NaN without rows."""
+    before, after = np.reshape(before, (-1, 2)), np.reshape(after, (-1, 2))
+    if before.shape != after.shape:
+        raise ValueError(f"before/after shapes differ: {before.shape} vs {after.shape}")
+    if before.shape[0] == 0:
+        return float("nan")
+    return float(np.mean(after[:, 0] > before[:, 0] + margin))
 
 
 def _id_table(ego_ids: np.ndarray, collab_ids: np.ndarray) -> np.ndarray:

@@ -142,6 +142,20 @@ def test_track_switch_carries_an_earlier_decision():
     assert error_m(off.corrected, scene) == pytest.approx(1.4, abs=0.05)
 
 
+def test_track_overruled_by_the_evidence_is_dropped():
+    """A track predicting the alias two stalls over (its prior, 100 chi2 units at age 1,
+    outweighs the evidence's preference for the truth): the evidence beats the track's pick
+    by more than min_margin, so the track is dropped and the decision taken without it."""
+    scene = lot(0, -0.6, rows=3, per_row=16, origin=-18.0, size_jitter=0.02,
+                place_jitter=(0.05, 0.05, 0.017), collab_x=12.0, sensor_range=70.0)
+    alias = scene.true[0] + np.array([5.0, 0.0, 0.0])
+    result, decisions = antialias_align(*scene.args(), tracks=[(alias, 1.0)])
+    assert decisions[0].track_dropped and decisions[0].pose is not None
+    assert error_m(result.corrected, scene) < 0.1
+    kept, decisions = antialias_align(*scene.args(), tracks=[(scene.true[0], 1.0)])
+    assert not decisions[0].track_dropped and error_m(kept.corrected, scene) < 0.1
+
+
 def test_hypotheses_switch_off_is_plain_roco():
     scene = lot(0, -1.4, rows=3, per_row=16, origin=-18.0, size_jitter=0.06, collab_x=12.0,
                 sensor_range=70.0)

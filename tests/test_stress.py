@@ -17,8 +17,9 @@ import yaml
 
 import roco_env
 from roco_env.cli import main
+from roco_env.metrics import HARM_MARGIN, harm_share
 from roco_env.schema import ConfigError
-from roco_env.stress.objectives import HARM_MARGIN, Infeasible, evaluate, harm_share
+from roco_env.stress.objectives import Infeasible, evaluate
 from roco_env.stress.space import (
     CAR_LENGTH,
     lane_density,

@@ -26,9 +26,10 @@ reported pose, the reported pose and the track's prediction), which directions a
    within ``min_margin`` of the pose's, ``E(h) - c(h) >= E(pose) - c(pose) - min_margin``
    (E the evidence of :func:`~roco_env.policies.hypotheses.score_hypotheses`, chi2 units;
    c any prior other than the reported pose's, e.g. a temporal track's), explains the
-   boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Only
-   the candidates are compared: an alias the search did not reach (in roco_antialias,
-   farther than ``search_radius`` from the reported pose) goes unnoticed.
+   boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Poses
+   found outside the candidates (``beyond``; in roco_antialias those beyond the
+   hypotheses' search that explain the boxes far better) are rivals too; an alias beyond
+   every search that explains them no better goes unnoticed.
 3. **Subspace.** Translations and the yaw are kept apart (a direction mixing metres and
    degrees would trade a heading error for a position error): the undetermined
    translation directions are those of step 1, then the rivals' shifts, largest first,
@@ -65,13 +66,18 @@ refinement's (1 m).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
 from roco_env.geometry import wrap_angle
-from roco_env.policies.hypotheses import BoxSet, EvidenceParams, evidence_terms
+from roco_env.policies.hypotheses import BoxSet
 from roco_env.policies.pose_kernels import pair_information
+from roco_env.policies.prior_free import poses_distinct
+
+if TYPE_CHECKING:
+    from roco_env.policies.antialias import AntiAliasParams
 
 __all__ = ["Ambiguity", "diagnose"]
 
@@ -206,11 +212,10 @@ def diagnose(
     best: int,
     rival_score: np.ndarray,
     score: np.ndarray,
-    p: EvidenceParams,
+    p: AntiAliasParams,
     *,
-    margin: float,
-    distinct: tuple[float, float],
-    min_matches: int,
+    slack: tuple[float, float],
+    beyond: np.ndarray | None = None,
 ) -> Ambiguity:
     """The undetermined directions of collaborator j's pose ``candidates[best]`` (module
     docstring).
@@ -220,45 +225,59 @@ def diagnose(
     pose among them; rival_score (H,): their evidence
     (:func:`~roco_env.policies.hypotheses.score_hypotheses`) minus every prior term but the
     reported pose's (e.g. a track's), chi2 units: finds the rivals; score (H,): minus the
-    reported pose's too (:attr:`Ambiguity.margin`); p: the evidence's settings
-    (``refine_gate`` pairs the boxes, the pose slack weighs the pairs, the search's
-    ``search_radius`` / ``search_yaw_deg`` bound the spectrum's stds); margin (chi2
-    units): how close a rival's score must come; distinct (m, rad): when two poses differ,
-    and the units of the scaled coordinates; min_matches: the fewest pairs that determine
-    anything.
+    reported pose's too (:attr:`Ambiguity.margin`); p: the aligner's settings
+    (``refine_gate`` pairs the boxes, the search's ``search_radius`` / ``search_yaw_deg``
+    bound the spectrum's stds, ``min_margin`` (chi2 units) is how close a rival's score must
+    come, ``distinct_t`` (m) / ``distinct_r_deg`` (deg) when two poses differ
+    (:func:`~roco_env.policies.prior_free.poses_distinct`) and the units of the scaled
+    coordinates, ``min_matches`` the fewest pairs that determine anything); slack: the pose
+    slack's variances (m^2, rad^2) that weigh the pairs, as the evidence's settings hold
+    them (:func:`~roco_env.policies.hypotheses.evidence_terms`); beyond (R, 3): rivals found
+    outside the candidates (in roco_antialias: poses beyond the hypotheses' search that
+    explain the boxes far better than the pose), their shifts open directions as the
+    candidates' rivals do.
     """
     candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)
     pose = candidates[best]
-    scale = np.array([distinct[0], distinct[0], distinct[1]], dtype=float)
+    scale = np.array([p.distinct_t, p.distinct_t, np.deg2rad(p.distinct_r_deg)])
     information, matches = pair_information(
         (ego.poses, ego.var_t, ego.var_r), (collab.poses, collab.var_t, collab.var_r), pose,
-        float(p.refine_gate), *evidence_terms(p)[:2])
+        float(p.refine_gate), *slack)
     information *= scale[:, None] * scale
-    if matches < min_matches:
+    if matches < p.min_matches:
         return Ambiguity(pose, scale, np.eye(3), information, matches, candidates[:0],
                          weak_translation=True)
     # Step 1: the spectrum; step 2: the rivals.
     limits = ((p.search_radius / scale[0]) ** 2, (np.deg2rad(p.search_yaw_deg) / scale[2]) ** 2)
     moves, yaw_open = _spectrum(information, limits)
     weak_translation = bool(moves)
-    offset = candidates - pose
-    offset[:, 2] = (offset[:, 2] + np.pi) % (2.0 * np.pi) - np.pi  # the turn, wrapped
-    offset /= scale
-    distinct_rows = _distinct(offset)
-    rival = (rival_score >= rival_score[best] - margin) & distinct_rows
+    offset = _scaled_offsets(candidates, pose, scale)
+    distinct_rows = poses_distinct(candidates, pose, p)
+    rival = (rival_score >= rival_score[best] - p.min_margin) & distinct_rows
+    beyond = np.zeros((0, 3)) if beyond is None else np.asarray(beyond, dtype=float).reshape(-1, 3)
+    rivals = np.concatenate([offset[rival], _scaled_offsets(beyond, pose, scale)])
     # Step 3: translation directions (largest rival shift first) and the yaw axis.
-    if rival.any():
-        shifts = offset[rival, :2]
+    if rivals.shape[0]:
+        shifts = rivals[:, :2]
         for shift in shifts[np.argsort(-np.hypot(shifts[:, 0], shifts[:, 1]), kind="stable")]:
             rest = shift - sum(((m @ shift) * m for m in moves), np.zeros(2))
             if len(moves) < 2 and np.hypot(*rest) > 1.0:
                 moves.append(rest / np.hypot(*rest))
-        yaw_open = yaw_open or np.abs(offset[rival, 2]).max() > 1.0
+        yaw_open = yaw_open or np.abs(rivals[:, 2]).max() > 1.0
     directions = [[m[0], m[1], 0.0] for m in moves] + ([[0.0, 0.0, 1.0]] if yaw_open else [])
     undetermined = np.array(directions, dtype=float).reshape(-1, 3)
-    return Ambiguity(pose, scale, undetermined, information, matches, candidates[rival],
-                     _determined_margin(offset, undetermined, score, distinct_rows),
+    return Ambiguity(pose, scale, undetermined, information, matches,
+                     np.concatenate([candidates[rival], beyond]),
+                     _determined_margin(offset, undetermined, score, distinct_rows, p),
                      weak_translation)
+
+
+def _scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Offsets (H, 3) of ``poses`` (H, 3) from ``pose`` (3,), the turn wrapped, in the
+    scaled coordinates of ``scale`` (3,)."""
+    offset = poses - pose
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    return offset / scale
 
 
 def _spectrum(
@@ -285,22 +304,20 @@ def _spectrum(
     return moves, bool(1.0 / schur > limits[1])
 
 
-def _distinct(offset: np.ndarray) -> np.ndarray:
-    """Offsets (H, 3) in scaled coordinates that are distinct: more than one unit in
-    translation or in yaw (bool (H,))."""
-    return (np.hypot(offset[:, 0], offset[:, 1]) > 1.0) | (np.abs(offset[:, 2]) > 1.0)
-
-
 def _determined_margin(
-    offset: np.ndarray, undetermined: np.ndarray, total: np.ndarray, distinct_rows: np.ndarray
+    offset: np.ndarray, undetermined: np.ndarray, total: np.ndarray, distinct_rows: np.ndarray,
+    p: AntiAliasParams,
 ) -> float:
     """Step 4 of the module docstring: offsets (H, 3) of the candidates from the pose (scaled
     coordinates), the undetermined basis (k, 3), the candidates' scores (H,) and which
-    offsets are distinct (H,) (those of the determined part when nothing is open)."""
+    offsets are distinct (H,) (those of the determined part when nothing is open; ``p``'s
+    thresholds)."""
     if undetermined.shape[0] == 3:
         return float("nan")
     other = distinct_rows
     if undetermined.shape[0]:
-        other = _distinct(offset - (offset @ undetermined.T) @ undetermined)
+        determined_part = offset - (offset @ undetermined.T) @ undetermined
+        scale = np.array([p.distinct_t, p.distinct_t, np.deg2rad(p.distinct_r_deg)])
+        other = poses_distinct(determined_part * scale, np.zeros(3), p)
     runner_up = total[other].max() if other.any() else 0.0
     return float(total[~other].max() - runner_up)

@@ -27,7 +27,17 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    (:meth:`~roco_env.policies.ambiguity.Ambiguity.projected`), if that part wins by
    ``min_margin`` and is significant (a Wald test with the pairs' information at RoCo's
    ``significance``); with nothing determined, or a translation the pairs themselves pin
-   poorly, it keeps the reported pose.
+   poorly, it keeps the reported pose. The diagnosis also looks ``BEYOND`` (2) times as far
+   as the hypotheses (votes over twice ``search_radius``, four times ``max_hypotheses``
+   peaks, refined alike): a pose there whose evidence beats the best hypothesis's by
+   ``min_margin`` (scored together, on the boxes both can see) shows that the best one
+   explains far less than the scene supports (a reported error beyond the search, the
+   best hypothesis an alias near the reported pose); its shift is left open like a
+   rival's, so the reported pose is kept along it;
+5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
+   made with the track's prior is beaten by another hypothesis's evidence alone by
+   ``min_margin``, the decision is taken again without the track
+   (:attr:`Decision.track_dropped`) and the policy forgets that track.
 
 RoCo (unchanged, with all its parameters: the prior edges and the significance test still
 refer to the reported poses) then matches and solves the joint pose graph from those
@@ -58,13 +68,20 @@ from roco_env.policies.hypotheses import (
     evidence_terms,
     generate_hypotheses,
     refine_terms,
+    score_hypotheses,
 )
 from roco_env.policies.hypothesis_kernels import decision_margin
-from roco_env.policies.landmarks import prepare_inputs, require_positive
+from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs
 from roco_env.policies.pose_kernels import refine_starts
-from roco_env.policies.roco import RoCoParams, checked_params, roco_solve
+from roco_env.policies.prior_free import poses_distinct
+from roco_env.policies.roco import RoCoParams, roco_solve
+from roco_env.schema import spec
 
 __all__ = ["AntiAliasParams", "AntiAliasPolicy", "Decision", "antialias_align"]
+
+# How many times the hypotheses' translation search (``search_radius``) the search for
+# better explanations beyond it reaches (module docstring, step 4).
+BEYOND = 2.0
 
 
 @dataclass(frozen=True)
@@ -80,25 +97,22 @@ class AntiAliasParams(RoCoParams, EvidenceParams):
     diagnosis of step 4 (module docstring; False = the decision alone).
     """
 
-    use_hypotheses: bool = True
-    min_margin: float = 20.0
-    distinct_t: float = 1.0
-    distinct_r_deg: float = 1.0
-    use_track: bool = True
-    track_sigma_t: float = 0.5
-    track_sigma_r_deg: float = 1.0
-    track_max_age: int = 10
-    use_ambiguity: bool = True
-
-    def __post_init__(self) -> None:
-        RoCoParams.__post_init__(self)
-        EvidenceParams.__post_init__(self)
-        require_positive(
-            self,
-            ("min_margin", "distinct_t", "distinct_r_deg", "track_sigma_t", "track_sigma_r_deg"),
-        )
-        if int(self.track_max_age) < 1:
-            raise ValueError(f"track_max_age must be an integer >= 1; got {self.track_max_age}")
+    use_hypotheses: bool = spec(True, doc="the decision stage (False: plain RoCo)")
+    min_margin: float = spec(20.0, low=0.0, low_open=True,
+                             doc="chi2 units the best hypothesis must beat the best distinct "
+                             "one by")
+    distinct_t: float = spec(1.0, low=0.0, low_open=True,
+                             doc="translation apart (m) that makes two hypotheses distinct")
+    distinct_r_deg: float = spec(1.0, low=0.0, low_open=True,
+                                 doc="rotation apart (deg) that makes two hypotheses distinct")
+    use_track: bool = spec(True, doc="the temporal prior of the track")
+    track_sigma_t: float = spec(0.5, low=0.0, low_open=True,
+                                doc="std of the track's prediction per step of age, m")
+    track_sigma_r_deg: float = spec(1.0, low=0.0, low_open=True,
+                                    doc="std of the track's prediction per step of age, deg")
+    track_max_age: int = spec(10, low=1, doc="steps a track survives without a decision")
+    use_ambiguity: bool = spec(True, doc="the ambiguity diagnosis (step 4; False: the "
+                               "decision alone)")
 
     # The names under which :func:`~roco_env.policies.prior_free.poses_distinct` reads the
     # distinctness thresholds (m, deg).
@@ -124,13 +138,16 @@ class Decision:
     nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
     runs from the reported pose); ambiguity: the diagnosis of the best hypothesis
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
-    ``use_ambiguity`` is off).
+    ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
+    was overruled by the evidence (step 5 of the module docstring), so the decision was
+    taken without it and the track is to be forgotten.
     """
 
     pose: np.ndarray | None
     margin: float
     hypotheses: int
     ambiguity: Ambiguity | None = None
+    track_dropped: bool = False
 
 
 @lru_cache(maxsize=16)
@@ -148,6 +165,43 @@ def _decision_terms(p: AntiAliasParams) -> tuple:
         (p.track_sigma_t, np.deg2rad(p.track_sigma_r_deg)),
         (float(p.distinct_t), float(np.deg2rad(p.distinct_r_deg))),
     )
+
+
+@lru_cache(maxsize=16)
+def _wide_search(p: AntiAliasParams) -> EvidenceParams:
+    """The evidence settings of ``p`` with ``BEYOND`` times its translation search: the
+    search beyond the hypotheses' (module docstring, step 4)."""
+    return EvidenceParams(**{f.name: getattr(p, f.name) for f in fields(EvidenceParams)}
+                          | {"search_radius": BEYOND * p.search_radius,
+                             "max_hypotheses": int(BEYOND**2 * p.max_hypotheses)})
+
+
+def _beyond_search(
+    ego: BoxSet, collab: BoxSet, reported: np.ndarray, poses: np.ndarray, best: int,
+    p: AntiAliasParams,
+) -> np.ndarray:
+    """Poses (R, 3) beyond the hypotheses ``poses`` (H, 3) that explain the boxes far
+    better than ``poses[best]`` (module docstring, step 4): the vote peaks of a search
+    ``BEYOND`` times as wide around ``reported`` (3,), refined as the hypotheses are, that
+    are distinct from every hypothesis and whose evidence beats the best's by ``min_margin``
+    (scored together with it, on the boxes both can see)."""
+    peaks = generate_hypotheses(ego, collab, reported, _wide_search(p))
+    far = refine_starts(peaks, np.zeros((0, 3)), ego.poses, collab.poses, collab.information,
+                        *_decision_terms(p)[0])
+    far = far[poses_distinct(far[:, None], poses, p).all(axis=1)]
+    if far.shape[0] == 0:
+        return far
+    evidence = score_hypotheses(ego, collab, np.concatenate([poses[best:best + 1], far]), p)
+    return far[evidence[1:] >= evidence[0] + p.min_margin]
+
+
+def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
+               p: AntiAliasParams) -> bool:
+    """Whether another hypothesis of ``poses`` (H, 3) explains the boxes better than
+    ``poses[best]`` by ``min_margin`` (evidence alone, chi2 units): the pick of a prior
+    (the track's) that the evidence overrules (module docstring, step 5)."""
+    evidence = score_hypotheses(ego, collab, poses, p)
+    return bool(evidence.max() >= evidence[best] + p.min_margin)
 
 
 def _decide(
@@ -182,10 +236,13 @@ def _decide(
         ego.terms, collab.terms, poses, reported, None if track is None else centre, evidence,
         priors, distinct,
     )
+    if track is not None and _overruled(ego, collab, poses, int(best), p):
+        return replace(_decide(ego, collab, reported, None, p), track_dropped=True)
     ambiguity = None
     if p.use_ambiguity:
+        beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
-                             margin=p.min_margin, distinct=distinct, min_matches=p.min_matches)
+                             slack=evidence[:2], beyond=beyond)
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
@@ -226,9 +283,9 @@ def antialias_align(
     (predicted T_{j->i} (3,), age in steps >= 1) from earlier decisions. params: fields of
     :class:`AntiAliasParams`. Returns the result and one :class:`Decision` per collaborator.
     """
-    p = checked_params(AntiAliasParams, params, "roco_antialias")
+    p = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
     # RoCo's stage gets its own parameters (checked as roco_align checks them).
-    roco_p = checked_params(
+    roco_p = params_from_kwargs(
         RoCoParams, {k: v for k, v in params.items() if k in _ROCO_FIELDS}, "roco"
     )
     inputs = prepare_inputs(ego_boxes, ego_unc, collab_boxes, collab_unc, reported, p)
@@ -269,9 +326,10 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     last call's :class:`Decision` per filled slot."""
 
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
+    PARAMS = AntiAliasParams
 
     def __init__(self, **params) -> None:
-        checked = checked_params(AntiAliasParams, params, "roco_antialias")
+        checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")
         super().__init__(antialias_align, checked, params)
         self._tracks: dict[Hashable, list[tuple[int, np.ndarray]]] = {}
         self._steps: dict[Hashable, int] = {}
@@ -319,6 +377,8 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
         tracks = [self._prediction(k, step) for k in slot_keys]
         result, decisions = antialias_align(*view.arrays, tracks=tracks, **self._kwargs)
         for key, decision in zip(slot_keys, decisions, strict=True):
+            if key is not None and decision.track_dropped:
+                self._tracks.pop(key, None)
             if key is not None and decision.pose is not None:
                 self._tracks[key] = [*self._tracks.get(key, [])[-1:], (step, decision.pose.copy())]
         self.last_decisions = decisions

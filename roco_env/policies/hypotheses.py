@@ -45,9 +45,10 @@ from roco_env.policies.hypothesis_kernels import (
     translation_votes,
     vote_peaks,
 )
-from roco_env.policies.landmarks import AlignmentInputs, require_positive, split_rows
+from roco_env.policies.landmarks import AlignmentInputs, split_rows
 from roco_env.policies.pose_kernels import RefineSettings
 from roco_env.policies.posegraph import solver_settings
+from roco_env.schema import spec
 
 __all__ = [
     "BoxSet",
@@ -68,18 +69,6 @@ _SMOOTHING.flags.writeable = False
 # LM cap and relative-decrease stop of a refinement solve (they only steer the hypothesis).
 _REFINE_ITERATIONS, _REFINE_TOLERANCE = 50, 1e-4
 
-_POSITIVE_FIELDS = (
-    "search_radius",
-    "search_yaw_deg",
-    "vote_bin",
-    "refine_gate",
-    "outlier_chi2",
-    "pose_slack_t",
-    "pose_slack_r_deg",
-    "size_sigma",
-)
-
-
 @dataclass(frozen=True)
 class EvidenceParams:
     """Hypothesis search and evidence (units m, deg, chi-square units = -2 ln L).
@@ -96,31 +85,28 @@ class EvidenceParams:
     switches of the terms (module docstring).
     """
 
-    search_radius: float = 7.0
-    search_yaw_deg: float = 8.0
-    vote_bin: float = 0.5
-    max_hypotheses: int = 6
-    vote_floor: float = 0.2
-    refine_gate: float = 1.0
-    outlier_chi2: float = 16.0
-    pose_slack_t: float = 0.1
-    pose_slack_r_deg: float = 0.3
-    size_sigma: float = 0.06
-    free_space_penalty: float = 2.0
-    use_size: bool = True
-    use_free_space: bool = True
-    use_mutual_detection: bool = True
-
-    def __post_init__(self) -> None:
-        require_positive(self, _POSITIVE_FIELDS)
-        if not (np.isfinite(self.free_space_penalty) and self.free_space_penalty >= 0):
-            raise ValueError(
-                f"free_space_penalty must be finite and >= 0; got {self.free_space_penalty}"
-            )
-        if not 0 <= self.vote_floor < 1:
-            raise ValueError(f"vote_floor must be in [0, 1); got {self.vote_floor}")
-        if int(self.max_hypotheses) < 1:
-            raise ValueError(f"max_hypotheses must be an integer >= 1; got {self.max_hypotheses}")
+    search_radius: float = spec(7.0, low=0.0, low_open=True,
+                                doc="translation errors searched around the reported pose, m")
+    search_yaw_deg: float = spec(8.0, low=0.0, low_open=True,
+                                 doc="rotation errors searched around the reported pose, deg")
+    vote_bin: float = spec(0.5, low=0.0, low_open=True, doc="translation vote cell, m")
+    max_hypotheses: int = spec(6, low=1, doc="local maxima of the votes kept")
+    vote_floor: float = spec(0.2, low=0.0, high=1.0, high_open=True,
+                             doc="share of the strongest vote a local maximum needs")
+    refine_gate: float = spec(1.0, low=0.0, low_open=True,
+                              doc="matching gate of the refinement, m")
+    outlier_chi2: float = spec(16.0, low=0.0, low_open=True,
+                               doc="chi2 cost of an unexplained box")
+    pose_slack_t: float = spec(0.1, low=0.0, low_open=True,
+                               doc="std added to every pair for a hypothesis' misfit, m")
+    pose_slack_r_deg: float = spec(0.3, low=0.0, low_open=True,
+                                   doc="std added to every pair for a hypothesis' misfit, deg")
+    size_sigma: float = spec(0.06, low=0.0, low_open=True, doc="std of one box's log size")
+    free_space_penalty: float = spec(2.0, low=0.0, doc="chi2 cost of an ego box inside the "
+                                     "collaborator's observed disk that it does not explain")
+    use_size: bool = spec(True, doc="log sizes in the pair chi2")
+    use_free_space: bool = spec(True, doc="the free-space term")
+    use_mutual_detection: bool = spec(True, doc="the mutual-detection term")
 
 
 @dataclass(frozen=True)

@@ -110,7 +110,6 @@ __all__ = [
     "RoCoParams",
     "RoCoPolicy",
     "RoCoPolicyParams",
-    "checked_params",
     "roco_align",
     "roco_solve",
 ]
@@ -439,11 +438,6 @@ def _commit(world: _Map, agent: int, att: _Attempt, boxes: AgentBoxes) -> None:
         tuple(world.landmarks), tuple(world.observations),
     )
     world.landmarks, world.observations = LandmarkMap(*landmarks), Observations(*observations)
-
-
-# The name roco_antialias imports: the parameters are checked, and memoised, by
-# params_from_kwargs (the one cache; its docstring says what it keys on).
-checked_params = params_from_kwargs
 
 
 def roco_align(

@@ -4,7 +4,8 @@ One evaluation runs the scenario for each seed (one episode of ``steps`` steps p
 seed, the sweep episode runner :func:`roco_env.sweeps.episode.run_episode`) and pools:
 
 * ``harm``: share in [0, 1] of the collaborator poses the policy made more than
-  ``HARM_MARGIN`` = 0.5 m worse than reported (translation error after > before + 0.5 m),
+  :data:`roco_env.metrics.HARM_MARGIN` = 0.5 m worse than reported (translation error after
+  > before + 0.5 m, :func:`roco_env.metrics.harm_share`),
   over every filled collaborator slot of every evaluated agent, step and seed;
 * ``success``: minus Success@1m1deg after the correction (so maximising it finds the
   scenes where the fewest poses end within 1 m and 1 deg), in [-1, 0];
@@ -23,12 +24,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from roco_env.metrics import success_rate
+from roco_env.metrics import harm_share, success_rate
 from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
 
 OBJECTIVES = ("harm", "success", "ap70", "gap")
-HARM_MARGIN = 0.5  # m: a pose counts as harmed when its error grew by more than this
 
 
 class Infeasible(ValueError):
@@ -48,17 +48,6 @@ def check_objective(objective: str) -> str:
     if objective not in OBJECTIVES:
         raise ValueError(f"objective={objective!r} is not allowed; choose one of {list(OBJECTIVES)}")
     return objective
-
-
-def harm_share(before: np.ndarray, after: np.ndarray, margin: float = HARM_MARGIN) -> float:
-    """Share of rows whose translation error (m, column 0) grew by more than ``margin`` m;
-    NaN without rows."""
-    before, after = np.reshape(before, (-1, 2)), np.reshape(after, (-1, 2))
-    if before.shape != after.shape:
-        raise ValueError(f"before/after shapes differ: {before.shape} vs {after.shape}")
-    if before.shape[0] == 0:
-        return float("nan")
-    return float(np.mean(after[:, 0] > before[:, 0] + margin))
 
 
 def _pooled(scenario: str, policy: str, seeds: Sequence[int], steps: int) -> dict[str, float]:
