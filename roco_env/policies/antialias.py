@@ -187,7 +187,7 @@ def _beyond_search(
     (scored together with it, on the boxes both can see)."""
     peaks = generate_hypotheses(ego, collab, reported, _wide_search(p))
     far = refine_starts(peaks, np.zeros((0, 3)), ego.poses, collab.poses, collab.information,
-                        *_decision_terms(p)[0])
+                        _decision_terms(p)[0])
     far = far[poses_distinct(far[:, None], poses, p).all(axis=1)]
     if far.shape[0] == 0:
         return far

@@ -32,7 +32,6 @@ __all__ = [
     "pairs_from_observations",
     "params_from_kwargs",
     "prior_information",
-    "require_positive",
     "require_sigmas",
     "split_rows",
 ]
@@ -191,15 +190,6 @@ def prepare_inputs(
         information,
         offsets,
     )
-
-
-def require_positive(params: object, names: tuple[str, ...]) -> None:
-    """Raise ValueError naming the first of the fields ``names`` of ``params`` that is not a
-    finite number > 0."""
-    for name in names:
-        value = getattr(params, name)
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be finite and > 0; got {value}")
 
 
 def prior_information(sigma_t: float, sigma_r: float) -> np.ndarray:
