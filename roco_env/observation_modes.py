@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 
 _F32 = np.float32
 EGO_FRAME_BOUND = 2000.0  # m: beyond any communication plus sensor range
+MAX_AGE_MS = 60000.0  # ms: the largest comm.max_age_ms a scenario accepts
 # Per-slot diagnostics of the base aligner (aligned mode), with their bounds.
 DIAGNOSTICS: tuple[tuple[str, float, float, str], ...] = (
     ("applied", 0.0, 1.0, "1 where the aligner corrected the reported pose"),
@@ -48,6 +49,8 @@ DIAGNOSTICS: tuple[tuple[str, float, float, str], ...] = (
     ("turn_deg", 0.0, 180.0, "rotation between its pose and the reported one, degrees"),
     ("distance_m", 0.0, 1000.0, "distance to the collaborator as reported, m"),
     ("boxes", 0.0, 1024.0, "boxes the collaborator sent"),
+    ("age_ms", 0.0, MAX_AGE_MS, "age of the collaborator's scan the ego holds, ms (0 "
+     "without the network stage: every message is of now)"),
 )
 _DIAG_LOW = np.array([d[1] for d in DIAGNOSTICS], dtype=_F32)
 _DIAG_HIGH = np.array([d[2] for d in DIAGNOSTICS], dtype=_F32)
@@ -137,6 +140,7 @@ def diagnostics(view: EgoView, raw: dict, base: AlignmentResult | None,
             abs(np.degrees(change[2])),
             np.hypot(*view.reported_relative[slot, :2]),
             view.collab_scores[slot].shape[0],
+            0.0 if view.collab_age is None else 1000.0 * float(view.collab_age[slot]),
         )
     return np.clip(rows, _DIAG_LOW, _DIAG_HIGH).astype(_F32)
 

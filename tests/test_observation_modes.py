@@ -114,6 +114,29 @@ def test_diagnostics_describe_the_base_aligners_call():
     assert (rows[n:] == np.where(np.arange(len(DIAGNOSTICS)) == COLUMN["statistic"], -1, 0)).all()
 
 
+@pytest.mark.parametrize("late", [False, True])
+def test_the_age_column_is_the_held_scans_age(late):
+    """Under a delay (comm.delay fixed 200 ms, 10 Hz: two frames late) each slot's age_ms
+    is the age of the scan the ego holds; without the network stage it is 0."""
+    env, observations, _ = _first_step(
+        "correction", **({"comm.delay": "fixed", "comm.delay_params.delay_ms": 200}
+                         if late else {}))
+    ages = []
+    for _ in range(3):  # the first frames of a late episode may hold no scan yet
+        view = env._frame.views[0]
+        n = len(view.collaborators)
+        column = observations["cav_0"]["diagnostics"][:, COLUMN["age_ms"]]
+        expected = 1000.0 * view.collab_age if late else np.zeros(n)
+        np.testing.assert_allclose(column[:n], expected, rtol=1e-6)
+        assert not column[n:].any()
+        ages += column[:n].tolist()
+        if not env.agents:
+            break
+        observations, *_ = env.step({a: np.zeros((env.config.max_collaborators, 3), np.float32)
+                                      for a in env.agents})
+    assert (max(ages) >= 200.0) if late else (max(ages, default=0.0) == 0.0)
+
+
 def test_bev_channels_put_forward_up_and_left_left():
     config = ObservationConfig(mode="bev", bev_range=20.0, bev_resolution=1.0)
     h, w = bev_shape(config)
