@@ -127,6 +127,12 @@ class ActionMode:
         order (``observed_choices`` of them)."""
         return []
 
+    def choice_index(self, text: str) -> int | None:
+        """The index of the observed choice that is the policy ``text`` (the env then takes
+        the base aligner's alignment from it instead of running the same aligner twice);
+        None where none is."""
+        return None
+
     def neutral_action(self) -> np.ndarray:
         """The action that changes nothing the mode decides (zeros)."""
         return np.zeros(self.space.shape, dtype=self.space.dtype)
@@ -214,6 +220,10 @@ class SelectMode(ActionMode):
         self._observed[agent] = [self.choices.align(agent, index, view, observation, info)
                                  for index in range(self.reject)]
         return self._observed[agent]
+
+    def choice_index(self, text: str) -> int | None:
+        spec = _policy_spec(text, "action.base")
+        return self.choices.specs.index(spec) if spec in self.choices.specs else None
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
                info: dict, base: np.ndarray | None) -> Decision:

@@ -269,9 +269,13 @@ class CollabPerceptionEnv(ParallelEnv):
             if config.observation.mode == "raw"
             else mode_space(config.observation, k, n, self.action_mode.observed_choices)
             for a in self.possible_agents}
-        # The base aligner runs on every observation when the action or observation reads it.
+        # The base aligner runs on every observation when the action or observation reads it,
+        # unless it is a choice the aligned observation runs anyway (select mode).
+        self._base_choice = self.action_mode.choice_index(config.action.base) \
+            if config.observation.mode == "aligned" else None
         self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
-            if self.action_mode.needs_base or config.observation.mode == "aligned" else None
+            if (self.action_mode.needs_base or config.observation.mode == "aligned") \
+            and self._base_choice is None else None
         self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
                                for a in self.possible_agents}
         self.state_space = state_space(len(self.possible_agents), config.max_objects)
@@ -433,18 +437,20 @@ class CollabPerceptionEnv(ParallelEnv):
             self._observations = {
                 a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
                                     cfg.features.enabled) for a, view in views.items()}
-        if self.base_aligner is not None:
-            with self.clock.measure("base_alignment"):
-                self._alignments = {
-                    a: self.base_aligner.align(a, 0, view, self._observations[a],
-                                               self._view_info(view, privileged=True))
-                    for a, view in views.items()}
         if cfg.observation.mode == "aligned" and self.action_mode.observed_choices:
             with self.clock.measure("choice_alignment"):
                 self._choices = {
                     a: self.action_mode.observe(a, view, self._observations[a],
                                                 self._view_info(view, privileged=True))
                     for a, view in views.items()}
+        if self.base_aligner is not None:
+            with self.clock.measure("base_alignment"):
+                self._alignments = {
+                    a: self.base_aligner.align(a, 0, view, self._observations[a],
+                                               self._view_info(view, privileged=True))
+                    for a, view in views.items()}
+        elif self._base_choice is not None:
+            self._alignments = {a: self._choices[a][self._base_choice] for a in views}
         if cfg.observation.mode == "raw":
             return self._observations
         with self.clock.measure("observation"):
