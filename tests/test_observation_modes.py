@@ -188,6 +188,18 @@ def test_select_mode_shows_every_choices_diagnostics_and_agreement():
     assert "choice_diagnostics" not in gate_env.observation_space("cav_0").spaces
 
 
+def test_a_base_aligner_among_the_choices_runs_once_and_describes_the_same():
+    """select + aligned with action.base among the choices takes the base's alignment from
+    that choice (no second instance runs): its diagnostics are those of gate mode, where
+    the base aligner runs alone."""
+    select_env, select_obs, _ = _first_step("select", base="roco_antialias")
+    gate_env, gate_obs, _ = _first_step("gate", base="roco_antialias")
+    assert select_env.base_aligner is None and gate_env.base_aligner is not None
+    for agent in select_env.possible_agents:
+        np.testing.assert_array_equal(select_obs[agent]["diagnostics"],
+                                      gate_obs[agent]["diagnostics"])
+
+
 def test_select_decisions_are_the_same_whatever_the_observation():
     """With the aligned observation every choice runs once per observation and the action
     reuses those poses; the episode equals the raw-observation one, where a stateless
