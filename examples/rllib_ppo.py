@@ -4,7 +4,8 @@ Needs ``ray[rllib]`` (pip install "ray[rllib]"); without it this script says so 
 exits 0. Every agent shares one policy that, per collaborator slot, picks identity /
 coalign / roco / roco_antialias or rejects it (``action.mode: select``, a MultiDiscrete
 action RLlib's PPO takes as it is), seeing the collaborators' boxes in its own frame and
-roco_antialias's diagnostics (``observation.mode: aligned``, flattened by RLlib's
+roco_antialias's diagnostics and every choice's (``choice_diagnostics``;
+``observation.mode: aligned``, flattened by RLlib's
 FlattenObservations connector). The reward is the AP@0.7 gain over no fusion, so doing
 nothing useful scores 0. Each iteration prints RLlib's mean episode return (sampled
 actions, every agent's rewards summed over the episode) beside the same return of the

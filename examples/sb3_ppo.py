@@ -2,7 +2,8 @@
 
 Per collaborator slot the agent picks identity / coalign / roco / roco_antialias or
 rejects it (``action.mode: select``), seeing the collaborators' boxes in its own frame
-plus roco_antialias's per-slot diagnostics (``observation.mode: aligned``); the reward is
+plus roco_antialias's per-slot diagnostics and every choice's (``choice_diagnostics``:
+its own diagnostics and its agreement with the others; ``observation.mode: aligned``); the reward is
 the AP@0.7 gain over no fusion (0 = as good as ignoring the collaborators). At each
 evaluation the script prints the learned policy's held-out mean per-step reward beside
 the fixed baselines' on the same seeds, and the time per iteration. A longer run on a

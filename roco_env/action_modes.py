@@ -141,12 +141,25 @@ class ActionMode:
     space: spaces.Space
     needs_base = False
     runs_aligners = False
+    observed_choices = 0  # aligners whose alignments the aligned observation shows
 
     def reset(self) -> None:
         """Start an episode (stateful aligners forget the last one)."""
 
     def bind_base(self, base: AlignerSet | None) -> None:
         """The env's base aligner (None without one), for a mode that runs it again."""
+
+    def observe(self, agent: str, view: EgoView, observation: dict,
+                info: dict) -> list[Alignment]:
+        """The alignments of ``agent``'s new observation the aligned observation shows, in
+        order (``observed_choices`` of them)."""
+        return []
+
+    def choice_index(self, text: str) -> int | None:
+        """The index of the observed choice that is the policy ``text`` (the env then takes
+        the base aligner's alignment from it instead of running the same aligner twice);
+        None where none is."""
+        return None
 
     def neutral_action(self) -> np.ndarray:
         """The action that changes nothing the mode decides (zeros)."""
@@ -203,7 +216,12 @@ class ResidualMode(ActionMode):
 
 
 class SelectMode(ActionMode):
-    """Per slot, one of the choices' poses, or reject (index ``len(choices)``)."""
+    """Per slot, one of the choices' poses, or reject (index ``len(choices)``).
+
+    With the ``aligned`` observation the env calls :meth:`observe` on every observation
+    (its ``choice_diagnostics`` read every choice): the action then reuses those poses;
+    otherwise a stateless choice runs only when a slot picks it.
+    """
 
     runs_aligners = True
 
@@ -212,23 +230,41 @@ class SelectMode(ActionMode):
         self.n = max_collaborators
         self.choices = AlignerSet("action.choices", config.choices, agents)
         self.reject = len(config.choices)
+        self.observed_choices = self.reject
         self.space = spaces.MultiDiscrete(np.full(max_collaborators, self.reject + 1))
+        self._observed: dict[str, list[Alignment]] = {}  # by agent: its last observation's
 
     def reset(self) -> None:
         self.choices.reset()
+        self._observed = {}
 
     def check(self, action: object, agent: str) -> np.ndarray:
         return check_indices(action, agent, self.n, self.reject + 1)
+
+    def observe(self, agent: str, view: EgoView, observation: dict,
+                info: dict) -> list[Alignment]:
+        """Every choice's alignment of ``agent``'s new observation, in order; kept for the
+        action taken on it (each aligner runs once per observation)."""
+        self._observed[agent] = [self.choices.align(agent, index, view, observation, info)
+                                 for index in range(self.reject)]
+        return self._observed[agent]
+
+    def choice_index(self, text: str) -> int | None:
+        spec = _policy_spec(text, "action.base")
+        return self.choices.specs.index(spec) if spec in self.choices.specs else None
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
                info: dict, base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         picked = action[:n]
         corrected = view.reported_relative[:n].astype(float).copy()
+        observed = self._observed.pop(agent, None)
         for index in range(self.reject):
             chosen = picked == index
+            if observed is not None:
+                corrected[chosen] = observed[index].corrected[chosen]
             # a stateless aligner nobody picked is not run; a stateful one sees every step
-            if chosen.any() or self.choices.stateful[index]:
+            elif chosen.any() or self.choices.stateful[index]:
                 poses = self.choices.align(agent, index, view, observation, info).corrected
                 corrected[chosen] = poses[chosen]
         return Decision(corrected, picked != self.reject)

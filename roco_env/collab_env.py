@@ -264,14 +264,19 @@ class CollabPerceptionEnv(ParallelEnv):
         self.evaluated_agents = _evaluated_agents(config, self.possible_agents)
         n, k = config.max_collaborators, config.max_boxes
         feature_shape = self.pipeline.feature_shape
+        self.action_mode = build_action_mode(config.action, n, self.possible_agents)
         self._observation_spaces = {  # one space object per agent: each samples its own seed
             a: observation_space(k, n, feature_shape, self.pipeline.network is not None)
             if config.observation.mode == "raw"
-            else mode_space(config.observation, k, n) for a in self.possible_agents}
-        self.action_mode = build_action_mode(config.action, n, self.possible_agents)
-        # The base aligner runs on every observation when the action or observation reads it.
+            else mode_space(config.observation, k, n, self.action_mode.observed_choices)
+            for a in self.possible_agents}
+        # The base aligner runs on every observation when the action or observation reads it,
+        # unless it is a choice the aligned observation runs anyway (select mode).
+        self._base_choice = self.action_mode.choice_index(config.action.base) \
+            if config.observation.mode == "aligned" else None
         self.base_aligner = AlignerSet("action.base", [config.action.base], self.possible_agents) \
-            if self.action_mode.needs_base or config.observation.mode == "aligned" else None
+            if (self.action_mode.needs_base or config.observation.mode == "aligned") \
+            and self._base_choice is None else None
         self.action_mode.bind_base(self.base_aligner)  # gate mode solves again without rejects
         self._action_spaces = {a: copy.deepcopy(self.action_mode.space)
                                for a in self.possible_agents}
@@ -284,6 +289,7 @@ class CollabPerceptionEnv(ParallelEnv):
         self._frame: PerceptionFrame | None = None
         self._observations: dict[str, dict] = {}  # raw, what the env's aligners read
         self._alignments: dict[str, Alignment] = {}  # the base aligner's, by agent
+        self._choices: dict[str, list[Alignment]] = {}  # select mode's, shown when aligned
         self._shown: tuple[PerceptionFrame, dict] | None = None
         self._cycles = 0
         self._viewer = None
@@ -433,12 +439,20 @@ class CollabPerceptionEnv(ParallelEnv):
             self._observations = {
                 a: pack_observation(view, cfg.max_boxes, cfg.max_collaborators,
                                     cfg.features.enabled) for a, view in views.items()}
+        if cfg.observation.mode == "aligned" and self.action_mode.observed_choices:
+            with self.clock.measure("choice_alignment"):
+                self._choices = {
+                    a: self.action_mode.observe(a, view, self._observations[a],
+                                                self._view_info(view, privileged=True))
+                    for a, view in views.items()}
         if self.base_aligner is not None:
             with self.clock.measure("base_alignment"):
                 self._alignments = {
                     a: self.base_aligner.align(a, 0, view, self._observations[a],
                                                self._view_info(view, privileged=True))
                     for a, view in views.items()}
+        elif self._base_choice is not None:
+            self._alignments = {a: self._choices[a][self._base_choice] for a in views}
         if cfg.observation.mode == "raw":
             return self._observations
         with self.clock.measure("observation"):
@@ -451,7 +465,8 @@ class CollabPerceptionEnv(ParallelEnv):
         poses = alignment.corrected if self.action_mode.needs_base else view.reported_relative
         return build_observation(self.config.observation, view, self._observations[agent],
                                  poses, alignment.result if alignment else None,
-                                 alignment.corrected if alignment else None)
+                                 alignment.corrected if alignment else None,
+                                 [(c.result, c.corrected) for c in self._choices.get(agent, ())])
 
     def _view_info(self, view: EgoView, privileged: bool) -> dict:
         collaborators = [self.possible_agents[j] for j in view.collaborators]

@@ -7,7 +7,11 @@
   (the base aligner's in ``residual`` and ``gate`` action modes, the reported one
   otherwise), that pose, and per slot the base aligner's diagnostics
   (:data:`DIAGNOSTICS`). The base aligner is ``action.base`` and runs on every
-  observation in this mode.
+  observation in this mode. In ``select`` action mode it also holds
+  ``choice_diagnostics`` (N, C, len(:data:`CHOICE_DIAGNOSTICS`)): per slot, each of the
+  C ``action.choices``' diagnostics and how far its pose lies from the others' (two
+  independent aligners that agree are rarely both wrong); every choice then runs on
+  every observation, and the action reuses their poses.
 * ``bev``: occupancy rasters for CNN policies: ``bev`` uint8 (N + 1, H, W), channel 0 the
   ego's own boxes, channel 1 + j collaborator slot j's boxes moved into the ego frame as
   in ``aligned`` (cells inside a box 255, else 0; so channel 0 with channel 1 + j is
@@ -22,6 +26,7 @@ to +-:data:`EGO_FRAME_BOUND` m, diagnostics to their columns' bounds).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,6 +41,7 @@ if TYPE_CHECKING:
 
 _F32 = np.float32
 EGO_FRAME_BOUND = 2000.0  # m: beyond any communication plus sensor range
+MAX_AGE_MS = 60000.0  # ms: the largest comm.max_age_ms a scenario accepts
 # Per-slot diagnostics of the base aligner (aligned mode), with their bounds.
 DIAGNOSTICS: tuple[tuple[str, float, float, str], ...] = (
     ("applied", 0.0, 1.0, "1 where the aligner corrected the reported pose"),
@@ -48,9 +54,29 @@ DIAGNOSTICS: tuple[tuple[str, float, float, str], ...] = (
     ("turn_deg", 0.0, 180.0, "rotation between its pose and the reported one, degrees"),
     ("distance_m", 0.0, 1000.0, "distance to the collaborator as reported, m"),
     ("boxes", 0.0, 1024.0, "boxes the collaborator sent"),
+    ("age_ms", 0.0, MAX_AGE_MS, "age of the collaborator's scan the ego holds, ms (0 "
+     "without the network stage: every message is of now)"),
 )
 _DIAG_LOW = np.array([d[1] for d in DIAGNOSTICS], dtype=_F32)
 _DIAG_HIGH = np.array([d[2] for d in DIAGNOSTICS], dtype=_F32)
+_OWN = 6  # the first columns of DIAGNOSTICS describe the aligner's call; the rest the slot
+AGREE_M, AGREE_DEG = 1.0, 1.0  # two poses agree within this translation (m) and rotation
+_MOVED = 1e-9  # m, rad: a pose change below this is float rounding (an identity's), not applied
+# Per slot and choice (select mode): the choice's own columns of DIAGNOSTICS, then how it
+# sits among the other choices; bounds tighter than DIAGNOSTICS' (beyond them all is "far").
+CHOICE_DIAGNOSTICS: tuple[tuple[str, float, float, str], ...] = (
+    ("applied", 0.0, 1.0, "1 where the choice corrected the reported pose"),
+    ("pairs", 0.0, 64.0, "boxes it matched between the ego and this collaborator"),
+    ("residual_m", 0.0, 10.0, "mean centre distance of those pairs after its pose, m"),
+    ("statistic", -1.0, 100.0, "its do-no-harm statistic; -1 where it computed none"),
+    ("shift_m", 0.0, 20.0, "translation between its pose and the reported one, m"),
+    ("turn_deg", 0.0, 20.0, "rotation between its pose and the reported one, degrees"),
+    ("agreeing", 0.0, 8.0, f"other choices whose pose lies within {AGREE_M:g} m and "
+     f"{AGREE_DEG:g} deg of this one's"),
+    ("gap_m", 0.0, 20.0, "translation between its pose and the nearest other choice's, m"),
+)
+_CHOICE_LOW = np.array([d[1] for d in CHOICE_DIAGNOSTICS], dtype=_F32)
+_CHOICE_HIGH = np.array([d[2] for d in CHOICE_DIAGNOSTICS], dtype=_F32)
 
 
 def bev_shape(config: ObservationConfig) -> tuple[int, int]:
@@ -59,9 +85,10 @@ def bev_shape(config: ObservationConfig) -> tuple[int, int]:
     return side, side
 
 
-def mode_space(config: ObservationConfig, max_boxes: int,
-               max_collaborators: int) -> spaces.Dict:
-    """The Dict space of the ``aligned`` or ``bev`` mode."""
+def mode_space(config: ObservationConfig, max_boxes: int, max_collaborators: int,
+               choices: int = 0) -> spaces.Dict:
+    """The Dict space of the ``aligned`` or ``bev`` mode; ``choices``: the number of
+    select-mode choices (0: no ``choice_diagnostics``)."""
     k, n = max_boxes, max_collaborators
     if config.mode == "bev":
         return spaces.Dict({
@@ -69,6 +96,9 @@ def mode_space(config: ObservationConfig, max_boxes: int,
             "collab_mask": spaces.Box(0, 1, (n,), np.int8),
         })
     boxes = _box_bounds(k)
+    per_choice = {} if not choices else {"choice_diagnostics": spaces.Box(
+        np.tile(_CHOICE_LOW, (n, choices, 1)), np.tile(_CHOICE_HIGH, (n, choices, 1)),
+        dtype=_F32)}
     return spaces.Dict({
         "boxes": spaces.Box(-boxes, boxes, dtype=_F32),
         "scores": spaces.Box(0.0, 1.0, (k,), _F32),
@@ -81,17 +111,22 @@ def mode_space(config: ObservationConfig, max_boxes: int,
         "collab_box_mask": spaces.Box(0, 1, (n, k), np.int8),
         "diagnostics": spaces.Box(np.tile(_DIAG_LOW, (n, 1)), np.tile(_DIAG_HIGH, (n, 1)),
                                   dtype=_F32),
+        **per_choice,
     })
 
 
 def build_observation(config: ObservationConfig, view: EgoView, raw: dict,
                       poses: np.ndarray, base: AlignmentResult | None,
-                      base_poses: np.ndarray | None) -> dict[str, np.ndarray]:
+                      base_poses: np.ndarray | None,
+                      choices: Sequence[tuple[AlignmentResult | None, np.ndarray]] = (),
+                      ) -> dict[str, np.ndarray]:
     """The ``aligned`` or ``bev`` observation of ``view``.
 
     raw: its packed raw observation (the boxes the agent keeps, padded); poses: (n, 3) the
     relative poses ``T_{j->i}`` that move each filled slot's boxes into the ego frame;
-    base / base_poses: the base aligner's result and (n, 3) poses (aligned mode).
+    base / base_poses: the base aligner's result and (n, 3) poses (aligned mode);
+    choices: each select-mode choice's (result, (n, 3) poses), in order (aligned mode;
+    empty: no ``choice_diagnostics``).
     """
     n = len(view.collaborators)
     moved = np.zeros_like(raw["collab_boxes"])
@@ -115,6 +150,7 @@ def build_observation(config: ObservationConfig, view: EgoView, raw: dict,
         "collab_scores": raw["collab_scores"].copy(),
         "collab_box_mask": raw["collab_box_mask"].copy(),
         "diagnostics": diagnostics(view, raw, base, base_poses),
+        **({"choice_diagnostics": choice_diagnostics(view, raw, choices)} if choices else {}),
     }
 
 
@@ -129,7 +165,8 @@ def diagnostics(view: EgoView, raw: dict, base: AlignmentResult | None,
         change = se2_compose(base_poses[slot], se2_inverse(view.reported_relative[slot]))
         pairs = _ego_pairs(base, slot)
         rows[slot] = (
-            bool(base.applied[slot]) if base is not None else bool(np.any(change != 0.0)),
+            bool(base.applied[slot]) if base is not None
+            else bool(np.any(np.abs(change) > _MOVED)),
             pairs.shape[0],
             _pair_residual(raw, slot, pairs, base_poses[slot]),
             _statistic(base, slot),
@@ -137,8 +174,32 @@ def diagnostics(view: EgoView, raw: dict, base: AlignmentResult | None,
             abs(np.degrees(change[2])),
             np.hypot(*view.reported_relative[slot, :2]),
             view.collab_scores[slot].shape[0],
+            0.0 if view.collab_age is None else 1000.0 * float(view.collab_age[slot]),
         )
     return np.clip(rows, _DIAG_LOW, _DIAG_HIGH).astype(_F32)
+
+
+def choice_diagnostics(view: EgoView, raw: dict,
+                       choices: Sequence[tuple[AlignmentResult | None, np.ndarray]]
+                       ) -> np.ndarray:
+    """(N, C, len(CHOICE_DIAGNOSTICS)) float32: per slot, each choice's own diagnostics
+    and its agreement with the other choices' poses (zeros for empty slots, statistic -1),
+    clipped to their bounds."""
+    n_slots, n = raw["collab_mask"].shape[0], len(view.collaborators)
+    rows = np.zeros((n_slots, len(choices), len(CHOICE_DIAGNOSTICS)), dtype=float)
+    rows[:, :, 3] = -1.0
+    for index, (result, poses) in enumerate(choices):
+        rows[:, index, :_OWN] = diagnostics(view, raw, result, poses)[:, :_OWN]
+    if n and len(choices) > 1:
+        stacked = np.stack([np.asarray(poses, dtype=float)[:n] for _, poses in choices],
+                           axis=1)  # (n, C, 3)
+        apart = stacked[:, :, None, :] - stacked[:, None, :, :]  # (n, C, C, 3)
+        metres = np.hypot(apart[..., 0], apart[..., 1])
+        degrees = np.degrees(np.abs(np.angle(np.exp(1j * apart[..., 2]))))
+        others = ~np.eye(len(choices), dtype=bool)
+        rows[:n, :, 6] = ((metres <= AGREE_M) & (degrees <= AGREE_DEG) & others).sum(axis=2)
+        rows[:n, :, 7] = np.where(others, metres, np.inf).min(axis=2)
+    return np.clip(rows, _CHOICE_LOW, _CHOICE_HIGH).astype(_F32)
 
 
 def _ego_pairs(base: AlignmentResult | None, slot: int) -> np.ndarray:

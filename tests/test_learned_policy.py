@@ -23,7 +23,7 @@ from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
 from roco_env.wrappers import EgoEnv
 
-SHIPPED_SHA256 = "270601ec264998f49cdb9438c6f564d012e64514cfe0452e8c4703023dcebaa0"
+SHIPPED_SHA256 = "486bd57976a78d3859874bab23f820954bbb216ad9a7eb038f11230ca6e0065e"
 SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
 
 
@@ -93,6 +93,26 @@ def test_an_observation_of_another_mode_or_size_is_refused_naming_the_field():
     observations, _ = small.reset(seed=0)
     with pytest.raises(ValueError, match=r"observation\['collab_mask'\] has shape \(3,\), "
                                          r"expected \(5,\)"):
+        policy(observations["cav_0"])
+
+
+def test_weights_from_before_the_age_column_are_refused_naming_the_mismatch(tmp_path):
+    """A file trained on (N, 8) diagnostics (before ``age_ms``) loads, and acting on
+    today's (N, 9) diagnostics is a ValueError naming the entry and both shapes."""
+    raw = torch.load(SHIPPED_FILE, weights_only=True)
+    keys = json.loads(raw["metadata"])["observation"]
+    assert keys == [["collab_mask", [5]], ["diagnostics", [5, 9]]]
+    age = [5 + 9 * slot + 8 for slot in range(5)]  # each slot's age_ms in the flat input
+    keep = [i for i in range(5 + 45) if i not in age]
+    state = {**raw["state_dict"], "layers.0.weight": raw["state_dict"]["layers.0.weight"][:, keep],
+             "input_scale": raw["state_dict"]["input_scale"][keep]}
+    path = write_weights(tmp_path / "old.pt", state,
+                         observation=[["collab_mask", [5]], ["diagnostics", [5, 8]]])
+    policy = make_policy("learned_select", weights=path)
+    env = roco_env.parallel_env("v2xset_like", max_cycles=1, **policy.env_overrides)
+    observations, _ = env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"observation\['diagnostics'\] has shape \(5, 9\), "
+                                         r"expected \(5, 8\).*old\.pt"):
         policy(observations["cav_0"])
 
 

@@ -12,8 +12,13 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from test_conformance import make_parallel, replay_folder  # noqa: F401 - a fixture
 
 import roco_env
-from roco_env.geometry import box_corners_bev, transform_boxes
-from roco_env.observation_modes import DIAGNOSTICS, _occupancy, bev_shape
+from roco_env.geometry import box_corners_bev, se2_compose, se2_inverse, transform_boxes
+from roco_env.observation_modes import (
+    CHOICE_DIAGNOSTICS,
+    DIAGNOSTICS,
+    _occupancy,
+    bev_shape,
+)
 from roco_env.scenario import ObservationConfig
 from roco_env.wrappers import EgoEnv
 
@@ -26,6 +31,8 @@ SCENARIOS = [pytest.param(name, marks=() if name in SAMPLE else pytest.mark.slow
              for name in roco_env.list_scenarios()]
 NOISY = {"sigma_t": 0.8, "sigma_r": 0.8}
 COLUMN = {name: k for k, (name, *_) in enumerate(DIAGNOSTICS)}
+CHOICE = {name: k for k, (name, *_) in enumerate(CHOICE_DIAGNOSTICS)}
+CHOICES = ("identity", "coalign", "roco", "roco_antialias")
 
 
 @pytest.mark.parametrize("mode", ["aligned", "bev"])
@@ -112,6 +119,104 @@ def test_diagnostics_describe_the_base_aligners_call():
     paired = rows[:n, COLUMN["pairs"]] > 0
     assert (rows[:n, COLUMN["residual_m"]][paired] < 1.0).all()  # roco's pose fits its pairs
     assert (rows[n:] == np.where(np.arange(len(DIAGNOSTICS)) == COLUMN["statistic"], -1, 0)).all()
+
+
+@pytest.mark.parametrize("late", [False, True])
+def test_the_age_column_is_the_held_scans_age(late):
+    """Under a delay (comm.delay fixed 200 ms, 10 Hz: two frames late) each slot's age_ms
+    is the age of the scan the ego holds; without the network stage it is 0."""
+    env, observations, _ = _first_step(
+        "correction", **({"comm.delay": "fixed", "comm.delay_params.delay_ms": 200}
+                         if late else {}))
+    ages = []
+    for _ in range(3):  # the first frames of a late episode may hold no scan yet
+        view = env._frame.views[0]
+        n = len(view.collaborators)
+        column = observations["cav_0"]["diagnostics"][:, COLUMN["age_ms"]]
+        expected = 1000.0 * view.collab_age if late else np.zeros(n)
+        np.testing.assert_allclose(column[:n], expected, rtol=1e-6)
+        assert not column[n:].any()
+        ages += column[:n].tolist()
+        if not env.agents:
+            break
+        observations, *_ = env.step({a: np.zeros((env.config.max_collaborators, 3), np.float32)
+                                      for a in env.agents})
+    assert (max(ages) >= 200.0) if late else (max(ages, default=0.0) == 0.0)
+
+
+@pytest.mark.parametrize("scenario", ["opv2v_replay",
+                                      pytest.param("urban_intersection", marks=pytest.mark.slow)])
+def test_select_mode_with_the_aligned_observation_conforms(scenario,
+                                                          replay_folder):  # noqa: F811
+    overrides = {"observation.mode": "aligned", "action.mode": "select"}
+    parallel_api_test(make_parallel(scenario, replay_folder, **overrides), num_cycles=CYCLES)
+    parallel_seed_test(lambda: make_parallel(scenario, replay_folder, **overrides),
+                       num_cycles=CYCLES)
+    check_env(EgoEnv(env=make_parallel(scenario, replay_folder, **overrides)),
+              skip_render_check=True)
+
+
+def test_select_mode_shows_every_choices_diagnostics_and_agreement():
+    env, observations, _ = _first_step("select")
+    rows = observations["cav_0"]["choice_diagnostics"]
+    assert rows.shape == (5, len(CHOICES), len(CHOICE_DIAGNOSTICS))
+    assert env.observation_space("cav_0")["choice_diagnostics"].contains(rows)
+    view = env._frame.views[0]
+    n = len(view.collaborators)
+    poses = np.stack([a.corrected for a in env.action_mode._observed["cav_0"]])  # (C, n, 3)
+    for k in range(len(CHOICES)):
+        change = se2_compose(poses[k], se2_inverse(view.reported_relative))
+        shift = np.hypot(change[:, 0], change[:, 1])
+        np.testing.assert_allclose(rows[:n, k, CHOICE["shift_m"]], np.minimum(shift, 20.0),
+                                   rtol=1e-5, atol=1e-5)
+    identity = rows[:n, CHOICES.index("identity")]
+    assert not identity[:, CHOICE["applied"]].any() and not identity[:, CHOICE["pairs"]].any()
+    for slot in range(n):
+        for k in range(len(CHOICES)):
+            gaps = [np.hypot(*(poses[k, slot, :2] - poses[j, slot, :2]))
+                    for j in range(len(CHOICES)) if j != k]
+            turns = [abs(np.degrees(poses[k, slot, 2] - poses[j, slot, 2]))
+                     for j in range(len(CHOICES)) if j != k]
+            assert rows[slot, k, CHOICE["gap_m"]] == pytest.approx(min(min(gaps), 20.0),
+                                                                   abs=1e-5)
+            assert rows[slot, k, CHOICE["agreeing"]] == sum(
+                g <= 1.0 and t <= 1.0 for g, t in zip(gaps, turns, strict=True))
+    assert (rows[n:] == np.where(np.arange(len(CHOICE_DIAGNOSTICS)) == CHOICE["statistic"],
+                                 -1, 0)).all()
+    gate_env, gate_observations, _ = _first_step("gate")
+    assert "choice_diagnostics" not in gate_observations["cav_0"]
+    assert "choice_diagnostics" not in gate_env.observation_space("cav_0").spaces
+
+
+def test_a_base_aligner_among_the_choices_runs_once_and_describes_the_same():
+    """select + aligned with action.base among the choices takes the base's alignment from
+    that choice (no second instance runs): its diagnostics are those of gate mode, where
+    the base aligner runs alone."""
+    select_env, select_obs, _ = _first_step("select", base="roco_antialias")
+    gate_env, gate_obs, _ = _first_step("gate", base="roco_antialias")
+    assert select_env.base_aligner is None and gate_env.base_aligner is not None
+    for agent in select_env.possible_agents:
+        np.testing.assert_array_equal(select_obs[agent]["diagnostics"],
+                                      gate_obs[agent]["diagnostics"])
+
+
+def test_select_decisions_are_the_same_whatever_the_observation():
+    """With the aligned observation every choice runs once per observation and the action
+    reuses those poses; the episode equals the raw-observation one, where a stateless
+    choice runs only when picked (the same random picks, the same rewards and errors)."""
+    def episode(mode):
+        env = roco_env.parallel_env("urban_intersection", max_cycles=4, reward="ap70_gain",
+                                    **{"observation.mode": mode, "action.mode": "select",
+                                       "sigma_t": 1.5, "sigma_r": 1.5})
+        env.reset(seed=3)
+        picks, out = np.random.default_rng(0), []
+        while env.agents:
+            _, rewards, _, _, infos = env.step(
+                {a: picks.integers(0, len(CHOICES) + 1, 5) for a in env.agents})
+            out += [(rewards[a], infos[a]["rpe_after"].tolist()) for a in sorted(rewards)]
+        return out
+
+    assert episode("aligned") == episode("raw")
 
 
 def test_bev_channels_put_forward_up_and_left_left():

@@ -16,6 +16,7 @@ import torch
 pytest.importorskip("stable_baselines3")
 
 from roco_env.cli import main  # noqa: E402
+from roco_env.observation_modes import DIAGNOSTICS  # noqa: E402
 from roco_env.policies.learned import LearnedPolicy  # noqa: E402
 from roco_env.schema import ConfigError  # noqa: E402
 from roco_env.training.rl.config import build_config  # noqa: E402
@@ -142,6 +143,6 @@ def test_observation_keys_choose_what_the_policy_reads(tmp_path):
                            "observation_keys": ["diagnostics", "collab_mask"]})
     env = CurriculumEnv(config)
     assert [key for key, _ in env.keys] == ["collab_mask", "diagnostics"]  # space order
-    assert env.observation_space.shape == (5 + 5 * 8,)
+    assert env.observation_space.shape == (5 + 5 * len(DIAGNOSTICS),)
     with pytest.raises(ValueError, match=r"observation_keys names \['pose'\]"):
         CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))

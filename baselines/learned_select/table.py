@@ -8,7 +8,8 @@ policy at one scenario, noise level and seed) and prints a Markdown table: rows 
 ``no_fusion``), each entry the mean over seeds of the episode's dataset AP@0.7; the last
 rows are the mean over all conditions and each policy's count of conditions where it is
 the best (ties count for each). Bold marks the best per row among the policies that see
-no privileged truth: ``oracle`` (the true poses) is the upper bound, not a contender.
+no privileged truth: ``oracle`` (the true poses) and the ``bound_*`` columns of
+``privileged_bound.py`` are upper bounds, not contenders.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-PRIVILEGED = ("oracle",)
+PRIVILEGED = ("oracle", "bound_")  # column names that start so read the truth
 
 
 def load(folders: list[str]) -> dict[tuple[str, float], dict[str, list[float]]]:
@@ -43,10 +44,10 @@ def markdown(table: dict) -> str:
     wins: dict[str, int] = defaultdict(int)
     for (scenario, noise), row in sorted(table.items()):
         values = {c: sum(row[c]) / len(row[c]) for c in columns if row.get(c)}
-        best = max(v for c, v in values.items() if c not in PRIVILEGED)
+        best = max(v for c, v in values.items() if not c.startswith(PRIVILEGED))
         for column, value in values.items():
             means[column].append(value)
-            wins[column] += value == best and column not in PRIVILEGED
+            wins[column] += value == best and not column.startswith(PRIVILEGED)
         lines.append(f"| {scenario} | {noise} | " + " | ".join(
             f"**{values[c]:.3f}**" if values.get(c) == best else
             (f"{values[c]:.3f}" if c in values else "-") for c in columns) + " |")
