@@ -154,7 +154,9 @@ def test_pool_workers_may_use_torch_threads_after_the_parent_did(tmp_path):
     assert done.stdout.strip() == "2"
 
 
-@pytest.mark.parametrize("backend", ["local", "ray"])
+# Ray's own workers run in test_ray_and_local_backends_give_identical_records by default;
+# this Ray case with the slow tests (ROCO_SLOW=1).
+@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=pytest.mark.slow)])
 def test_workers_know_the_policies_registered_in_the_sweeps_process(tmp_path, monkeypatch,
                                                                     backend):
     """Local workers start from a fork server and Ray's are its own processes, not copies
@@ -235,7 +237,10 @@ def _stoppable_sweep(out: Path) -> list[str]:
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process table from /proc")
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+# SIGINT's handler also runs by default in the Ctrl-C test below; this SIGINT case with the
+# slow tests (ROCO_SLOW=1).
+@pytest.mark.parametrize("sig", [signal.SIGTERM,
+                                 pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
 def test_signal_stops_the_workers_with_one_line_and_the_rerun_resumes(tmp_path, sig):
     out = tmp_path / "stopped"
     command = _stoppable_sweep(out)
@@ -283,7 +288,7 @@ def test_ctrl_c_while_the_fork_server_starts_stops_the_sweep_with_one_line(tmp_p
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 180  # a bound on the wait (see above), not a speed check
         while time.monotonic() < deadline and process.poll() is None \
                 and not _children(process.pid):
             time.sleep(0.01)
