@@ -326,7 +326,6 @@ class AntiAliasPolicy(ArrayAlignmentPolicy):
     last call's :class:`Decision` per filled slot."""
 
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
-    PARAMS = AntiAliasParams
 
     def __init__(self, **params) -> None:
         checked = params_from_kwargs(AntiAliasParams, params, "roco_antialias")

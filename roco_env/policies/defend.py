@@ -227,7 +227,6 @@ class Defend:
     are about 0.06 and 0.016, of its claimed places a vehicle ego sees empty 0.02-0.05
     (docs/attacks.md)."""
 
-    PARAMS = DefendParams
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
     last_result = None  # it reports no alignment of its own: the env's base aligner aligns
 

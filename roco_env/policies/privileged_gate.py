@@ -40,7 +40,6 @@ class PrivilegedGate:
     """``PrivilegedGate(base="roco")(obs, info) -> (N,) int64`` gate action: 1 for the
     filled slots whose collaborator attacks, else 0."""
 
-    PARAMS = PrivilegedGateParams
     keeps_state = False
     last_result = None  # the env's base aligner aligns
 
