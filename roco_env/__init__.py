@@ -7,9 +7,10 @@
 
 As in PettingZoo's environment modules, ``roco_env.parallel_env(...)`` builds the
 ParallelEnv (:class:`CollabPerceptionEnv`, whose docstring is the contract) and
-``roco_env.env(...)`` the AEC env; both take the same arguments. The environment's
-code is the module :mod:`roco_env.collab_env` (``from roco_env.collab_env import ...``);
-its name differs from the attribute ``env``, which stays the AEC constructor.
+``roco_env.env(...)`` the AEC env; both take the same arguments. ``roco_env.env`` is
+also the environment's module (``from roco_env.env import CollabPerceptionEnv``,
+``import roco_env.env as m``): the module is callable, and calling it is calling its
+:func:`~roco_env.env.aec_env`.
 
 Scenarios: :func:`load_scenario` (name or YAML path), :func:`scenario_from_dict` /
 :func:`scenario_to_dict` (plain mappings with the YAML keys, validated) and
@@ -44,15 +45,16 @@ __all__ = ["EGO_ENV_ID", "ENV_ID", "CollabPerceptionEnv", "ScenarioConfig", "__v
            "available_stages", "env", "list_scenarios", "load_scenario", "parallel_env",
            "register_stage", "save_scenario", "scenario_from_dict", "scenario_to_dict"]
 
-# Package attribute -> its one definition in roco_env/collab_env.py, imported on first
-# access so that ``import roco_env`` stays light.
-_FROM_ENV_MODULE = {"env": "aec_env", "parallel_env": "parallel_env",
-                    "CollabPerceptionEnv": "CollabPerceptionEnv"}
+# Package attributes defined in roco_env/env.py, imported on first access so that
+# ``import roco_env`` stays light. ``env`` is the (callable) module itself.
+_FROM_ENV_MODULE = ("parallel_env", "CollabPerceptionEnv")
 
 
 def __getattr__(name: str) -> Any:
+    if name == "env":
+        return importlib.import_module("roco_env.env")
     if name in _FROM_ENV_MODULE:
-        return getattr(importlib.import_module("roco_env.collab_env"), _FROM_ENV_MODULE[name])
+        return getattr(importlib.import_module("roco_env.env"), name)
     raise AttributeError(f"module 'roco_env' has no attribute {name!r}")
 
 

@@ -20,7 +20,7 @@ def register() -> None:
     :data:`EGO_ENV_ID` in Gymnasium's (once: a second call changes nothing). The
     entry points' own defaults apply (``max_cycles`` is the env's)."""
     if ENV_ID not in pettingzoo.parallel_registry:
-        pettingzoo.register("parallel", ENV_ID, entry_point="roco_env.collab_env:parallel_env")
-        pettingzoo.register("aec", ENV_ID, entry_point="roco_env.collab_env:aec_env")
+        pettingzoo.register("parallel", ENV_ID, entry_point="roco_env.env:parallel_env")
+        pettingzoo.register("aec", ENV_ID, entry_point="roco_env.env:aec_env")
     if EGO_ENV_ID not in gymnasium.registry:
         gymnasium.register(EGO_ENV_ID, entry_point="roco_env.wrappers:EgoEnv")

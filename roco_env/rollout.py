@@ -1,4 +1,4 @@
-"""The episode loop: one policy per agent acting in a :class:`~roco_env.collab_env.CollabPerceptionEnv`.
+"""The episode loop: one policy per agent acting in a :class:`~roco_env.env.CollabPerceptionEnv`.
 
 :func:`play_episode` is the package's one loop of policies over a parallel env: the sweeps
 (and through them ``roco-env run``/``render`` and the stress search) and the env-step and
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from roco_env.policies.base import AlignmentResult, act, as_policy
 
 if TYPE_CHECKING:
-    from roco_env.collab_env import CollabPerceptionEnv
+    from roco_env.env import CollabPerceptionEnv
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils import BaseParallelWrapper
 
 from roco_env.action_modes import ActionMode
-from roco_env.collab_env import DEFAULT_MAX_CYCLES, DEFAULT_SCENARIO, CollabPerceptionEnv
+from roco_env.env import DEFAULT_MAX_CYCLES, DEFAULT_SCENARIO, CollabPerceptionEnv
 from roco_env.policies import make_policy
 from roco_env.policies.base import Policy, StatelessPolicy, as_policy
 from roco_env.policies.spec import merge_env_overrides
@@ -47,8 +47,8 @@ class EgoEnv(gymnasium.Env):
     declares in its ``env_overrides`` (``others="learned_select"`` builds a select-mode
     env; a conflicting override is a ValueError naming the field). A built env scores only the controlled agent (the others
     act unscored) unless ``evaluate_others`` is True; an env passed in is used as it is.
-    Observation, action, reward and info are that agent's (see roco_env.collab_env).
-    Infos have fixed shapes and no NaN (see roco_env.collab_env), so Gymnasium's vector
+    Observation, action, reward and info are that agent's (see roco_env.env).
+    Infos have fixed shapes and no NaN (see roco_env.env), so Gymnasium's vector
     envs (``gymnasium.make_vec(..., vectorization_mode="sync" | "async")``) stack
     them and its determinism check compares them.
     """

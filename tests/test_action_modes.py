@@ -16,7 +16,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from test_conformance import make_parallel, replay_folder  # noqa: F401 - a fixture
 
 import roco_env
-from roco_env.collab_env import METRIC_INFO_KEYS
+from roco_env.env import METRIC_INFO_KEYS
 from roco_env.fusion import merge_many, suppress
 from roco_env.metrics import in_range_mask
 from roco_env.policies import make_policy

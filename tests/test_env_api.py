@@ -21,7 +21,7 @@ from pettingzoo.test import (
 from pettingzoo.utils.conversions import parallel_to_aec
 
 import roco_env
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 from roco_env.wrappers import EgoEnv, FlattenObservations
 
 # Small, fast settings (5 agents, ~30 vehicles) used throughout.
@@ -70,14 +70,15 @@ def test_module_level_constructors():
 
 
 def test_users_calls_still_work_whichever_module_loads_the_env_first():
-    """``roco_env.env(...)`` is PettingZoo's AEC constructor even after another module
-    imported roco_env/collab_env.py; the module itself is imported by name."""
+    """``roco_env.env(...)`` is PettingZoo's AEC constructor whichever module imported
+    roco_env/env.py first; ``roco_env.env`` is that module (callable)."""
     probe = ("import sys, roco_env; light = 'roco_env.pipeline' not in sys.modules; "
              "from roco_env.wrappers import EgoEnv; "
              "aec = roco_env.env('v2x_crossroad', max_cycles=2); "
-             "from roco_env.collab_env import CollabPerceptionEnv, aec_env, parallel_env; "
+             "from roco_env.env import CollabPerceptionEnv, aec_env, parallel_env; "
              "par = roco_env.parallel_env('v2x_crossroad'); "
-             "print(light, roco_env.env is aec_env, roco_env.parallel_env is parallel_env, "
+             "print(light, roco_env.env is sys.modules['roco_env.env'], "
+             "roco_env.parallel_env is parallel_env, "
              "roco_env.CollabPerceptionEnv is CollabPerceptionEnv, "
              "isinstance(aec.unwrapped, CollabPerceptionEnv), type(par).__name__, "
              "par.max_cycles)")
@@ -88,21 +89,20 @@ def test_the_environment_module_is_a_module_and_import_roco_env_stays_light():
     """``import roco_env`` loads neither the pipeline nor torch; the environment's module
     is an ordinary module (``import ... as``, ``pydoc.locate``)."""
     probe = ("import sys, pydoc, types, roco_env; "
-             "light = not {'roco_env.pipeline', 'roco_env.collab_env', 'torch'} & set(sys.modules); "
-             "import roco_env.collab_env as m; "
+             "light = not {'roco_env.pipeline', 'roco_env.env', 'torch'} & set(sys.modules); "
+             "import roco_env.env as m; "
              "print(light, isinstance(m, types.ModuleType), "
              "m.CollabPerceptionEnv is roco_env.CollabPerceptionEnv, "
-             "pydoc.locate('roco_env.collab_env.CollabPerceptionEnv') is m.CollabPerceptionEnv, "
-             "roco_env.env is m.aec_env, callable(roco_env.env))")
+             "pydoc.locate('roco_env.env.CollabPerceptionEnv') is m.CollabPerceptionEnv, "
+             "roco_env.env is m, callable(roco_env.env))")
     assert run_python(probe) == "True True True True True True"
 
 
 def test_the_environment_module_can_be_monkeypatched_by_name(monkeypatch):
-    import roco_env.collab_env
+    import roco_env.env
 
-    monkeypatch.setattr("roco_env.collab_env.DEFAULT_MAX_CYCLES", 7)
-    assert roco_env.collab_env.DEFAULT_MAX_CYCLES == 7
-    assert roco_env.env is roco_env.collab_env.aec_env
+    monkeypatch.setattr("roco_env.env.DEFAULT_MAX_CYCLES", 7)
+    assert roco_env.env.DEFAULT_MAX_CYCLES == 7
 
 
 def test_pettingzoo_registry():

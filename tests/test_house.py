@@ -36,7 +36,7 @@ def test_docs_index_links_resolve():
 
 def test_the_env_does_not_import_the_policies():
     """The environment's module, really imported (its pipeline loaded), loads no policy."""
-    probe = ("import sys, roco_env.collab_env; "
+    probe = ("import sys, roco_env.env; "
              "print('roco_env.pipeline' in sys.modules, "
              "sorted(m for m in sys.modules if m.startswith('roco_env.policies')))")
     assert run_python(probe) == "True []"

@@ -26,7 +26,7 @@ LAYERS = (
     ("policies",),
     ("fusion",),
     ("metrics",),
-    ("collab_env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
+    ("env", "action_modes", "observation_modes", "pipeline", "observation", "evaluation",
      "global_state", "render", "wrappers", "rollout", "registration", "attacks", "__init__"),
     ("training",),
     ("sweeps",),

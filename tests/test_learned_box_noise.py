@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from roco_env.collab_env import parallel_env
+from roco_env.env import parallel_env
 from roco_env.scenario import load_scenario
 from roco_env.sensing import compute_visibility
 from roco_env.sensing.learned import LearnedDetector, make_learned_detector

@@ -484,7 +484,7 @@ def test_axial_headings_of_one_object_agree_between_ego_and_collaborator(scenari
     seen by the ego and by a collaborator, has one heading in the ego's frame (through the
     reported, noisy relative pose); a flip would break RoCo's edge similarity. Both
     scenes have an RSU, which faces the diagonal of its crossing."""
-    from roco_env.collab_env import CollabPerceptionEnv
+    from roco_env.env import CollabPerceptionEnv
 
     env = CollabPerceptionEnv(scenario=scenario, max_cycles=3, detector="learned",
                               sigma_t=0.4, sigma_r=0.4)

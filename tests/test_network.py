@@ -10,10 +10,10 @@ import pytest
 from conftest import episode_digest, run_python
 
 import roco_env
-from roco_env.collab_env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.comm import Payload, decode, encode, fit_budget, payload_bytes, received_maps
 from roco_env.comm.delay import FixedDelay, FixedDelayParams, OpenCOODDelay, OpenCOODDelayParams
 from roco_env.comm.loss import GilbertElliottLoss
+from roco_env.env import METRIC_INFO_KEYS, NETWORK_INFO_KEYS
 from roco_env.pipeline import Pipeline
 from roco_env.scenario import MESSAGE_HEADER_BYTES, ConfigError, load_scenario
 

@@ -1,5 +1,5 @@
 """The learned attackers as PettingZoo agents: a ParallelEnv of every agent of a
-:class:`~roco_env.collab_env.CollabPerceptionEnv` plus ``attacker_0``, ``attacker_1``, ...
+:class:`~roco_env.env.CollabPerceptionEnv` plus ``attacker_0``, ``attacker_1``, ...
 
 ``AdversarialEnv(roco_env.parallel_env(scenario, **{"attack.kind": "learned", ...}))``.
 The vehicles and RSUs stay the env's egos, with their observations, actions and rewards
@@ -27,7 +27,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from roco_env.attacks.learned_attack import LearnedAttack
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 
 __all__ = ["AdversarialEnv", "attacker_ids"]
 

@@ -24,7 +24,7 @@ import numpy as np
 from roco_env.action_modes import Decision
 from roco_env.batched_nms import batched_nms_bev
 from roco_env.benchmarks._timing import median_seconds
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 from roco_env.evaluation import ground_truths
 from roco_env.fusion import merge_into_ego_frame
 from roco_env.geometry import nms_bev

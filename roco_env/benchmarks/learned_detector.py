@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from roco_env.benchmarks._timing import median_seconds
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 
 SETTING = dict(scenario="urban_intersection", cavs=4, rsus=1)
 TARGET_MS_PER_AGENT = 15.0

@@ -29,7 +29,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from roco_env.collab_env import check_seed
+from roco_env.env import check_seed
 from roco_env.flags import SpecFlags
 from roco_env.scenario import save_scenario
 from roco_env.schema import ConfigError, check_fields, spec

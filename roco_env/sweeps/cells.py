@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from roco_env.collab_env import check_seed
+from roco_env.env import check_seed
 from roco_env.scenario import load_scenario
 from roco_env.sweeps.text_specs import (
     Scalar,

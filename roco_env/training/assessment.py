@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 from roco_env.evaluation import info_frame_stats
 from roco_env.geometry import se2_inverse, transform_boxes
 from roco_env.metrics import APAccumulator

@@ -42,7 +42,7 @@ from gymnasium import spaces
 from roco_env.attacks.adversarial_env import AdversarialEnv
 from roco_env.attacks.learned_attack import LearnedAttackParams
 from roco_env.attacks.scoring import EpisodeLog, attack_scores
-from roco_env.collab_env import CollabPerceptionEnv
+from roco_env.env import CollabPerceptionEnv
 from roco_env.flags import SpecFlags
 from roco_env.policies.learned import scaled_observation
 from roco_env.policies.spec import merge_env_overrides, validate_policy_spec

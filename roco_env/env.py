@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import copy
 import os
+import sys
+import types
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -604,3 +606,15 @@ class _CheckedActions(BaseWrapper):
             action = self.unwrapped.action_mode.check(action, agent)
         super().step(action)
 
+
+class _CallableModule(types.ModuleType):
+    """This module, callable: ``roco_env.env(...)`` is :func:`aec_env` (PettingZoo's
+    package-level name for the AEC constructor), while ``import roco_env.env`` and
+    ``from roco_env.env import ...`` keep giving the module. A package attribute and its
+    submodule share one name in Python, so the module itself answers both uses."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> AECEnv:
+        return aec_env(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
