@@ -30,7 +30,7 @@ aligner runs when the env builds each observation (:class:`AlignerSet`), so the
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -133,14 +133,13 @@ class AlignerSet:
 class ActionMode:
     """Base of the modes: the action space, the action check and the decision.
 
-    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``);
-    ``runs_aligners``: whether it runs aligners itself on the agent's observation and
-    info (else the env passes neither: building the info costs a step's time).
+    ``needs_base``: whether :meth:`decide` reads the base aligner's poses (``base``).
+    :meth:`decide` gets the agent's info as a function (``info_of()``): building it costs
+    a step's time, so only a mode that runs an aligner on this step builds it.
     """
 
     space: spaces.Space
     needs_base = False
-    runs_aligners = False
     observed_choices = 0  # aligners whose alignments the aligned observation shows
 
     def reset(self) -> None:
@@ -169,9 +168,10 @@ class ActionMode:
         raise NotImplementedError
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict, base: np.ndarray | None) -> Decision:
-        """The decision of ``action`` (checked) on ``agent``'s last observation; ``base``
-        holds the base aligner's (n, 3) poses when the mode needs them, else None."""
+               info_of: Callable[[], dict], base: np.ndarray | None) -> Decision:
+        """The decision of ``action`` (checked) on ``agent``'s last observation; ``info_of()``
+        builds the agent's info (for an aligner the mode runs); ``base`` holds the base
+        aligner's (n, 3) poses when the mode needs them, else None."""
         raise NotImplementedError
 
 
@@ -187,7 +187,7 @@ class CorrectionMode(ActionMode):
         return check_action(action, agent, self.n)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict, base: np.ndarray | None) -> Decision:
+               info_of: Callable[[], dict], base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         return Decision(apply_correction(view.reported_relative, action[:n]), np.ones(n, bool))
 
@@ -206,7 +206,7 @@ class ResidualMode(ActionMode):
         return np.clip(check_action(action, agent, self.n), -1.0, 1.0)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict, base: np.ndarray | None) -> Decision:
+               info_of: Callable[[], dict], base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         corrected = base.copy()
         residual = action[:n].astype(float) * self.scale
@@ -222,8 +222,6 @@ class SelectMode(ActionMode):
     (its ``choice_diagnostics`` read every choice): the action then reuses those poses;
     otherwise a stateless choice runs only when a slot picks it.
     """
-
-    runs_aligners = True
 
     def __init__(self, config: ActionConfig, max_collaborators: int,
                  agents: Sequence[str]) -> None:
@@ -254,7 +252,7 @@ class SelectMode(ActionMode):
         return self.choices.specs.index(spec) if spec in self.choices.specs else None
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict, base: np.ndarray | None) -> Decision:
+               info_of: Callable[[], dict], base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         picked = action[:n]
         corrected = view.reported_relative[:n].astype(float).copy()
@@ -265,7 +263,8 @@ class SelectMode(ActionMode):
                 corrected[chosen] = observed[index].corrected[chosen]
             # a stateless aligner nobody picked is not run; a stateful one sees every step
             elif chosen.any() or self.choices.stateful[index]:
-                poses = self.choices.align(agent, index, view, observation, info).corrected
+                poses = self.choices.align(agent, index, view, observation,
+                                           info_of()).corrected
                 corrected[chosen] = poses[chosen]
         return Decision(corrected, picked != self.reject)
 
@@ -276,7 +275,6 @@ class GateMode(ActionMode):
     rejected collaborators (module docstring)."""
 
     needs_base = True
-    runs_aligners = True  # the base aligner runs again on the agent's observation and info
 
     def __init__(self, max_collaborators: int) -> None:
         self.n = max_collaborators
@@ -290,12 +288,12 @@ class GateMode(ActionMode):
         return check_indices(action, agent, self.n, 2)
 
     def decide(self, agent: str, action: np.ndarray, view: EgoView, observation: dict,
-               info: dict, base: np.ndarray | None) -> Decision:
+               info_of: Callable[[], dict], base: np.ndarray | None) -> Decision:
         n = len(view.collaborators)
         kept = action[:n] != REJECT_GATE
         if kept.all():
             return Decision(base.copy(), kept)
-        return Decision(self.base.align_without(agent, 0, view, observation, info,
+        return Decision(self.base.align_without(agent, 0, view, observation, info_of(),
                                                 ~kept).corrected, kept)
 
 

@@ -16,6 +16,7 @@ import os
 import sys
 import types
 from collections.abc import Mapping, Sequence
+from functools import cache, partial
 from typing import Any
 
 import gymnasium
@@ -350,9 +351,8 @@ class CollabPerceptionEnv(ParallelEnv):
         decisions = {
             agent: self.action_mode.decide(
                 agent, checked[agent], view, self._observations[agent],
-                self._view_info(view, privileged=True) if self.action_mode.runs_aligners
-                else {}, self._alignments[agent].corrected if self.action_mode.needs_base
-                else None)
+                cache(partial(self._view_info, view, privileged=True)),  # built once, if read
+                self._alignments[agent].corrected if self.action_mode.needs_base else None)
             for agent, view in zip(self.possible_agents, frame.views, strict=True)
         }
         fused_by_agent, alone_by_agent = self._fuse(frame, decisions)
