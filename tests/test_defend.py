@@ -9,7 +9,7 @@ from scipy import stats
 from scipy.special import bdtrc, chdtrc
 
 import roco_env
-from roco_env.geometry import bev_iou_pairs
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
 from roco_env.policies import make_policy
 from roco_env.policies.defend import (
     EGO,
@@ -33,15 +33,16 @@ def cars(*xy: tuple[float, float]) -> np.ndarray:
 def observation(own: np.ndarray, collaborators: list[tuple[np.ndarray, np.ndarray]],
                 slots: int = 4, k: int = 32) -> dict:
     """An aligned observation: the ego's boxes and, per collaborator, (boxes, pose) in the
-    ego frame; diagnostics all zero (no correction)."""
+    ego frame; reported poses those poses and diagnostics all zero (no correction)."""
     obs = {"boxes": np.zeros((k, 7)), "box_mask": np.zeros(k, np.int8),
            "collab_mask": np.zeros(slots, np.int8), "collab_rel_poses": np.zeros((slots, 3)),
+           "collab_reported_poses": np.zeros((slots, 3)),
            "collab_boxes": np.zeros((slots, k, 7)), "collab_box_mask": np.zeros((slots, k), np.int8),
            "diagnostics": np.zeros((slots, 8))}
     obs["boxes"][: len(own)], obs["box_mask"][: len(own)] = own, 1
     for slot, (boxes, pose) in enumerate(collaborators):
         obs["collab_mask"][slot] = 1
-        obs["collab_rel_poses"][slot] = pose
+        obs["collab_rel_poses"][slot] = obs["collab_reported_poses"][slot] = pose
         obs["collab_boxes"][slot, : len(boxes)] = boxes
         obs["collab_box_mask"][slot, : len(boxes)] = 1
         obs["diagnostics"][slot, 6] = np.hypot(*pose[:2])
@@ -168,6 +169,7 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"alpha": 1.5}, r"alpha=1.5 is out of range; allowed \(0.0, 1.0\)"),
     ({"window": 0}, r"window=0 is out of range"),
     ({"n_ghost": 3}, r"unknown defend parameter\(s\) \['n_ghost'\]"),
+    ({"use_offset": "yes"}, r"use_offset"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -280,3 +282,78 @@ def test_a_strong_correction_fails_at_once_after_a_quiet_window():
         for _ in range(9):
             assert defend(quiet, info(1)).tolist() == [0, 0, 0, 0]
         assert defend(jump, info(1)).tolist() == verdict
+
+
+def corrected(obs: dict, slot: int, correction: np.ndarray) -> dict:
+    """``obs`` with slot ``slot``'s reported pose such that the aligner's pose is the
+    reported one times ``correction`` (m, m, rad, in the reported frame), and the
+    diagnostics' shift / turn of that correction."""
+    aligned = obs["collab_rel_poses"][slot]
+    obs["collab_reported_poses"][slot] = se2_compose(aligned, se2_inverse(correction))
+    change = se2_compose(aligned, se2_inverse(obs["collab_reported_poses"][slot]))
+    obs["diagnostics"][slot, 4] = np.hypot(*change[:2])
+    obs["diagnostics"][slot, 5] = np.degrees(abs(change[2]))
+    return obs
+
+
+def _verdicts(corrections: np.ndarray, **params) -> np.ndarray:
+    """(steps,) defend's verdict on one collaborator whose aligner corrects it by
+    ``corrections`` (steps, 3) in turn; the offset and correction tests alone."""
+    scene = cars(*SCENE)
+    defend = Defend(use_consistency=False, **params)
+    verdicts = []
+    for correction in corrections:
+        obs = corrected(observation(scene, [(scene, np.array([20.0, 4.0, 0.0]))]), 0,
+                        correction)
+        verdicts.append(defend(obs, info(1))[0])
+    return np.array(verdicts)
+
+
+def _relative_noise(rng: np.random.Generator, steps: int, distance: float = 20.4
+                    ) -> np.ndarray:
+    """(steps, 3) the relative pose noise of two agents at 0.4 m / 0.4 deg per axis, as
+    the defender assumes it (the lever arm of the rotation at ``distance`` m included)."""
+    s_t = np.sqrt(2 * 0.4**2 + 2 * (distance * np.radians(0.4)) ** 2)
+    return rng.normal(0.0, 1.0, (steps, 3)) * [s_t, s_t, np.sqrt(2) * np.radians(0.4)]
+
+
+def test_a_small_fixed_offset_is_rejected_by_the_mean_test_and_not_by_the_sum():
+    """A 1 m offset the aligner corrects on every step: alone, the sum of q never fails
+    over ten steps (its dof grow with the window), the mean of the signed correction
+    fails from the fifth step on; under noise (seeded) the mean test still rejects it by
+    the tenth step."""
+    fixed = np.tile([-1.0, 0.0, 0.0], (10, 1))
+    assert _verdicts(fixed).tolist() == [0] * 4 + [1] * 6
+    assert not _verdicts(fixed, use_offset=False).any()
+    noisy = _verdicts(_relative_noise(np.random.default_rng(3), 10) + fixed[0])
+    assert noisy[-1] == 1 and noisy[0] == 0
+
+
+def test_honest_noise_is_rejected_at_most_at_the_tests_level():
+    """Honest collaborators (i.i.d. relative pose noise of the size assumed, seeded): 100
+    of them over ten steps; the share of steps rejected stays within 2 %."""
+    rng = np.random.default_rng(4)
+    rejected = [_verdicts(_relative_noise(rng, 10)) for _ in range(100)]
+    assert np.mean(rejected) <= 0.02
+
+
+def test_the_offset_test_needs_the_reported_poses():
+    obs = observation(cars(*SCENE), [(cars(*SCENE), np.array([5.0, 4.0, 0.0]))])
+    del obs["collab_reported_poses"]
+    with pytest.raises(ValueError, match="collab_reported_poses.*use_offset=False"):
+        Defend()(obs, info(1))
+    assert Defend(use_offset=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
+
+
+def test_the_aligned_observation_carries_the_reported_poses():
+    """collab_reported_poses is what the messages say (the privileged record of the
+    reported poses, to float32), beside the aligner's pose."""
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=0.4, sigma_r=0.4,
+                                info_level="full", **make_policy("defend").env_overrides)
+    observations, infos = env.reset(seed=0)
+    for agent, obs in observations.items():
+        reported = infos[agent]["privileged"]["reported_relative_poses"]
+        np.testing.assert_allclose(obs["collab_reported_poses"], reported, rtol=1e-6,
+                                   atol=1e-4)
+        assert env.observation_space(agent)["collab_reported_poses"].contains(
+            obs["collab_reported_poses"])

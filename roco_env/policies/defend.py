@@ -13,11 +13,20 @@ Four tests, each a statistical test at level ``alpha``:
   the localisation noise assumed (``sigma_t`` m, ``sigma_r`` deg per agent and axis):
   ``q = shift^2 / s_t^2 + turn^2 / s_r^2`` with ``s_t^2 = 2 sigma_t^2 + 2 (d sigma_r)^2``
   (d the collaborator's distance, sigma_r in rad) and ``s_r^2 = 2 sigma_r^2`` is about
-  chi-square with 3 dof for an honest collaborator. Rejected when the sum of q over its
-  last ``window`` steps exceeds the chi-square quantile of 3 x steps dof: a jump fails at
-  once, a slow drift once it has grown, a fixed spoof the aligner corrects within a few
-  steps. A step whose q alone has a p-value below ``strong`` fails at once, however
-  quiet the window (a drift that has just grown large).
+  chi-square with 3 dof for an honest collaborator. Two tests over its last ``window``
+  steps, each at ``alpha / 2`` (Bonferroni): the sum of q against the chi-square
+  quantile of 3 x steps dof (a jump fails at once, a slow drift once it has grown, any
+  lie that changes from step to step), and the mean of the *signed* correction (an
+  offset): ``c = reported^-1 * aligned`` is the correction in the collaborator's
+  reported frame (x forward, y left; m, m, rad), where a fixed spoof stays fixed;
+  whitened per step, ``z = (c_x / s_t, c_y / s_t, c_yaw / s_r)``, and
+  ``|sum z|^2 / steps`` is chi-square with 3 dof for an honest collaborator with
+  independent noise from step to step. The mean test has the power the sum lacks
+  against a small persistent offset (the sum's dof grow with the window, the mean's
+  do not); a localisation bias is such an offset too (docs/attacks.md). The reported
+  pose is the aligned observation's ``collab_reported_poses``. A step whose q alone
+  has a p-value below ``strong`` fails at once, however quiet the window (a drift that
+  has just grown large).
 * **Consistency after alignment**: every pair of sources (the ego and its collaborators,
   all in the ego frame) is compared box by box: a box matches the other source's nearest
   box within ``match_m`` m; it conflicts with it when their footprints overlap without
@@ -59,7 +68,7 @@ from typing import Any
 import numpy as np
 from scipy.special import bdtrc, chdtrc
 
-from roco_env.geometry import bev_iou_pairs
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, wrap_angle
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.policies.privileged_gate import GATES
@@ -203,7 +212,9 @@ class DefendParams:
     strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
                          "(this step alone) is below this fails at once, however quiet "
                          "the window (0: the window decides alone)")
-    use_correction: bool = spec(True, doc="the correction (temporal) test")
+    use_correction: bool = spec(True, doc="the correction (temporal) tests")
+    use_offset: bool = spec(True, doc="the mean-offset test among the correction tests "
+                            "(off: the sum of q alone, at level alpha)")
     use_consistency: bool = spec(True, doc="the consistency test after alignment")
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
     use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
@@ -239,7 +250,7 @@ class Defend:
         self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
                     "consensus": p.use_consensus, "claim": p.use_claim}
-        self._q: dict[Hashable, deque] = {}
+        self._q: dict[Hashable, deque] = {}  # per key: (q, z (3,)) of each step
         self._pairs: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[frozenset, PairEvidence] = {}
@@ -257,8 +268,11 @@ class Defend:
         keys = collaborator_keys(dict(info or {}), filled, "defend")
         reasons = [""] * mask.shape[0]
         if self.use["correction"]:
-            for slot, key in zip(filled, keys, strict=True):
-                if self._implausible(key, np.asarray(observation["diagnostics"])[slot]):
+            diagnostics = np.asarray(observation["diagnostics"])
+            offsets = _offsets(observation, filled) if self.params.use_offset else None
+            for index, (slot, key) in enumerate(zip(filled, keys, strict=True)):
+                offset = None if offsets is None else offsets[index]
+                if self._implausible(key, diagnostics[slot], offset):
                     reasons[slot] = "correction"
         if self.use["consistency"] and filled.size:
             kept = self._consensus(observation, filled, [key[1] for key in keys],
@@ -269,17 +283,29 @@ class Defend:
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
-    def _implausible(self, key: Hashable, diagnostics: np.ndarray) -> bool:
-        """Record this step's correction statistic q of ``key``; whether the window's sum
-        fails the chi-square test, or this step's q alone fails it at level ``strong``."""
+    def _implausible(self, key: Hashable, diagnostics: np.ndarray,
+                     offset: np.ndarray | None) -> bool:
+        """Record this step's correction statistic q of ``key`` and its whitened signed
+        correction ``offset`` (3,) (m, m, rad in the collaborator's reported frame; None:
+        the mean test is off); whether the window fails the sum test or the mean test
+        (each at alpha / 2 when both run), or this step's q alone fails at ``strong``."""
         distance = float(diagnostics[_DISTANCE])
         s_t2 = 2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2
-        q = float(diagnostics[_SHIFT]) ** 2 / s_t2 \
-            + np.radians(float(diagnostics[_TURN])) ** 2 / (2.0 * self.sigma_r**2)
+        s_r2 = 2.0 * self.sigma_r**2
+        q = float(diagnostics[_SHIFT]) ** 2 / s_t2 + np.radians(float(diagnostics[_TURN])) ** 2 \
+            / s_r2
+        z = None if offset is None else offset / np.sqrt([s_t2, s_t2, s_r2])
         history = self._q.setdefault(key, deque(maxlen=self.params.window))
-        history.append(q)
-        return bool(chdtrc(3 * len(history), sum(history)) < self.params.alpha
-                    or chdtrc(3, q) < self.params.strong)
+        history.append((q, z))
+        steps = len(history)
+        level = self.params.alpha / (1 if z is None else 2)
+        if chdtrc(3 * steps, sum(step[0] for step in history)) < level \
+                or chdtrc(3, q) < self.params.strong:
+            return True
+        if z is None:
+            return False
+        mean = sum((step[1] for step in history if step[1] is not None), np.zeros(3))
+        return bool(chdtrc(3, float(mean @ mean) / steps) < level)
 
     def _consensus(self, observation: Mapping[str, Any], filled: np.ndarray,
                    names: list[str], ego: Hashable) -> set[int]:
@@ -349,6 +375,21 @@ class Defend:
             return 1.0
         tests = 3 if self.use["claim"] else 2
         return float(min(1.0, tests * min(tails)))
+
+
+def _offsets(observation: Mapping[str, Any], filled: np.ndarray) -> np.ndarray:
+    """(len(filled), 3) the signed correction of each filled slot's reported pose,
+    ``reported^-1 * aligned``, in the collaborator's reported frame (m, m, rad): a fixed
+    spoof is a fixed offset there, whatever the two agents' motion."""
+    if "collab_reported_poses" not in observation:
+        raise ValueError("defend's offset test reads observation['collab_reported_poses'] "
+                         "(the aligned observation's reported relative poses); give it, or "
+                         "use_offset=False")
+    reported = np.asarray(observation["collab_reported_poses"], dtype=float)[filled]
+    aligned = np.asarray(observation["collab_rel_poses"], dtype=float)[filled]
+    offset = se2_compose(se2_inverse(reported), aligned).reshape(-1, 3)
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    return offset
 
 
 def _sources(observation: Mapping[str, Any], filled: np.ndarray
