@@ -129,7 +129,8 @@ def test_history_is_kept_per_ego_and_collaborator_and_reset_forgets_it():
     for _ in range(3):
         defend(obs, info(1))
     assert len(defend._q[("ego", "c0")]) == 3
-    assert len(defend._pairs[("ego", frozenset((EGO, "c0")))]) == 3
+    assert len(defend._pairs[("ego", EGO, "c0")]) == 3  # the ego's boxes as c0 judges them
+    assert len(defend._pairs[("ego", "c0", EGO)]) == 3
     defend.reset()
     assert not defend._q and not defend._pairs
 
@@ -170,6 +171,8 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"window": 0}, r"window=0 is out of range"),
     ({"n_ghost": 3}, r"unknown defend parameter\(s\) \['n_ghost'\]"),
     ({"use_offset": "yes"}, r"use_offset"),
+    ({"bias_t": -0.1}, r"bias_t=-0.1 is out of range"),
+    ({"relative_margin": 0.5}, r"relative_margin=0.5 is out of range"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -309,12 +312,15 @@ def _verdicts(corrections: np.ndarray, **params) -> np.ndarray:
     return np.array(verdicts)
 
 
-def _relative_noise(rng: np.random.Generator, steps: int, distance: float = 20.4
-                    ) -> np.ndarray:
+def _relative_noise(rng: np.random.Generator, steps: int, distance: float = 20.4,
+                    shared: bool = False) -> np.ndarray:
     """(steps, 3) the relative pose noise of two agents at 0.4 m / 0.4 deg per axis, as
-    the defender assumes it (the lever arm of the rotation at ``distance`` m included)."""
+    the defender assumes it (the lever arm of the rotation at ``distance`` m included);
+    ``shared``: one draw for every step (a bias), else one per step."""
     s_t = np.sqrt(2 * 0.4**2 + 2 * (distance * np.radians(0.4)) ** 2)
-    return rng.normal(0.0, 1.0, (steps, 3)) * [s_t, s_t, np.sqrt(2) * np.radians(0.4)]
+    draws = rng.normal(0.0, 1.0, (1 if shared else steps, 3))
+    scaled = draws * [s_t, s_t, np.sqrt(2) * np.radians(0.4)]
+    return np.repeat(scaled, steps, axis=0) if shared else scaled
 
 
 def test_a_small_fixed_offset_is_rejected_by_the_mean_test_and_not_by_the_sum():
@@ -357,3 +363,43 @@ def test_the_aligned_observation_carries_the_reported_poses():
                                    atol=1e-4)
         assert env.observation_space(agent)["collab_reported_poses"].contains(
             obs["collab_reported_poses"])
+
+
+def test_a_bias_looks_like_a_fixed_spoof_unless_the_defender_assumes_it():
+    """Honest collaborators whose localisation error is a bias (one draw per episode, of
+    the size assumed, seeded): the mean test assuming independent noise rejects 41 % of
+    their steps; told the bias (``bias_t``, ``bias_r``) it adds no rejection to the
+    sum test's own (whose q a bias inflates too: 9.5 % here), and a fixed 1 m offset, a
+    bias of that size, is no longer seen over ten steps."""
+    rng = np.random.default_rng(5)
+    noise = [_relative_noise(rng, 10, shared=True) for _ in range(100)]
+    told = {"bias_t": 0.4, "bias_r": 0.4}
+    untold = np.mean([_verdicts(n) for n in noise])
+    sum_alone = np.mean([_verdicts(n, use_offset=False) for n in noise])
+    assert untold > 0.3
+    assert np.mean([_verdicts(n, **told) for n in noise]) <= sum_alone
+    assert not _verdicts(np.tile([-1.0, 0.0, 0.0], (10, 1)), **told).any()
+
+
+def test_a_collaborator_with_more_unconfirmed_boxes_than_the_others_is_rejected():
+    """Three collaborators see the scene and two cars of their own nobody confirms; the
+    third adds four ghosts. A fixed miss rate of 0.5 says nothing; against the others'
+    share of unconfirmed boxes, the ghosts' sender fails within a few steps, and nobody
+    else does."""
+    scene = [(x, 0.0) for x in range(-30, 31, 10)]  # in everyone's clear view
+    def own(*extra):
+        return cars(*scene, *extra)
+    poses = [np.array([0.0, 6.0, 0.0]), np.array([0.0, -6.0, 0.0]), np.array([5.0, 12.0, 0.0])]
+    sent = [own((12.0, 20.0), (-12.0, 20.0)), own((12.0, -20.0), (-12.0, -20.0)),
+            own((25.0, 15.0), (-25.0, 15.0), (15.0, -15.0), (-15.0, -15.0), (5.0, 18.0),
+                (-5.0, -18.0))]
+    obs = observation(cars(*scene), list(zip(sent, poses, strict=True)))
+    for relative, verdict in ((True, [0, 0, 1, 0]), (False, [0, 0, 0, 0])):
+        defend = Defend(use_correction=False, miss_rate=0.5, use_relative=relative)
+        actions = [defend(obs, info(3)).tolist() for _ in range(6)]
+        assert actions[-1] == verdict, relative
+        assert all(action[:2] == [0, 0] for action in actions)
+    defend = Defend(use_correction=False, miss_rate=0.5)
+    for _ in range(6):
+        defend(obs, info(3))
+    assert defend.last_reasons[2] == "relative"
