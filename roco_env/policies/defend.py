@@ -6,7 +6,7 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Four tests, each a statistical test at level ``alpha``:
+Five tests, each a statistical test at level ``alpha``:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -24,7 +24,8 @@ Four tests, each a statistical test at level ``alpha``:
   independent noise from step to step. The mean test has the power the sum lacks
   against a small persistent offset (the sum's dof grow with the window, the mean's
   do not); a localisation bias is such an offset too (docs/attacks.md). The reported
-  pose is the aligned observation's ``collab_reported_poses``. A step whose q alone
+  pose is the aligned observation's ``collab_reported_poses``; ``bias_t`` / ``bias_r``
+  (the persistent part of the noise) widen the mean's allowance. A step whose q alone
   has a p-value below ``strong`` fails at once, however quiet the window (a drift that
   has just grown large).
 * **Consistency after alignment**: every pair of sources (the ego and its collaborators,
@@ -35,7 +36,8 @@ Four tests, each a statistical test at level ``alpha``:
   origin, no other box's centre within ``occlusion_m`` m of the sight line). A
   collaborator's counts against the ego and every other collaborator, summed over the
   last ``window`` steps, are tested against the shares an honest one shows
-  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the tests).
+  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the
+  consistency tests).
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts.
@@ -47,6 +49,12 @@ Four tests, each a statistical test at level ``alpha``:
   ``claim_miss_rate`` (one-sided binomial, a third test of the same Bonferroni,
   window and ``recent`` rule). Forged boxes cannot move the liar's real car: a spoofed
   pose the aligner keeps leaves its claimed place empty.
+* **Relative share of unconfirmed boxes**: a collaborator's boxes unconfirmed by the ego
+  and the others, over the window, against ``relative_margin`` times the pooled share of
+  the other collaborators' boxes (judged by all but it): a one-sided Wald z-test, a
+  fourth test of the same Bonferroni, window and ``recent`` rule, judged against every
+  collaborator (outside the consensus). It has power where a fixed ``miss_rate`` must
+  sit above every honest share (a few ghosts).
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
