@@ -5,7 +5,8 @@
 * ``aligned``: everything already in the ego's frame, for MLP policies. The own boxes;
   each collaborator's boxes moved into the ego frame through the pose the action acts on
   (the base aligner's in ``residual`` and ``gate`` action modes, the reported one
-  otherwise), that pose, and per slot the base aligner's diagnostics
+  otherwise), that pose, the reported one (``collab_reported_poses``, what the messages
+  say: the raw mode's ``collab_rel_poses``), and per slot the base aligner's diagnostics
   (:data:`DIAGNOSTICS`). The base aligner is ``action.base`` and runs on every
   observation in this mode. In ``select`` action mode it also holds
   ``choice_diagnostics`` (N, C, len(:data:`CHOICE_DIAGNOSTICS`)): per slot, each of the
@@ -105,6 +106,7 @@ def mode_space(config: ObservationConfig, max_boxes: int, max_collaborators: int
         "box_mask": spaces.Box(0, 1, (k,), np.int8),
         "collab_mask": spaces.Box(0, 1, (n,), np.int8),
         "collab_rel_poses": spaces.Box(-_pose_bounds(n), _pose_bounds(n), dtype=_F32),
+        "collab_reported_poses": spaces.Box(-_pose_bounds(n), _pose_bounds(n), dtype=_F32),
         "collab_boxes": spaces.Box(-np.tile(boxes, (n, 1, 1)), np.tile(boxes, (n, 1, 1)),
                                    dtype=_F32),
         "collab_scores": spaces.Box(0.0, 1.0, (n, k), _F32),
@@ -140,12 +142,15 @@ def build_observation(config: ObservationConfig, view: EgoView, raw: dict,
     bounds = _box_bounds(raw["boxes"].shape[0])
     rel = np.zeros_like(raw["collab_rel_poses"])
     rel[:n] = poses
+    pose_bound = _pose_bounds(1)[0]
     return {
         "boxes": np.clip(raw["boxes"], -bounds, bounds).astype(_F32),
         "scores": raw["scores"].copy(),
         "box_mask": raw["box_mask"].copy(),
         "collab_mask": raw["collab_mask"].copy(),
-        "collab_rel_poses": np.clip(rel, -_pose_bounds(1)[0], _pose_bounds(1)[0]).astype(_F32),
+        "collab_rel_poses": np.clip(rel, -pose_bound, pose_bound).astype(_F32),
+        "collab_reported_poses": np.clip(raw["collab_rel_poses"], -pose_bound,
+                                         pose_bound).astype(_F32),
         "collab_boxes": np.clip(moved, -bounds, bounds).astype(_F32),
         "collab_scores": raw["collab_scores"].copy(),
         "collab_box_mask": raw["collab_box_mask"].copy(),

@@ -9,7 +9,7 @@ from scipy import stats
 from scipy.special import bdtrc, chdtrc
 
 import roco_env
-from roco_env.geometry import bev_iou_pairs
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
 from roco_env.policies import make_policy
 from roco_env.policies.defend import (
     EGO,
@@ -33,15 +33,16 @@ def cars(*xy: tuple[float, float]) -> np.ndarray:
 def observation(own: np.ndarray, collaborators: list[tuple[np.ndarray, np.ndarray]],
                 slots: int = 4, k: int = 32) -> dict:
     """An aligned observation: the ego's boxes and, per collaborator, (boxes, pose) in the
-    ego frame; diagnostics all zero (no correction)."""
+    ego frame; reported poses those poses and diagnostics all zero (no correction)."""
     obs = {"boxes": np.zeros((k, 7)), "box_mask": np.zeros(k, np.int8),
            "collab_mask": np.zeros(slots, np.int8), "collab_rel_poses": np.zeros((slots, 3)),
+           "collab_reported_poses": np.zeros((slots, 3)),
            "collab_boxes": np.zeros((slots, k, 7)), "collab_box_mask": np.zeros((slots, k), np.int8),
            "diagnostics": np.zeros((slots, 8))}
     obs["boxes"][: len(own)], obs["box_mask"][: len(own)] = own, 1
     for slot, (boxes, pose) in enumerate(collaborators):
         obs["collab_mask"][slot] = 1
-        obs["collab_rel_poses"][slot] = pose
+        obs["collab_rel_poses"][slot] = obs["collab_reported_poses"][slot] = pose
         obs["collab_boxes"][slot, : len(boxes)] = boxes
         obs["collab_box_mask"][slot, : len(boxes)] = 1
         obs["diagnostics"][slot, 6] = np.hypot(*pose[:2])
@@ -128,7 +129,8 @@ def test_history_is_kept_per_ego_and_collaborator_and_reset_forgets_it():
     for _ in range(3):
         defend(obs, info(1))
     assert len(defend._q[("ego", "c0")]) == 3
-    assert len(defend._pairs[("ego", frozenset((EGO, "c0")))]) == 3
+    assert len(defend._pairs[("ego", EGO, "c0")]) == 3  # the ego's boxes as c0 judges them
+    assert len(defend._pairs[("ego", "c0", EGO)]) == 3
     defend.reset()
     assert not defend._q and not defend._pairs
 
@@ -168,6 +170,9 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"alpha": 1.5}, r"alpha=1.5 is out of range; allowed \(0.0, 1.0\)"),
     ({"window": 0}, r"window=0 is out of range"),
     ({"n_ghost": 3}, r"unknown defend parameter\(s\) \['n_ghost'\]"),
+    ({"use_offset": "yes"}, r"use_offset"),
+    ({"bias_t": -0.1}, r"bias_t=-0.1 is out of range"),
+    ({"relative_margin": 0.5}, r"relative_margin=0.5 is out of range"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -280,3 +285,121 @@ def test_a_strong_correction_fails_at_once_after_a_quiet_window():
         for _ in range(9):
             assert defend(quiet, info(1)).tolist() == [0, 0, 0, 0]
         assert defend(jump, info(1)).tolist() == verdict
+
+
+def corrected(obs: dict, slot: int, correction: np.ndarray) -> dict:
+    """``obs`` with slot ``slot``'s reported pose such that the aligner's pose is the
+    reported one times ``correction`` (m, m, rad, in the reported frame), and the
+    diagnostics' shift / turn of that correction."""
+    aligned = obs["collab_rel_poses"][slot]
+    obs["collab_reported_poses"][slot] = se2_compose(aligned, se2_inverse(correction))
+    change = se2_compose(aligned, se2_inverse(obs["collab_reported_poses"][slot]))
+    obs["diagnostics"][slot, 4] = np.hypot(*change[:2])
+    obs["diagnostics"][slot, 5] = np.degrees(abs(change[2]))
+    return obs
+
+
+def _verdicts(corrections: np.ndarray, **params) -> np.ndarray:
+    """(steps,) defend's verdict on one collaborator whose aligner corrects it by
+    ``corrections`` (steps, 3) in turn; the offset and correction tests alone."""
+    scene = cars(*SCENE)
+    defend = Defend(use_consistency=False, **params)
+    verdicts = []
+    for correction in corrections:
+        obs = corrected(observation(scene, [(scene, np.array([20.0, 4.0, 0.0]))]), 0,
+                        correction)
+        verdicts.append(defend(obs, info(1))[0])
+    return np.array(verdicts)
+
+
+def _relative_noise(rng: np.random.Generator, steps: int, distance: float = 20.4,
+                    shared: bool = False) -> np.ndarray:
+    """(steps, 3) the relative pose noise of two agents at 0.4 m / 0.4 deg per axis, as
+    the defender assumes it (the lever arm of the rotation at ``distance`` m included);
+    ``shared``: one draw for every step (a bias), else one per step."""
+    s_t = np.sqrt(2 * 0.4**2 + 2 * (distance * np.radians(0.4)) ** 2)
+    draws = rng.normal(0.0, 1.0, (1 if shared else steps, 3))
+    scaled = draws * [s_t, s_t, np.sqrt(2) * np.radians(0.4)]
+    return np.repeat(scaled, steps, axis=0) if shared else scaled
+
+
+def test_a_small_fixed_offset_is_rejected_by_the_mean_test_and_not_by_the_sum():
+    """A 1 m offset the aligner corrects on every step: alone, the sum of q never fails
+    over ten steps (its dof grow with the window), the mean of the signed correction
+    fails from the fifth step on; under noise (seeded) the mean test still rejects it by
+    the tenth step."""
+    fixed = np.tile([-1.0, 0.0, 0.0], (10, 1))
+    assert _verdicts(fixed).tolist() == [0] * 4 + [1] * 6
+    assert not _verdicts(fixed, use_offset=False).any()
+    noisy = _verdicts(_relative_noise(np.random.default_rng(3), 10) + fixed[0])
+    assert noisy[-1] == 1 and noisy[0] == 0
+
+
+def test_honest_noise_is_rejected_at_most_at_the_tests_level():
+    """Honest collaborators (i.i.d. relative pose noise of the size assumed, seeded): 100
+    of them over ten steps; the share of steps rejected stays within 2 %."""
+    rng = np.random.default_rng(4)
+    rejected = [_verdicts(_relative_noise(rng, 10)) for _ in range(100)]
+    assert np.mean(rejected) <= 0.02
+
+
+def test_the_offset_test_needs_the_reported_poses():
+    obs = observation(cars(*SCENE), [(cars(*SCENE), np.array([5.0, 4.0, 0.0]))])
+    del obs["collab_reported_poses"]
+    with pytest.raises(ValueError, match="collab_reported_poses.*use_offset=False"):
+        Defend()(obs, info(1))
+    assert Defend(use_offset=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
+
+
+def test_the_aligned_observation_carries_the_reported_poses():
+    """collab_reported_poses is what the messages say (the privileged record of the
+    reported poses, to float32), beside the aligner's pose."""
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=0.4, sigma_r=0.4,
+                                info_level="full", **make_policy("defend").env_overrides)
+    observations, infos = env.reset(seed=0)
+    for agent, obs in observations.items():
+        reported = infos[agent]["privileged"]["reported_relative_poses"]
+        np.testing.assert_allclose(obs["collab_reported_poses"], reported, rtol=1e-6,
+                                   atol=1e-4)
+        assert env.observation_space(agent)["collab_reported_poses"].contains(
+            obs["collab_reported_poses"])
+
+
+def test_a_bias_looks_like_a_fixed_spoof_unless_the_defender_assumes_it():
+    """Honest collaborators whose localisation error is a bias (one draw per episode, of
+    the size assumed, seeded): the mean test assuming independent noise rejects 41 % of
+    their steps; told the bias (``bias_t``, ``bias_r``) it adds no rejection to the
+    sum test's own (whose q a bias inflates too: 9.5 % here), and a fixed 1 m offset, a
+    bias of that size, is no longer seen over ten steps."""
+    rng = np.random.default_rng(5)
+    noise = [_relative_noise(rng, 10, shared=True) for _ in range(100)]
+    told = {"bias_t": 0.4, "bias_r": 0.4}
+    untold = np.mean([_verdicts(n) for n in noise])
+    sum_alone = np.mean([_verdicts(n, use_offset=False) for n in noise])
+    assert untold > 0.3
+    assert np.mean([_verdicts(n, **told) for n in noise]) <= sum_alone
+    assert not _verdicts(np.tile([-1.0, 0.0, 0.0], (10, 1)), **told).any()
+
+
+def test_a_collaborator_with_more_unconfirmed_boxes_than_the_others_is_rejected():
+    """Three collaborators see the scene and two cars of their own nobody confirms; the
+    third adds four ghosts. A fixed miss rate of 0.5 says nothing; against the others'
+    share of unconfirmed boxes, the ghosts' sender fails within a few steps, and nobody
+    else does."""
+    scene = [(x, 0.0) for x in range(-30, 31, 10)]  # in everyone's clear view
+    def own(*extra):
+        return cars(*scene, *extra)
+    poses = [np.array([0.0, 6.0, 0.0]), np.array([0.0, -6.0, 0.0]), np.array([5.0, 12.0, 0.0])]
+    sent = [own((12.0, 20.0), (-12.0, 20.0)), own((12.0, -20.0), (-12.0, -20.0)),
+            own((25.0, 15.0), (-25.0, 15.0), (15.0, -15.0), (-15.0, -15.0), (5.0, 18.0),
+                (-5.0, -18.0))]
+    obs = observation(cars(*scene), list(zip(sent, poses, strict=True)))
+    for relative, verdict in ((True, [0, 0, 1, 0]), (False, [0, 0, 0, 0])):
+        defend = Defend(use_correction=False, miss_rate=0.5, use_relative=relative)
+        actions = [defend(obs, info(3)).tolist() for _ in range(6)]
+        assert actions[-1] == verdict, relative
+        assert all(action[:2] == [0, 0] for action in actions)
+    defend = Defend(use_correction=False, miss_rate=0.5)
+    for _ in range(6):
+        defend(obs, info(3))
+    assert defend.last_reasons[2] == "relative"

@@ -6,8 +6,8 @@ recorded observations (one process, the machine's load shared by both).
 Records every agent's aligned observation and info of an urban_intersection episode
 (noise 0.4, a 10 m spoof by cav_1, ``--steps`` steps), then replays them through a fresh
 ``Defend`` of this tree and one of ``git show REF:roco_env/policies/defend.py``,
-interleaved ``--repeats`` times (``--old-tests``: this tree's without the claimed-position
-and strong single-step tests), and prints each one's median wall time per call (ms),
+interleaved ``--repeats`` times (``--old-tests``: this tree's without the mean-offset and
+relative tests, the ones main lacks), and prints each one's median wall time per call (ms),
 their ratio, and whether their actions agree on every call.
 """
 
@@ -77,10 +77,11 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--old-tests", action="store_true",
                         help="this tree's Defend without the tests main lacks "
-                        "(use_claim=False, strong=0): the speed-up alone")
+                        "(use_offset=False, use_relative=False): the same decisions")
     args = parser.parse_args()
     calls = record(args.steps)
-    mine = functools.partial(Defend, use_claim=False, strong=0.0) if args.old_tests else Defend
+    mine = functools.partial(Defend, use_offset=False, use_relative=False) if args.old_tests \
+        else Defend
     versions = {"this tree": mine, args.against: load_defend(args.against)}
     times: dict[str, list[float]] = {name: [] for name in versions}
     actions: dict[str, list] = {}

@@ -6,18 +6,28 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Four tests, each a statistical test at level ``alpha``:
+Five tests, each a statistical test at level ``alpha``:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
   the localisation noise assumed (``sigma_t`` m, ``sigma_r`` deg per agent and axis):
   ``q = shift^2 / s_t^2 + turn^2 / s_r^2`` with ``s_t^2 = 2 sigma_t^2 + 2 (d sigma_r)^2``
   (d the collaborator's distance, sigma_r in rad) and ``s_r^2 = 2 sigma_r^2`` is about
-  chi-square with 3 dof for an honest collaborator. Rejected when the sum of q over its
-  last ``window`` steps exceeds the chi-square quantile of 3 x steps dof: a jump fails at
-  once, a slow drift once it has grown, a fixed spoof the aligner corrects within a few
-  steps. A step whose q alone has a p-value below ``strong`` fails at once, however
-  quiet the window (a drift that has just grown large).
+  chi-square with 3 dof for an honest collaborator. Two tests over its last ``window``
+  steps, each at ``alpha / 2`` (Bonferroni): the sum of q against the chi-square
+  quantile of 3 x steps dof (a jump fails at once, a slow drift once it has grown, any
+  lie that changes from step to step), and the mean of the *signed* correction (an
+  offset): ``c = reported^-1 * aligned`` is the correction in the collaborator's
+  reported frame (x forward, y left; m, m, rad), where a fixed spoof stays fixed;
+  whitened per step, ``z = (c_x / s_t, c_y / s_t, c_yaw / s_r)``, and
+  ``|sum z|^2 / steps`` is chi-square with 3 dof for an honest collaborator with
+  independent noise from step to step. The mean test has the power the sum lacks
+  against a small persistent offset (the sum's dof grow with the window, the mean's
+  do not); a localisation bias is such an offset too (docs/attacks.md). The reported
+  pose is the aligned observation's ``collab_reported_poses``; ``bias_t`` / ``bias_r``
+  (the persistent part of the noise) widen the mean's allowance. A step whose q alone
+  has a p-value below ``strong`` fails at once, however quiet the window (a drift that
+  has just grown large).
 * **Consistency after alignment**: every pair of sources (the ego and its collaborators,
   all in the ego frame) is compared box by box: a box matches the other source's nearest
   box within ``match_m`` m; it conflicts with it when their footprints overlap without
@@ -26,7 +36,8 @@ Four tests, each a statistical test at level ``alpha``:
   origin, no other box's centre within ``occlusion_m`` m of the sight line). A
   collaborator's counts against the ego and every other collaborator, summed over the
   last ``window`` steps, are tested against the shares an honest one shows
-  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the tests).
+  (``conflict_rate``, ``miss_rate``; one-sided binomial tests, Bonferroni over the
+  consistency tests).
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts.
@@ -38,6 +49,12 @@ Four tests, each a statistical test at level ``alpha``:
   ``claim_miss_rate`` (one-sided binomial, a third test of the same Bonferroni,
   window and ``recent`` rule). Forged boxes cannot move the liar's real car: a spoofed
   pose the aligner keeps leaves its claimed place empty.
+* **Relative share of unconfirmed boxes**: a collaborator's boxes unconfirmed by the ego
+  and the others, over the window, against ``relative_margin`` times the pooled share of
+  the other collaborators' boxes (judged by all but it): a one-sided Wald z-test, a
+  fourth test of the same Bonferroni, window and ``recent`` rule, judged against every
+  collaborator (outside the consensus). It has power where a fixed ``miss_rate`` must
+  sit above every honest share (a few ghosts).
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -57,9 +74,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import bdtrc, chdtrc
+from scipy.special import bdtrc, chdtrc, ndtr
 
-from roco_env.geometry import bev_iou_pairs
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, wrap_angle
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.policies.privileged_gate import GATES
@@ -187,6 +204,10 @@ class DefendParams:
     base: str = spec("roco", doc="the aligner's policy spec the env runs (action.base)")
     sigma_t: float = _positive(0.4, "localisation noise assumed per agent and axis, m (std)")
     sigma_r: float = _positive(0.4, "localisation noise assumed on the heading, deg (std)")
+    bias_t: float = spec(0.0, low=0.0, doc="the part of the localisation noise that "
+                         "persists over an episode, m per agent and axis (std; 0: the noise "
+                         "is independent from step to step)")
+    bias_r: float = spec(0.0, low=0.0, doc="the same on the heading, deg (std)")
     alpha: float = _open_share(0.01, "level of every test")
     window: int = spec(10, low=1, doc="steps of history per collaborator and pair")
     match_m: float = _positive(1.0, "two sources' boxes closer than this are one object, m")
@@ -203,10 +224,16 @@ class DefendParams:
     strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
                          "(this step alone) is below this fails at once, however quiet "
                          "the window (0: the window decides alone)")
-    use_correction: bool = spec(True, doc="the correction (temporal) test")
+    use_correction: bool = spec(True, doc="the correction (temporal) tests")
+    use_offset: bool = spec(True, doc="the mean-offset test among the correction tests "
+                            "(off: the sum of q alone, at level alpha)")
     use_consistency: bool = spec(True, doc="the consistency test after alignment")
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
     use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
+    use_relative: bool = spec(True, doc="the relative test of a collaborator's unconfirmed "
+                              "share against the other collaborators' (consistency)")
+    relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
+                                  "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
     claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
                                          "clear view where an honest vehicle's car is not "
@@ -235,15 +262,18 @@ class Defend:
         self.env_overrides = {"action.mode": "gate", "action.base": p.base,
                               "observation.mode": "aligned"}
         self.sigma_r = np.radians(p.sigma_r)
+        self.bias_r = np.radians(p.bias_r)
         self._geometry = (p.match_m, p.view_m, p.occlusion_m)  # pair_evidence's thresholds
         self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
-                    "consensus": p.use_consensus, "claim": p.use_claim}
-        self._q: dict[Hashable, deque] = {}
+                    "consensus": p.use_consensus, "claim": p.use_claim,
+                    "relative": p.use_relative}
+        self._tests = 2 + p.use_claim + p.use_relative  # the consistency tests' Bonferroni
+        self._q: dict[Hashable, deque] = {}  # per key: (q, z (3,)) of each step
         self._pairs: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
-        self.last_pairs: dict[frozenset, PairEvidence] = {}
-        self.last_now: dict[frozenset, PairEvidence] = {}
+        self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
+        self.last_now: dict[tuple, PairEvidence] = {}  # (judged, judge) -> this step's
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
@@ -257,8 +287,11 @@ class Defend:
         keys = collaborator_keys(dict(info or {}), filled, "defend")
         reasons = [""] * mask.shape[0]
         if self.use["correction"]:
-            for slot, key in zip(filled, keys, strict=True):
-                if self._implausible(key, np.asarray(observation["diagnostics"])[slot]):
+            diagnostics = np.asarray(observation["diagnostics"])
+            offsets = _offsets(observation, filled) if self.params.use_offset else None
+            for index, (slot, key) in enumerate(zip(filled, keys, strict=True)):
+                offset = None if offsets is None else offsets[index]
+                if self._implausible(key, diagnostics[slot], offset):
                     reasons[slot] = "correction"
         if self.use["consistency"] and filled.size:
             kept = self._consensus(observation, filled, [key[1] for key in keys],
@@ -266,20 +299,42 @@ class Defend:
             for slot in filled:
                 if slot not in kept and not reasons[slot]:
                     reasons[slot] = "consistency"
+            if self.use["relative"]:
+                for slot in self.relatively_unconfirmed([int(s) for s in filled]):
+                    reasons[slot] = reasons[slot] or "relative"
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
-    def _implausible(self, key: Hashable, diagnostics: np.ndarray) -> bool:
-        """Record this step's correction statistic q of ``key``; whether the window's sum
-        fails the chi-square test, or this step's q alone fails it at level ``strong``."""
+    def _implausible(self, key: Hashable, diagnostics: np.ndarray,
+                     offset: np.ndarray | None) -> bool:
+        """Record this step's correction statistic q of ``key`` and its whitened signed
+        correction ``offset`` (3,) (m, m, rad in the collaborator's reported frame; None:
+        the mean test is off); whether the window fails the sum test or the mean test
+        (each at alpha / 2 when both run), or this step's q alone fails at ``strong``."""
         distance = float(diagnostics[_DISTANCE])
         s_t2 = 2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2
-        q = float(diagnostics[_SHIFT]) ** 2 / s_t2 \
-            + np.radians(float(diagnostics[_TURN])) ** 2 / (2.0 * self.sigma_r**2)
+        s_r2 = 2.0 * self.sigma_r**2
+        q = float(diagnostics[_SHIFT]) ** 2 / s_t2 + np.radians(float(diagnostics[_TURN])) ** 2 \
+            / s_r2
+        spread = np.sqrt([s_t2, s_t2, s_r2])
+        bias = np.sqrt([2.0 * self.params.bias_t**2 + 2.0 * (distance * self.bias_r) ** 2] * 2
+                       + [2.0 * self.bias_r**2])
+        step = (q, None) if offset is None else (q, (offset / spread, bias / spread))
         history = self._q.setdefault(key, deque(maxlen=self.params.window))
-        history.append(q)
-        return bool(chdtrc(3 * len(history), sum(history)) < self.params.alpha
-                    or chdtrc(3, q) < self.params.strong)
+        history.append(step)
+        steps = len(history)
+        level = self.params.alpha / (1 if offset is None else 2)
+        if chdtrc(3 * steps, sum(q for q, _ in history)) < level \
+                or chdtrc(3, q) < self.params.strong:
+            return True
+        if offset is None:
+            return False
+        # sum of z per axis: variance steps (the noise) + (sum of bias / spread)^2 (a bias
+        # shared by every step)
+        whitened = [pair for _, pair in history if pair is not None]
+        total = sum(z for z, _ in whitened)
+        shared = sum(w for _, w in whitened)
+        return bool(chdtrc(3, float(np.sum(total**2 / (steps + shared**2)))) < level)
 
     def _consensus(self, observation: Mapping[str, Any], filled: np.ndarray,
                    names: list[str], ego: Hashable) -> set[int]:
@@ -294,18 +349,23 @@ class Defend:
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             distance = centre_distances(boxes_a, boxes_b)
-            evidence = pair_evidence(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
-                                     distance) + pair_evidence(
-                boxes_b, boxes_a, origin_a, occluders, *self._geometry, distance.T)
+            # directed: what b says about a's boxes (and a's claimed place), and back
+            directed = {(a, b): pair_evidence(boxes_a, boxes_b, origin_b, occluders,
+                                              *self._geometry, distance),
+                        (b, a): pair_evidence(boxes_b, boxes_a, origin_a, occluders,
+                                              *self._geometry, distance.T)}
             if a in cars and b in cars and a != EGO:
-                evidence += claim_evidence(origin_a, boxes_b, origin_b, occluders, *self._claim)
+                directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
+                                                 *self._claim)
             if a in cars and b in cars:
-                evidence += claim_evidence(origin_b, boxes_a, origin_a, occluders, *self._claim)
-            history = self._pairs.setdefault((ego, frozenset((ids[a], ids[b]))),
-                                             deque(maxlen=self.params.window))
-            history.append(evidence)
-            self.last_pairs[frozenset((a, b))] = sum(history, NO_EVIDENCE)
-            self.last_now[frozenset((a, b))] = evidence
+                directed[b, a] += claim_evidence(origin_b, boxes_a, origin_a, occluders,
+                                                 *self._claim)
+            for (judged, judge), evidence in directed.items():
+                history = self._pairs.setdefault((ego, ids[judged], ids[judge]),
+                                                 deque(maxlen=self.params.window))
+                history.append(evidence)
+                self.last_pairs[judged, judge] = sum(history, NO_EVIDENCE)
+                self.last_now[judged, judge] = evidence
         return self.kept([int(s) for s in filled])
 
     def kept(self, slots: list[int]) -> set[int]:
@@ -332,23 +392,72 @@ class Defend:
             or self._p_value(slot, group, self.last_now) > self.params.recent
 
     def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
-                 pairs: dict[frozenset, PairEvidence]) -> float:
+                 pairs: dict[tuple, PairEvidence]) -> float:
         """How likely an honest collaborator shows the conflicts, unconfirmed boxes or
         missed claims that ``slot`` shows against the ego and the other collaborators of
-        ``group`` in ``pairs``: the smallest p-value of the one-sided binomial tests times
-        their number (Bonferroni: two, three with the claim test; 1 without evidence)."""
-        evidence = sum((pairs[frozenset((slot, other))]
-                        for other in (EGO, *group) if other != slot), NO_EVIDENCE)
+        ``group`` in ``pairs`` (directed: (judged, judge) -> evidence): the smallest
+        p-value of the one-sided binomial tests times the number of consistency tests
+        (Bonferroni: conflicts and unconfirmed boxes, missed claims with the claim test, the
+        relative test of :meth:`relatively_unconfirmed` when on; 1 without evidence)."""
+        others = [other for other in (EGO, *group) if other != slot]
+        evidence = sum((pairs[slot, other] + pairs[other, slot] for other in others),
+                       NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
         tails = [bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate),
                  bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
         if evidence.claims:
             tails.append(bdtrc(evidence.claims_missed - 1, evidence.claims,
                                self.params.claim_miss_rate))
-        if not tails:
-            return 1.0
-        tests = 3 if self.use["claim"] else 2
-        return float(min(1.0, tests * min(tails)))
+        return float(min(1.0, self._tests * min(tails))) if tails else 1.0
+
+    def relatively_unconfirmed(self, slots: list[int]) -> set[int]:
+        """The slots whose share of unconfirmed boxes, as the ego and every other
+        collaborator judge them, exceeds ``relative_margin`` times the pooled share of the
+        other collaborators' boxes (judged by all but it) significantly over the window
+        (level alpha over the consistency tests' Bonferroni) and this step's alone have a
+        p-value of at most ``recent``. Judged against every collaborator, not a consensus
+        set's: a liar's boxes lie in its pool, a smaller pool's share is noisier."""
+        def tail(slot: int, pairs: dict[tuple, PairEvidence]) -> float:
+            judges = [EGO, *(other for other in slots if other != slot)]
+            own = sum((pairs[slot, judge] for judge in judges), NO_EVIDENCE)
+            rest = sum((pairs[member, judge] for member in judges[1:] for judge in judges
+                        if judge != member), NO_EVIDENCE)
+            return _relative_tail(own, rest, self.params.relative_margin)
+        return {slot for slot in slots
+                if self._tests * tail(slot, self.last_pairs) < self.params.alpha
+                and tail(slot, self.last_now) <= self.params.recent}
+
+
+def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> float:
+    """One-sided p-value of a collaborator's share of unconfirmed boxes (``own``: its boxes
+    as the others judge them) exceeding ``margin`` times the pooled share of the other
+    collaborators' boxes (``rest``: as judged by everyone but it): a Wald z-test of the
+    difference ``p_own - margin p_rest``; 1 where either side has nothing judged or the
+    difference has no variance."""
+    n_own = own.matches + own.conflicts + own.unconfirmed
+    n_rest = rest.matches + rest.conflicts + rest.unconfirmed
+    if n_own == 0 or n_rest == 0:
+        return 1.0
+    p_own, p_rest = own.unconfirmed / n_own, rest.unconfirmed / n_rest
+    variance = p_own * (1.0 - p_own) / n_own + margin**2 * p_rest * (1.0 - p_rest) / n_rest
+    if variance == 0.0:
+        return 1.0
+    return float(ndtr(-(p_own - margin * p_rest) / np.sqrt(variance)))
+
+
+def _offsets(observation: Mapping[str, Any], filled: np.ndarray) -> np.ndarray:
+    """(len(filled), 3) the signed correction of each filled slot's reported pose,
+    ``reported^-1 * aligned``, in the collaborator's reported frame (m, m, rad): a fixed
+    spoof is a fixed offset there, whatever the two agents' motion."""
+    if "collab_reported_poses" not in observation:
+        raise ValueError("defend's offset test reads observation['collab_reported_poses'] "
+                         "(the aligned observation's reported relative poses); give it, or "
+                         "use_offset=False")
+    reported = np.asarray(observation["collab_reported_poses"], dtype=float)[filled]
+    aligned = np.asarray(observation["collab_rel_poses"], dtype=float)[filled]
+    offset = se2_compose(se2_inverse(reported), aligned).reshape(-1, 3)
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    return offset
 
 
 def _sources(observation: Mapping[str, Any], filled: np.ndarray
