@@ -143,3 +143,71 @@ def test_the_weights_file_is_part_of_a_sweeps_provenance():
 
     policy = make_policy("learned_select")
     assert policy_input_files(policy) == (policy.path,)
+
+
+def test_the_guard_reads_the_applied_column_of_choice_diagnostics():
+    from roco_env.observation_modes import CHOICE_DIAGNOSTICS
+    from roco_env.policies.learned import _APPLIED
+
+    assert CHOICE_DIAGNOSTICS[_APPLIED][0] == "applied"
+
+
+def test_the_guard_rejects_only_unaligned_slots_the_network_would_reject():
+    """Slot 0: aligned (kept whatever the logits); slot 1: unaligned, reject logit 0.5
+    below keep's (rejected only with a margin >= 0.5); slot 2: unaligned, reject wins;
+    slot 3: empty (kept)."""
+    from roco_env.policies.learned import Guard
+
+    logits = np.array([[0.0, 0.0, 0.0, 1.0, 9.0],   # would reject, but roco_antialias applied
+                       [0.0, 0.0, 0.0, 1.0, 0.5],
+                       [0.0, 0.0, 0.0, 1.0, 2.0],
+                       [0.0, 0.0, 0.0, 1.0, 9.0]])
+    diagnostics = np.zeros((4, 4, 8))
+    diagnostics[0, 3, _applied_column()] = 1.0
+    mask = np.array([1, 1, 1, 0])
+    np.testing.assert_array_equal(Guard(3, 0.0).act(logits, diagnostics, mask), [3, 3, 4, 3])
+    np.testing.assert_array_equal(Guard(3, 0.5).act(logits, diagnostics, mask), [3, 4, 4, 3])
+    np.testing.assert_array_equal(Guard(3, -5.0).act(logits, diagnostics, mask), [3, 3, 3, 3])
+
+
+def _applied_column() -> int:
+    from roco_env.policies.learned import _APPLIED
+
+    return _APPLIED
+
+
+def guarded_weights(path, guard):
+    """A select-mode file reading choice_diagnostics and collab_mask (random network)
+    with ``guard`` in its metadata."""
+    torch.manual_seed(0)
+    size = 5 * 4 * 8 + 5
+    state = {"layers.0.weight": torch.randn(8, size), "layers.0.bias": torch.zeros(8),
+             "layers.1.weight": torch.randn(25, 8), "layers.1.bias": torch.zeros(25),
+             "input_scale": torch.ones(size, dtype=torch.float64)}
+    return write_weights(path, state, guard=guard,
+                         observation=[["choice_diagnostics", [5, 4, 8]], ["collab_mask", [5]]])
+
+
+def test_a_guarded_policy_that_never_rejects_is_its_kept_choice(tmp_path):
+    """With a margin no logit gap reaches, a guarded policy takes roco_antialias (choice 3)
+    in every slot: the same episode score as roco_antialias itself."""
+    path = guarded_weights(tmp_path / "never.pt", {"keep": 3, "reject_margin": -1e9})
+    scores = [run_episode(Cell(scenario="v2xset_like", policy=policy, noise=3.0, density=None,
+                               seed=0, steps=2))[0]["ap70"]
+              for policy in (f"learned_select:weights={path}", "roco_antialias")]
+    assert scores[0] == scores[1]
+
+
+def test_bad_guards_and_margins_are_refused_naming_the_field(tmp_path):
+    for guard in ({"keep": 4, "reject_margin": 0.0}, {"keep": 3}, [3, 0.0]):
+        path = guarded_weights(tmp_path / "bad.pt", guard)
+        with pytest.raises(ValueError, match=r"bad\.pt: guard must be"):
+            make_policy("learned_select", weights=path)
+    path = guarded_weights(tmp_path / "good.pt", {"keep": 3, "reject_margin": 0.0})
+    assert make_policy("learned_select", weights=path, reject_margin=1.5).guard.reject_margin \
+        == 1.5
+    with pytest.raises(ValueError, match="reject_margin"):
+        make_policy("learned_select", weights=path, reject_margin=float("nan"))
+    unguarded = write_weights(tmp_path / "plain.pt")
+    with pytest.raises(ValueError, match=r"plain\.pt has no guard; reject_margin"):
+        make_policy("learned_select", weights=unguarded, reject_margin=1.0)
