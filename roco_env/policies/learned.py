@@ -19,10 +19,11 @@ of its logits (``select``/``gate``), or the mean clipped to the bounds (Box mode
 
 A select-mode file may hold a ``guard`` in its metadata, ``{"keep": k, "reject_margin": m}``
 (:class:`Guard`): the policy then takes choice ``k`` for every slot, except a slot where
-choice ``k`` did not apply a correction (``choice_diagnostics[slot, k, applied] == 0``: it
-found nothing to align the collaborator by, so the pose is the reported one), which it
-rejects when the reject logit is at least choice ``k``'s minus ``m``. The network decides
-only where the aligner is blind; it cannot switch aligners or reject an aligned slot.
+choice ``k`` computed no significance statistic (``choice_diagnostics[slot, k, statistic]
+== -1``: it found nothing to test the collaborator's pose by, whether or not it moved
+it), which it rejects when the reject logit is at least choice ``k``'s minus ``m``. The
+network decides only where the aligner is blind; it cannot switch aligners or reject a
+slot the aligner tested.
 
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
@@ -48,16 +49,16 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
 SHIPPED = {"learned_select": ("learned_select.pt", "select")}
 _REQUIRED_META = ("format", "env_overrides", "observation", "action")
-# the column "applied" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (a higher layer;
-# tests/test_learned_policy.py checks the index)
-_APPLIED = 0
+# the column "statistic" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (a higher layer;
+# tests/test_learned_policy.py checks the index) and its value where none was computed
+_STATISTIC, _NO_STATISTIC = 3, -1.0
 
 
 @dataclass(frozen=True)
 class Guard:
     """Where a select-mode network may deviate (module docstring): ``keep``, the index of
     the choice taken by default; ``reject_margin``, how far (in logits) the reject logit
-    may fall below choice ``keep``'s on a slot that choice left unaligned and still win."""
+    may fall below choice ``keep``'s on a slot that choice could not test and still win."""
 
     keep: int
     reject_margin: float
@@ -67,7 +68,7 @@ class Guard:
         """(N,) int64 actions from (N, C + 1) logits (last: reject) and the (N, C, ...)
         choice diagnostics of the observation."""
         reject = logits.shape[1] - 1
-        blind = (np.asarray(choice_diagnostics)[:, self.keep, _APPLIED] == 0) \
+        blind = (np.asarray(choice_diagnostics)[:, self.keep, _STATISTIC] == _NO_STATISTIC) \
             & (np.asarray(collab_mask) > 0)
         wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
         return np.where(blind & wants, reject, self.keep).astype(np.int64)
@@ -260,9 +261,9 @@ class LearnedSelectParams:
 
     weights: str | None = spec(None, doc="weights file (None: the shipped one)")
     reject_margin: float | None = spec(None, doc="logits by which the reject logit may "
-                                       "trail the kept choice's on a slot it left "
-                                       "unaligned (None: the file's guard; only for a "
-                                       "file with a guard)")
+                                       "trail the kept choice's on a slot it could not "
+                                       "test (None: the file's guard; only for a file "
+                                       "with a guard)")
 
 
 def learned_select(**params: Any) -> LearnedPolicy:
