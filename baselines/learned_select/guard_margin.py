@@ -37,18 +37,23 @@ def differences(records: list[dict]) -> str:
             f"margin {float(cell['policy'].split('reject_margin=')[1].split(',')[0]):g}"
         score[(cell["scenario"], cell["noise"], column)][cell["seed"]] = \
             record["metrics"]["ap70"]
-    policies = sorted({key[2] for key in score} - {BASE})
+    policies = sorted({key[2] for key in score} - {BASE}, key=lambda c: float(c.split()[1]))
     lines = [f"| scenario | noise | {BASE} | " + " | ".join(policies) + " |",
              "|---|---|---|" + "---|" * len(policies)]
+    gains: dict[str, list[float]] = defaultdict(list)
     for scenario, noise in sorted({key[:2] for key in score}):
         base = score[(scenario, noise, BASE)]
         cells = []
         for policy in policies:
             own = score.get((scenario, noise, policy), {})
             common = sorted(set(own) & set(base))
-            cells.append(f"{np.mean([own[s] - base[s] for s in common]):+.4f}" if common else "-")
+            if common:
+                gains[policy].append(float(np.mean([own[s] - base[s] for s in common])))
+            cells.append(f"{gains[policy][-1]:+.4f}" if common else "-")
         lines.append(f"| {scenario} | {noise} | {np.mean(list(base.values())):.4f} | "
                      + " | ".join(cells) + " |")
+    lines.append("| **mean** | all | | " + " | ".join(
+        f"{np.mean(gains[policy]):+.4f}" for policy in policies) + " |")
     return "\n".join(lines)
 
 
