@@ -215,8 +215,10 @@ def test_bad_guards_and_margins_are_refused_naming_the_field(tmp_path):
 def test_the_shipped_policy_keeps_roco_antialias_on_every_tested_slot():
     """The shipped guard: roco_antialias (choice 3) or reject, and reject only where
     roco_antialias computed no statistic."""
+    from roco_env.policies.learned import Guard
+
     policy = make_policy("learned_select")
-    assert policy.guard is not None and policy.guard.keep == 3
+    assert policy.guard == Guard(keep=3, reject_margin=2.0)  # docs/learning.md's
     env = roco_env.parallel_env("v2xset_like", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
                                 **policy.env_overrides)
     observations, _ = env.reset(seed=0)
