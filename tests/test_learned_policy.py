@@ -23,7 +23,7 @@ from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
 from roco_env.wrappers import EgoEnv
 
-SHIPPED_SHA256 = "486bd57976a78d3859874bab23f820954bbb216ad9a7eb038f11230ca6e0065e"
+SHIPPED_SHA256 = "03f972cd5ddfe6ef7ba08e064127bab94101f75d27ee6c5fd805c6220ac1a6bc"
 SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
 
 
@@ -57,9 +57,10 @@ def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically():
 
 
 def write_weights(path, state=None, **metadata_changes):
-    """A copy of the shipped file with its state dict or metadata changed."""
+    """A copy of the shipped file with its state dict or metadata changed (no guard
+    unless one is given)."""
     raw = torch.load(SHIPPED_FILE, weights_only=True)
-    metadata = {**json.loads(raw["metadata"]), **metadata_changes}
+    metadata = {**json.loads(raw["metadata"]), "guard": None, **metadata_changes}
     torch.save({"state_dict": state or raw["state_dict"], "metadata": json.dumps(metadata)},
                path)
     return str(path)
@@ -88,24 +89,20 @@ def test_an_observation_of_another_mode_or_size_is_refused_naming_the_field():
     observations, infos = raw_env.reset(seed=0)
     with pytest.raises(ValueError, match=r"observation.mode='aligned'.*max_collaborators=5"):
         policy(observations["cav_0"], infos["cav_0"])
-    small = roco_env.parallel_env("v2xset_like", max_cycles=1, max_collaborators=3,
-                                  **{"observation.mode": "aligned"})
+    small = roco_env.parallel_env("v2xset_like", max_cycles=1,
+                                  **{**policy.env_overrides, "max_collaborators": 3})
     observations, _ = small.reset(seed=0)
-    with pytest.raises(ValueError, match=r"observation\['collab_mask'\] has shape \(3,\), "
-                                         r"expected \(5,\)"):
+    with pytest.raises(ValueError, match=r"observation\['choice_diagnostics'\] has shape "
+                                         r"\(3, 4, 8\), expected \(5, 4, 8\)"):
         policy(observations["cav_0"])
 
 
 def test_weights_from_before_the_age_column_are_refused_naming_the_mismatch(tmp_path):
     """A file trained on (N, 8) diagnostics (before ``age_ms``) loads, and acting on
     today's (N, 9) diagnostics is a ValueError naming the entry and both shapes."""
-    raw = torch.load(SHIPPED_FILE, weights_only=True)
-    keys = json.loads(raw["metadata"])["observation"]
-    assert keys == [["collab_mask", [5]], ["diagnostics", [5, 9]]]
-    age = [5 + 9 * slot + 8 for slot in range(5)]  # each slot's age_ms in the flat input
-    keep = [i for i in range(5 + 45) if i not in age]
-    state = {**raw["state_dict"], "layers.0.weight": raw["state_dict"]["layers.0.weight"][:, keep],
-             "input_scale": raw["state_dict"]["input_scale"][keep]}
+    size = 5 + 5 * 8
+    state = {"layers.0.weight": torch.zeros(25, size), "layers.0.bias": torch.zeros(25),
+             "input_scale": torch.ones(size, dtype=torch.float64)}
     path = write_weights(tmp_path / "old.pt", state,
                          observation=[["collab_mask", [5]], ["diagnostics", [5, 8]]])
     policy = make_policy("learned_select", weights=path)
@@ -143,3 +140,93 @@ def test_the_weights_file_is_part_of_a_sweeps_provenance():
 
     policy = make_policy("learned_select")
     assert policy_input_files(policy) == (policy.path,)
+
+
+def test_the_guard_reads_the_statistic_column_of_choice_diagnostics():
+    from roco_env.observation_modes import CHOICE_DIAGNOSTICS
+    from roco_env.policies.learned import _NO_STATISTIC, _STATISTIC
+
+    assert CHOICE_DIAGNOSTICS[_STATISTIC][0] == "statistic"
+    assert CHOICE_DIAGNOSTICS[_STATISTIC][1] == _NO_STATISTIC  # its lower bound: none computed
+
+
+def test_the_guard_rejects_only_untested_slots_the_network_would_reject():
+    """Slot 0: tested (kept whatever the logits); slot 1: untested, reject logit 0.5
+    below keep's (rejected only with a margin >= 0.5); slot 2: untested, reject wins;
+    slot 3: empty (kept)."""
+    from roco_env.policies.learned import Guard
+
+    logits = np.array([[0.0, 0.0, 0.0, 1.0, 9.0],   # would reject, but roco_antialias tested it
+                       [0.0, 0.0, 0.0, 1.0, 0.5],
+                       [0.0, 0.0, 0.0, 1.0, 2.0],
+                       [0.0, 0.0, 0.0, 1.0, 9.0]])
+    diagnostics = np.zeros((4, 4, 8))
+    diagnostics[:, :, _statistic_column()] = -1.0  # no statistic computed ...
+    diagnostics[0, 3, _statistic_column()] = 4.2  # ... but roco_antialias's in slot 0
+    mask = np.array([1, 1, 1, 0])
+    np.testing.assert_array_equal(Guard(3, 0.0).act(logits, diagnostics, mask), [3, 3, 4, 3])
+    np.testing.assert_array_equal(Guard(3, 0.5).act(logits, diagnostics, mask), [3, 4, 4, 3])
+    np.testing.assert_array_equal(Guard(3, -5.0).act(logits, diagnostics, mask), [3, 3, 3, 3])
+
+
+def _statistic_column() -> int:
+    from roco_env.policies.learned import _STATISTIC
+
+    return _STATISTIC
+
+
+def guarded_weights(path, guard):
+    """A select-mode file reading choice_diagnostics and collab_mask (random network)
+    with ``guard`` in its metadata."""
+    torch.manual_seed(0)
+    size = 5 * 4 * 8 + 5
+    state = {"layers.0.weight": torch.randn(8, size), "layers.0.bias": torch.zeros(8),
+             "layers.1.weight": torch.randn(25, 8), "layers.1.bias": torch.zeros(25),
+             "input_scale": torch.ones(size, dtype=torch.float64)}
+    return write_weights(path, state, guard=guard,
+                         observation=[["choice_diagnostics", [5, 4, 8]], ["collab_mask", [5]]])
+
+
+def test_a_guarded_policy_that_never_rejects_is_its_kept_choice(tmp_path):
+    """With a margin no logit gap reaches, a guarded policy takes roco_antialias (choice 3)
+    in every slot: the same episode score as roco_antialias itself."""
+    path = guarded_weights(tmp_path / "never.pt", {"keep": 3, "reject_margin": -1e9})
+    scores = [run_episode(Cell(scenario="v2xset_like", policy=policy, noise=3.0, density=None,
+                               seed=0, steps=2))[0]["ap70"]
+              for policy in (f"learned_select:weights={path}", "roco_antialias")]
+    assert scores[0] == scores[1]
+
+
+def test_bad_guards_and_margins_are_refused_naming_the_field(tmp_path):
+    for guard in ({"keep": 4, "reject_margin": 0.0}, {"keep": 3}, [3, 0.0]):
+        path = guarded_weights(tmp_path / "bad.pt", guard)
+        with pytest.raises(ValueError, match=r"bad\.pt: guard must be"):
+            make_policy("learned_select", weights=path)
+    path = guarded_weights(tmp_path / "good.pt", {"keep": 3, "reject_margin": 0.0})
+    assert make_policy("learned_select", weights=path, reject_margin=1.5).guard.reject_margin \
+        == 1.5
+    with pytest.raises(ValueError, match="reject_margin"):
+        make_policy("learned_select", weights=path, reject_margin=float("nan"))
+    unguarded = write_weights(tmp_path / "plain.pt")
+    with pytest.raises(ValueError, match=r"plain\.pt has no guard; reject_margin"):
+        make_policy("learned_select", weights=unguarded, reject_margin=1.0)
+
+
+def test_the_shipped_policy_keeps_roco_antialias_on_every_tested_slot():
+    """The shipped guard: roco_antialias (choice 3) or reject, and reject only where
+    roco_antialias computed no statistic."""
+    from roco_env.policies.learned import Guard
+
+    policy = make_policy("learned_select")
+    assert policy.guard == Guard(keep=3, reject_margin=2.0)  # docs/learning.md's
+    env = roco_env.parallel_env("v2xset_like", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
+                                **policy.env_overrides)
+    observations, _ = env.reset(seed=1)  # a seed where one slot is untested and rejected
+    rejected = 0
+    for observation in observations.values():
+        action = policy(observation)
+        statistic = observation["choice_diagnostics"][:, 3, _statistic_column()]
+        assert set(action.tolist()) <= {3, 4}
+        assert np.all(statistic[action == 4] == -1.0)
+        rejected += int(np.sum(action == 4))
+    assert rejected >= 1

@@ -16,6 +16,15 @@ A weights file (``torch.save`` of a plain dict, read back with ``weights_only=Tr
 The policy flattens the observation (keys in the stored order, each raveled), divides by
 ``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per slot the argmax
 of its logits (``select``/``gate``), or the mean clipped to the bounds (Box modes).
+
+A select-mode file may hold a ``guard`` in its metadata, ``{"keep": k, "reject_margin": m}``
+(:class:`Guard`): the policy then takes choice ``k`` for every slot, except a slot where
+choice ``k`` computed no significance statistic (``choice_diagnostics[slot, k, statistic]
+== -1``: it found nothing to test the collaborator's pose by, whether or not it moved
+it), which it rejects when the reject logit is at least choice ``k``'s minus ``m``. The
+network decides only where the aligner is blind; it cannot switch aligners or reject a
+slot the aligner tested.
+
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
 :class:`roco_env.wrappers.EgoEnv` merge them into the env they build (docs/learning.md).
@@ -40,6 +49,29 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
 SHIPPED = {"learned_select": ("learned_select.pt", "select")}
 _REQUIRED_META = ("format", "env_overrides", "observation", "action")
+# the column "statistic" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (a higher layer;
+# tests/test_learned_policy.py checks the index) and its value where none was computed
+_STATISTIC, _NO_STATISTIC = 3, -1.0
+
+
+@dataclass(frozen=True)
+class Guard:
+    """Where a select-mode network may deviate (module docstring): ``keep``, the index of
+    the choice taken by default; ``reject_margin``, how far (in logits) the reject logit
+    may fall below choice ``keep``'s on a slot that choice could not test and still win."""
+
+    keep: int
+    reject_margin: float
+
+    def act(self, logits: np.ndarray, choice_diagnostics: np.ndarray,
+            collab_mask: np.ndarray) -> np.ndarray:
+        """(N,) int64 actions from (N, C + 1) logits (last: reject) and the (N, C, ...)
+        choice diagnostics of the observation."""
+        reject = logits.shape[1] - 1
+        blind = (np.asarray(choice_diagnostics)[:, self.keep, _STATISTIC] == _NO_STATISTIC) \
+            & (np.asarray(collab_mask) > 0)
+        wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
+        return np.where(blind & wants, reject, self.keep).astype(np.int64)
 
 
 def load_weights(path: str | Path) -> tuple[dict, dict]:
@@ -87,12 +119,13 @@ class LearnedPolicy(StatelessPolicy):
 
     weights: the weights file (default: the shipped file of ``name``); name: the
     registered name (errors and labels); action_mode: the mode this name acts in, or
-    None to take the file's. Raises ValueError naming the file and the field when the
-    file was trained for another action mode.
+    None to take the file's; reject_margin: replaces the file's guard margin (None: the
+    file's). Raises ValueError naming the file and the field when the file was trained for
+    another action mode, or its guard is malformed or missing where a margin is given.
     """
 
     def __init__(self, weights: str | None = None, *, name: str = "learned",
-                 action_mode: str | None = None) -> None:
+                 action_mode: str | None = None, reject_margin: float | None = None) -> None:
         import torch
 
         if weights is not None and not isinstance(weights, str):
@@ -114,6 +147,7 @@ class LearnedPolicy(StatelessPolicy):
         self._clip = float(self.metadata.get("input_clip", np.inf))
         self._net = _build_mlp(state, self.path, size)
         self._action = self.metadata["action"]
+        self.guard = _guard(self.metadata, self.path, reject_margin)
         self._torch = torch
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None) -> np.ndarray:
@@ -122,6 +156,10 @@ class LearnedPolicy(StatelessPolicy):
         with self._torch.no_grad():
             out = self._net(self._torch.as_tensor(flat)[None])[0]
         out = out.double().numpy()
+        if self.guard is not None:
+            nvec = self._action["nvec"]
+            return self.guard.act(out.reshape(len(nvec), nvec[0]),
+                                  observation["choice_diagnostics"], observation["collab_mask"])
         if "nvec" in self._action:  # MultiDiscrete: argmax per slot
             splits = np.cumsum(self._action["nvec"])[:-1]
             return np.array([int(np.argmax(part)) for part in np.split(out, splits)],
@@ -139,6 +177,33 @@ class LearnedPolicy(StatelessPolicy):
                 f"{self.env_overrides.get('max_collaborators')}, max_boxes="
                 f"{self.env_overrides.get('max_boxes')}: build the env with the policy's "
                 "env_overrides (sweeps and EgoEnv do)")
+
+
+def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | None:
+    """The file's :class:`Guard` (its margin replaced by ``reject_margin`` when given),
+    checked against its action and observation; None for a file without one."""
+    raw = metadata.get("guard")
+    if raw is None:
+        if reject_margin is not None:
+            raise ValueError(f"learned policy weights file {path} has no guard; "
+                             "reject_margin applies only to a file with one")
+        return None
+    keys = [key for key, _ in metadata["observation"]]
+    nvec = metadata["action"].get("nvec", [])
+    if not isinstance(raw, dict) or set(raw) != {"keep", "reject_margin"} \
+            or "choice_diagnostics" not in keys or "collab_mask" not in keys \
+            or len(set(nvec)) != 1 or not isinstance(raw["keep"], int) \
+            or not 0 <= raw["keep"] < nvec[0] - 1:
+        raise ValueError(f"learned policy weights file {path}: guard must be "
+                         "{'keep': a choice index, 'reject_margin': logits} on a select "
+                         "policy that reads choice_diagnostics and collab_mask; got "
+                         f"{raw!r}")
+    margin = raw["reject_margin"] if reject_margin is None else reject_margin
+    if not isinstance(margin, int | float) or isinstance(margin, bool) \
+            or not np.isfinite(margin):
+        raise ValueError(f"learned policy weights file {path}: reject_margin must be a "
+                         f"finite number of logits; got {margin!r}")
+    return Guard(raw["keep"], float(margin))
 
 
 def scaled_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],
@@ -192,14 +257,19 @@ def _build_mlp(state: dict, path: Path, size: int):
 
 @dataclass(frozen=True)
 class LearnedSelectParams:
-    """The parameter of ``learned_select``."""
+    """The parameters of ``learned_select``."""
 
     weights: str | None = spec(None, doc="weights file (None: the shipped one)")
+    reject_margin: float | None = spec(None, doc="logits by which the reject logit may "
+                                       "trail the kept choice's on a slot it could not "
+                                       "test (None: the file's guard; only for a file "
+                                       "with a guard)")
 
 
 def learned_select(**params: Any) -> LearnedPolicy:
     """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md);
     params: the fields of :class:`LearnedSelectParams`."""
-    weights = build(LearnedSelectParams, params, "learned_select").weights
-    return LearnedPolicy(weights, name="learned_select", action_mode="select")
+    built = build(LearnedSelectParams, params, "learned_select")
+    return LearnedPolicy(built.weights, name="learned_select", action_mode="select",
+                         reject_margin=built.reject_margin)
 
