@@ -143,11 +143,12 @@ def test_the_weights_file_is_part_of_a_sweeps_provenance():
 
 
 def test_the_guard_reads_the_statistic_column_of_choice_diagnostics():
-    from roco_env.observation_modes import CHOICE_DIAGNOSTICS
-    from roco_env.policies.learned import _NO_STATISTIC, _STATISTIC
+    from roco_env.observation_modes import CHOICE_DIAGNOSTICS, DIAGNOSTICS
+    from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
 
-    assert CHOICE_DIAGNOSTICS[_STATISTIC][0] == "statistic"
-    assert CHOICE_DIAGNOSTICS[_STATISTIC][1] == _NO_STATISTIC  # its lower bound: none computed
+    for columns in (CHOICE_DIAGNOSTICS, DIAGNOSTICS):  # the guard and reject_untested
+        assert columns[STATISTIC][0] == "statistic"
+        assert columns[STATISTIC][1] == NO_STATISTIC  # its lower bound: none computed
 
 
 def test_the_guard_rejects_only_untested_slots_the_network_would_reject():
@@ -170,9 +171,9 @@ def test_the_guard_rejects_only_untested_slots_the_network_would_reject():
 
 
 def _statistic_column() -> int:
-    from roco_env.policies.learned import _STATISTIC
+    from roco_env.policies.reject_untested import STATISTIC
 
-    return _STATISTIC
+    return STATISTIC
 
 
 def guarded_weights(path, guard):

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from roco_env.policies.base import StatelessPolicy
+from roco_env.policies.reject_untested import STATISTIC, untested_slots
 from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
@@ -49,9 +50,6 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
 SHIPPED = {"learned_select": ("learned_select.pt", "select")}
 _REQUIRED_META = ("format", "env_overrides", "observation", "action")
-# the column "statistic" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (a higher layer;
-# tests/test_learned_policy.py checks the index) and its value where none was computed
-_STATISTIC, _NO_STATISTIC = 3, -1.0
 
 
 @dataclass(frozen=True)
@@ -68,8 +66,9 @@ class Guard:
         """(N,) int64 actions from (N, C + 1) logits (last: reject) and the (N, C, ...)
         choice diagnostics of the observation."""
         reject = logits.shape[1] - 1
-        blind = (np.asarray(choice_diagnostics)[:, self.keep, _STATISTIC] == _NO_STATISTIC) \
-            & (np.asarray(collab_mask) > 0)
+        # "statistic" has one index in DIAGNOSTICS and CHOICE_DIAGNOSTICS (tested)
+        blind = untested_slots(np.asarray(choice_diagnostics)[:, self.keep, STATISTIC],
+                               collab_mask)
         wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
         return np.where(blind & wants, reject, self.keep).astype(np.int64)
 

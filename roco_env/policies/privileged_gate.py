@@ -21,7 +21,7 @@ from roco_env.schema import spec
 
 __all__ = ["PrivilegedGate", "PrivilegedGateParams"]
 
-GATES = ("defend", "privileged_gate")  # policies acting in gate mode: no base aligner
+GATES = ("defend", "privileged_gate", "reject_untested")  # gate-mode policies: no base aligner
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,61 @@
+"""``reject_untested``: behind a base aligner in gate mode, reject exactly the filled slots
+the aligner computed no do-no-harm statistic for."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import roco_env
+from roco_env.observation_modes import DIAGNOSTICS
+from roco_env.policies import make_policy
+from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
+from roco_env.policies.spec import merge_env_overrides
+
+
+def test_it_acts_in_gate_mode_on_the_aligned_observation_behind_its_base():
+    assert make_policy("reject_untested").env_overrides == {
+        "action.mode": "gate", "action.base": "roco_antialias", "observation.mode": "aligned"}
+    assert make_policy("reject_untested", base="roco").env_overrides["action.base"] == "roco"
+
+
+def test_it_rejects_exactly_the_untested_collaborators_in_an_episode():
+    """urban_intersection at 3 m / 3 deg, seed 0: roco_antialias leaves 1 of 40 slots
+    untested over two steps; that one, and only it, is rejected by the env."""
+    policy = make_policy("reject_untested")
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
+                                **merge_env_overrides({}, policy))
+    observations, infos = env.reset(seed=0)
+    untested = tested = 0
+    while env.agents:
+        actions = {a: policy(observations[a], infos[a]) for a in env.agents}
+        for agent, action in actions.items():
+            filled = observations[agent]["collab_mask"] > 0
+            blind = observations[agent]["diagnostics"][:, STATISTIC] == NO_STATISTIC
+            np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
+            untested += int((filled & blind).sum())
+            tested += int((filled & ~blind).sum())
+        observations, _, _, _, infos = env.step(actions)
+        for agent, action in actions.items():
+            np.testing.assert_array_equal(infos[agent]["rejected"], action > 0)
+    assert untested >= 1 and tested >= 30
+
+
+def test_empty_slots_are_never_rejected():
+    policy = make_policy("reject_untested")
+    diagnostics = np.zeros((3, len(DIAGNOSTICS)), np.float32)
+    diagnostics[:, STATISTIC] = [NO_STATISTIC, 2.5, NO_STATISTIC]
+    action = policy({"collab_mask": np.array([1, 1, 0], np.int8), "diagnostics": diagnostics})
+    np.testing.assert_array_equal(action, [1, 0, 0])
+
+
+@pytest.mark.parametrize("base", ["defend", "privileged_gate", "reject_untested", ""])
+def test_a_gate_or_nothing_as_its_base_is_refused(base):
+    with pytest.raises(ValueError, match="reject_untested: base must be the policy spec of "
+                                         "an aligner"):
+        make_policy("reject_untested", base=base)
+
+
+def test_without_the_aligned_observation_it_says_what_it_needs():
+    with pytest.raises(ValueError, match="observation.mode='aligned'"):
+        make_policy("reject_untested")({"collab_mask": np.ones(2, np.int8)})
