@@ -140,7 +140,9 @@ class Decision:
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
     ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
     was overruled by the evidence (step 5 of the module docstring), so the decision was
-    taken without it and the track is to be forgotten.
+    taken without it and the track is to be forgotten; beyond: with no hypothesis, how many
+    poses beyond the search explain the boxes far better than the pose RoCo corrected it to
+    (step 6 of the module docstring: the reported pose is then kept).
     """
 
     pose: np.ndarray | None
@@ -148,6 +150,7 @@ class Decision:
     hypotheses: int
     ambiguity: Ambiguity | None = None
     track_dropped: bool = False
+    beyond: int = 0
 
 
 @lru_cache(maxsize=16)
@@ -247,6 +250,25 @@ def _decide(
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
 
+def _doubt_without_hypotheses(
+    sets: Sequence[BoxSet], reported: np.ndarray, result: AlignmentResult,
+    decisions: list[Decision], p: AntiAliasParams,
+) -> list[Decision]:
+    """Step 6 of the module docstring: ``decisions`` with :attr:`Decision.beyond` set for
+    each collaborator without hypotheses whose pose RoCo corrected (``result``) to one that
+    poses beyond the search explain far better (:func:`_beyond_search` around its reported
+    pose, ``reported`` (N, 3), scored against RoCo's correction); ``sets``: the ego's
+    boxes, then each collaborator's."""
+    doubted = list(decisions)
+    for j, decision in enumerate(decisions):
+        if decision.hypotheses or not result.applied[j]:
+            continue
+        better = _beyond_search(sets[0], sets[j + 1], reported[j], result.corrected[j][None], 0, p)
+        if better.shape[0]:
+            doubted[j] = replace(decision, beyond=int(better.shape[0]))
+    return doubted
+
+
 def _kept_out(
     decision: Decision, reported: np.ndarray, p: AntiAliasParams
 ) -> tuple[str, np.ndarray | None]:
@@ -309,8 +331,20 @@ def antialias_align(
     # An ambiguous collaborator is left out of RoCo: it keeps its reported pose, or along
     # its undetermined directions only (step 4).
     result = roco_solve(inputs, roco_p, start, frozenset(ambiguous))
+    # A collaborator without hypotheses that RoCo moved where poses beyond the search
+    # explain its boxes far better is left out of RoCo too and keeps its reported pose
+    # (step 6).
+    if p.use_ambiguity:
+        decisions = _doubt_without_hypotheses(sets, inputs.reported, result, decisions, p)
+    doubted = [j for j, d in enumerate(decisions) if d.beyond]
+    if doubted:
+        result = roco_solve(inputs, roco_p, start, frozenset(ambiguous + doubted))
     corrected, applied = result.corrected.copy(), result.applied.copy()
     reasons = list(result.slot_reasons)
+    for j in doubted:
+        reasons[j] = (f"no hypothesis within search_radius, RoCo's correction explains the "
+                      f"boxes far worse than {decisions[j].beyond} pose(s) beyond it, reported "
+                      "pose kept")
     for j in ambiguous:
         reasons[j], pose = _kept_out(decisions[j], inputs.reported[j], p)
         if pose is not None:
