@@ -157,27 +157,27 @@ def test_track_overruled_by_the_evidence_is_dropped():
     assert not decisions[0].track_dropped and error_m(kept.corrected, scene) < 0.1
 
 
-def test_roco_correction_without_hypotheses_that_the_search_beyond_confirms_is_kept():
+def test_roco_correction_without_hypotheses_that_its_boxes_support_is_applied():
     """A scatter of cars, the collaborator reported 9.5 m / 5 deg off: nothing refines within
-    the 7 m search, RoCo's matching finds the truth itself; the search beyond finds nothing
-    that explains the boxes better than RoCo's pose, so the correction stands (keeping the
-    reported pose whenever a pose beyond explains the boxes better than the reported one
-    cost v2x_crossroad at 5 m/deg such corrections)."""
+    the 7 m search, RoCo's matching finds the truth itself, which explains the
+    collaborator's boxes far better than the reported pose, so the correction stands
+    (keeping the reported pose whenever a pose beyond the search explains the boxes better
+    than the reported one cost v2x_crossroad at 5 m/deg such corrections)."""
     rng = np.random.default_rng(0)
     objects = random_objects(rng, 80, 80.0, min_gap=5.0)
     scene = make_scene(objects, np.array([[0.0, 0.0, 0.0], [10.0, 5.0, 0.5]]),
                        [pose_error(9.5, 5.0, 1.0)], sensor_range=70.0,
                        noise=(0.05, 0.05, 0.01), rng=rng)
     result, decisions = antialias_align(*scene.args())
-    assert decisions[0].hypotheses == 0 and decisions[0].beyond == 0
+    assert decisions[0].hypotheses == 0 and decisions[0].support >= 20.0
     assert result.applied[0] and error_m(result.corrected, scene) < 0.1
 
 
 # The stress search's highway (roco-env stress --policy roco_antialias --objective harm
 # --budget 150 --seeds 0 1 --steps 4, trial 86): at seed 1 RoCo moved a collaborator that
 # shares no box with the ego (11 m off, no hypothesis) 1 m further through the other
-# collaborators' boxes, where a pose 11 m away explains its boxes by 175 chi2 units
-# against RoCo's -50.
+# collaborators' boxes; its boxes score -50 chi2 units at RoCo's pose as at the reported
+# one (175 at the truth).
 FOUND_HIGHWAY = {
     "traffic.layout": "highway", "fill": 0.7217615179391893,
     "traffic.min_gap": 0.8953161554528913, "agents.cavs": 4, "agents.rsus": 0,
@@ -186,9 +186,11 @@ FOUND_HIGHWAY = {
 }
 
 
-def test_roco_correction_without_hypotheses_beaten_beyond_the_search_is_not_applied(tmp_path):
+def test_roco_correction_without_hypotheses_that_its_boxes_do_not_support_is_not_applied(
+        tmp_path):
     """On the found highway the collaborator RoCo moved through the others' boxes keeps its
-    reported pose (Decision.beyond, the slot's reason) and no pose is made worse."""
+    reported pose (Decision.support below min_margin, the slot's reason) and no pose is made
+    worse."""
     from roco_env.metrics import harm_share
     from roco_env.policies.antialias import AntiAliasPolicy
     from roco_env.scenario import save_scenario
@@ -204,12 +206,13 @@ def test_roco_correction_without_hypotheses_beaten_beyond_the_search_is_not_appl
         def align_view(self, view, observation, info):
             result = super().align_view(view, observation, info)
             doubted.extend(result.slot_reasons[j] for j, d in enumerate(self.last_decisions)
-                           if d.beyond and not result.applied[j])
+                           if d.support < 20.0 and not result.applied[j])
             return result
 
     _, samples = run_episode(Cell(str(path), None, "roco_antialias", 1, 4),
                              policy_factory=Recording)
-    assert doubted and all("beyond it, reported pose kept" in r for r in doubted)
+    assert doubted and all("better than the reported pose (< 20), reported pose kept" in r
+                           for r in doubted)
     assert harm_share(samples["before"], samples["after"]) == 0.0
 
 
