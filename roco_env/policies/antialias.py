@@ -43,6 +43,14 @@ RoCo (unchanged, with all its parameters: the prior edges and the significance t
 refer to the reported poses) then matches and solves the joint pose graph from those
 starting points.
 
+6. (``use_ambiguity``) a collaborator without any hypothesis (nothing refines within the
+   search: too few boxes shared with the ego, or a reported error beyond it) is one RoCo
+   may place through the other collaborators' boxes alone. Its correction is applied only
+   when the collaborator's own boxes support it: RoCo's pose must beat the reported one by
+   ``min_margin`` in evidence (the two scored together against the ego's boxes,
+   :attr:`Decision.support`). Otherwise the collaborator is left out of RoCo too and keeps
+   its reported pose, and RoCo solves again without it (until no such collaborator is left).
+
 :class:`AntiAliasPolicy` keeps one track per (ego, collaborator) agent-id pair from the
 info dict (``info["agent"]`` and ``info["collaborators"]``), so one instance may serve
 several agents; without those ids it uses no track. Call :meth:`AntiAliasPolicy.reset`
