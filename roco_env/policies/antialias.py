@@ -43,6 +43,14 @@ RoCo (unchanged, with all its parameters: the prior edges and the significance t
 refer to the reported poses) then matches and solves the joint pose graph from those
 starting points.
 
+6. (``use_ambiguity``) a collaborator without any hypothesis (nothing refines within the
+   search: too few boxes shared with the ego, or a reported error beyond it) is one RoCo
+   may place through the other collaborators' boxes alone. Its correction is applied only
+   when the collaborator's own boxes support it: RoCo's pose must beat the reported one by
+   ``min_margin`` in evidence (the two scored together against the ego's boxes,
+   :attr:`Decision.support`). Otherwise the collaborator is left out of RoCo too and keeps
+   its reported pose, and RoCo solves again without it (until no such collaborator is left).
+
 :class:`AntiAliasPolicy` keeps one track per (ego, collaborator) agent-id pair from the
 info dict (``info["agent"]`` and ``info["collaborators"]``), so one instance may serve
 several agents; without those ids it uses no track. Call :meth:`AntiAliasPolicy.reset`
@@ -140,7 +148,10 @@ class Decision:
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
     ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
     was overruled by the evidence (step 5 of the module docstring), so the decision was
-    taken without it and the track is to be forgotten.
+    taken without it and the track is to be forgotten; support: with no hypothesis and a
+    pose RoCo corrected, how much better RoCo's pose explains the collaborator's boxes than
+    the reported pose does (evidence difference, chi2 units; below ``min_margin`` the
+    correction is not applied: step 6 of the module docstring), NaN otherwise.
     """
 
     pose: np.ndarray | None
@@ -148,6 +159,7 @@ class Decision:
     hypotheses: int
     ambiguity: Ambiguity | None = None
     track_dropped: bool = False
+    support: float = float("nan")
 
 
 @lru_cache(maxsize=16)
@@ -247,6 +259,25 @@ def _decide(
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
 
+def _own_support(
+    sets: Sequence[BoxSet], reported: np.ndarray, result: AlignmentResult,
+    decisions: list[Decision], p: AntiAliasParams,
+) -> list[Decision]:
+    """Step 6 of the module docstring: ``decisions`` with :attr:`Decision.support` set for
+    each collaborator without hypotheses whose pose RoCo corrected (``result``): the
+    evidence of RoCo's pose minus that of the reported one (``reported`` (N, 3)), scored
+    together on the collaborator's boxes against the ego's (``sets``: the ego's boxes, then
+    each collaborator's; chi2 units)."""
+    supported = list(decisions)
+    for j, decision in enumerate(decisions):
+        if decision.hypotheses or not result.applied[j]:
+            continue
+        evidence = score_hypotheses(sets[0], sets[j + 1],
+                                    np.stack([result.corrected[j], reported[j]]), p)
+        supported[j] = replace(decision, support=float(evidence[0] - evidence[1]))
+    return supported
+
+
 def _kept_out(
     decision: Decision, reported: np.ndarray, p: AntiAliasParams
 ) -> tuple[str, np.ndarray | None]:
@@ -309,8 +340,24 @@ def antialias_align(
     # An ambiguous collaborator is left out of RoCo: it keeps its reported pose, or along
     # its undetermined directions only (step 4).
     result = roco_solve(inputs, roco_p, start, frozenset(ambiguous))
+    # A collaborator without hypotheses is corrected by RoCo only where its own boxes
+    # support the correction by min_margin; otherwise it is left out of RoCo too, with its
+    # reported pose, and RoCo solves again without it (step 6).
+    unsupported: list[int] = []
+    while p.use_ambiguity:
+        decisions = _own_support(sets, inputs.reported, result, decisions, p)
+        more = [j for j, d in enumerate(decisions)
+                if d.support < p.min_margin and j not in unsupported]
+        if not more:
+            break
+        unsupported += more
+        result = roco_solve(inputs, roco_p, start, frozenset(ambiguous + unsupported))
     corrected, applied = result.corrected.copy(), result.applied.copy()
     reasons = list(result.slot_reasons)
+    for j in unsupported:
+        reasons[j] = (f"no hypothesis within search_radius and RoCo's correction explains the "
+                      f"boxes only {decisions[j].support:.1f} better than the reported pose "
+                      f"(< {p.min_margin:g}), reported pose kept")
     for j in ambiguous:
         reasons[j], pose = _kept_out(decisions[j], inputs.reported[j], p)
         if pose is not None:
