@@ -1,5 +1,5 @@
-"""``reject_untested``: behind a base aligner in gate mode, reject exactly the filled slots
-the aligner computed no do-no-harm statistic for."""
+"""``reject_untested``: in select mode with its base aligner as the one choice, reject
+exactly the filled slots the aligner computed no do-no-harm statistic for."""
 
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
 from roco_env.policies.spec import merge_env_overrides
 
 
-def test_it_acts_in_gate_mode_on_the_aligned_observation_behind_its_base():
+def test_it_acts_in_select_mode_on_the_aligned_observation_with_its_base():
     assert make_policy("reject_untested").env_overrides == {
-        "action.mode": "gate", "action.base": "roco_antialias", "observation.mode": "aligned"}
+        "action.mode": "select", "action.choices": ["roco_antialias"],
+        "action.base": "roco_antialias", "observation.mode": "aligned"}
     assert make_policy("reject_untested", base="roco").env_overrides["action.base"] == "roco"
 
 

@@ -58,7 +58,7 @@ _REGISTRY: dict[str, str] = {
     "defend": "roco_env.policies.defend:Defend",
     # the perfect rejection (info["privileged"]): a reference for defences, in gate mode
     "privileged_gate": "roco_env.policies.privileged_gate:PrivilegedGate",
-    # rejects what the aligner could not check (no statistic), in gate mode
+    # rejects what the aligner could not check (no statistic), in select mode
     "reject_untested": "roco_env.policies.reject_untested:RejectUntested",
     # acts in action.mode select (its env_overrides; roco_env.policies.learned)
     "learned_select": "roco_env.policies.learned:learned_select",

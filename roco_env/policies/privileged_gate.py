@@ -21,7 +21,8 @@ from roco_env.schema import spec
 
 __all__ = ["PrivilegedGate", "PrivilegedGateParams"]
 
-GATES = ("defend", "privileged_gate", "reject_untested")  # gate-mode policies: no base aligner
+# policies that keep or reject behind a base aligner: none can be a base itself
+GATES = ("defend", "privileged_gate", "reject_untested")
 
 
 @dataclass(frozen=True)

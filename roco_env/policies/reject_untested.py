@@ -1,13 +1,16 @@
 """``reject_untested``: leave out the collaborators the aligner could not check.
 
 ``make_policy("reject_untested", base="roco_antialias")`` (spec
-``reject_untested:base=roco_antialias``) acts in the env's ``gate`` action mode with the
-``aligned`` observation behind the aligner ``base`` (it declares both in
-:attr:`RejectUntested.env_overrides`). It rejects every filled slot for which the base
-aligner computed no do-no-harm statistic (``diagnostics`` column ``statistic`` = -1): it
-found no boxes shared with the ego to test that collaborator's reported pose by, so the
-pose it fuses with is unchecked. The gate then aligns the kept collaborators again
-without the rejected ones.
+``reject_untested:base=roco_antialias``) acts in the env's ``select`` action mode with
+``base`` as the one choice and the ``aligned`` observation (it declares these in
+:attr:`RejectUntested.env_overrides`): per slot 0 takes the base aligner's pose, 1 rejects
+the collaborator. It rejects every filled slot for which the base aligner computed no
+do-no-harm statistic (``diagnostics`` column ``statistic`` = -1): it found no boxes
+shared with the ego to test that collaborator's reported pose by, so the pose it fuses
+with is unchecked. The kept collaborators keep the poses the aligner solved with every
+collaborator; the gate mode would solve them again without the rejected ones, which on
+the mixed benchmark costs 0.009 AP@0.7 at v2xset_like 3.0 (an untested collaborator's
+boxes still tie the others together). It is the rule ``learned_select``'s guard applies.
 
 Why it pays: behind roco_antialias, from noise 0.8 m/deg up, 232 of 241 such slots lie
 more than 1 m / 1 deg from the truth, against at most 5 of 1,000-2,000 tested slots per
@@ -56,16 +59,16 @@ class RejectUntestedParams:
 
 
 class RejectUntested:
-    """``RejectUntested(base="roco_antialias")(obs, info) -> (N,) int64`` gate action: 1
-    for the filled slots the base aligner left untested, else 0."""
+    """``RejectUntested(base="roco_antialias")(obs, info) -> (N,) int64`` select action: 1
+    (reject) for the filled slots the base aligner left untested, else 0 (its pose)."""
 
     keeps_state = False
     last_result = None  # the env's base aligner aligns
 
     def __init__(self, **params: Any) -> None:
         self.params = params_from_kwargs(RejectUntestedParams, params, "reject_untested")
-        self.env_overrides = {"action.mode": "gate", "action.base": self.params.base,
-                              "observation.mode": "aligned"}
+        self.env_overrides = {"action.mode": "select", "action.choices": [self.params.base],
+                              "action.base": self.params.base, "observation.mode": "aligned"}
 
     def reset(self) -> None:
         """Nothing to forget (stateless)."""
