@@ -403,3 +403,13 @@ def test_a_collaborator_with_more_unconfirmed_boxes_than_the_others_is_rejected(
     for _ in range(6):
         defend(obs, info(3))
     assert defend.last_reasons[2] == "relative"
+
+
+def test_the_relative_test_has_power_where_both_shares_sit_at_0_or_1():
+    """Every own box unconfirmed, none of the others': the Wald variance vanishes, and the
+    test must still reject (pseudo-counts); no unconfirmed box anywhere is no evidence."""
+    from roco_env.policies.defend import PairEvidence, _relative_tail
+
+    assert _relative_tail(PairEvidence(0, 0, 4), PairEvidence(60, 0, 0), 1.2) < 1e-3
+    assert _relative_tail(PairEvidence(4, 0, 0), PairEvidence(60, 0, 0), 1.2) >= 0.5
+    assert _relative_tail(PairEvidence(0, 0, 0), PairEvidence(60, 0, 0), 1.2) == 1.0

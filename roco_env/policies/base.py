@@ -27,9 +27,21 @@ import numpy as np
 from roco_env.geometry import apply_correction, se2_compose, se2_inverse, se2_relative
 from roco_env.schema import build
 
-__all__ = ["AlignmentResult", "Policy", "PolicyAdapter", "PolicyWrapper", "ReadsFiles",
-           "StatelessPolicy", "act", "apply_correction", "as_policy", "correction_action",
-           "policy_input_files", "reported_relative_poses"]
+__all__ = ["GATES", "AlignmentResult", "Policy", "PolicyAdapter", "PolicyWrapper",
+           "ReadsFiles", "StatelessPolicy", "act", "apply_correction", "as_policy",
+           "check_aligner_base", "correction_action", "policy_input_files",
+           "reported_relative_poses"]
+
+# policies that keep or reject collaborators behind a base aligner: none can be a base
+GATES = ("defend", "privileged_gate", "reject_untested")
+
+
+def check_aligner_base(policy: str, base: str) -> None:
+    """Raise ValueError naming ``policy`` when ``base`` (a policy spec) is empty or one of
+    :data:`GATES` rather than an aligner."""
+    if not base or base.split(":")[0] in GATES:
+        raise ValueError(f"{policy}: base must be the policy spec of an aligner (e.g. "
+                         f"'roco'); got {base!r}")
 
 
 @dataclass

@@ -78,8 +78,8 @@ from scipy.special import bdtrc, chdtrc, ndtr
 
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, wrap_angle
 from roco_env.policies.adapter import collaborator_keys
+from roco_env.policies.base import check_aligner_base
 from roco_env.policies.landmarks import params_from_kwargs
-from roco_env.policies.privileged_gate import GATES
 from roco_env.schema import spec
 
 __all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "claim_evidence",
@@ -242,9 +242,7 @@ class DefendParams:
                            "have no car to see)")
 
     def __post_init__(self) -> None:
-        if not self.base or self.base.split(":")[0] in GATES:
-            raise ValueError(f"defend: base must be the policy spec of an aligner (e.g. "
-                             f"'roco'); got {self.base!r}")
+        check_aligner_base("defend", self.base)
 
 
 class Defend:
@@ -432,17 +430,25 @@ def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> floa
     """One-sided p-value of a collaborator's share of unconfirmed boxes (``own``: its boxes
     as the others judge them) exceeding ``margin`` times the pooled share of the other
     collaborators' boxes (``rest``: as judged by everyone but it): a Wald z-test of the
-    difference ``p_own - margin p_rest``; 1 where either side has nothing judged or the
-    difference has no variance."""
+    difference ``p_own - margin p_rest``; 1 where either side has nothing judged."""
     n_own = own.matches + own.conflicts + own.unconfirmed
     n_rest = rest.matches + rest.conflicts + rest.unconfirmed
     if n_own == 0 or n_rest == 0:
         return 1.0
     p_own, p_rest = own.unconfirmed / n_own, rest.unconfirmed / n_rest
-    variance = p_own * (1.0 - p_own) / n_own + margin**2 * p_rest * (1.0 - p_rest) / n_rest
+    variance = _share_variance(p_own, n_own, p_rest, n_rest, margin)
     if variance == 0.0:
-        return 1.0
+        # both shares at 0 or 1 (e.g. every own box unconfirmed, none of the others'): the
+        # Wald variance vanishes; one pseudo-count each way (Agresti-Caffo) gives it
+        variance = _share_variance((own.unconfirmed + 1) / (n_own + 2), n_own,
+                                   (rest.unconfirmed + 1) / (n_rest + 2), n_rest, margin)
     return float(ndtr(-(p_own - margin * p_rest) / np.sqrt(variance)))
+
+
+def _share_variance(p_own: float, n_own: int, p_rest: float, n_rest: int,
+                    margin: float) -> float:
+    """Variance of ``p_own - margin p_rest`` for two independent binomial shares."""
+    return p_own * (1.0 - p_own) / n_own + margin**2 * p_rest * (1.0 - p_rest) / n_rest
 
 
 def _offsets(observation: Mapping[str, Any], filled: np.ndarray) -> np.ndarray:

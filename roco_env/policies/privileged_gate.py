@@ -16,13 +16,12 @@ from typing import Any
 
 import numpy as np
 
+from roco_env.policies.base import check_aligner_base
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
 __all__ = ["PrivilegedGate", "PrivilegedGateParams"]
 
-# policies that keep or reject behind a base aligner: none can be a base itself
-GATES = ("defend", "privileged_gate", "reject_untested")
 
 
 @dataclass(frozen=True)
@@ -32,9 +31,7 @@ class PrivilegedGateParams:
     base: str = spec("roco", doc="the aligner's policy spec the env runs (action.base)")
 
     def __post_init__(self) -> None:
-        if not self.base or self.base.split(":")[0] in GATES:
-            raise ValueError(f"privileged_gate: base must be the policy spec of an aligner "
-                             f"(e.g. 'roco'); got {self.base!r}")
+        check_aligner_base("privileged_gate", self.base)
 
 
 class PrivilegedGate:

@@ -11,6 +11,9 @@ with is unchecked. The kept collaborators keep the poses the aligner solved with
 collaborator; the gate mode would solve them again without the rejected ones, which on
 the mixed benchmark costs 0.009 AP@0.7 at v2xset_like 3.0 (an untested collaborator's
 boxes still tie the others together). It is the rule ``learned_select``'s guard applies.
+``base`` must be an aligner that computes that statistic (roco, roco_antialias and
+policies built on them): behind identity, coalign or the oracle every slot is untested,
+so every collaborator is rejected (no fusion).
 
 Why it pays: behind roco_antialias, from noise 0.8 m/deg up, 232 of 241 such slots lie
 more than 1 m / 1 deg from the truth, against at most 5 of 1,000-2,000 tested slots per
@@ -28,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from roco_env.policies.base import StatelessPolicy, check_aligner_base
 from roco_env.policies.landmarks import params_from_kwargs
-from roco_env.policies.privileged_gate import GATES
 from roco_env.schema import spec
 
 __all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
@@ -50,28 +53,23 @@ class RejectUntestedParams:
     """``reject_untested``'s parameter (module docstring)."""
 
     base: str = spec("roco_antialias", doc="the aligner's policy spec the env runs "
-                     "(action.base)")
+                     "(action.base); one that computes a do-no-harm statistic (roco, "
+                     "roco_antialias and their wrappers): behind one that computes none "
+                     "(identity, coalign, oracle, ...) every collaborator is rejected")
 
     def __post_init__(self) -> None:
-        if not self.base or self.base.split(":")[0] in GATES:
-            raise ValueError(f"reject_untested: base must be the policy spec of an aligner "
-                             f"(e.g. 'roco_antialias'); got {self.base!r}")
+        check_aligner_base("reject_untested", self.base)
 
 
-class RejectUntested:
+class RejectUntested(StatelessPolicy):
     """``RejectUntested(base="roco_antialias")(obs, info) -> (N,) int64`` select action: 1
-    (reject) for the filled slots the base aligner left untested, else 0 (its pose)."""
-
-    keeps_state = False
-    last_result = None  # the env's base aligner aligns
+    (reject) for the filled slots the base aligner left untested, else 0 (its pose). It
+    reports no alignment of its own (the env's base aligner aligns)."""
 
     def __init__(self, **params: Any) -> None:
         self.params = params_from_kwargs(RejectUntestedParams, params, "reject_untested")
         self.env_overrides = {"action.mode": "select", "action.choices": [self.params.base],
                               "action.base": self.params.base, "observation.mode": "aligned"}
-
-    def reset(self) -> None:
-        """Nothing to forget (stateless)."""
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None
                  ) -> np.ndarray:
