@@ -264,13 +264,20 @@ def _own_support(
     decisions: list[Decision], p: AntiAliasParams,
 ) -> list[Decision]:
     """Step 6 of the module docstring: ``decisions`` with :attr:`Decision.support` set for
-    each collaborator without hypotheses whose pose RoCo corrected (``result``): the
+    each collaborator without hypotheses whose pose RoCo corrected (``result``; NaN again
+    where an earlier round's supported correction is no longer applied): the
     evidence of RoCo's pose minus that of the reported one (``reported`` (N, 3)), scored
     together on the collaborator's boxes against the ego's (``sets``: the ego's boxes, then
     each collaborator's; chi2 units)."""
     supported = list(decisions)
     for j, decision in enumerate(decisions):
-        if decision.hypotheses or not result.applied[j]:
+        if decision.hypotheses:
+            continue
+        if not result.applied[j]:
+            # a support below min_margin is why the slot is out of RoCo (kept); a support
+            # from an earlier round whose correction RoCo no longer applies is void
+            if decision.support >= p.min_margin:
+                supported[j] = replace(decision, support=float("nan"))
             continue
         evidence = score_hypotheses(sets[0], sets[j + 1],
                                     np.stack([result.corrected[j], reported[j]]), p)
