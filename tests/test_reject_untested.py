@@ -60,3 +60,28 @@ def test_a_gate_or_nothing_as_its_base_is_refused(base):
 def test_without_the_aligned_observation_it_says_what_it_needs():
     with pytest.raises(ValueError, match="observation.mode='aligned'"):
         make_policy("reject_untested")({"collab_mask": np.ones(2, np.int8)})
+
+
+def test_the_shipped_learned_select_takes_exactly_its_actions():
+    """The docs say learned_select's guard is this rule and its network adds nothing
+    measurable (baselines/learned_select/README.md): on a seeded episode where a slot is
+    rejected, its actions (choice 3 = roco_antialias, 4 = reject) are this policy's (0, 1).
+    A retrained network that deviates fails here, and the docs must say what it adds."""
+    actions = {}
+    for name in ("reject_untested", "learned_select"):
+        policy = make_policy(name)
+        env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=3.0,
+                                    sigma_r=3.0, **merge_env_overrides({}, policy))
+        observations, infos = env.reset(seed=0)
+        taken = actions[name] = []
+        while env.agents:
+            step = {a: policy(observations[a], infos[a]) for a in env.agents}
+            taken.append(step)
+            observations, _, _, _, infos = env.step(step)
+    rejected = 0
+    for rule, learned in zip(actions["reject_untested"], actions["learned_select"], strict=True):
+        for agent, action in rule.items():
+            np.testing.assert_array_equal(np.where(learned[agent] == 4, 1, 0), action)
+            assert set(np.unique(learned[agent])) <= {3, 4}
+            rejected += int(action.sum())
+    assert rejected >= 1
