@@ -13,7 +13,11 @@ line, only adds to it: ``--lever-m d`` puts it on the offset's axis). After k st
 offsets ``mu_1..mu_k`` m the Neyman-Pearson test (the log-likelihood ratio, a weighted
 sum of the errors) at false-alarm rate ``alpha`` detects with probability
 ``Phi(sqrt(sum mu_j^2) / sigma - Phi^-1(1 - alpha))``. The share of steps detected is its
-mean over the episode's steps, step 0 the first observation. A drifting spoof
+mean over the episode's steps, step 0 the first observation. That is the ceiling at the
+same false-alarm rate on every step; a detector bound only by its mean false-alarm rate
+over the episode (the protocol's "honest rejections" count) may spend more of it early,
+where the evidence is weak: :func:`best_split` finds the per-step rates that maximise
+the share detected (scipy's SLSQP), the ceiling under that rule. A drifting spoof
 (``--drift-s``) lies by ``offset * min(1, t / drift)`` at ``t = step * dt``: nothing at
 step 0.
 """
@@ -25,6 +29,7 @@ import sys
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.optimize import minimize
 from scipy.stats import norm
 
 
@@ -42,6 +47,25 @@ def detection_per_step(mu: np.ndarray, sigma: float, alpha: float) -> np.ndarray
     alarm ``alpha`` per step)."""
     strength = np.sqrt(np.cumsum(np.asarray(mu, dtype=float) ** 2)) / sigma
     return norm.cdf(strength - norm.isf(alpha))
+
+
+def best_split(mu: np.ndarray, sigma: float, alpha: float) -> tuple[float, np.ndarray]:
+    """The largest mean detection over the steps, and the per-step false-alarm rates
+    (steps,) giving it, among rates whose mean is ``alpha`` (offsets ``mu`` m, noise std
+    ``sigma`` m along the offset): the ceiling of a detector bound by its mean false-alarm
+    rate over the episode."""
+    strength = np.sqrt(np.cumsum(np.asarray(mu, dtype=float) ** 2)) / sigma
+    steps = strength.shape[0]
+
+    def missed(rates: np.ndarray) -> float:
+        return -float(np.mean(norm.cdf(strength - norm.isf(np.clip(rates, 1e-12, 1.0)))))
+
+    found = minimize(missed, np.full(steps, alpha), method="SLSQP",
+                     bounds=[(0.0, 1.0)] * steps,
+                     constraints=[{"type": "eq", "fun": lambda rates: np.mean(rates) - alpha}])
+    if not found.success:
+        raise RuntimeError(f"best_split: the optimiser did not converge: {found.message}")
+    return -float(found.fun), found.x
 
 
 def relative_sigma(sigma_t: float, sigma_r_deg: float, lever_m: float) -> float:
@@ -90,6 +114,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     for step, (m, p) in enumerate(zip(mu, power, strict=True)):
         print(f"{step:4d}  {m:8.2f}  {100 * p:7.1f} %")
     print(f"share of steps detected: {100 * power.mean():.1f} %")
+    share, rates = best_split(mu, sigma, args.alpha)
+    print(f"with the false alarms split over the steps (mean {args.alpha:g}; per step "
+          f"{', '.join(f'{r:.4f}' for r in rates)}): {100 * share:.1f} %")
     return 0
 
 

@@ -7,7 +7,7 @@ Records every agent's aligned observation and info of an urban_intersection epis
 (noise 0.4, a 10 m spoof by cav_1, ``--steps`` steps), then replays them through a fresh
 ``Defend`` of this tree and one of ``git show REF:roco_env/policies/defend.py``,
 interleaved ``--repeats`` times (``--old-tests``: this tree's without the mean-offset and
-relative tests, the ones main lacks), and prints each one's median wall time per call (ms),
+relative tests, added after 8bde3f5: compare with ``--against 8bde3f5``), and prints each one's median wall time per call (ms),
 their ratio, and whether their actions agree on every call.
 """
 
@@ -76,7 +76,7 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--old-tests", action="store_true",
-                        help="this tree's Defend without the tests main lacks "
+                        help="this tree's Defend without the tests added after 8bde3f5 "
                         "(use_offset=False, use_relative=False): the same decisions")
     args = parser.parse_args()
     calls = record(args.steps)

@@ -3,7 +3,8 @@
     python baselines/learned_select/add_guard.py IN.pt OUT.pt --reject-margin M [--keep roco_antialias]
 
 The guarded policy takes ``--keep`` (a name of the default ``action.choices``) for every
-slot and lets the network reject only the slots that choice left unaligned; ``M`` (logits)
+slot and lets the network reject only the slots that choice left untested (no
+significance statistic computed); ``M`` (logits)
 is how far the reject logit may trail the kept choice's and still win. The network's
 tensors are copied unchanged; the metadata gains ``guard`` and records this step
 (``guarded``). Read with ``weights_only=True``.

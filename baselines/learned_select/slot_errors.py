@@ -22,11 +22,12 @@ from privileged_bound import CHOICES, pose_errors
 
 import roco_env.sweeps.episode as episode
 from roco_env.policies import make_policy
+from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
 from roco_env.sweeps.cells import build_grid
 from roco_env.training.rl.curriculum import TRAIN_SEED_BASE
 
 KEEP = CHOICES.index("roco_antialias")
-APPLIED, STATISTIC = 0, 3  # columns of roco_env.observation_modes.CHOICE_DIAGNOSTICS
+APPLIED = 0  # column of roco_env.observation_modes.CHOICE_DIAGNOSTICS (STATISTIC too)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -45,7 +46,6 @@ def main(argv: list[str] | None = None) -> None:
         envs.append(make_env(*given, **named))
         return envs[-1]
 
-    episode.make_env = keep_env
     seeds = [TRAIN_SEED_BASE + index for index in range(args.seeds)]
     for cell in build_grid(args.scenarios, args.noise, ["roco_antialias"], seeds, 10):
         agents = iter(range(1000))
@@ -62,14 +62,18 @@ def main(argv: list[str] | None = None) -> None:
                                      info["privileged"]["true_relative_poses"][:n])
                 for slot in range(n):
                     own = observation["choice_diagnostics"][slot, KEEP]
-                    kind = ("tested" if own[STATISTIC] != -1 else "untested") + \
+                    kind = ("tested" if own[STATISTIC] != NO_STATISTIC else "untested") + \
                         (", moved" if own[APPLIED] else ", not moved")
                     rows[(cell.scenario, cell.noise, kind)].append(
                         (errors[slot], action[slot] == len(CHOICES)))
                 return action
             act.env_overrides = policy.env_overrides
             return act
-        episode.run_episode(replace(cell, policy=args.policy), recorder)
+        try:
+            episode.make_env = keep_env
+            episode.run_episode(replace(cell, policy=args.policy), recorder)
+        finally:
+            episode.make_env = make_env
     print("| scenario | noise | roco_antialias's slot | slots | off > 1 | median error | "
           "rejected |\n|---|---|---|---|---|---|---|")
     for (scenario, noise, kind), values in sorted(rows.items()):
