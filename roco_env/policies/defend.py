@@ -267,7 +267,9 @@ class Defend:
                     "consensus": p.use_consensus, "claim": p.use_claim,
                     "relative": p.use_relative}
         self._tests = 2 + p.use_claim + p.use_relative  # the consistency tests' Bonferroni
-        self._q: dict[Hashable, deque] = {}  # per key: (q, z (3,)) of each step
+        # per key, each step: (q,), or with the mean test (q, z, b): the whitened offset z
+        # and bias std b, (3,) each
+        self._q: dict[Hashable, deque] = {}
         self._pairs: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
@@ -314,24 +316,25 @@ class Defend:
         s_r2 = 2.0 * self.sigma_r**2
         q = float(diagnostics[_SHIFT]) ** 2 / s_t2 + np.radians(float(diagnostics[_TURN])) ** 2 \
             / s_r2
-        spread = np.sqrt([s_t2, s_t2, s_r2])
-        bias = np.sqrt([2.0 * self.params.bias_t**2 + 2.0 * (distance * self.bias_r) ** 2] * 2
-                       + [2.0 * self.bias_r**2])
-        step = (q, None) if offset is None else (q, (offset / spread, bias / spread))
+        step: tuple = (q,)
+        if offset is not None:  # (q, whitened offset, whitened bias std), each (3,)
+            spread = np.sqrt([s_t2, s_t2, s_r2])
+            bias = np.sqrt([2.0 * self.params.bias_t**2 + 2.0 * (distance * self.bias_r) ** 2]
+                           * 2 + [2.0 * self.bias_r**2])
+            step = (q, offset / spread, bias / spread)
         history = self._q.setdefault(key, deque(maxlen=self.params.window))
         history.append(step)
         steps = len(history)
         level = self.params.alpha / (1 if offset is None else 2)
-        if chdtrc(3 * steps, sum(q for q, _ in history)) < level \
+        if chdtrc(3 * steps, sum(entry[0] for entry in history)) < level \
                 or chdtrc(3, q) < self.params.strong:
             return True
         if offset is None:
             return False
         # sum of z per axis: variance steps (the noise) + (sum of bias / spread)^2 (a bias
-        # shared by every step)
-        whitened = [pair for _, pair in history if pair is not None]
-        total = sum(z for z, _ in whitened)
-        shared = sum(w for _, w in whitened)
+        # shared by every step); use_offset is fixed, so every entry holds both
+        total = sum(entry[1] for entry in history)
+        shared = sum(entry[2] for entry in history)
         return bool(chdtrc(3, float(np.sum(total**2 / (steps + shared**2)))) < level)
 
     def _consensus(self, observation: Mapping[str, Any], filled: np.ndarray,
