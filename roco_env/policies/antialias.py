@@ -207,6 +207,38 @@ def _beyond_search(
     return far[evidence[1:] >= evidence[0] + p.min_margin]
 
 
+@lru_cache(maxsize=16)
+def _weak_refine(p: AntiAliasParams) -> tuple:
+    """The refinement's settings of ``p`` with one pair fewer than ``min_matches``: the
+    candidates too weakly matched to be hypotheses (module docstring, step 4)."""
+    return refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches - 1)
+
+
+def _few_pairs(matches: int, p: AntiAliasParams) -> bool:
+    """Whether a pose supported by ``matches`` pairs may fail to beat a candidate with one
+    pair fewer than ``min_matches`` by ``min_margin``: its extra pairs' gain, at most
+    ``outlier_chi2`` each (chi2 units), stays below the margin (module docstring, step 4;
+    with the defaults: at most 3 pairs)."""
+    return p.min_matches > 1 and p.outlier_chi2 * (matches - p.min_matches + 1) < p.min_margin
+
+
+def _weak_rivals(
+    ego: BoxSet, collab: BoxSet, peaks: np.ndarray, seeds: np.ndarray, pose: np.ndarray,
+    p: AntiAliasParams,
+) -> np.ndarray:
+    """Candidates (R, 3) that the hypotheses' ``min_matches`` left out and that explain the
+    boxes about as well as ``pose`` (3,) (module docstring, step 4): the vote ``peaks``
+    (H, 3) and ``seeds`` (S, 3) refined with one pair fewer, distinct from ``pose``, whose
+    evidence comes within ``min_margin`` of its own (scored together, chi2 units)."""
+    weak = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information,
+                         _weak_refine(p))
+    weak = weak[poses_distinct(weak[:, None], pose[None], p).all(axis=1)]
+    if weak.shape[0] == 0:
+        return weak
+    evidence = score_hypotheses(ego, collab, np.concatenate([pose[None], weak]), p)
+    return weak[evidence[1:] >= evidence[0] - p.min_margin]
+
+
 def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
                p: AntiAliasParams) -> bool:
     """Whether another hypothesis of ``poses`` (H, 3) explains the boxes better than
@@ -255,6 +287,11 @@ def _decide(
         beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
                              slack=evidence[:2], beyond=beyond)
+        if ambiguity.matches >= p.min_matches and _few_pairs(ambiguity.matches, p):
+            weak = _weak_rivals(ego, collab, peaks, seeds, poses[best], p)
+            if weak.shape[0]:
+                ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
+                                     slack=evidence[:2], beyond=np.concatenate([beyond, weak]))
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
