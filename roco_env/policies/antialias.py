@@ -33,7 +33,13 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    ``min_margin`` (scored together, on the boxes both can see) shows that the best one
    explains far less than the scene supports (a reported error beyond the search, the
    best hypothesis an alias near the reported pose); its shift is left open like a
-   rival's, so the reported pose is kept along it;
+   rival's, so the reported pose is kept along it. A best hypothesis supported by so few
+   pairs that a candidate with one pair fewer than ``min_matches`` (too few to be a
+   hypothesis) could come within ``min_margin`` of it (``outlier_chi2`` per extra pair:
+   with the defaults 3 pairs) must also beat those candidates (the vote peaks and the
+   reported pose refined with ``min_matches - 1`` pairs) by ``min_margin`` in evidence;
+   one that does not is a rival too (a sparse queue: the truth pairs 2 boxes, an alias
+   one car along it 3);
 5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
    made with the track's prior is beaten by another hypothesis's evidence alone by
    ``min_margin``, the decision is taken again without the track
