@@ -28,8 +28,10 @@ reported pose, the reported pose and the track's prediction), which directions a
    c any prior other than the reported pose's, e.g. a temporal track's), explains the
    boxes (nearly) as well, or better: the displacement ``h - pose`` is undetermined. Poses
    found outside the candidates (``beyond``; in roco_antialias those beyond the
-   hypotheses' search that explain the boxes far better) are rivals too; an alias beyond
-   every search that explains them no better goes unnoticed.
+   hypotheses' search that explain the boxes far better, and, for a pose of few pairs,
+   those matched by one pair fewer than ``min_matches`` that come within ``min_margin``)
+   are rivals too; an alias beyond every search that explains them no better goes
+   unnoticed.
 3. **Subspace.** Translations and the yaw are kept apart (a direction mixing metres and
    degrees would trade a heading error for a position error): the undetermined
    translation directions are those of step 1, then the rivals' shifts, largest first,
@@ -234,7 +236,8 @@ def diagnose(
     slack's variances (m^2, rad^2) that weigh the pairs, as the evidence's settings hold
     them (:func:`~roco_env.policies.hypotheses.evidence_terms`); beyond (R, 3): rivals found
     outside the candidates (in roco_antialias: poses beyond the hypotheses' search that
-    explain the boxes far better than the pose), their shifts open directions as the
+    explain the boxes far better than the pose, or matched by too few pairs to be
+    hypotheses that explain them about as well), their shifts open directions as the
     candidates' rivals do.
     """
     candidates = np.asarray(candidates, dtype=float).reshape(-1, 3)

@@ -33,7 +33,14 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    ``min_margin`` (scored together, on the boxes both can see) shows that the best one
    explains far less than the scene supports (a reported error beyond the search, the
    best hypothesis an alias near the reported pose); its shift is left open like a
-   rival's, so the reported pose is kept along it;
+   rival's, so the reported pose is kept along it. A best hypothesis supported by so few
+   pairs that a candidate with one pair fewer than ``min_matches`` (too few to be a
+   hypothesis) could come within ``min_margin`` of it (``outlier_chi2`` per extra pair:
+   with the defaults 3 pairs) must also beat those candidates (the vote peaks and the
+   reported pose refined with ``min_matches - 1`` pairs) by ``min_margin`` in evidence;
+   one that does not, and that pairs other boxes (the pick's own pairs put it at least
+   ``outlier_chi2`` per pair away), is a rival too (a sparse queue: the truth pairs 2
+   boxes, an alias one car along it 3);
 5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
    made with the track's prior is beaten by another hypothesis's evidence alone by
    ``min_margin``, the decision is taken again without the track
@@ -207,6 +214,48 @@ def _beyond_search(
     return far[evidence[1:] >= evidence[0] + p.min_margin]
 
 
+@lru_cache(maxsize=16)
+def _weak_refine(p: AntiAliasParams) -> tuple:
+    """The refinement's settings of ``p`` with one pair fewer than ``min_matches``: the
+    candidates too weakly matched to be hypotheses (module docstring, step 4)."""
+    return refine_terms(p, p.robust_kernel, p.kernel_delta, p.min_matches - 1)
+
+
+def _few_pairs(matches: int, p: AntiAliasParams) -> bool:
+    """Whether a pose supported by ``matches`` pairs may fail to beat a candidate with one
+    pair fewer than ``min_matches`` by ``min_margin``: its extra pairs' gain, at most
+    ``outlier_chi2`` each (chi2 units), stays below the margin (module docstring, step 4;
+    with the defaults: at most 3 pairs)."""
+    return p.min_matches > 1 and p.outlier_chi2 * (matches - p.min_matches + 1) < p.min_margin
+
+
+def _weak_rivals(
+    ego: BoxSet, collab: BoxSet, peaks: np.ndarray, seeds: np.ndarray, ambiguity: Ambiguity,
+    p: AntiAliasParams,
+) -> np.ndarray:
+    """Candidates (R, 3) that the hypotheses' ``min_matches`` left out and that explain the
+    boxes about as well as the diagnosed pose ``ambiguity.pose`` (3,) by other pairs
+    (module docstring, step 4): the vote ``peaks`` (H, 3) and ``seeds`` (S, 3) refined
+    with one pair fewer, distinct from the pose, whose evidence comes within
+    ``min_margin`` of its own (scored together, chi2 units), and which the pose's own pairs
+    put at least ``outlier_chi2`` per pair away (``d^T A d``, A their information
+    :attr:`~roco_env.policies.ambiguity.Ambiguity.information`): nearer, the candidate
+    re-fits those pairs within the boxes' noise rather than pairing other boxes."""
+    pose = ambiguity.pose
+    weak = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information,
+                         _weak_refine(p))
+    weak = weak[poses_distinct(weak[:, None], pose[None], p).all(axis=1)]
+    if weak.shape[0] == 0:
+        return weak
+    evidence = score_hypotheses(ego, collab, np.concatenate([pose[None], weak]), p)
+    offset = weak - pose
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    offset /= ambiguity.scale
+    apart = np.einsum("ri,ij,rj->r", offset, ambiguity.information, offset)
+    return weak[(evidence[1:] >= evidence[0] - p.min_margin)
+                & (apart >= p.outlier_chi2 * ambiguity.matches)]
+
+
 def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
                p: AntiAliasParams) -> bool:
     """Whether another hypothesis of ``poses`` (H, 3) explains the boxes better than
@@ -255,6 +304,11 @@ def _decide(
         beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
                              slack=evidence[:2], beyond=beyond)
+        if ambiguity.matches >= p.min_matches and _few_pairs(ambiguity.matches, p):
+            weak = _weak_rivals(ego, collab, peaks, seeds, ambiguity, p)
+            if weak.shape[0]:
+                ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
+                                     slack=evidence[:2], beyond=np.concatenate([beyond, weak]))
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 
