@@ -71,7 +71,7 @@ import itertools
 from collections import deque
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.special import bdtrc, chdtrc, ndtr
@@ -82,8 +82,8 @@ from roco_env.policies.base import check_aligner_base
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "claim_evidence",
-           "clear_view", "pair_evidence"]
+__all__ = ["BoxStatus", "Defend", "DefendParams", "PairEvidence", "box_status", "centre_distances",
+           "claim_evidence", "clear_view", "pair_evidence"]
 
 EGO = "__ego__"  # the ego's key among the sources
 _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagnostics
@@ -143,17 +143,33 @@ def centre_distances(boxes: np.ndarray, other: np.ndarray) -> np.ndarray:
     return np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
 
 
-def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
-                  occluders: np.ndarray, match_m: float, view_m: float,
-                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
-    """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
+class BoxStatus(NamedTuple):
+    """Per box (k,) of one source as another source's boxes judge it: ``matched`` (its
+    nearest box within ``match_m``), ``conflict`` (overlapping without matching) and
+    ``unconfirmed`` (neither, in the other's clear view)."""
+
+    matched: np.ndarray
+    conflict: np.ndarray
+    unconfirmed: np.ndarray
+
+    def evidence(self) -> PairEvidence:
+        """The counts of :class:`PairEvidence`."""
+        return PairEvidence(int(self.matched.sum()), int(self.conflict.sum()),
+                            int(self.unconfirmed.sum()))
+
+
+def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
+               occluders: np.ndarray, match_m: float, view_m: float,
+               occlusion_m: float, distance: np.ndarray | None = None) -> BoxStatus:
+    """How the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) judge each of
     ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
     ``distance``: their :func:`centre_distances`, when already computed."""
+    none = np.zeros(boxes.shape[0], dtype=bool)
     if boxes.shape[0] == 0:
-        return NO_EVIDENCE
+        return BoxStatus(none, none, none)
     if other.shape[0] == 0:
         seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
-        return PairEvidence(0, 0, int(seen.sum()))
+        return BoxStatus(none, none, seen)
     if distance is None:
         distance = centre_distances(boxes, other)
     nearest = np.argmin(distance, axis=1)
@@ -165,13 +181,21 @@ def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray
     overlap = np.zeros_like(matched)
     if close.any():
         overlap[close] = bev_iou_pairs(boxes[close], other[nearest[close]]) > 0.0
-    conflict = ~matched & overlap
     loose = ~matched & ~overlap
     seen = np.zeros_like(loose)
     if loose.any():
         seen[loose] = clear_view(other_origin, boxes[loose, :2], occluders, view_m, occlusion_m,
                                  match_m)
-    return PairEvidence(int(matched.sum()), int(conflict.sum()), int(seen.sum()))
+    return BoxStatus(matched, ~matched & overlap, seen)
+
+
+def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
+                  occluders: np.ndarray, match_m: float, view_m: float,
+                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
+    """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
+    ``boxes`` (k, 7): the counts of :func:`box_status` (same arguments)."""
+    return box_status(boxes, other, other_origin, occluders, match_m, view_m, occlusion_m,
+                      distance).evidence()
 
 
 def claim_evidence(claimed: np.ndarray, witness: np.ndarray, witness_origin: np.ndarray,
@@ -232,6 +256,11 @@ class DefendParams:
     use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
     use_relative: bool = spec(True, doc="the relative test of a collaborator's unconfirmed "
                               "share against the other collaborators' (consistency)")
+    use_orphan: bool = spec(True, doc="the test of orphan boxes: unconfirmed by a source with "
+                            "them in clear view and matched by none (consistency)")
+    orphan_rate: float = _open_share(0.05, "share of an honest collaborator's boxes that are "
+                                     "orphans (unconfirmed by a source with them in clear "
+                                     "view, matched by none)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
                                   "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
@@ -265,20 +294,25 @@ class Defend:
         self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
                     "consensus": p.use_consensus, "claim": p.use_claim,
-                    "relative": p.use_relative}
-        self._tests = 2 + p.use_claim + p.use_relative  # the consistency tests' Bonferroni
+                    "relative": p.use_relative, "orphan": p.use_orphan}
+        # the consistency tests' Bonferroni
+        self._tests = 2 + p.use_claim + p.use_relative + p.use_orphan
         # per key, each step: (q,), or with the mean test (q, z, b): the whitened offset z
         # and bias std b, (3,) each
         self._q: dict[Hashable, deque] = {}
         self._pairs: dict[Hashable, deque] = {}
+        self._orphans: dict[Hashable, deque] = {}  # per key, each step: (orphans, boxes)
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
         self.last_now: dict[tuple, PairEvidence] = {}  # (judged, judge) -> this step's
+        # slot -> (orphans, boxes) over the window and this step's
+        self.last_orphans: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
         self._q.clear()
         self._pairs.clear()
+        self._orphans.clear()
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None
                  ) -> np.ndarray:
@@ -302,6 +336,9 @@ class Defend:
             if self.use["relative"]:
                 for slot in self.relatively_unconfirmed([int(s) for s in filled]):
                     reasons[slot] = reasons[slot] or "relative"
+            if self.use["orphan"]:
+                for slot in self.orphaned([int(s) for s in filled]):
+                    reasons[slot] = reasons[slot] or "orphan"
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
@@ -347,14 +384,22 @@ class Defend:
         cars = {key for key, name in ids.items() if self.use["claim"] and str(
             ego if key == EGO else name).startswith(self.params.car_prefix)}
         self.last_pairs, self.last_now = {}, {}
+        # per source and box: matched by some other source; doubted (conflicting or
+        # unconfirmed) by some other source
+        found = {key: np.zeros(boxes.shape[0], dtype=bool) for key, (boxes, _) in sources.items()}
+        doubted = {key: flags.copy() for key, flags in found.items()}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             distance = centre_distances(boxes_a, boxes_b)
             # directed: what b says about a's boxes (and a's claimed place), and back
-            directed = {(a, b): pair_evidence(boxes_a, boxes_b, origin_b, occluders,
-                                              *self._geometry, distance),
-                        (b, a): pair_evidence(boxes_b, boxes_a, origin_a, occluders,
-                                              *self._geometry, distance.T)}
+            status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders,
+                                         *self._geometry, distance),
+                      (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
+                                         *self._geometry, distance.T)}
+            directed = {key: judged.evidence() for key, judged in status.items()}
+            for (judged, _), boxes in status.items():
+                found[judged] |= boxes.matched
+                doubted[judged] |= boxes.conflict | boxes.unconfirmed
             if a in cars and b in cars and a != EGO:
                 directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
                                                  *self._claim)
@@ -367,6 +412,12 @@ class Defend:
                 history.append(evidence)
                 self.last_pairs[judged, judge] = sum(history, NO_EVIDENCE)
                 self.last_now[judged, judge] = evidence
+        self.last_orphans = {}
+        for slot in filled:
+            now = (int(np.sum(doubted[slot] & ~found[slot])), int(found[slot].shape[0]))
+            history = self._orphans.setdefault((ego, ids[slot]), deque(maxlen=self.params.window))
+            history.append(now)
+            self.last_orphans[int(slot)] = (tuple(np.sum(history, axis=0).tolist()), now)
         return self.kept([int(s) for s in filled])
 
     def kept(self, slots: list[int]) -> set[int]:
@@ -427,6 +478,19 @@ class Defend:
         return {slot for slot in slots
                 if self._tests * tail(slot, self.last_pairs) < self.params.alpha
                 and tail(slot, self.last_now) <= self.params.recent}
+
+
+    def orphaned(self, slots: list[int]) -> set[int]:
+        """The slots whose orphan boxes (unconfirmed or conflicting for some source with
+        them in clear view, matched by none: :attr:`last_orphans`) exceed the share
+        ``orphan_rate`` significantly over the window (one-sided binomial, level alpha over
+        the consistency tests' Bonferroni) and this step's alone have a p-value of at most
+        ``recent``. Judged against every collaborator, outside the consensus."""
+        def tail(orphans: int, boxes: int) -> float:
+            return float(bdtrc(orphans - 1, boxes, self.params.orphan_rate)) if boxes else 1.0
+        return {slot for slot in slots
+                if self._tests * tail(*self.last_orphans[slot][0]) < self.params.alpha
+                and tail(*self.last_orphans[slot][1]) <= self.params.recent}
 
 
 def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> float:
