@@ -176,6 +176,7 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"orphan_rate": 0.0}, r"orphan_rate=0.0 is out of range; allowed \(0.0, 1.0\)"),
     ({"orphan_rate": 1.0}, r"orphan_rate=1.0 is out of range"),
     ({"use_orphan": "no"}, r"use_orphan"),
+    ({"orphan_m": -1.0}, r"orphan_m=-1.0 is out of range"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -436,17 +437,17 @@ def _orphan_scene(rng: np.random.Generator, ghosts: list[tuple[float, float]]) -
 
 
 def test_orphan_boxes_reject_a_few_ghosts_not_honest_misses():
-    """Three ghosts in everyone's clear view among 14 real cars: nobody has a box there,
-    so they are orphans and collaborator 2 fails the orphan test within a few steps; the
-    honest sources' random misses (5 % per car and source, seeded) are matched by the
-    others and never are. The other consistency tests stay quiet (miss_rate 0.5, no
-    relative test)."""
+    """Three ghosts in everyone's clear view among 14 real cars, 4 m or more from them:
+    nobody has a box there, so they are orphans and collaborator 2 fails the orphan test
+    within a few steps; the honest sources' random misses (5 % per car and source, seeded)
+    are matched by the others and never are. The other consistency tests stay quiet
+    (miss_rate 0.5, no relative test)."""
     rng = np.random.default_rng(7)
+    ghosts = [(-25.0, 4.0), (15.0, 4.0), (0.0, -4.0)]
     defend = Defend(use_correction=False, miss_rate=0.5, use_relative=False)
     actions, reasons = [], []
     for _ in range(6):
-        actions.append(defend(*_orphan_scene(rng, [(-25.0, 4.0), (15.0, 4.0), (0.0, -4.0)]))
-                       .tolist())
+        actions.append(defend(*_orphan_scene(rng, ghosts)).tolist())
         reasons.append(defend.last_reasons[2])
     assert all(action[:2] == [0, 0] and action[3] == 0 for action in actions)
     assert actions[-1][2] == 1 and reasons[-1] == "orphan"
@@ -455,5 +456,21 @@ def test_orphan_boxes_reject_a_few_ghosts_not_honest_misses():
     honest = Defend(use_correction=False)
     assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(20))
     off = Defend(use_correction=False, miss_rate=0.5, use_relative=False, use_orphan=False)
-    assert not any(off(*_orphan_scene(rng, [(-25.0, 4.0), (15.0, 4.0), (0.0, -4.0)])).any()
-                   for _ in range(6))
+    assert not any(off(*_orphan_scene(rng, ghosts)).any() for _ in range(6))
+
+
+def test_a_misaligned_collaborators_boxes_are_no_orphans():
+    """Collaborator 2's boxes all 2.5 m off sideways (an aligner left it so): unconfirmed
+    (they overlap no box), but each within 3 m of the others' box of the same car, so with
+    ``orphan_m`` 3 none is an orphan; with 1 m they are (a box 1.5 m off overlaps the
+    car's: a conflict, never an orphan)."""
+    obs, slots = _orphan_scene(np.random.default_rng(8), [])
+    shifted = obs["collab_boxes"][2].copy()
+    shifted[obs["collab_box_mask"][2] > 0, 1] += 2.5
+    obs["collab_boxes"][2] = shifted
+    counts = {}
+    for orphan_m in (3.0, 1.0):
+        defend = Defend(use_correction=False, orphan_m=orphan_m)
+        defend(obs, slots)
+        counts[orphan_m] = defend.last_orphans[2][1][0]
+    assert counts[3.0] == 0 and counts[1.0] > 5

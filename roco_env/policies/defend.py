@@ -6,7 +6,7 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Five tests, each a statistical test at level ``alpha``:
+Six tests, each a statistical test at level ``alpha``:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -55,6 +55,14 @@ Five tests, each a statistical test at level ``alpha``:
   fourth test of the same Bonferroni, window and ``recent`` rule, judged against every
   collaborator (outside the consensus). It has power where a fixed ``miss_rate`` must
   sit above every honest share (a few ghosts).
+* **Orphan boxes**: a collaborator's box is an orphan when a judge (the ego, or a
+  collaborator no other test rejects this step) has it in clear view and leaves it
+  unconfirmed, and no judge has a box within ``orphan_m`` m of it (so a collaborator the
+  aligner left a metre or two off, whose boxes sit beside the others', shows none). Its
+  orphans over the window are tested against the share ``orphan_rate`` (one-sided
+  binomial, a fifth test of the same Bonferroni, window and ``recent`` rule), judged
+  against every collaborator. Honest misses are matched by another source; a ghost in
+  clear view is matched by none.
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -145,12 +153,14 @@ def centre_distances(boxes: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 class BoxStatus(NamedTuple):
     """Per box (k,) of one source as another source's boxes judge it: ``matched`` (its
-    nearest box within ``match_m``), ``conflict`` (overlapping without matching) and
-    ``unconfirmed`` (neither, in the other's clear view)."""
+    nearest box within ``match_m``), ``conflict`` (overlapping without matching),
+    ``unconfirmed`` (neither, in the other's clear view) and ``gap`` (m, the distance to
+    the nearest box's centre; inf where the other has none)."""
 
     matched: np.ndarray
     conflict: np.ndarray
     unconfirmed: np.ndarray
+    gap: np.ndarray
 
     def evidence(self) -> PairEvidence:
         """The counts of :class:`PairEvidence`."""
@@ -164,12 +174,12 @@ def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
     """How the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) judge each of
     ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
     ``distance``: their :func:`centre_distances`, when already computed."""
-    none = np.zeros(boxes.shape[0], dtype=bool)
+    none, far = np.zeros(boxes.shape[0], dtype=bool), np.full(boxes.shape[0], np.inf)
     if boxes.shape[0] == 0:
-        return BoxStatus(none, none, none)
+        return BoxStatus(none, none, none, far)
     if other.shape[0] == 0:
         seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
-        return BoxStatus(none, none, seen)
+        return BoxStatus(none, none, seen, far)
     if distance is None:
         distance = centre_distances(boxes, other)
     nearest = np.argmin(distance, axis=1)
@@ -186,7 +196,7 @@ def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
     if loose.any():
         seen[loose] = clear_view(other_origin, boxes[loose, :2], occluders, view_m, occlusion_m,
                                  match_m)
-    return BoxStatus(matched, ~matched & overlap, seen)
+    return BoxStatus(matched, ~matched & overlap, seen, gap)
 
 
 def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
@@ -258,7 +268,10 @@ class DefendParams:
                               "share against the other collaborators' (consistency)")
     use_orphan: bool = spec(True, doc="the test of orphan boxes: unconfirmed by a source with "
                             "them in clear view and matched by none (consistency)")
-    orphan_rate: float = _open_share(0.05, "share of an honest collaborator's boxes that are "
+    orphan_m: float = _positive(2.0, "a box with another source's box this near (m) is no "
+                                "orphan (a misaligned collaborator's boxes lie near the "
+                                "others')")
+    orphan_rate: float = _open_share(0.03, "share of an honest collaborator's boxes that are "
                                      "orphans (unconfirmed by a source with them in clear "
                                      "view, matched by none)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
@@ -305,6 +318,7 @@ class Defend:
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
         self.last_now: dict[tuple, PairEvidence] = {}  # (judged, judge) -> this step's
+        self._status: dict[tuple, BoxStatus] = {}  # (judged, judge) -> this step's per box
         # slot -> (orphans, boxes) over the window and this step's
         self.last_orphans: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
 
@@ -336,8 +350,11 @@ class Defend:
             if self.use["relative"]:
                 for slot in self.relatively_unconfirmed([int(s) for s in filled]):
                     reasons[slot] = reasons[slot] or "relative"
-            if self.use["orphan"]:
-                for slot in self.orphaned([int(s) for s in filled]):
+            if self.use["orphan"]:  # judged by the ego and the collaborators kept so far
+                judges = [EGO, *(int(s) for s in filled if not reasons[s])]
+                for slot in self.orphaned([int(s) for s in filled], judges,
+                                          keys[0][0] if keys else None,
+                                          [key[1] for key in keys]):
                     reasons[slot] = reasons[slot] or "orphan"
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
@@ -383,11 +400,7 @@ class Defend:
         # vehicles claim a place and witness others' claims (an RSU's view misses cars)
         cars = {key for key, name in ids.items() if self.use["claim"] and str(
             ego if key == EGO else name).startswith(self.params.car_prefix)}
-        self.last_pairs, self.last_now = {}, {}
-        # per source and box: matched by some other source; doubted (conflicting or
-        # unconfirmed) by some other source
-        found = {key: np.zeros(boxes.shape[0], dtype=bool) for key, (boxes, _) in sources.items()}
-        doubted = {key: flags.copy() for key, flags in found.items()}
+        self.last_pairs, self.last_now, self._status = {}, {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             distance = centre_distances(boxes_a, boxes_b)
@@ -396,10 +409,8 @@ class Defend:
                                          *self._geometry, distance),
                       (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
                                          *self._geometry, distance.T)}
+            self._status.update(status)
             directed = {key: judged.evidence() for key, judged in status.items()}
-            for (judged, _), boxes in status.items():
-                found[judged] |= boxes.matched
-                doubted[judged] |= boxes.conflict | boxes.unconfirmed
             if a in cars and b in cars and a != EGO:
                 directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
                                                  *self._claim)
@@ -412,12 +423,6 @@ class Defend:
                 history.append(evidence)
                 self.last_pairs[judged, judge] = sum(history, NO_EVIDENCE)
                 self.last_now[judged, judge] = evidence
-        self.last_orphans = {}
-        for slot in filled:
-            now = (int(np.sum(doubted[slot] & ~found[slot])), int(found[slot].shape[0]))
-            history = self._orphans.setdefault((ego, ids[slot]), deque(maxlen=self.params.window))
-            history.append(now)
-            self.last_orphans[int(slot)] = (tuple(np.sum(history, axis=0).tolist()), now)
         return self.kept([int(s) for s in filled])
 
     def kept(self, slots: list[int]) -> set[int]:
@@ -480,12 +485,30 @@ class Defend:
                 and tail(slot, self.last_now) <= self.params.recent}
 
 
-    def orphaned(self, slots: list[int]) -> set[int]:
-        """The slots whose orphan boxes (unconfirmed or conflicting for some source with
-        them in clear view, matched by none: :attr:`last_orphans`) exceed the share
-        ``orphan_rate`` significantly over the window (one-sided binomial, level alpha over
-        the consistency tests' Bonferroni) and this step's alone have a p-value of at most
-        ``recent``. Judged against every collaborator, outside the consensus."""
+    def orphaned(self, slots: list[int], judges: list[Hashable], ego: Hashable,
+                 names: list[Hashable]) -> set[int]:
+        """Record this step's orphan boxes of every slot (``names``: their collaborator
+        ids, ``ego`` the ego's): boxes that some source of ``judges`` (EGO and slots; not
+        the slot itself) leaves unconfirmed, with no box of any judge within ``orphan_m``
+        (from this step's :func:`box_status` of every pair), in :attr:`last_orphans`
+        (slot -> (orphans, boxes) over the window, and this step's); the slots whose
+        orphans exceed the share ``orphan_rate`` significantly over the window (one-sided
+        binomial, level alpha over the consistency tests' Bonferroni) and this step's alone
+        have a p-value of at most ``recent``."""
+        self.last_orphans = {}
+        for slot, name in zip(slots, names, strict=True):
+            others = [self._status[slot, judge] for judge in judges if judge != slot]
+            count = self._status[slot, EGO].matched.shape[0]
+            near = np.full(count, np.inf)
+            doubted = np.zeros(count, dtype=bool)
+            for judged in others:
+                near = np.minimum(near, judged.gap)
+                doubted |= judged.unconfirmed
+            now = (int(np.sum(doubted & (near > self.params.orphan_m))), count)
+            history = self._orphans.setdefault((ego, name), deque(maxlen=self.params.window))
+            history.append(now)
+            self.last_orphans[slot] = (tuple(np.sum(history, axis=0).tolist()), now)
+
         def tail(orphans: int, boxes: int) -> float:
             return float(bdtrc(orphans - 1, boxes, self.params.orphan_rate)) if boxes else 1.0
         return {slot for slot in slots
