@@ -38,13 +38,14 @@ def observation(own: np.ndarray, collaborators: list[tuple[np.ndarray, np.ndarra
            "collab_mask": np.zeros(slots, np.int8), "collab_rel_poses": np.zeros((slots, 3)),
            "collab_reported_poses": np.zeros((slots, 3)),
            "collab_boxes": np.zeros((slots, k, 7)), "collab_box_mask": np.zeros((slots, k), np.int8),
-           "diagnostics": np.zeros((slots, 8))}
+           "collab_scores": np.zeros((slots, k)), "diagnostics": np.zeros((slots, 8))}
     obs["boxes"][: len(own)], obs["box_mask"][: len(own)] = own, 1
     for slot, (boxes, pose) in enumerate(collaborators):
         obs["collab_mask"][slot] = 1
         obs["collab_rel_poses"][slot] = obs["collab_reported_poses"][slot] = pose
         obs["collab_boxes"][slot, : len(boxes)] = boxes
         obs["collab_box_mask"][slot, : len(boxes)] = 1
+        obs["collab_scores"][slot, : len(boxes)] = 0.9
         obs["diagnostics"][slot, 6] = np.hypot(*pose[:2])
     return obs
 
@@ -177,6 +178,7 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"orphan_rate": 1.0}, r"orphan_rate=1.0 is out of range"),
     ({"use_orphan": "no"}, r"use_orphan"),
     ({"orphan_m": -1.0}, r"orphan_m=-1.0 is out of range"),
+    ({"orphan_score": 1.5}, r"orphan_score=1.5 is out of range"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -474,3 +476,19 @@ def test_a_misaligned_collaborators_boxes_are_no_orphans():
         defend(obs, slots)
         counts[orphan_m] = defend.last_orphans[2][1][0]
     assert counts[3.0] == 0 and counts[1.0] > 5
+
+
+def test_boxes_scored_like_false_positives_are_no_orphans():
+    """The three ghosts scored 0.3 (the realistic detector's false positives score at
+    most 0.45): below ``orphan_score`` they count neither as orphans nor as boxes."""
+    obs, slots = _orphan_scene(np.random.default_rng(9), [(-25.0, 4.0), (15.0, 4.0),
+                                                          (0.0, -4.0)])
+    count = int(obs["collab_box_mask"][2].sum())
+    found = {}
+    for score in (0.9, 0.3):
+        obs["collab_scores"][2, count - 3:count] = score
+        defend = Defend(use_correction=False)
+        defend(obs, slots)
+        found[score] = defend.last_orphans[2][1]
+    assert found[0.9][0] >= 2 and found[0.9][1] == count
+    assert found[0.3] == (0, count - 3)

@@ -271,6 +271,9 @@ class DefendParams:
     orphan_m: float = _positive(2.0, "a box with another source's box this near (m) is no "
                                 "orphan (a misaligned collaborator's boxes lie near the "
                                 "others')")
+    orphan_score: float = spec(0.5, low=0.0, high=1.0, doc="only boxes scored this or "
+                               "higher count in the orphan test (the realistic detector's "
+                               "false positives score at most 0.45)")
     orphan_rate: float = _open_share(0.03, "share of an honest collaborator's boxes that are "
                                      "orphans (unconfirmed by a source with them in clear "
                                      "view, matched by none)")
@@ -352,9 +355,12 @@ class Defend:
                     reasons[slot] = reasons[slot] or "relative"
             if self.use["orphan"]:  # judged by the ego and the collaborators kept so far
                 judges = [EGO, *(int(s) for s in filled if not reasons[s])]
+                scores = np.asarray(observation["collab_scores"], dtype=float)
+                masks = np.asarray(observation["collab_box_mask"]) > 0
+                scored = [scores[s][masks[s]] >= self.params.orphan_score for s in filled]
                 for slot in self.orphaned([int(s) for s in filled], judges,
                                           keys[0][0] if keys else None,
-                                          [key[1] for key in keys]):
+                                          [key[1] for key in keys], scored):
                     reasons[slot] = reasons[slot] or "orphan"
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
@@ -486,17 +492,18 @@ class Defend:
 
 
     def orphaned(self, slots: list[int], judges: list[Hashable], ego: Hashable,
-                 names: list[Hashable]) -> set[int]:
+                 names: list[Hashable], scored: list[np.ndarray]) -> set[int]:
         """Record this step's orphan boxes of every slot (``names``: their collaborator
         ids, ``ego`` the ego's): boxes that some source of ``judges`` (EGO and slots; not
         the slot itself) leaves unconfirmed, with no box of any judge within ``orphan_m``
         (from this step's :func:`box_status` of every pair), in :attr:`last_orphans`
-        (slot -> (orphans, boxes) over the window, and this step's); the slots whose
+        (slot -> (orphans, boxes) over the window, and this step's), among each slot's
+        boxes ``scored`` (bool per box: scored at least ``orphan_score``); the slots whose
         orphans exceed the share ``orphan_rate`` significantly over the window (one-sided
         binomial, level alpha over the consistency tests' Bonferroni) and this step's alone
         have a p-value of at most ``recent``."""
         self.last_orphans = {}
-        for slot, name in zip(slots, names, strict=True):
+        for slot, name, counted in zip(slots, names, scored, strict=True):
             others = [self._status[slot, judge] for judge in judges if judge != slot]
             count = self._status[slot, EGO].matched.shape[0]
             near = np.full(count, np.inf)
@@ -504,7 +511,8 @@ class Defend:
             for judged in others:
                 near = np.minimum(near, judged.gap)
                 doubted |= judged.unconfirmed
-            now = (int(np.sum(doubted & (near > self.params.orphan_m))), count)
+            now = (int(np.sum(doubted & (near > self.params.orphan_m) & counted)),
+                   int(counted.sum()))
             history = self._orphans.setdefault((ego, name), deque(maxlen=self.params.window))
             history.append(now)
             self.last_orphans[slot] = (tuple(np.sum(history, axis=0).tolist()), now)
