@@ -58,7 +58,8 @@ Six tests, each a statistical test at level ``alpha``:
 * **Orphan boxes**: a collaborator's box is an orphan when a judge (the ego, or a
   collaborator no other test rejects this step) has it in clear view and leaves it
   unconfirmed, and no judge has a box within ``orphan_m`` m of it (so a collaborator the
-  aligner left a metre or two off, whose boxes sit beside the others', shows none). Its
+  aligner left a metre or two off, whose boxes sit beside the others', shows none); only
+  boxes scored at least ``orphan_score`` count (a detector's clutter scores low). Its
   orphans over the window are tested against the share ``orphan_rate`` (one-sided
   binomial, a fifth test of the same Bonferroni, window and ``recent`` rule), judged
   against every collaborator. Honest misses are matched by another source; a ghost in
