@@ -71,7 +71,11 @@ _SPEC = importlib.util.spec_from_file_location(
 spoof_ceiling = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(spoof_ceiling)
 
-KINDS = ("ghost", "erase", "pose_spoof")  # the attacks whose evidence this script knows
+# the protocol's attacks whose evidence this script knows: ghosts, erase, the consistent spoof
+KNOWN = tuple(label for label, attack in ATTACKS.items()
+              if attack.get("attack.kind") in ("ghost", "erase")
+              or (attack.get("attack.kind") == "pose_spoof"
+                  and attack.get("attack.params.consistent") is True))
 DEFAULT_ATTACKS = ("ghosts 5", "erase 50%", "spoof 3 m consistent")
 
 
@@ -247,14 +251,9 @@ def attack_items(scene: str, label: str, seeds: Sequence[int], steps: int, sigma
 
 
 def _check(args: argparse.Namespace) -> None:
-    unknown = [label for label in args.attacks if label not in ATTACKS
-               or ATTACKS[label].get("attack.kind") not in KINDS
-               or (ATTACKS[label]["attack.kind"] == "pose_spoof"
-                   and not ATTACKS[label].get("attack.params.consistent"))]
+    unknown = [label for label in args.attacks if label not in KNOWN]
     if unknown:
-        raise ValueError(f"--attacks: {unknown} not known here; choose among "
-                         f"{[k for k in ATTACKS if k not in ('none',) and 'spoof' not in k]}"
-                         " and 'spoof 3 m consistent'")
+        raise ValueError(f"--attacks: {unknown} not known here; choose among {list(KNOWN)}")
     bad = [scene for scene in args.scenes if scene not in SCENES]
     if bad:
         raise ValueError(f"--scenes: {bad} not in the protocol; choose among {list(SCENES)}")
