@@ -38,13 +38,14 @@ def observation(own: np.ndarray, collaborators: list[tuple[np.ndarray, np.ndarra
            "collab_mask": np.zeros(slots, np.int8), "collab_rel_poses": np.zeros((slots, 3)),
            "collab_reported_poses": np.zeros((slots, 3)),
            "collab_boxes": np.zeros((slots, k, 7)), "collab_box_mask": np.zeros((slots, k), np.int8),
-           "diagnostics": np.zeros((slots, 8))}
+           "collab_scores": np.zeros((slots, k)), "diagnostics": np.zeros((slots, 8))}
     obs["boxes"][: len(own)], obs["box_mask"][: len(own)] = own, 1
     for slot, (boxes, pose) in enumerate(collaborators):
         obs["collab_mask"][slot] = 1
         obs["collab_rel_poses"][slot] = obs["collab_reported_poses"][slot] = pose
         obs["collab_boxes"][slot, : len(boxes)] = boxes
         obs["collab_box_mask"][slot, : len(boxes)] = 1
+        obs["collab_scores"][slot, : len(boxes)] = 0.9
         obs["diagnostics"][slot, 6] = np.hypot(*pose[:2])
     return obs
 
@@ -173,6 +174,11 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"use_offset": "yes"}, r"use_offset"),
     ({"bias_t": -0.1}, r"bias_t=-0.1 is out of range"),
     ({"relative_margin": 0.5}, r"relative_margin=0.5 is out of range"),
+    ({"orphan_rate": 0.0}, r"orphan_rate=0.0 is out of range; allowed \(0.0, 1.0\)"),
+    ({"orphan_rate": 1.0}, r"orphan_rate=1.0 is out of range"),
+    ({"use_orphan": "no"}, r"use_orphan"),
+    ({"orphan_m": -1.0}, r"orphan_m=-1.0 is out of range"),
+    ({"orphan_score": 1.5}, r"orphan_score=1.5 is out of range"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -395,11 +401,13 @@ def test_a_collaborator_with_more_unconfirmed_boxes_than_the_others_is_rejected(
                 (-5.0, -18.0))]
     obs = observation(cars(*scene), list(zip(sent, poses, strict=True)))
     for relative, verdict in ((True, [0, 0, 1, 0]), (False, [0, 0, 0, 0])):
-        defend = Defend(use_correction=False, miss_rate=0.5, use_relative=relative)
+        # its honest collaborators' two unconfirmed cars are orphans (22 % of their boxes)
+        defend = Defend(use_correction=False, miss_rate=0.5, use_relative=relative,
+                        use_orphan=False)
         actions = [defend(obs, info(3)).tolist() for _ in range(6)]
         assert actions[-1] == verdict, relative
         assert all(action[:2] == [0, 0] for action in actions)
-    defend = Defend(use_correction=False, miss_rate=0.5)
+    defend = Defend(use_correction=False, miss_rate=0.5, use_orphan=False)
     for _ in range(6):
         defend(obs, info(3))
     assert defend.last_reasons[2] == "relative"
@@ -413,3 +421,74 @@ def test_the_relative_test_has_power_where_both_shares_sit_at_0_or_1():
     assert _relative_tail(PairEvidence(0, 0, 4), PairEvidence(60, 0, 0), 1.2) < 1e-3
     assert _relative_tail(PairEvidence(4, 0, 0), PairEvidence(60, 0, 0), 1.2) >= 0.5
     assert _relative_tail(PairEvidence(0, 0, 0), PairEvidence(60, 0, 0), 1.2) == 1.0
+
+
+def _orphan_scene(rng: np.random.Generator, ghosts: list[tuple[float, float]]) -> tuple:
+    """One step of SCENE seen by the ego and three collaborators (ego frame): every source
+    misses each car with probability 0.05 and places the others 0.2 m off (std, seeded);
+    collaborator 2 adds ``ghosts``."""
+    poses = [np.array([0.0, 20.0, 0.0]), np.array([0.0, -12.0, 0.0]),
+             np.array([5.0, 25.0, 0.0])]
+
+    def seen(extra=()):
+        kept = [xy for xy in SCENE if rng.random() > 0.05]
+        return cars(*(np.array(kept) + rng.normal(0.0, 0.2, (len(kept), 2))), *extra)
+
+    sent = [seen(), seen(), seen(ghosts)]
+    return observation(seen(), list(zip(sent, poses, strict=True))), info(3)
+
+
+def test_orphan_boxes_reject_a_few_ghosts_not_honest_misses():
+    """Three ghosts in everyone's clear view among 14 real cars, 4 m or more from them:
+    nobody has a box there, so they are orphans and collaborator 2 fails the orphan test
+    within a few steps; the honest sources' random misses (5 % per car and source, seeded)
+    are matched by the others and never are. The other consistency tests stay quiet
+    (miss_rate 0.5, no relative test)."""
+    rng = np.random.default_rng(7)
+    ghosts = [(-25.0, 4.0), (15.0, 4.0), (0.0, -4.0)]
+    defend = Defend(use_correction=False, miss_rate=0.5, use_relative=False)
+    actions, reasons = [], []
+    for _ in range(6):
+        actions.append(defend(*_orphan_scene(rng, ghosts)).tolist())
+        reasons.append(defend.last_reasons[2])
+    assert all(action[:2] == [0, 0] and action[3] == 0 for action in actions)
+    assert actions[-1][2] == 1 and reasons[-1] == "orphan"
+    window = {slot: counts for slot, (counts, _) in defend.last_orphans.items()}
+    assert window[0][0] == window[1][0] == 0 and window[2][0] >= 12  # of 6 x 3 ghosts
+    honest = Defend(use_correction=False)
+    assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(20))
+    off = Defend(use_correction=False, miss_rate=0.5, use_relative=False, use_orphan=False)
+    assert not any(off(*_orphan_scene(rng, ghosts)).any() for _ in range(6))
+
+
+def test_a_misaligned_collaborators_boxes_are_no_orphans():
+    """Collaborator 2's boxes all 2.5 m off sideways (an aligner left it so): unconfirmed
+    (they overlap no box), but each within 3 m of the others' box of the same car, so with
+    ``orphan_m`` 3 none is an orphan; with 1 m they are (a box 1.5 m off overlaps the
+    car's: a conflict, never an orphan)."""
+    obs, slots = _orphan_scene(np.random.default_rng(8), [])
+    shifted = obs["collab_boxes"][2].copy()
+    shifted[obs["collab_box_mask"][2] > 0, 1] += 2.5
+    obs["collab_boxes"][2] = shifted
+    counts = {}
+    for orphan_m in (3.0, 1.0):
+        defend = Defend(use_correction=False, orphan_m=orphan_m)
+        defend(obs, slots)
+        counts[orphan_m] = defend.last_orphans[2][1][0]
+    assert counts[3.0] == 0 and counts[1.0] > 5
+
+
+def test_boxes_scored_like_false_positives_are_no_orphans():
+    """The three ghosts scored 0.3 (the realistic detector's false positives score at
+    most 0.45): below ``orphan_score`` they count neither as orphans nor as boxes."""
+    obs, slots = _orphan_scene(np.random.default_rng(9), [(-25.0, 4.0), (15.0, 4.0),
+                                                          (0.0, -4.0)])
+    count = int(obs["collab_box_mask"][2].sum())
+    found = {}
+    for score in (0.9, 0.3):
+        obs["collab_scores"][2, count - 3:count] = score
+        defend = Defend(use_correction=False)
+        defend(obs, slots)
+        found[score] = defend.last_orphans[2][1]
+    assert found[0.9][0] >= 2 and found[0.9][1] == count
+    assert found[0.3] == (0, count - 3)

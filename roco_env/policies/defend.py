@@ -6,7 +6,7 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Five tests, each a statistical test at level ``alpha``:
+Six tests, each a statistical test at level ``alpha``:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -55,6 +55,15 @@ Five tests, each a statistical test at level ``alpha``:
   fourth test of the same Bonferroni, window and ``recent`` rule, judged against every
   collaborator (outside the consensus). It has power where a fixed ``miss_rate`` must
   sit above every honest share (a few ghosts).
+* **Orphan boxes**: a collaborator's box is an orphan when a judge (the ego, or a
+  collaborator no other test rejects this step) has it in clear view and leaves it
+  unconfirmed, and no judge has a box within ``orphan_m`` m of it (so a collaborator the
+  aligner left a metre or two off, whose boxes sit beside the others', shows none); only
+  boxes scored at least ``orphan_score`` count (a detector's clutter scores low). Its
+  orphans over the window are tested against the share ``orphan_rate`` (one-sided
+  binomial, a fifth test of the same Bonferroni, window and ``recent`` rule), judged
+  against every collaborator. Honest misses are matched by another source; a ghost in
+  clear view is matched by none.
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -71,7 +80,7 @@ import itertools
 from collections import deque
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.special import bdtrc, chdtrc, ndtr
@@ -82,8 +91,8 @@ from roco_env.policies.base import check_aligner_base
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["Defend", "DefendParams", "PairEvidence", "centre_distances", "claim_evidence",
-           "clear_view", "pair_evidence"]
+__all__ = ["BoxStatus", "Defend", "DefendParams", "PairEvidence", "box_status", "centre_distances",
+           "claim_evidence", "clear_view", "pair_evidence"]
 
 EGO = "__ego__"  # the ego's key among the sources
 _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagnostics
@@ -143,17 +152,35 @@ def centre_distances(boxes: np.ndarray, other: np.ndarray) -> np.ndarray:
     return np.hypot(boxes[:, None, 0] - other[None, :, 0], boxes[:, None, 1] - other[None, :, 1])
 
 
-def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
-                  occluders: np.ndarray, match_m: float, view_m: float,
-                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
-    """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
+class BoxStatus(NamedTuple):
+    """Per box (k,) of one source as another source's boxes judge it: ``matched`` (its
+    nearest box within ``match_m``), ``conflict`` (overlapping without matching),
+    ``unconfirmed`` (neither, in the other's clear view) and ``gap`` (m, the distance to
+    the nearest box's centre; inf where the other has none)."""
+
+    matched: np.ndarray
+    conflict: np.ndarray
+    unconfirmed: np.ndarray
+    gap: np.ndarray
+
+    def evidence(self) -> PairEvidence:
+        """The counts of :class:`PairEvidence`."""
+        return PairEvidence(int(self.matched.sum()), int(self.conflict.sum()),
+                            int(self.unconfirmed.sum()))
+
+
+def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
+               occluders: np.ndarray, match_m: float, view_m: float,
+               occlusion_m: float, distance: np.ndarray | None = None) -> BoxStatus:
+    """How the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) judge each of
     ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
     ``distance``: their :func:`centre_distances`, when already computed."""
+    none, far = np.zeros(boxes.shape[0], dtype=bool), np.full(boxes.shape[0], np.inf)
     if boxes.shape[0] == 0:
-        return NO_EVIDENCE
+        return BoxStatus(none, none, none, far)
     if other.shape[0] == 0:
         seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
-        return PairEvidence(0, 0, int(seen.sum()))
+        return BoxStatus(none, none, seen, far)
     if distance is None:
         distance = centre_distances(boxes, other)
     nearest = np.argmin(distance, axis=1)
@@ -165,13 +192,21 @@ def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray
     overlap = np.zeros_like(matched)
     if close.any():
         overlap[close] = bev_iou_pairs(boxes[close], other[nearest[close]]) > 0.0
-    conflict = ~matched & overlap
     loose = ~matched & ~overlap
     seen = np.zeros_like(loose)
     if loose.any():
         seen[loose] = clear_view(other_origin, boxes[loose, :2], occluders, view_m, occlusion_m,
                                  match_m)
-    return PairEvidence(int(matched.sum()), int(conflict.sum()), int(seen.sum()))
+    return BoxStatus(matched, ~matched & overlap, seen, gap)
+
+
+def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
+                  occluders: np.ndarray, match_m: float, view_m: float,
+                  occlusion_m: float, distance: np.ndarray | None = None) -> PairEvidence:
+    """What the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) say about
+    ``boxes`` (k, 7): the counts of :func:`box_status` (same arguments)."""
+    return box_status(boxes, other, other_origin, occluders, match_m, view_m, occlusion_m,
+                      distance).evidence()
 
 
 def claim_evidence(claimed: np.ndarray, witness: np.ndarray, witness_origin: np.ndarray,
@@ -232,6 +267,17 @@ class DefendParams:
     use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
     use_relative: bool = spec(True, doc="the relative test of a collaborator's unconfirmed "
                               "share against the other collaborators' (consistency)")
+    use_orphan: bool = spec(True, doc="the test of orphan boxes: unconfirmed by a source with "
+                            "them in clear view and matched by none (consistency)")
+    orphan_m: float = _positive(2.0, "a box with another source's box this near (m) is no "
+                                "orphan (a misaligned collaborator's boxes lie near the "
+                                "others')")
+    orphan_score: float = spec(0.5, low=0.0, high=1.0, doc="only boxes scored this or "
+                               "higher count in the orphan test (the realistic detector's "
+                               "false positives score at most 0.45)")
+    orphan_rate: float = _open_share(0.03, "share of an honest collaborator's boxes that are "
+                                     "orphans (unconfirmed by a source with them in clear "
+                                     "view, matched by none)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
                                   "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
@@ -265,20 +311,26 @@ class Defend:
         self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
                     "consensus": p.use_consensus, "claim": p.use_claim,
-                    "relative": p.use_relative}
-        self._tests = 2 + p.use_claim + p.use_relative  # the consistency tests' Bonferroni
+                    "relative": p.use_relative, "orphan": p.use_orphan}
+        # the consistency tests' Bonferroni
+        self._tests = 2 + p.use_claim + p.use_relative + p.use_orphan
         # per key, each step: (q,), or with the mean test (q, z, b): the whitened offset z
         # and bias std b, (3,) each
         self._q: dict[Hashable, deque] = {}
         self._pairs: dict[Hashable, deque] = {}
+        self._orphans: dict[Hashable, deque] = {}  # per key, each step: (orphans, boxes)
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
         self.last_now: dict[tuple, PairEvidence] = {}  # (judged, judge) -> this step's
+        self._status: dict[tuple, BoxStatus] = {}  # (judged, judge) -> this step's per box
+        # slot -> (orphans, boxes) over the window and this step's
+        self.last_orphans: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
         self._q.clear()
         self._pairs.clear()
+        self._orphans.clear()
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None
                  ) -> np.ndarray:
@@ -302,6 +354,15 @@ class Defend:
             if self.use["relative"]:
                 for slot in self.relatively_unconfirmed([int(s) for s in filled]):
                     reasons[slot] = reasons[slot] or "relative"
+            if self.use["orphan"]:  # judged by the ego and the collaborators kept so far
+                judges = [EGO, *(int(s) for s in filled if not reasons[s])]
+                scores = np.asarray(observation["collab_scores"], dtype=float)
+                masks = np.asarray(observation["collab_box_mask"]) > 0
+                scored = [scores[s][masks[s]] >= self.params.orphan_score for s in filled]
+                for slot in self.orphaned([int(s) for s in filled], judges,
+                                          keys[0][0] if keys else None,
+                                          [key[1] for key in keys], scored):
+                    reasons[slot] = reasons[slot] or "orphan"
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
@@ -346,15 +407,17 @@ class Defend:
         # vehicles claim a place and witness others' claims (an RSU's view misses cars)
         cars = {key for key, name in ids.items() if self.use["claim"] and str(
             ego if key == EGO else name).startswith(self.params.car_prefix)}
-        self.last_pairs, self.last_now = {}, {}
+        self.last_pairs, self.last_now, self._status = {}, {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             distance = centre_distances(boxes_a, boxes_b)
             # directed: what b says about a's boxes (and a's claimed place), and back
-            directed = {(a, b): pair_evidence(boxes_a, boxes_b, origin_b, occluders,
-                                              *self._geometry, distance),
-                        (b, a): pair_evidence(boxes_b, boxes_a, origin_a, occluders,
-                                              *self._geometry, distance.T)}
+            status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders,
+                                         *self._geometry, distance),
+                      (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
+                                         *self._geometry, distance.T)}
+            self._status.update(status)
+            directed = {key: judged.evidence() for key, judged in status.items()}
             if a in cars and b in cars and a != EGO:
                 directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
                                                  *self._claim)
@@ -427,6 +490,39 @@ class Defend:
         return {slot for slot in slots
                 if self._tests * tail(slot, self.last_pairs) < self.params.alpha
                 and tail(slot, self.last_now) <= self.params.recent}
+
+
+    def orphaned(self, slots: list[int], judges: list[Hashable], ego: Hashable,
+                 names: list[Hashable], scored: list[np.ndarray]) -> set[int]:
+        """Record this step's orphan boxes of every slot (``names``: their collaborator
+        ids, ``ego`` the ego's): boxes that some source of ``judges`` (EGO and slots; not
+        the slot itself) leaves unconfirmed, with no box of any judge within ``orphan_m``
+        (from this step's :func:`box_status` of every pair), in :attr:`last_orphans`
+        (slot -> (orphans, boxes) over the window, and this step's), among each slot's
+        boxes ``scored`` (bool per box: scored at least ``orphan_score``); the slots whose
+        orphans exceed the share ``orphan_rate`` significantly over the window (one-sided
+        binomial, level alpha over the consistency tests' Bonferroni) and this step's alone
+        have a p-value of at most ``recent``."""
+        self.last_orphans = {}
+        for slot, name, counted in zip(slots, names, scored, strict=True):
+            others = [self._status[slot, judge] for judge in judges if judge != slot]
+            count = self._status[slot, EGO].matched.shape[0]
+            near = np.full(count, np.inf)
+            doubted = np.zeros(count, dtype=bool)
+            for judged in others:
+                near = np.minimum(near, judged.gap)
+                doubted |= judged.unconfirmed
+            now = (int(np.sum(doubted & (near > self.params.orphan_m) & counted)),
+                   int(counted.sum()))
+            history = self._orphans.setdefault((ego, name), deque(maxlen=self.params.window))
+            history.append(now)
+            self.last_orphans[slot] = (tuple(np.sum(history, axis=0).tolist()), now)
+
+        def tail(orphans: int, boxes: int) -> float:
+            return float(bdtrc(orphans - 1, boxes, self.params.orphan_rate)) if boxes else 1.0
+        return {slot for slot in slots
+                if self._tests * tail(*self.last_orphans[slot][0]) < self.params.alpha
+                and tail(*self.last_orphans[slot][1]) <= self.params.recent}
 
 
 def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> float:
