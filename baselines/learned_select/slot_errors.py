@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import argparse
 from collections import defaultdict
-from dataclasses import replace
 
 import numpy as np
+from env_hook import run_with_env
 from privileged_bound import CHOICES, pose_errors
 
-import roco_env.sweeps.episode as episode
 from roco_env.policies import make_policy
 from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
 from roco_env.sweeps.cells import build_grid
@@ -39,23 +38,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=10)
     args = parser.parse_args(argv)
     rows: dict = defaultdict(list)  # (scenario, noise, kind) -> [(error, rejected)]
-    envs: list = []
-    make_env = episode.make_env
-
-    def keep_env(*given, **named):  # the policies read the env's own alignments
-        envs.append(make_env(*given, **named))
-        return envs[-1]
-
     seeds = [TRAIN_SEED_BASE + index for index in range(args.seeds)]
     for cell in build_grid(args.scenarios, args.noise, ["roco_antialias"], seeds, 10):
-        agents = iter(range(1000))
 
-        def recorder(cell=cell, agents=agents):
-            policy, index = make_policy(args.policy), next(agents)
+        def recorder(index, env_of, cell=cell):
+            policy = make_policy(args.policy)
 
             def act(observation, info):
                 action = policy(observation, info)
-                env = envs[-1]
+                env = env_of()
                 alignment = env._choices[env.possible_agents[index]][KEEP]
                 n = int(np.sum(observation["collab_mask"]))
                 errors = pose_errors(np.asarray(alignment.corrected)[:n],
@@ -69,11 +60,7 @@ def main(argv: list[str] | None = None) -> None:
                 return action
             act.env_overrides = policy.env_overrides
             return act
-        try:
-            episode.make_env = keep_env
-            episode.run_episode(replace(cell, policy=args.policy), recorder)
-        finally:
-            episode.make_env = make_env
+        run_with_env(cell, args.policy, recorder)
     print("| scenario | noise | roco_antialias's slot | slots | off > 1 | median error | "
           "rejected |\n|---|---|---|---|---|---|---|")
     for (scenario, noise, kind), values in sorted(rows.items()):
