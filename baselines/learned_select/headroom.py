@@ -26,7 +26,6 @@ touches (from the rule's episodes).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections import defaultdict
@@ -34,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 from env_hook import run_with_env
-from privileged_bound import CHOICES, REJECT_ERROR, pose_errors
+from privileged_bound import CHOICES, REJECT_ERROR, grid_parser, pose_errors
 
 from roco_env.policies import make_policy
 from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
@@ -62,13 +61,7 @@ def decide(variant: str, errors: np.ndarray, tested: np.ndarray,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--scenarios", nargs="+",
-                        default=["urban_intersection", "parking_lot", "v2xset_like"])
-    parser.add_argument("--noise", nargs="+", type=float, default=[0.2, 0.8, 1.5, 3.0])
-    parser.add_argument("--seeds", type=int, default=4)
-    parser.add_argument("--steps", type=int, default=10)
+    parser = grid_parser(__doc__.splitlines()[0], seeds=4)
     parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     parser.add_argument("--reject-error", type=float, default=REJECT_ERROR,
                         help="tested_reject: reject where roco_antialias's e exceeds this")

@@ -28,14 +28,17 @@ from roco_env.sweeps.episode import run_episode
 from roco_env.training.rl.curriculum import TRAIN_SEED_BASE
 
 
-def differences(records: list[dict], base: str, policies: list[str]) -> str:
-    """A Markdown table: per condition, each policy's mean AP@0.7 minus ``base``'s."""
+def differences(records: list[dict], base: str, policies: list[str],
+                names: list[str] | None = None) -> str:
+    """A Markdown table: per condition, each policy's mean AP@0.7 minus ``base``'s; columns
+    ``names`` (None: ``p1``, ``p2``, ... and a legend line per policy under the table)."""
     score: dict = defaultdict(dict)
     for record in records:
         cell = record["cell"]
         score[(cell["scenario"], cell["noise"], cell["policy"])][cell["seed"]] = \
             record["metrics"]["ap70"]
-    names = [f"p{index + 1}" for index in range(len(policies))]
+    legend = names is None
+    names = names or [f"p{index + 1}" for index in range(len(policies))]
     lines = [f"| scenario | noise | {base} | " + " | ".join(names) + " |",
              "|---|---|---|" + "---|" * len(policies)]
     gains: dict[str, list[float]] = defaultdict(list)
@@ -53,8 +56,9 @@ def differences(records: list[dict], base: str, policies: list[str]) -> str:
     lines.append("| **mean** | all | | " + " | ".join(
         f"{np.mean(gains[policy]):+.4f}" if gains[policy] else "-" for policy in policies)
         + " |")
-    return "\n".join(lines + [f"{name}: {policy}" for name, policy in zip(names, policies,
-                                                                          strict=True)])
+    if legend:
+        lines += [f"{name}: {policy}" for name, policy in zip(names, policies, strict=True)]
+    return "\n".join(lines)
 
 
 def _run(cell) -> dict:
