@@ -170,6 +170,37 @@ def test_the_guard_rejects_only_untested_slots_the_network_would_reject():
     np.testing.assert_array_equal(Guard(3, -5.0).act(logits, diagnostics, mask), [3, 3, 3, 3])
 
 
+def test_the_rule_guard_rejects_every_untested_slot_and_lets_the_network_decide_the_rest():
+    """``train-policy --guard reject_untested``'s guard: the same logits as above; slot 0
+    (tested) takes the network's argmax (reject), slots 1 and 2 (untested) are rejected
+    whatever the logits, slot 3 (empty) takes the argmax (the env ignores it)."""
+    from roco_env.policies.learned import Guard
+
+    logits = np.array([[0.0, 0.0, 0.0, 1.0, 9.0],
+                       [0.0, 0.0, 0.0, 1.0, 0.5],
+                       [0.0, 2.0, 0.0, 1.0, 0.5],
+                       [0.0, 0.0, 3.0, 1.0, 0.0]])
+    diagnostics = np.zeros((4, 4, 8))
+    diagnostics[:, :, _statistic_column()] = -1.0
+    diagnostics[0, 3, _statistic_column()] = 4.2
+    diagnostics[3, 3, _statistic_column()] = 1.0
+    mask = np.array([1, 1, 1, 0])
+    np.testing.assert_array_equal(Guard(3, None, "network").act(logits, diagnostics, mask),
+                                  [4, 4, 4, 2])
+
+
+def test_a_file_with_the_rule_guard_loads_it_and_refuses_a_margin(tmp_path):
+    from roco_env.policies.learned import Guard, rule_guard
+
+    path = guarded_weights(tmp_path / "rule.pt", rule_guard(3))
+    assert make_policy("learned_select", weights=path).guard == Guard(3, None, "network")
+    with pytest.raises(ValueError, match=r"rule\.pt: its guard rejects every untested slot"):
+        make_policy("learned_select", weights=path, reject_margin=1.0)
+    bad = guarded_weights(tmp_path / "bad.pt", {**rule_guard(3), "tested": "keep"})
+    with pytest.raises(ValueError, match=r"bad\.pt: guard must be"):
+        make_policy("learned_select", weights=bad)
+
+
 def _statistic_column() -> int:
     from roco_env.policies.reject_untested import STATISTIC
 

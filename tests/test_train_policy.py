@@ -18,10 +18,11 @@ pytest.importorskip("stable_baselines3")
 from roco_env.cli import main  # noqa: E402
 from roco_env.observation_modes import DIAGNOSTICS  # noqa: E402
 from roco_env.policies.learned import LearnedPolicy  # noqa: E402
+from roco_env.policies.reject_untested import STATISTIC  # noqa: E402
 from roco_env.schema import ConfigError  # noqa: E402
 from roco_env.training.rl.config import build_config  # noqa: E402
 from roco_env.training.rl.curriculum import condition_env, draw_condition  # noqa: E402
-from roco_env.training.rl.ppo import greedy, train  # noqa: E402
+from roco_env.training.rl.ppo import build_model, greedy, train  # noqa: E402
 
 TINY = {"scenarios": ["v2xset_like"], "observation_mode": "raw", "episode_steps": 2,
         "n_steps": 8, "batch_size": 4, "n_epochs": 1, "eval_every": 8,
@@ -115,6 +116,12 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     ({"net_arch": [0]}, "net_arch"),
     ({"learning_rat": 0.1}, "learning_rat"),
     ({"observation_keys": ["boxes", "boxes"]}, "observation_keys"),
+    ({"guard": "always"}, "guard"),
+    ({"guard": "reject_untested"}, "guard"),  # TINY's raw observation has no diagnostics
+    ({"guard": "reject_untested", "observation_mode": "aligned",
+      "observation_keys": ["diagnostics", "collab_mask"]}, "guard"),
+    ({"reward_over": "base", "action_mode": "gate"}, "reward_over"),
+    ({"reward_over": "base", "action_base": "oracle"}, "reward_over"),
 ])
 def test_bad_options_name_the_field(values, field):
     with pytest.raises(ConfigError, match=field):
@@ -146,3 +153,60 @@ def test_observation_keys_choose_what_the_policy_reads(tmp_path):
     assert env.observation_space.shape == (5 + 5 * len(DIAGNOSTICS),)
     with pytest.raises(ValueError, match=r"observation_keys names \['pose'\]"):
         CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))
+
+
+GUARDED = {**TINY, "observation_mode": "aligned", "guard": "reject_untested",
+           "observation_keys": ["choice_diagnostics", "collab_mask"], "noise_low": 3.0,
+           "noise_high": 3.0}
+
+
+def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_policy(tmp_path):
+    """v2xset_like at 3 m / 3 deg: the training env rejects exactly the slots
+    roco_antialias left untested whatever the action, and the exported file acts behind
+    the same rule (its guard) as the greedy SB3 policy does."""
+    from roco_env.policies.learned import Guard
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    from roco_env.training.rl.policy_export import save_policy
+
+    config = build_config(GUARDED)
+    env = CurriculumEnv(config)
+    env.reset(seed=1)
+    untested = 0
+    for _ in range(2):
+        observation = env._observation
+        filled = observation["collab_mask"] > 0
+        blind = filled & (observation["choice_diagnostics"][:, 3, STATISTIC] == -1)
+        _, _, _, _, info = env.step(np.zeros(len(filled), np.int64))  # identity everywhere
+        np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
+        untested += int(blind.sum())
+    assert untested >= 1
+    model = build_model(config, env)  # untrained: the export, not the learning, is tested
+    save_policy(tmp_path / "w.pt", model.policy, env, config, {})
+    learned, sb3 = LearnedPolicy(str(tmp_path / "w.pt")), greedy(model, env)
+    assert learned.guard == Guard(3, None, "network")
+    play = condition_env(config, draw_condition(config, 3))
+    observation, info = play.reset(seed=1)
+    np.testing.assert_array_equal(learned(observation, info), sb3(observation, info))
+
+
+def test_reward_over_the_base_pays_only_what_a_deviation_changes():
+    """With reward_over=base a step that takes roco_antialias's pose (behind the guard)
+    pays exactly 0, and a deviating step its reward minus that of the base's action on
+    the same frame (the env played twice from the same state)."""
+    from roco_env.training.rl.curriculum import CurriculumEnv
+
+    over, plain = (CurriculumEnv(build_config({**GUARDED, "reward_over": value}))
+                   for value in ("base", "none"))
+    for env in (over, plain):
+        env.reset(seed=1)
+    keep = np.full(5, 3)
+    assert over.step(keep)[1] == 0.0
+    base_reward = plain.step(keep)[1]
+    deviate = np.zeros(5, np.int64)  # identity: differs from roco_antialias at 3 m
+    paid = over.step(deviate)[1]
+    gained = plain.step(deviate)[1]
+    twin = CurriculumEnv(build_config(GUARDED))
+    twin.reset(seed=1)
+    twin.step(keep)
+    assert paid == pytest.approx(gained - twin.step(keep)[1], abs=1e-12)
+    assert paid != 0.0 and base_reward != gained

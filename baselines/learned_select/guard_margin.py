@@ -16,45 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
+from training_seeds import differences
 
 from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.episode import run_episode
 from roco_env.training.rl.curriculum import TRAIN_SEED_BASE
 
 BASE = "roco_antialias"
-
-
-def differences(records: list[dict]) -> str:
-    """A Markdown table: per condition, each margin's mean AP@0.7 minus BASE's (same seeds)."""
-    score: dict = defaultdict(dict)
-    for record in records:
-        cell = record["cell"]
-        column = cell["policy"] if cell["policy"] == BASE else \
-            f"margin {float(cell['policy'].split('reject_margin=')[1].split(',')[0]):g}"
-        score[(cell["scenario"], cell["noise"], column)][cell["seed"]] = \
-            record["metrics"]["ap70"]
-    policies = sorted({key[2] for key in score} - {BASE}, key=lambda c: float(c.split()[1]))
-    lines = [f"| scenario | noise | {BASE} | " + " | ".join(policies) + " |",
-             "|---|---|---|" + "---|" * len(policies)]
-    gains: dict[str, list[float]] = defaultdict(list)
-    for scenario, noise in sorted({key[:2] for key in score}):
-        base = score[(scenario, noise, BASE)]
-        cells = []
-        for policy in policies:
-            own = score.get((scenario, noise, policy), {})
-            common = sorted(set(own) & set(base))
-            if common:
-                gains[policy].append(float(np.mean([own[s] - base[s] for s in common])))
-            cells.append(f"{gains[policy][-1]:+.4f}" if common else "-")
-        lines.append(f"| {scenario} | {noise} | {np.mean(list(base.values())):.4f} | "
-                     + " | ".join(cells) + " |")
-    lines.append("| **mean** | all | | " + " | ".join(
-        f"{np.mean(gains[policy]):+.4f}" for policy in policies) + " |")
-    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -83,7 +53,8 @@ def main(argv: list[str] | None = None) -> None:
             print(cell.scenario, cell.noise, cell.policy, cell.seed,
                   round(metrics["ap70"], 4), file=sys.stderr)
     records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
-    print(differences(records))
+    print(differences(records, BASE, policies[1:],
+                      [f"margin {margin:g}" for margin in args.margins]))
 
 
 if __name__ == "__main__":

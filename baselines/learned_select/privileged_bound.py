@@ -77,14 +77,21 @@ class PrivilegedSelect:
         return action
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def grid_parser(description: str, seeds: int) -> argparse.ArgumentParser:
+    """The options of a script that writes cells of the README's grid: --out,
+    --scenarios, --noise, --seeds (default ``seeds``), --steps."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--out", required=True)
     parser.add_argument("--scenarios", nargs="+",
                         default=["urban_intersection", "parking_lot", "v2xset_like"])
     parser.add_argument("--noise", nargs="+", type=float, default=[0.2, 0.8, 1.5, 3.0])
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=seeds)
     parser.add_argument("--steps", type=int, default=10)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = grid_parser(__doc__.splitlines()[0], seeds=3)
     parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     args = parser.parse_args(argv)
     out = Path(args.out)

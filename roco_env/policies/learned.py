@@ -17,13 +17,19 @@ The policy flattens the observation (keys in the stored order, each raveled), di
 ``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per slot the argmax
 of its logits (``select``/``gate``), or the mean clipped to the bounds (Box modes).
 
-A select-mode file may hold a ``guard`` in its metadata, ``{"keep": k, "reject_margin": m}``
-(:class:`Guard`): the policy then takes choice ``k`` for every slot, except a slot where
-choice ``k`` computed no significance statistic (``choice_diagnostics[slot, k, statistic]
-== -1``: it found nothing to test the collaborator's pose by, whether or not it moved
-it), which it rejects when the reject logit is at least choice ``k``'s minus ``m``. The
-network decides only where the aligner is blind; it cannot switch aligners or reject a
-slot the aligner tested.
+A select-mode file may hold a ``guard`` in its metadata (:class:`Guard`), which reads
+choice ``k``'s significance statistic (``choice_diagnostics[slot, k, statistic] == -1``:
+the choice found nothing to test the collaborator's pose by, whether or not it moved it;
+such a slot is "untested"):
+
+* ``{"keep": k, "reject_margin": m}``: the policy takes choice ``k`` for every tested slot
+  and rejects an untested one when the reject logit is at least choice ``k``'s minus
+  ``m``. The network decides only where the aligner is blind; it cannot switch aligners or
+  reject a slot the aligner tested.
+* ``{"keep": k, "untested": "reject", "tested": "network"}`` (``train-policy --guard
+  reject_untested``): every untested slot is rejected by rule, and the network's argmax
+  decides every tested slot (any choice or reject). Training applied the same rule to the
+  sampled actions, so the network learned only the decisions the rule leaves open.
 
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
@@ -55,22 +61,40 @@ _REQUIRED_META = ("format", "env_overrides", "observation", "action")
 @dataclass(frozen=True)
 class Guard:
     """Where a select-mode network may deviate (module docstring): ``keep``, the index of
-    the choice taken by default; ``reject_margin``, how far (in logits) the reject logit
-    may fall below choice ``keep``'s on a slot that choice could not test and still win."""
+    the choice whose statistic says which slots are untested; ``reject_margin``, how far
+    (in logits) the reject logit may fall below choice ``keep``'s on an untested slot and
+    still win, or None: every untested slot is rejected; ``tested``, who decides a tested
+    slot: ``"keep"`` (choice ``keep``) or ``"network"`` (the network's argmax)."""
 
     keep: int
-    reject_margin: float
+    reject_margin: float | None
+    tested: str = "keep"
 
     def act(self, logits: np.ndarray, choice_diagnostics: np.ndarray,
             collab_mask: np.ndarray) -> np.ndarray:
         """(N,) int64 actions from (N, C + 1) logits (last: reject) and the (N, C, ...)
         choice diagnostics of the observation."""
         reject = logits.shape[1] - 1
+        blind = self.untested(choice_diagnostics, collab_mask)
+        if self.reject_margin is None:
+            on_blind = np.full(len(blind), reject)
+        else:
+            wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
+            on_blind = np.where(wants, reject, self.keep)
+        on_tested = np.argmax(logits, axis=1) if self.tested == "network" else self.keep
+        return np.where(blind, on_blind, on_tested).astype(np.int64)
+
+    def untested(self, choice_diagnostics: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
+        """(N,) bool: the filled slots choice ``keep`` computed no statistic for."""
         # "statistic" has one index in DIAGNOSTICS and CHOICE_DIAGNOSTICS (tested)
-        blind = untested_slots(np.asarray(choice_diagnostics)[:, self.keep, STATISTIC],
-                               collab_mask)
-        wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
-        return np.where(blind & wants, reject, self.keep).astype(np.int64)
+        return untested_slots(np.asarray(choice_diagnostics)[:, self.keep, STATISTIC],
+                              collab_mask)
+
+
+def rule_guard(keep: int) -> dict:
+    """The metadata of the guard that rejects every slot choice ``keep`` left untested and
+    lets the network decide the tested ones (``train-policy --guard reject_untested``)."""
+    return {"keep": keep, "untested": "reject", "tested": "network"}
 
 
 def load_weights(path: str | Path) -> tuple[dict, dict]:
@@ -189,14 +213,21 @@ def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | N
         return None
     keys = [key for key, _ in metadata["observation"]]
     nvec = metadata["action"].get("nvec", [])
-    if not isinstance(raw, dict) or set(raw) != {"keep", "reject_margin"} \
+    rule = isinstance(raw, dict) and raw == rule_guard(raw.get("keep"))
+    if not isinstance(raw, dict) or (set(raw) != {"keep", "reject_margin"} and not rule) \
             or "choice_diagnostics" not in keys or "collab_mask" not in keys \
             or len(set(nvec)) != 1 or not isinstance(raw["keep"], int) \
             or not 0 <= raw["keep"] < nvec[0] - 1:
         raise ValueError(f"learned policy weights file {path}: guard must be "
-                         "{'keep': a choice index, 'reject_margin': logits} on a select "
-                         "policy that reads choice_diagnostics and collab_mask; got "
-                         f"{raw!r}")
+                         "{'keep': a choice index, 'reject_margin': logits} or "
+                         "{'keep': a choice index, 'untested': 'reject', 'tested': "
+                         "'network'} on a select policy that reads choice_diagnostics and "
+                         f"collab_mask; got {raw!r}")
+    if rule:
+        if reject_margin is not None:
+            raise ValueError(f"learned policy weights file {path}: its guard rejects every "
+                             "untested slot; reject_margin applies only to a guard with one")
+        return Guard(raw["keep"], None, "network")
     margin = raw["reject_margin"] if reject_margin is None else reject_margin
     if not isinstance(margin, int | float) or isinstance(margin, bool) \
             or not np.isfinite(margin):

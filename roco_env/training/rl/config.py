@@ -15,12 +15,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from roco_env.flags import SpecFlags
-from roco_env.scenario import OBSERVATION_MODES, list_scenarios
+from roco_env.scenario import OBSERVATION_MODES, ActionConfig, list_scenarios
 from roco_env.schema import ConfigError, build, check_fields, spec
 
 ACTION_MODES = ("correction", "residual", "select", "gate")
 NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
 REWARDS = ("ap70_gain", "ap50_gain", "ap70", "ap50")
+GUARDS = ("none", "reject_untested")
+REWARD_OVER = ("none", "base")
 WHERE = "train-policy"
 
 
@@ -50,6 +52,14 @@ class PolicyTrainConfig:
     max_boxes: int = spec(64, low=1, high=1024, doc="K, fixed across the curriculum")
     episode_steps: int = spec(8, low=1, high=1000, doc="env steps per training episode")
     reward: str = spec("ap70_gain", choices=REWARDS, doc="the env's reward")
+    guard: str = spec("none", choices=GUARDS, doc="reject_untested: the slots action_base "
+                      "computed no statistic for are rejected by rule (in training, "
+                      "evaluation and the exported policy), the network decides the others "
+                      "(select mode, aligned observation, action_base one of the choices)")
+    reward_over: str = spec("none", choices=REWARD_OVER, doc="base: each training step's "
+                            "reward minus the reward of taking action_base's pose for every "
+                            "slot (behind the guard) on the same frame, so only deviations "
+                            "from it are paid (select mode; evaluation keeps the plain reward)")
     total_timesteps: int = spec(9600, low=1, doc="PPO env steps in all")
     n_steps: int = spec(320, low=1, doc="env steps per PPO rollout (a multiple of "
                         "episode_steps, so a checkpoint falls between episodes)")
@@ -123,6 +133,21 @@ def _check_ties(config: PolicyTrainConfig) -> None:
     if config.total_timesteps % config.n_steps:
         raise ConfigError(f"{WHERE}: total_timesteps={config.total_timesteps} must be a "
                           f"multiple of n_steps={config.n_steps}")
+    if config.reward_over != "none" and (config.action_mode != "select" or
+                                          config.action_base not in ActionConfig().choices):
+        raise ConfigError(f"{WHERE}: reward_over={config.reward_over!r} needs "
+                          f"action_mode='select' and action_base one of "
+                          f"{ActionConfig().choices}")
+    if config.guard != "none" and (
+            config.action_mode != "select" or config.observation_mode != "aligned"
+            or config.action_base not in ActionConfig().choices
+            or not {"choice_diagnostics", "collab_mask"} <= set(config.observation_keys
+                                                               or ("choice_diagnostics",
+                                                                   "collab_mask"))):
+        raise ConfigError(f"{WHERE}: guard={config.guard!r} needs action_mode='select', "
+                          "observation_mode='aligned', action_base one of "
+                          f"{ActionConfig().choices} and observation_keys holding "
+                          "choice_diagnostics and collab_mask (or empty)")
     if config.batch_size > config.n_steps:
         raise ConfigError(f"{WHERE}: batch_size={config.batch_size} must be <= "
                           f"n_steps={config.n_steps}")

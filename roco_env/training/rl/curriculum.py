@@ -7,10 +7,14 @@ single-agent Gymnasium env PPO trains on: each episode an :class:`~roco_env.wrap
 of the drawn condition, its Dict observation flattened (keys in the space's order) and
 divided by a fixed per-entry scale (:func:`observation_layout`). Every condition shares
 the spaces: ``max_collaborators`` and ``max_boxes`` are fixed by the config.
+With ``reward_over="base"`` a step's reward is paid relative to the base's action on the
+same frame: a copy of the EgoEnv (``copy.deepcopy``: its generators and aligners' state
+too) takes that action, when it differs from the policy's on a filled slot.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,8 +22,8 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from roco_env.policies.learned import scaled_observation
-from roco_env.scenario import load_scenario
+from roco_env.policies.learned import Guard, scaled_observation
+from roco_env.scenario import ActionConfig, load_scenario
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.wrappers import EgoEnv
 
@@ -56,6 +60,23 @@ def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
     if config.action_mode in ("residual", "gate") or config.observation_mode == "aligned":
         overrides["action.base"] = config.action_base
     return overrides
+
+
+def training_guard(config: PolicyTrainConfig) -> Guard | None:
+    """The rule ``config.guard`` applies to every action (None for ``"none"``): reject
+    the slots ``action_base`` left untested, the network's action elsewhere."""
+    if config.guard == "none":
+        return None
+    return Guard(ActionConfig().choices.index(config.action_base), None, "network")
+
+
+def guarded_action(guard: Guard | None, action: np.ndarray, observation: dict) -> np.ndarray:
+    """``action`` (N,) with the untested slots of the Dict ``observation`` rejected
+    (unchanged without a guard)."""
+    if guard is None:
+        return action
+    blind = guard.untested(observation["choice_diagnostics"], observation["collab_mask"])
+    return np.where(blind, len(ActionConfig().choices), action).astype(np.int64)
 
 
 def draw_condition(config: PolicyTrainConfig, index: int) -> Condition:
@@ -150,6 +171,8 @@ class CurriculumEnv(gymnasium.Env):
         self.action_space = first.action_space
         self.condition: Condition | None = None
         self._fresh = False  # reset and not stepped since
+        self.guard = training_guard(config)
+        self._observation: dict | None = None  # the last Dict observation (the guard's)
 
     def resume_index(self) -> int:
         """The episode index a resumed run starts with: the one in progress if it has not
@@ -176,14 +199,37 @@ class CurriculumEnv(gymnasium.Env):
                              f"{self._env.action_space}, not {self.action_space}")
         observation, info = self._env.reset(seed=self.condition.seed)
         self._fresh = True
+        self._observation = observation
         return self.flat(observation), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         if self._env is None:
             raise ValueError("step() called before reset()")
+        action = guarded_action(self.guard, action, self._observation)
+        reference = self._reference_reward(action)
         observation, reward, terminated, truncated, info = self._env.step(action)
+        if self.config.reward_over != "none":
+            reward = 0.0 if reference is None else float(reward) - reference
         self._fresh = False
+        self._observation = observation
         return self.flat(observation), reward, terminated, truncated, info
+
+    def _reference_reward(self, action: np.ndarray) -> float | None:
+        """What the base's action (behind the guard) earns on this step's frame, played on
+        a copy of the env; None without ``reward_over`` or where it equals ``action`` on
+        every filled slot (the step then pays 0 with ``reward_over``)."""
+        if self.config.reward_over == "none":
+            return None
+        base = ActionConfig().choices.index(self.config.action_base)
+        reference = guarded_action(self.guard, np.full(len(action), base), self._observation)
+        filled = np.asarray(self._observation["collab_mask"]) > 0
+        if np.array_equal(reference[filled], np.asarray(action)[filled]):
+            return None
+        twin = copy.deepcopy(self._env)
+        try:
+            return float(twin.step(reference)[1])
+        finally:
+            twin.close()
 
     def close(self) -> None:
         if self._env is not None:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from roco_env.policies.learned import FORMAT
+from roco_env.policies.learned import FORMAT, rule_guard
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import INPUT_CLIP, CurriculumEnv, env_overrides
 
@@ -61,6 +61,8 @@ def save_policy(path: Path, policy: torch.nn.Module, env: CurriculumEnv,
     metadata = {"format": FORMAT, "input_clip": INPUT_CLIP, "env_overrides": policy_env_overrides(config),
                 "observation": [[key, list(shape)] for key, shape in env.keys],
                 "action": action_metadata(env.action_space), **provenance}
+    if env.guard is not None:  # the exported policy acts behind the rule it trained behind
+        metadata["guard"] = rule_guard(env.guard.keep)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"state_dict": actor_state_dict(policy, env.scale),
                 "metadata": json.dumps(metadata, sort_keys=True)}, path)

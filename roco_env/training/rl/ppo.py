@@ -22,7 +22,7 @@ import torch
 
 from roco_env.training.rl.checkpoint import load_state, restore_checkpoint, save_checkpoint
 from roco_env.training.rl.config import PolicyTrainConfig
-from roco_env.training.rl.curriculum import CurriculumEnv
+from roco_env.training.rl.curriculum import CurriculumEnv, guarded_action
 from roco_env.training.rl.evaluate import BASELINES, evaluate, evaluate_baseline
 
 
@@ -66,10 +66,11 @@ def build_model(config: PolicyTrainConfig, env: CurriculumEnv) -> Any:
 
 
 def greedy(model: Any, env: CurriculumEnv) -> Callable[[dict, dict], np.ndarray]:
-    """``act(obs, info)``: the model's deterministic action on a Dict observation."""
+    """``act(obs, info)``: the model's deterministic action on a Dict observation (behind
+    the training guard, as the exported policy acts)."""
     def act(observation: dict, info: dict | None = None) -> np.ndarray:
         action, _ = model.predict(env.flat(observation), deterministic=True)
-        return action
+        return guarded_action(env.guard, action, observation)
     return act
 
 
