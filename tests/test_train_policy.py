@@ -21,7 +21,7 @@ from roco_env.policies.learned import LearnedPolicy  # noqa: E402
 from roco_env.policies.reject_untested import STATISTIC  # noqa: E402
 from roco_env.schema import ConfigError  # noqa: E402
 from roco_env.training.rl.config import build_config  # noqa: E402
-from roco_env.training.rl.curriculum import condition_env, draw_condition  # noqa: E402
+from roco_env.training.rl.curriculum import condition_env, draw_condition, eval_conditions  # noqa: E402
 from roco_env.training.rl.ppo import build_model, greedy, train  # noqa: E402
 
 TINY = {"scenarios": ["v2xset_like"], "observation_mode": "raw", "episode_steps": 2,
@@ -201,7 +201,7 @@ def test_reward_over_the_base_pays_only_what_a_deviation_changes():
         env.reset(seed=1)
     keep = np.full(5, 3)
     assert over.step(keep)[1] == 0.0
-    base_reward = plain.step(keep)[1]
+    plain.step(keep)
     deviate = np.zeros(5, np.int64)  # identity: differs from roco_antialias at 3 m
     paid = over.step(deviate)[1]
     gained = plain.step(deviate)[1]
@@ -209,4 +209,43 @@ def test_reward_over_the_base_pays_only_what_a_deviation_changes():
     twin.reset(seed=1)
     twin.step(keep)
     assert paid == pytest.approx(gained - twin.step(keep)[1], abs=1e-12)
-    assert paid != 0.0 and base_reward != gained
+    assert paid != 0.0
+
+
+def test_a_guarded_run_is_compared_with_its_rule_alone():
+    """A network behind the guard is compared with the rule it acts behind: the
+    ``reject_untested`` baseline plays roco_antialias's choice for every slot with the
+    untested slots rejected, in the training env (an unguarded run has no such row)."""
+    from roco_env.training.rl.evaluate import RULE, baselines_of, evaluate_baseline
+
+    guarded = build_config({**GUARDED, "eval_noises": [5.0], "eval_seeds": 3})
+    assert baselines_of(guarded)[-1] == RULE and RULE not in baselines_of(build_config(TINY))
+    rewards, rejected = [], 0
+    for condition in eval_conditions(guarded):
+        env = condition_env(guarded, condition)
+        observation, _ = env.reset(seed=condition.seed)
+        for _ in range(guarded.episode_steps):
+            filled = observation["collab_mask"] > 0
+            blind = filled & (observation["choice_diagnostics"][:, 3, STATISTIC] == -1)
+            observation, reward, _, _, info = env.step(np.where(blind, 4, 3))
+            np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
+            rewards.append(reward)
+            rejected += int(blind.sum())
+        env.close()
+    assert rejected >= 1  # the rule had something to reject
+    assert evaluate_baseline(guarded, RULE)["reward"] == pytest.approx(np.mean(rewards),
+                                                                       abs=1e-12)
+
+
+def test_the_guard_refuses_an_env_with_other_choices(monkeypatch):
+    """The guard and reward_over index the default action.choices: an env that names
+    others (no shipped scenario does today) is refused, naming the field, before a step."""
+    from roco_env.training.rl import curriculum
+
+    build = curriculum.condition_env
+    swapped = ["identity", "roco", "coalign", "roco_antialias"]
+    monkeypatch.setattr(curriculum, "condition_env", lambda config, condition, **extra: build(
+        config, condition, **{"action.choices": swapped}, **extra))
+    env = curriculum.CurriculumEnv(build_config(GUARDED))
+    with pytest.raises(ValueError, match="action.choices"):
+        env.reset(seed=1)

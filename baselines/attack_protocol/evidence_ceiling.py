@@ -147,11 +147,12 @@ def _with_cars(state: WorldState, boxes: np.ndarray) -> WorldState:
 
 
 def _unseen_places(env, frame, witnesses: list[int], boxes: np.ndarray,
-                   seen_by: list[set], near_m: float) -> np.ndarray:
+                   near_m: float) -> np.ndarray:
     """The probabilities ``r`` (k,) of the (place, witness) pairs where a real car at a
-    place (world boxes (G, 7)) would have been detected by the witness, for the places no
-    witness has a box of (``seen_by[g]``: the witnesses with a box there) and that lie
-    farther than ``near_m`` from every real object."""
+    place (world boxes (G, 7)) would have been detected by the witness, for the places
+    farther than ``near_m`` from every real object. A witness's false positive that happens
+    to lie at a place is not looked for (the place counts as missed): one more way in which
+    the ceiling is generous."""
     if boxes.shape[0] == 0:
         return np.zeros(0)
     real = frame.state.object_boxes.reshape(-1, 7)[:, :2]
@@ -162,9 +163,7 @@ def _unseen_places(env, frame, witnesses: list[int], boxes: np.ndarray,
     count = frame.state.object_boxes.reshape(-1, 7).shape[0]
     recall = _recall(env.pipeline.detector, visibility, np.asarray(witnesses),
                      count + np.arange(boxes.shape[0]))
-    keep = free[None, :] & np.array([[w not in seen_by[g] for g in range(boxes.shape[0])]
-                                     for w in witnesses], dtype=bool)
-    return recall[keep & (recall > 0.0)]
+    return recall[free[None, :] & (recall > 0.0)]
 
 
 def step_evidence(env, frame, victim: int, slot: int, attacker: int, near_m: float
@@ -186,8 +185,7 @@ def step_evidence(env, frame, victim: int, slot: int, attacker: int, near_m: flo
     if kind == "ghost":
         rows = (sent == -1) & (np.asarray(view.collab_scores[slot]) >= attack.params.score)
         ghosts = transform_boxes(np.asarray(view.collab_boxes[slot])[rows], true_pose)
-        return StepEvidence(_unseen_places(env, frame, witnesses, ghosts,
-                                           [set()] * ghosts.shape[0], near_m))
+        return StepEvidence(_unseen_places(env, frame, witnesses, ghosts, near_m))
     if kind == "erase":
         detected = frame.detections[attacker].object_ids
         erased = [o for o in detected.tolist() if o >= 0 and o not in set(sent.tolist())
@@ -212,7 +210,7 @@ def step_evidence(env, frame, victim: int, slot: int, attacker: int, near_m: flo
     moved = se2_compose(claim, se2_inverse(true_pose))  # the car's box to the claimed place
     index = list(frame.state.object_ids).index(car)
     box = transform_boxes(frame.state.object_boxes.reshape(-1, 7)[index:index + 1], moved)
-    return StepEvidence(_unseen_places(env, frame, witnesses, box, [set()], near_m))
+    return StepEvidence(_unseen_places(env, frame, witnesses, box, near_m))
 
 
 def attack_items(scene: str, label: str, seeds: Sequence[int], steps: int, sigma: float,

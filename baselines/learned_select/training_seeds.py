@@ -7,7 +7,8 @@
 Runs ``--base`` and every ``--policies`` spec on the mixed benchmark's grid (3 scenarios x
 noise 0.2 / 0.8 / 1.5 / 3.0, late fusion, 10 steps) at training env seeds (1,000,000 and
 up), appends the cells to ``OUT/results.jsonl`` in the ``roco-env compare`` layout
-(``table.py`` reads it; a cell already there is not run again) and prints, per condition,
+(``table.py`` reads it; a cell already there with the same weights, by the sha256 of the
+spec's ``weights=`` file, is not run again) and prints, per condition,
 each policy's mean AP@0.7 minus the base's on the same seeds (columns ``p1``, ``p2``, ...
 in the order given).
 """
@@ -15,6 +16,7 @@ in the order given).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 from collections import defaultdict
@@ -23,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from roco_env.policies.spec import parse_policy_spec
 from roco_env.sweeps.cells import build_grid
 from roco_env.sweeps.episode import run_episode
 from roco_env.training.rl.curriculum import TRAIN_SEED_BASE
@@ -61,6 +64,13 @@ def differences(records: list[dict], base: str, policies: list[str],
     return "\n".join(lines)
 
 
+def weights_sha256(policy: str) -> str:
+    """The sha256 of the weights file a policy spec names (``weights=PATH``; "" without
+    one): a cell recorded with other weights at the same path does not count as run."""
+    path = dict(parse_policy_spec(policy).params).get("weights")
+    return hashlib.sha256(Path(str(path)).read_bytes()).hexdigest() if path else ""
+
+
 def _run(cell) -> dict:
     metrics, _ = run_episode(cell)
     return {"cell": {"scenario": cell.scenario, "noise": cell.noise, "policy": cell.policy,
@@ -81,21 +91,28 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sink_path = out / "results.jsonl"
+    sha = {policy: weights_sha256(policy) for policy in [args.base, *args.policies]}
+
+    def current(record: dict) -> bool:  # recorded with the weights the spec names now
+        cell = record["cell"]
+        return cell.get("weights_sha256", "") == sha.get(cell["policy"], "")
+    recorded = [json.loads(line) for line in sink_path.read_text().splitlines()] \
+        if sink_path.exists() else []
     done = {(r["cell"]["scenario"], r["cell"]["noise"], r["cell"]["policy"], r["cell"]["seed"])
-            for r in map(json.loads, sink_path.read_text().splitlines())} \
-        if sink_path.exists() else set()
+            for r in recorded if current(r)}
     seeds = [TRAIN_SEED_BASE + index for index in range(args.seeds)]
     cells = [cell for cell in build_grid(args.scenarios, args.noise,
                                          [args.base, *args.policies], seeds, 10)
              if (cell.scenario, cell.noise, cell.policy, cell.seed) not in done]
     with sink_path.open("a") as sink, ProcessPoolExecutor(args.workers) as pool:
         for record in pool.map(_run, cells):
+            record["cell"]["weights_sha256"] = sha[record["cell"]["policy"]]
             sink.write(json.dumps(record) + "\n")
             sink.flush()
             print(*record["cell"].values(), round(record["metrics"]["ap70"], 4),
                   file=sys.stderr)
     records = [json.loads(line) for line in sink_path.read_text().splitlines()]
-    print(differences(records, args.base, args.policies))
+    print(differences([r for r in records if current(r)], args.base, args.policies))
 
 
 if __name__ == "__main__":

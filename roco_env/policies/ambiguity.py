@@ -81,7 +81,7 @@ from roco_env.policies.prior_free import poses_distinct
 if TYPE_CHECKING:
     from roco_env.policies.antialias import AntiAliasParams
 
-__all__ = ["Ambiguity", "diagnose"]
+__all__ = ["Ambiguity", "diagnose", "scaled_offsets"]
 
 
 @dataclass(frozen=True)
@@ -254,11 +254,11 @@ def diagnose(
     limits = ((p.search_radius / scale[0]) ** 2, (np.deg2rad(p.search_yaw_deg) / scale[2]) ** 2)
     moves, yaw_open = _spectrum(information, limits)
     weak_translation = bool(moves)
-    offset = _scaled_offsets(candidates, pose, scale)
+    offset = scaled_offsets(candidates, pose, scale)
     distinct_rows = poses_distinct(candidates, pose, p)
     rival = (rival_score >= rival_score[best] - p.min_margin) & distinct_rows
     beyond = np.zeros((0, 3)) if beyond is None else np.asarray(beyond, dtype=float).reshape(-1, 3)
-    rivals = np.concatenate([offset[rival], _scaled_offsets(beyond, pose, scale)])
+    rivals = np.concatenate([offset[rival], scaled_offsets(beyond, pose, scale)])
     # Step 3: translation directions (largest rival shift first) and the yaw axis.
     if rivals.shape[0]:
         shifts = rivals[:, :2]
@@ -275,7 +275,7 @@ def diagnose(
                      weak_translation)
 
 
-def _scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
+def scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Offsets (H, 3) of ``poses`` (H, 3) from ``pose`` (3,), the turn wrapped, in the
     scaled coordinates of ``scale`` (3,)."""
     offset = poses - pose

@@ -74,7 +74,7 @@ import numpy as np
 
 from roco_env.geometry import wrap_angle
 from roco_env.policies.adapter import ArrayAlignmentPolicy, ObservationView
-from roco_env.policies.ambiguity import Ambiguity, diagnose
+from roco_env.policies.ambiguity import Ambiguity, diagnose, scaled_offsets
 from roco_env.policies.base import AlignmentResult
 from roco_env.policies.hypotheses import (
     BoxSet,
@@ -248,9 +248,7 @@ def _weak_rivals(
     if weak.shape[0] == 0:
         return weak
     evidence = score_hypotheses(ego, collab, np.concatenate([pose[None], weak]), p)
-    offset = weak - pose
-    offset[:, 2] = wrap_angle(offset[:, 2])
-    offset /= ambiguity.scale
+    offset = scaled_offsets(weak, pose, ambiguity.scale)
     apart = np.einsum("ri,ij,rj->r", offset, ambiguity.information, offset)
     return weak[(evidence[1:] >= evidence[0] - p.min_margin)
                 & (apart >= p.outlier_chi2 * ambiguity.matches)]

@@ -266,12 +266,14 @@ class DefendParams:
     use_consensus: bool = spec(True, doc="the consensus over subsets of collaborators")
     use_claim: bool = spec(True, doc="the claimed-position test of vehicle collaborators")
     use_relative: bool = spec(True, doc="the relative test of a collaborator's unconfirmed "
-                              "share against the other collaborators' (consistency)")
-    use_orphan: bool = spec(True, doc="the test of orphan boxes: unconfirmed by a source with "
-                            "them in clear view and matched by none (consistency)")
-    orphan_m: float = _positive(2.0, "a box with another source's box this near (m) is no "
-                                "orphan (a misaligned collaborator's boxes lie near the "
-                                "others')")
+                              "share against the other collaborators' (a consistency test: "
+                              "runs only with use_consistency)")
+    use_orphan: bool = spec(True, doc="the test of orphan boxes: unconfirmed by a judge with "
+                            "them in clear view and matched by none (a consistency test: "
+                            "runs only with use_consistency)")
+    orphan_m: float = _positive(2.0, "a box with a judge's box (the ego's, or a collaborator's "
+                                "no other test rejects) this near (m) is no orphan (a "
+                                "misaligned collaborator's boxes lie near the others')")
     orphan_score: float = spec(0.5, low=0.0, high=1.0, doc="only boxes scored this or "
                                "higher count in the orphan test (the realistic detector's "
                                "false positives score at most 0.45)")
@@ -462,7 +464,8 @@ class Defend:
         ``group`` in ``pairs`` (directed: (judged, judge) -> evidence): the smallest
         p-value of the one-sided binomial tests times the number of consistency tests
         (Bonferroni: conflicts and unconfirmed boxes, missed claims with the claim test, the
-        relative test of :meth:`relatively_unconfirmed` when on; 1 without evidence)."""
+        relative test of :meth:`relatively_unconfirmed` and the orphan test of
+        :meth:`orphaned` when on; 1 without evidence)."""
         others = [other for other in (EGO, *group) if other != slot]
         evidence = sum((pairs[slot, other] + pairs[other, slot] for other in others),
                        NO_EVIDENCE)

@@ -197,6 +197,13 @@ class CurriculumEnv(gymnasium.Env):
         if self._env.action_space != self.action_space:
             raise ValueError(f"scenario {self.condition.scenario!r} gives the action space "
                              f"{self._env.action_space}, not {self.action_space}")
+        choices = list(self._env.env.config.action.choices)
+        if (self.guard is not None or self.config.reward_over != "none") \
+                and choices != list(ActionConfig().choices):
+            # the guard and the reference action index the default choices
+            raise ValueError(f"scenario {self.condition.scenario!r}: guard / reward_over need "
+                             f"the default action.choices {list(ActionConfig().choices)}; "
+                             f"got {choices}")
         observation, info = self._env.reset(seed=self.condition.seed)
         self._fresh = True
         self._observation = observation

@@ -5,7 +5,10 @@ minus the ego's own AP@0.7, in AP points 0..1) and the mean per-step AP@0.7 (ste
 an undefined AP left out) of the controlled agent over :func:`eval_conditions`. The
 baselines run in ``correction`` mode with their policy (the same conditions, seeds and
 reward; selecting aligner k equals aligner k, tests/test_action_modes.py): identity,
-no fusion (``fusion="none"``), coalign, roco, roco_antialias and the oracle.
+no fusion (``fusion="none"``), coalign, roco, roco_antialias and the oracle. A network
+trained behind a guard (``guard="reject_untested"``) is also compared with the rule alone
+(:func:`baselines_of`): its base aligner's choice for every slot, the guard's rejections,
+in the training env's mode; what the network adds is its score minus that row.
 """
 
 from __future__ import annotations
@@ -15,10 +18,18 @@ from collections.abc import Callable
 import numpy as np
 
 from roco_env.policies import make_policy
+from roco_env.scenario import ActionConfig
 from roco_env.training.rl.config import PolicyTrainConfig
-from roco_env.training.rl.curriculum import Condition, condition_env, eval_conditions
+from roco_env.training.rl.curriculum import (
+    Condition,
+    condition_env,
+    eval_conditions,
+    guarded_action,
+    training_guard,
+)
 
 BASELINES = ("identity", "no_fusion", "coalign", "roco", "roco_antialias", "oracle")
+RULE = "reject_untested"  # the guard's rule alone, the baseline of a guarded network
 
 Act = Callable[[dict, dict], np.ndarray]
 
@@ -56,11 +67,25 @@ def evaluate(config: PolicyTrainConfig, make_act: Callable[[], Act],
             "steps": len(rewards)}
 
 
+def baselines_of(config: PolicyTrainConfig) -> tuple[str, ...]:
+    """The baselines a run of ``config`` is compared with: :data:`BASELINES`, and
+    :data:`RULE` when the network acts behind a guard."""
+    return BASELINES + ((RULE,) if config.guard != "none" else ())
+
+
 def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
-    """One of :data:`BASELINES` on the held-out conditions."""
+    """One of :func:`baselines_of` on the held-out conditions."""
+    if name == RULE and config.guard != "none":
+        guard = training_guard(config)
+        base = ActionConfig().choices.index(config.action_base)
+
+        def rule() -> Act:
+            return lambda observation, info: guarded_action(
+                guard, np.full(len(observation["collab_mask"]), base), observation)
+        return evaluate(config, rule)
     if name == "no_fusion":
         return evaluate(config, lambda: make_policy("identity"), baseline=True, fusion="none")
     if name not in BASELINES:
-        raise ValueError(f"baseline must be one of {list(BASELINES)}; got {name!r}")
+        raise ValueError(f"baseline must be one of {list(baselines_of(config))}; got {name!r}")
     kwargs = {"privileged": True} if name == "oracle" else {}
     return evaluate(config, lambda: make_policy(name), baseline=True, **kwargs)

@@ -23,7 +23,7 @@ import torch
 from roco_env.training.rl.checkpoint import load_state, restore_checkpoint, save_checkpoint
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import CurriculumEnv, guarded_action
-from roco_env.training.rl.evaluate import BASELINES, evaluate, evaluate_baseline
+from roco_env.training.rl.evaluate import baselines_of, evaluate, evaluate_baseline
 
 
 @dataclass
@@ -89,7 +89,7 @@ def train(config: PolicyTrainConfig, out: Path, progress: bool = True,
     model = build_model(config, env)
     if state is None:
         baselines = {}
-        for name in BASELINES:
+        for name in baselines_of(config):
             baselines[name] = evaluate_baseline(config, name)
             log(f"baseline {name}: reward {baselines[name]['reward']:.4f} "
                 f"AP@0.7 {baselines[name]['ap70']:.4f}")
