@@ -36,7 +36,7 @@ from env_hook import run_with_env
 from privileged_bound import CHOICES, REJECT_ERROR, grid_parser, pose_errors
 
 from roco_env.policies import make_policy
-from roco_env.policies.reject_untested import NO_STATISTIC, STATISTIC
+from roco_env.policies.reject_untested import STATISTIC, untested_slots
 from roco_env.sweeps.cells import build_grid
 from roco_env.training.rl.curriculum import TRAIN_SEED_BASE
 
@@ -83,8 +83,9 @@ def main(argv: list[str] | None = None) -> None:
                         truth = info["privileged"]["true_relative_poses"][:n]
                         errors = np.stack([pose_errors(np.asarray(a.corrected)[:n], truth)
                                            for a in alignments])
-                        tested = observation["choice_diagnostics"][:n, KEEP, STATISTIC] \
-                            != NO_STATISTIC
+                        tested = ~untested_slots(
+                            observation["choice_diagnostics"][:n, KEEP, STATISTIC],
+                            observation["collab_mask"][:n])
                         action = np.full(len(observation["collab_mask"]), KEEP)
                         action[:n] = decide(variant, errors, tested, args.reject_error)
                         if variant == "rule":

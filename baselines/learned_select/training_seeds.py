@@ -5,7 +5,7 @@
         [--base reject_untested] [--workers 2]
 
 Runs ``--base`` and every ``--policies`` spec on the mixed benchmark's grid (3 scenarios x
-noise 0.2 / 0.8 / 1.5 / 3.0, late fusion, 10 steps) at training env seeds (1,000,000 and
+noise 0.2 / 0.8 / 1.5 / 3.0, late fusion, ``--steps`` 10) at training env seeds (1,000,000 and
 up), appends the cells to ``OUT/results.jsonl`` in the ``roco-env compare`` layout
 (``table.py`` reads it; a cell already there with the same weights, by the sha256 of the
 spec's ``weights=`` file, is not run again) and prints, per condition,
@@ -15,7 +15,6 @@ in the order given).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import sys
@@ -24,6 +23,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from privileged_bound import grid_parser
 
 from roco_env.policies.spec import parse_policy_spec
 from roco_env.sweeps.cells import build_grid
@@ -71,27 +71,26 @@ def weights_sha256(policy: str) -> str:
     return hashlib.sha256(Path(str(path)).read_bytes()).hexdigest() if path else ""
 
 
-def _run(cell) -> dict:
+def ap70_record(cell) -> dict:
+    """One episode of ``cell``, as a record of the ``roco-env compare`` layout holding its
+    AP@0.7."""
     metrics, _ = run_episode(cell)
     return {"cell": {"scenario": cell.scenario, "noise": cell.noise, "policy": cell.policy,
                      "seed": cell.seed, "overrides": {}}, "metrics": {"ap70": metrics["ap70"]}}
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = grid_parser(__doc__.splitlines()[0], seeds=3)
     parser.add_argument("--policies", nargs="*", default=[])
     parser.add_argument("--base", default="reject_untested")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--scenarios", nargs="+",
-                        default=["urban_intersection", "parking_lot", "v2xset_like"])
-    parser.add_argument("--noise", nargs="+", type=float, default=[0.2, 0.8, 1.5, 3.0])
-    parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--workers", type=int, default=1, choices=(1, 2))
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sink_path = out / "results.jsonl"
-    sha = {policy: weights_sha256(policy) for policy in [args.base, *args.policies]}
+    # as the records name them (build_grid's labels: parameters sorted, values normalised)
+    base, *policies = (parse_policy_spec(p).label for p in [args.base, *args.policies])
+    sha = {policy: weights_sha256(policy) for policy in [base, *policies]}
 
     def current(record: dict) -> bool:  # recorded with the weights the spec names now
         cell = record["cell"]
@@ -102,17 +101,17 @@ def main(argv: list[str] | None = None) -> None:
             for r in recorded if current(r)}
     seeds = [TRAIN_SEED_BASE + index for index in range(args.seeds)]
     cells = [cell for cell in build_grid(args.scenarios, args.noise,
-                                         [args.base, *args.policies], seeds, 10)
+                                         [base, *policies], seeds, args.steps)
              if (cell.scenario, cell.noise, cell.policy, cell.seed) not in done]
     with sink_path.open("a") as sink, ProcessPoolExecutor(args.workers) as pool:
-        for record in pool.map(_run, cells):
+        for record in pool.map(ap70_record, cells):
             record["cell"]["weights_sha256"] = sha[record["cell"]["policy"]]
             sink.write(json.dumps(record) + "\n")
             sink.flush()
             print(*record["cell"].values(), round(record["metrics"]["ap70"], 4),
                   file=sys.stderr)
     records = [json.loads(line) for line in sink_path.read_text().splitlines()]
-    print(differences([r for r in records if current(r)], args.base, args.policies))
+    print(differences([r for r in records if current(r)], base, policies))
 
 
 if __name__ == "__main__":

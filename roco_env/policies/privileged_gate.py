@@ -23,7 +23,6 @@ from roco_env.schema import spec
 __all__ = ["PrivilegedGate", "PrivilegedGateParams"]
 
 
-
 @dataclass(frozen=True)
 class PrivilegedGateParams:
     """``privileged_gate``'s parameters (module docstring)."""

@@ -62,12 +62,18 @@ def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
     return overrides
 
 
+def base_choice(config: PolicyTrainConfig) -> int:
+    """The index of ``action_base`` among the default choices: the action the guard keys
+    on and the reference action of ``reward_over`` (the config checks it is a choice)."""
+    return ActionConfig().choices.index(config.action_base)
+
+
 def training_guard(config: PolicyTrainConfig) -> Guard | None:
     """The rule ``config.guard`` applies to every action (None for ``"none"``): reject
     the slots ``action_base`` left untested, the network's action elsewhere."""
     if config.guard == "none":
         return None
-    return Guard(ActionConfig().choices.index(config.action_base), None, "network")
+    return Guard(base_choice(config), None, "network")
 
 
 def guarded_action(guard: Guard | None, action: np.ndarray, observation: dict) -> np.ndarray:
@@ -227,8 +233,8 @@ class CurriculumEnv(gymnasium.Env):
         every filled slot (the step then pays 0 with ``reward_over``)."""
         if self.config.reward_over == "none":
             return None
-        base = ActionConfig().choices.index(self.config.action_base)
-        reference = guarded_action(self.guard, np.full(len(action), base), self._observation)
+        reference = guarded_action(self.guard, np.full(len(action), base_choice(self.config)),
+                                   self._observation)
         filled = np.asarray(self._observation["collab_mask"]) > 0
         if np.array_equal(reference[filled], np.asarray(action)[filled]):
             return None

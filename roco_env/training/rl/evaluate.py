@@ -18,10 +18,10 @@ from collections.abc import Callable
 import numpy as np
 
 from roco_env.policies import make_policy
-from roco_env.scenario import ActionConfig
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import (
     Condition,
+    base_choice,
     condition_env,
     eval_conditions,
     guarded_action,
@@ -76,8 +76,7 @@ def baselines_of(config: PolicyTrainConfig) -> tuple[str, ...]:
 def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
     """One of :func:`baselines_of` on the held-out conditions."""
     if name == RULE and config.guard != "none":
-        guard = training_guard(config)
-        base = ActionConfig().choices.index(config.action_base)
+        guard, base = training_guard(config), base_choice(config)
 
         def rule() -> Act:
             return lambda observation, info: guarded_action(
