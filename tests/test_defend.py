@@ -15,6 +15,7 @@ from roco_env.policies.defend import (
     EGO,
     Defend,
     PairEvidence,
+    box_status,
     centre_distances,
     claim_evidence,
     clear_view,
@@ -74,6 +75,20 @@ def test_pair_evidence_counts_matches_conflicts_and_unconfirmed_boxes():
     assert evidence == PairEvidence(1, 1, 1)  # the third is in their clear view, not seen
 
 
+def test_a_source_does_not_confirm_its_own_car_and_is_not_asked_to():
+    """A collaborator's box of the ego's car (at the ego's origin): the ego has no box of
+    itself, so with ``own_car_m`` 0 the box is unconfirmed by the ego; within ``own_car_m``
+    of the judge's origin it is not (its own car), and a box beyond it still is."""
+    theirs = cars((0.5, 0.3), (15.0, 0.0))
+    origin, occluders = np.zeros(2), theirs[:, :2]
+    assert pair_evidence(theirs, cars(), origin, occluders, match_m=1.0, view_m=40.0,
+                         occlusion_m=1.5) == PairEvidence(0, 0, 2)
+    status = box_status(theirs, cars(), origin, occluders, 1.0, 40.0, 1.5, blind_m=2.5)
+    assert status.unconfirmed.tolist() == [False, True]
+    assert clear_view(origin, theirs[:, :2], occluders, 40.0, 1.5, 1.0, blind=2.5).tolist() \
+        == [False, True]
+
+
 def test_a_collaborator_that_disagrees_with_everyone_is_rejected_and_the_rest_kept():
     honest = [(cars(*SCENE), np.array([5.0, 4.0, 0.0])) for _ in range(2)]
     liar = (cars(*[(x + 3.0, y) for x, y in SCENE]), np.array([-5.0, 4.0, 0.0]))
@@ -108,9 +123,32 @@ def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
                                  np.array([5.0, 4.0, 0.0]))])
     later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
     for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
-        defend = Defend(use_correction=False, recent=recent)
+        defend = Defend(use_correction=False, recent=recent, sticky=0.0)
         assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
         assert defend(later, info(1)).tolist() == verdict
+
+
+def test_a_collaborator_caught_with_high_confidence_stays_rejected_until_it_decays():
+    """``sticky``: a window p-value below it waives the recent rule. One step with five
+    boxes 2.5 m off (five conflicts, window p-value 3e-15) keeps the collaborator rejected on
+    the clean steps after it while the window's p-value stays below 1e-4 (the default); the
+    clean steps dilute the window (the decay) and release it after six steps. Caught with
+    less confidence (two boxes off: p-value 7e-4, rejected at alpha), or with
+    ``sticky=0``, it is released on the first clean step (the recent rule)."""
+    few = [(x, y) for x, y in SCENE if x > 0][:5]
+    scene = cars(*few)
+    pose = np.array([5.0, 4.0, 0.0])
+    later = observation(scene, [(scene, pose)])
+
+    def verdicts(shifted: int, **params) -> list[int]:
+        moved = [(x + 2.5, y) if i < shifted else (x, y) for i, (x, y) in enumerate(few)]
+        defend = Defend(use_correction=False, **params)
+        steps = [observation(scene, [(cars(*moved), pose)])] + [later] * 9
+        return [int(defend(obs, info(1))[0]) for obs in steps]
+
+    assert verdicts(5) == [1] * 6 + [0] * 4
+    assert verdicts(5, sticky=0.0) == [1] + [0] * 9
+    assert verdicts(2) == [1] + [0] * 9
 
 
 def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():
@@ -179,6 +217,8 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"use_orphan": "no"}, r"use_orphan"),
     ({"orphan_m": -1.0}, r"orphan_m=-1.0 is out of range"),
     ({"orphan_score": 1.5}, r"orphan_score=1.5 is out of range"),
+    ({"sticky": 1.5}, r"sticky=1.5 is out of range; allowed \[0.0, 1.0\]"),
+    ({"own_car_m": -1.0}, r"own_car_m=-1.0 is out of range; allowed \[0.0, inf\)"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
