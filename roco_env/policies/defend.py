@@ -40,7 +40,13 @@ Six tests, each a statistical test at level ``alpha``:
   consistency tests).
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
-  resolved, an honest collaborator misaligned on one step, no longer counts.
+  resolved, an honest collaborator misaligned on one step, no longer counts. Evidence
+  of boxes nobody confirms holds, though: where the window's unconfirmed boxes alone
+  (or, in the relative and orphan tests below, their window) have a p-value below
+  ``sticky`` (1e-4), the collaborator fails whatever this step says, until clean steps
+  dilute its window (conflicts never hold: an honest collaborator the aligner leaves a
+  metre off shows many). A box within ``own_car_m`` (2.5 m) of a source's origin is its
+  own car, which it does not detect: never unconfirmed by it.
 * **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
   has no car) aligned pose puts its own car at a place in the ego frame; every other
   vehicle source (the ego included when it is one; an RSU is no witness) with that place
@@ -289,7 +295,7 @@ class DefendParams:
     orphan_score: float = spec(0.5, low=0.0, high=1.0, doc="only boxes scored this or "
                                "higher count in the orphan test (the realistic detector's "
                                "false positives score at most 0.45)")
-    orphan_rate: float = _open_share(0.007, "share of an honest collaborator's boxes that are "
+    orphan_rate: float = _open_share(0.015, "share of an honest collaborator's boxes that are "
                                      "orphans (unconfirmed by a source with them in clear "
                                      "view, matched by none)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
@@ -465,34 +471,43 @@ class Defend:
         """Whether ``slot`` passes the test against ``group``: its disagreements over the
         window are not significant at alpha, or this step's alone have a p-value above
         ``recent`` (a past disagreement since resolved, an early misalignment the aligner
-        has corrected, no longer counts)."""
-        return not self._fails(self._p_value(slot, group, self.last_pairs),
-                               lambda: self._p_value(slot, group, self.last_now))
+        has corrected, no longer counts) and its unconfirmed boxes over the window alone
+        are not below ``sticky`` (conflicts never hold: a misaligned honest collaborator
+        shows many, and the aligner may correct it)."""
+        return not self._fails(
+            self._p_value(slot, group, self.last_pairs),
+            lambda: self._p_value(slot, group, self.last_now),
+            lambda: self._p_value(slot, group, self.last_pairs, unconfirmed_only=True))
 
-    def _fails(self, window: float, now: Callable[[], float]) -> bool:
+    def _fails(self, window: float, now: Callable[[], float],
+               held: Callable[[], float] | None = None) -> bool:
         """A consistency test's verdict from its window p-value (Bonferroni included) and
         ``now()``, this step's alone: significant at alpha and this step's p-value at most
-        ``recent``, or the window's below ``sticky`` whatever this step says."""
+        ``recent``, or the window's (``held()``: the part of it that may hold) below
+        ``sticky`` whatever this step says."""
         if window >= self.params.alpha:
             return False
-        return window < self.params.sticky or now() <= self.params.recent
+        return (window if held is None else held()) < self.params.sticky \
+            or now() <= self.params.recent
 
     def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
-                 pairs: dict[tuple, PairEvidence]) -> float:
+                 pairs: dict[tuple, PairEvidence], unconfirmed_only: bool = False) -> float:
         """How likely an honest collaborator shows the conflicts, unconfirmed boxes or
         missed claims that ``slot`` shows against the ego and the other collaborators of
         ``group`` in ``pairs`` (directed: (judged, judge) -> evidence): the smallest
         p-value of the one-sided binomial tests times the number of consistency tests
         (Bonferroni: conflicts and unconfirmed boxes, missed claims with the claim test, the
         relative test of :meth:`relatively_unconfirmed` and the orphan test of
-        :meth:`orphaned` when on; 1 without evidence)."""
+        :meth:`orphaned` when on; 1 without evidence); ``unconfirmed_only``: the test of
+        unconfirmed boxes alone (same Bonferroni)."""
         others = [other for other in (EGO, *group) if other != slot]
         evidence = sum((pairs[slot, other] + pairs[other, slot] for other in others),
                        NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
-        tails = [bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate),
-                 bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
-        if evidence.claims:
+        tails = [bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
+        if total and not unconfirmed_only:
+            tails.append(bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate))
+        if evidence.claims and not unconfirmed_only:
             tails.append(bdtrc(evidence.claims_missed - 1, evidence.claims,
                                self.params.claim_miss_rate))
         return float(min(1.0, self._tests * min(tails))) if tails else 1.0
