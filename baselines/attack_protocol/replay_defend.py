@@ -16,9 +16,9 @@ What a replay is not: the protocol's episodes are played with defend's own actio
 rejection makes the gate mode solve the kept collaborators' poses again without the
 rejected ones; the recording keeps everyone, so a kept collaborator's pose here is the one
 the base aligner found with the liar still in. On the protocol's seeds 0-1 the replay of
-the shipped defend was within 2 points of the protocol record's detection and 0.2 points of
-its honest rejections on every attack (docs/attacks.md). Use seeds other than 0-1 (the
-protocol's) to choose parameters. Nothing is written; the recordings live in memory, one
+defend as of commit 1a34410 gave the protocol record's detection within a point and its
+honest rejections within 0.1 point on every attack (docs/attacks.md). Use seeds other
+than 0-1 (the protocol's) to choose parameters. Nothing is written; the recordings live in memory, one
 episode at a time.
 """
 
