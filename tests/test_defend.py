@@ -123,7 +123,7 @@ def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
                                  np.array([5.0, 4.0, 0.0]))])
     later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
     for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
-        defend = Defend(use_correction=False, recent=recent, sticky=0.0)
+        defend = Defend(use_correction=False, recent=recent)
         assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
         assert defend(later, info(1)).tolist() == verdict
 
