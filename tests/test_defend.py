@@ -15,6 +15,7 @@ from roco_env.policies.defend import (
     EGO,
     Defend,
     PairEvidence,
+    box_status,
     centre_distances,
     claim_evidence,
     clear_view,
@@ -74,6 +75,20 @@ def test_pair_evidence_counts_matches_conflicts_and_unconfirmed_boxes():
     assert evidence == PairEvidence(1, 1, 1)  # the third is in their clear view, not seen
 
 
+def test_a_source_does_not_confirm_its_own_car_and_is_not_asked_to():
+    """A collaborator's box of the ego's car (at the ego's origin): the ego has no box of
+    itself, so with ``own_car_m`` 0 the box is unconfirmed by the ego; within ``own_car_m``
+    of the judge's origin it is not (its own car), and a box beyond it still is."""
+    theirs = cars((0.5, 0.3), (15.0, 0.0))
+    origin, occluders = np.zeros(2), theirs[:, :2]
+    assert pair_evidence(theirs, cars(), origin, occluders, match_m=1.0, view_m=40.0,
+                         occlusion_m=1.5) == PairEvidence(0, 0, 2)
+    status = box_status(theirs, cars(), origin, occluders, 1.0, 40.0, 1.5, blind_m=2.5)
+    assert status.unconfirmed.tolist() == [False, True]
+    assert clear_view(origin, theirs[:, :2], occluders, 40.0, 1.5, 1.0, blind=2.5).tolist() \
+        == [False, True]
+
+
 def test_a_collaborator_that_disagrees_with_everyone_is_rejected_and_the_rest_kept():
     honest = [(cars(*SCENE), np.array([5.0, 4.0, 0.0])) for _ in range(2)]
     liar = (cars(*[(x + 3.0, y) for x, y in SCENE]), np.array([-5.0, 4.0, 0.0]))
@@ -111,6 +126,33 @@ def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
         defend = Defend(use_correction=False, recent=recent)
         assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
         assert defend(later, info(1)).tolist() == verdict
+
+
+def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_do_not():
+    """``sticky``: where the window's unconfirmed boxes alone have a p-value below it, the
+    recent rule is waived. A collaborator withholding every other car for five steps (the
+    ego's boxes unconfirmed by it; window p-value 1e-8) stays rejected on the first clean
+    step (5e-6 < 1e-4, the default) and is released on the next (3e-4: the clean steps
+    dilute the window); with ``sticky=0`` it is released at once. A collaborator whose
+    boxes sit 2.5 m off for five steps (conflicts: an aligner that leaves an honest one
+    off) is released at once whatever ``sticky`` says. Honest random misses are never
+    rejected."""
+    scene = cars(*SCENE)
+    pose = np.array([5.0, 4.0, 0.0])
+
+    def verdicts(sent: np.ndarray, **params) -> list[int]:
+        defend = Defend(use_correction=False, **params)
+        return [int(defend(observation(scene, [(sent if step < 5 else scene, pose)]),
+                           info(1))[0]) for step in range(10)]
+
+    withheld = cars(*SCENE[::2])
+    assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
+    assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
+    assert verdicts(cars(*[(x + 2.5, y) for x, y in SCENE])) == [1] * 5 + [0] * 5
+    # honest noise (each source misses each car with probability 0.05, seeded): never held
+    rng = np.random.default_rng(11)
+    honest = Defend(use_correction=False)
+    assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(10))
 
 
 def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():
@@ -179,6 +221,8 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"use_orphan": "no"}, r"use_orphan"),
     ({"orphan_m": -1.0}, r"orphan_m=-1.0 is out of range"),
     ({"orphan_score": 1.5}, r"orphan_score=1.5 is out of range"),
+    ({"sticky": 1.5}, r"sticky=1.5 is out of range; allowed \[0.0, 1.0\]"),
+    ({"own_car_m": -1.0}, r"own_car_m=-1.0 is out of range; allowed \[0.0, inf\)"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):

@@ -40,7 +40,13 @@ Six tests, each a statistical test at level ``alpha``:
   consistency tests).
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
-  resolved, an honest collaborator misaligned on one step, no longer counts.
+  resolved, an honest collaborator misaligned on one step, no longer counts. Evidence
+  of boxes nobody confirms holds, though: where the window's unconfirmed boxes alone
+  (or, in the relative and orphan tests below, their window) have a p-value below
+  ``sticky`` (1e-4), the collaborator fails whatever this step says, until clean steps
+  dilute its window (conflicts never hold: an honest collaborator the aligner leaves a
+  metre off shows many). A box within ``own_car_m`` (2.5 m) of a source's origin is its
+  own car, which it does not detect: never unconfirmed by it.
 * **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
   has no car) aligned pose puts its own car at a place in the ego frame; every other
   vehicle source (the ego included when it is one; an RSU is no witness) with that place
@@ -78,7 +84,7 @@ from __future__ import annotations
 
 import itertools
 from collections import deque
-from collections.abc import Hashable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -121,14 +127,15 @@ NO_EVIDENCE = PairEvidence(0, 0, 0)
 
 
 def clear_view(origin: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
-               reach: float, radius: float, own: float) -> np.ndarray:
+               reach: float, radius: float, own: float, blind: float = 0.0) -> np.ndarray:
     """(k,) bool: whether each target point (k, 2) lies within ``reach`` m of ``origin``
-    (2,) with no occluder centre (M, 2) within ``radius`` m of the sight line between them;
-    occluders within ``own`` m of the target (its own box) or of the origin (the viewer's
-    car) block nothing. Metres, one frame."""
+    (2,), and not within ``blind`` m (the viewer's own car, which it does not detect), with
+    no occluder centre (M, 2) within ``radius`` m of the sight line between them; occluders
+    within ``own`` m of the target (its own box) or of the origin (the viewer's car) block
+    nothing. Metres, one frame."""
     ray = targets - origin
     length2 = np.maximum(np.sum(ray**2, axis=1), 1e-12)
-    near = np.sqrt(length2) < reach
+    near = (np.sqrt(length2) < reach) & (np.sqrt(length2) >= blind)
     seen = np.zeros(targets.shape[0], dtype=bool)
     if not near.any():
         return seen
@@ -171,15 +178,18 @@ class BoxStatus(NamedTuple):
 
 def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
                occluders: np.ndarray, match_m: float, view_m: float,
-               occlusion_m: float, distance: np.ndarray | None = None) -> BoxStatus:
+               occlusion_m: float, distance: np.ndarray | None = None,
+               blind_m: float = 0.0) -> BoxStatus:
     """How the boxes of source ``other`` (M, 7) at ``other_origin`` (2,) judge each of
     ``boxes`` (k, 7) (one frame); ``occluders`` (all sources' box centres) shade its view;
-    ``distance``: their :func:`centre_distances`, when already computed."""
+    ``distance``: their :func:`centre_distances`, when already computed; a box within
+    ``blind_m`` of ``other_origin`` (the other's own car) is never unconfirmed."""
     none, far = np.zeros(boxes.shape[0], dtype=bool), np.full(boxes.shape[0], np.inf)
     if boxes.shape[0] == 0:
         return BoxStatus(none, none, none, far)
     if other.shape[0] == 0:
-        seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m)
+        seen = clear_view(other_origin, boxes[:, :2], occluders, view_m, occlusion_m, match_m,
+                          blind_m)
         return BoxStatus(none, none, seen, far)
     if distance is None:
         distance = centre_distances(boxes, other)
@@ -196,7 +206,7 @@ def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
     seen = np.zeros_like(loose)
     if loose.any():
         seen[loose] = clear_view(other_origin, boxes[loose, :2], occluders, view_m, occlusion_m,
-                                 match_m)
+                                 match_m, blind_m)
     return BoxStatus(matched, ~matched & overlap, seen, gap)
 
 
@@ -249,7 +259,10 @@ class DefendParams:
     view_m: float = _positive(40.0, "a source surely detects a car in its clear view this "
                               "near, m")
     occlusion_m: float = _positive(1.5, "a box centre this near a sight line blocks it, m")
-    miss_rate: float = _open_share(0.12, "share of unconfirmed boxes an honest collaborator "
+    own_car_m: float = spec(2.5, low=0.0, doc="a box this near a source's origin (m) is its "
+                            "own car, which it does not detect: never unconfirmed by it (0: "
+                            "counted like any other box)")
+    miss_rate: float = _open_share(0.09, "share of unconfirmed boxes an honest collaborator "
                                    "shows")
     conflict_rate: float = _open_share(0.03, "share of conflicting boxes an honest "
                                        "collaborator shows")
@@ -259,6 +272,11 @@ class DefendParams:
     strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
                          "(this step alone) is below this fails at once, however quiet "
                          "the window (0: the window decides alone)")
+    sticky: float = spec(1e-4, low=0.0, high=1.0, doc="a consistency test whose window "
+                         "p-value (Bonferroni included) is below this fails whatever this "
+                         "step's evidence says (the recent rule is waived: a collaborator "
+                         "caught with this confidence stays rejected until the evidence "
+                         "leaves the window; 0: never waived)")
     use_correction: bool = spec(True, doc="the correction (temporal) tests")
     use_offset: bool = spec(True, doc="the mean-offset test among the correction tests "
                             "(off: the sum of q alone, at level alpha)")
@@ -277,7 +295,7 @@ class DefendParams:
     orphan_score: float = spec(0.5, low=0.0, high=1.0, doc="only boxes scored this or "
                                "higher count in the orphan test (the realistic detector's "
                                "false positives score at most 0.45)")
-    orphan_rate: float = _open_share(0.03, "share of an honest collaborator's boxes that are "
+    orphan_rate: float = _open_share(0.015, "share of an honest collaborator's boxes that are "
                                      "orphans (unconfirmed by a source with them in clear "
                                      "view, matched by none)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
@@ -297,8 +315,8 @@ class Defend:
     """``Defend(base="roco", **params)(obs, info) -> (N,) int64`` gate action (1 = reject),
     params the fields of :class:`DefendParams`. Measured on clean episodes, the shares of
     unconfirmed and conflicting boxes an honest collaborator shows behind roco at noise 0.4
-    are about 0.06 and 0.016, of its claimed places a vehicle ego sees empty 0.02-0.05
-    (docs/attacks.md)."""
+    are about 0.04 (its own car left out, ``own_car_m``; up to 0.11 for one collaborator)
+    and 0.016, of its claimed places a vehicle ego sees empty 0.02-0.05 (docs/attacks.md)."""
 
     keeps_state = "per ego and collaborator (info['agent'], info['collaborators'])"
     last_result = None  # it reports no alignment of its own: the env's base aligner aligns
@@ -415,9 +433,9 @@ class Defend:
             distance = centre_distances(boxes_a, boxes_b)
             # directed: what b says about a's boxes (and a's claimed place), and back
             status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders,
-                                         *self._geometry, distance),
+                                         *self._geometry, distance, self.params.own_car_m),
                       (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
-                                         *self._geometry, distance.T)}
+                                         *self._geometry, distance.T, self.params.own_car_m)}
             self._status.update(status)
             directed = {key: judged.evidence() for key, judged in status.items()}
             if a in cars and b in cars and a != EGO:
@@ -453,26 +471,43 @@ class Defend:
         """Whether ``slot`` passes the test against ``group``: its disagreements over the
         window are not significant at alpha, or this step's alone have a p-value above
         ``recent`` (a past disagreement since resolved, an early misalignment the aligner
-        has corrected, no longer counts)."""
-        return self._p_value(slot, group, self.last_pairs) >= self.params.alpha \
-            or self._p_value(slot, group, self.last_now) > self.params.recent
+        has corrected, no longer counts) and its unconfirmed boxes over the window alone
+        are not below ``sticky`` (conflicts never hold: a misaligned honest collaborator
+        shows many, and the aligner may correct it)."""
+        return not self._fails(
+            self._p_value(slot, group, self.last_pairs),
+            lambda: self._p_value(slot, group, self.last_now),
+            lambda: self._p_value(slot, group, self.last_pairs, unconfirmed_only=True))
+
+    def _fails(self, window: float, now: Callable[[], float],
+               held: Callable[[], float] | None = None) -> bool:
+        """A consistency test's verdict from its window p-value (Bonferroni included) and
+        ``now()``, this step's alone: significant at alpha and this step's p-value at most
+        ``recent``, or the window's (``held()``: the part of it that may hold) below
+        ``sticky`` whatever this step says."""
+        if window >= self.params.alpha:
+            return False
+        return (window if held is None else held()) < self.params.sticky \
+            or now() <= self.params.recent
 
     def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
-                 pairs: dict[tuple, PairEvidence]) -> float:
+                 pairs: dict[tuple, PairEvidence], unconfirmed_only: bool = False) -> float:
         """How likely an honest collaborator shows the conflicts, unconfirmed boxes or
         missed claims that ``slot`` shows against the ego and the other collaborators of
         ``group`` in ``pairs`` (directed: (judged, judge) -> evidence): the smallest
         p-value of the one-sided binomial tests times the number of consistency tests
         (Bonferroni: conflicts and unconfirmed boxes, missed claims with the claim test, the
         relative test of :meth:`relatively_unconfirmed` and the orphan test of
-        :meth:`orphaned` when on; 1 without evidence)."""
+        :meth:`orphaned` when on; 1 without evidence); ``unconfirmed_only``: the test of
+        unconfirmed boxes alone (same Bonferroni)."""
         others = [other for other in (EGO, *group) if other != slot]
         evidence = sum((pairs[slot, other] + pairs[other, slot] for other in others),
                        NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
-        tails = [bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate),
-                 bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
-        if evidence.claims:
+        tails = [bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
+        if total and not unconfirmed_only:
+            tails.append(bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate))
+        if evidence.claims and not unconfirmed_only:
             tails.append(bdtrc(evidence.claims_missed - 1, evidence.claims,
                                self.params.claim_miss_rate))
         return float(min(1.0, self._tests * min(tails))) if tails else 1.0
@@ -491,8 +526,8 @@ class Defend:
                         if judge != member), NO_EVIDENCE)
             return _relative_tail(own, rest, self.params.relative_margin)
         return {slot for slot in slots
-                if self._tests * tail(slot, self.last_pairs) < self.params.alpha
-                and tail(slot, self.last_now) <= self.params.recent}
+                if self._fails(self._tests * tail(slot, self.last_pairs),
+                               lambda slot=slot: tail(slot, self.last_now))}
 
 
     def orphaned(self, slots: list[int], judges: list[Hashable], ego: Hashable,
@@ -524,8 +559,8 @@ class Defend:
         def tail(orphans: int, boxes: int) -> float:
             return float(bdtrc(orphans - 1, boxes, self.params.orphan_rate)) if boxes else 1.0
         return {slot for slot in slots
-                if self._tests * tail(*self.last_orphans[slot][0]) < self.params.alpha
-                and tail(*self.last_orphans[slot][1]) <= self.params.recent}
+                if self._fails(self._tests * tail(*self.last_orphans[slot][0]),
+                               lambda slot=slot: tail(*self.last_orphans[slot][1]))}
 
 
 def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> float:

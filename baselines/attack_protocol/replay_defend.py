@@ -1,0 +1,122 @@
+"""Replay the attack protocol's episodes through variants of ``defend`` (docs/attacks.md).
+
+    python baselines/attack_protocol/replay_defend.py --seeds 2-7                # as shipped
+    python baselines/attack_protocol/replay_defend.py --seeds 2-7 --variant "" \\
+        --variant "orphan_rate=0.03,sticky=0,own_car_m=0" --attacks "ghosts 5" none
+
+Plays each (scene, attack, seed) of the protocol (both scenes, noise 0.4, the realistic
+detector, 1 of 5 agents attacking, ``--steps`` steps) once with ``defend:base=roco``'s env
+modes and the all-keep action (nobody rejected), records every agent's aligned observation
+and info, and hands them, step by step, to a fresh ``Defend`` per variant and agent (a
+variant is defend's parameters as ``key=value,...``; "" = the defaults). Per variant it
+prints, pooled over the seeds, each cell's detection (share of (honest ego, step, attacker
+slot) rejected) and honest rejections (share of (honest ego, step, honest slot)).
+
+What a replay is not: the protocol's episodes are played with defend's own actions, and a
+rejection makes the gate mode solve the kept collaborators' poses again without the
+rejected ones; the recording keeps everyone, so a kept collaborator's pose here is the one
+the base aligner found with the liar still in. On the protocol's seeds 0-1 the replay of
+defend as of commit 1a34410 gave the protocol record's detection within a point and its
+honest rejections within 0.1 point on every attack (docs/attacks.md). Use seeds other
+than 0-1 (the protocol's) to choose parameters. Nothing is written; the recordings live in memory, one
+episode at a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from roco_env.policies import make_policy
+from roco_env.policies.defend import Defend
+from roco_env.policies.spec import parse_assignment
+from roco_env.sweeps.attack_protocol import ATTACKS, NOISE, PROTOCOL, SCENES, STEPS
+from roco_env.sweeps.cells import build_grid
+from roco_env.sweeps.episode import make_env
+
+
+def record(scene: str, attack: str, seed: int, steps: int) -> list[dict[str, tuple]]:
+    """Per step, agent -> (aligned observation, info) of the protocol's episode under
+    ``defend:base=roco``'s env modes, every collaborator kept."""
+    (cell,) = build_grid([scene], [NOISE], ["defend:base=roco"], [seed], steps,
+                         overrides={**PROTOCOL, **SCENES[scene], **ATTACKS[attack]})
+    env = make_env(cell, policy=make_policy("defend"))
+    observations, infos = env.reset(seed=seed)
+    calls = []
+    while env.agents and len(calls) < steps:
+        calls.append({agent: (observations[agent], infos[agent]) for agent in env.agents})
+        keep = {agent: np.zeros(env.config.max_collaborators, dtype=np.int64)
+                for agent in env.agents}
+        observations, _, _, _, infos = env.step(keep)
+    env.close()
+    return calls
+
+
+def replay(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
+           ) -> tuple[list[int], list[int]]:
+    """defend's decisions (1 = rejected) over one recorded episode, a fresh ``Defend`` per
+    agent: (per attacker slot of an honest ego's step, per honest slot)."""
+    policies: dict[str, Defend] = {}
+    attackers, honest = [], []
+    for step in calls:
+        for agent, (observation, info) in step.items():
+            action = policies.setdefault(agent, Defend(**params))(observation, info)
+            if info["privileged"]["attacker"]:
+                continue
+            liars = np.asarray(info["privileged"]["collab_attackers"])
+            for slot in np.flatnonzero(np.asarray(observation["collab_mask"]) > 0):
+                (attackers if liars[slot] else honest).append(int(action[slot]))
+    return attackers, honest
+
+
+def parse_variant(text: str) -> dict[str, object]:
+    """``key=value,...`` -> defend's keyword arguments ("" -> none)."""
+    return dict(parse_assignment(item, "--variant") for item in text.split(",") if item)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``2-7`` or ``2,3,5``."""
+    if "-" in text:
+        first, last = (int(part) for part in text.split("-"))
+        return list(range(first, last + 1))
+    return [int(part) for part in text.split(",")]
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", default="2-7", help="e.g. 2-7 or 2,3 (default 2-7)")
+    parser.add_argument("--steps", type=int, default=STEPS)
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--attacks", nargs="+", default=list(ATTACKS), choices=list(ATTACKS))
+    parser.add_argument("--variant", action="append", default=None,
+                        help="defend's parameters, key=value,... (repeatable; default: '')")
+    args = parser.parse_args(argv)
+    variants = {text: parse_variant(text) for text in (args.variant or [""])}
+    for params in variants.values():
+        Defend(**params)  # a bad parameter fails before anything is played
+    pooled = {(text, scene, attack): ([], []) for text in variants for scene in args.scenes
+              for attack in args.attacks}
+    for scene in args.scenes:
+        for attack in args.attacks:
+            for seed in parse_seeds(args.seeds):
+                calls = record(scene, attack, seed, args.steps)
+                for text, params in variants.items():
+                    found, wrong = replay(calls, params)
+                    pooled[text, scene, attack][0].extend(found)
+                    pooled[text, scene, attack][1].extend(wrong)
+    print(f"seeds {args.seeds}, {args.steps} steps: detected % / honest rejected %")
+    for text in variants:
+        print(f"variant {text or '(defaults)'!r}")
+        for scene in args.scenes:
+            cells = []
+            for attack in args.attacks:
+                found, wrong = pooled[text, scene, attack]
+                detected = f"{100 * np.mean(found):.0f}" if found else "-"
+                cells.append(f"{attack}: {detected} / {100 * np.mean(wrong):.1f}")
+            print(f"  {scene}: " + " | ".join(cells))
+
+
+if __name__ == "__main__":
+    main()

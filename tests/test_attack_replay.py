@@ -1,0 +1,37 @@
+"""baselines/attack_protocol/replay_defend.py: the protocol's episodes recorded once and
+replayed through variants of ``defend``."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+PATH = Path(__file__).resolve().parents[1] / "baselines" / "attack_protocol" / "replay_defend.py"
+_SPEC = importlib.util.spec_from_file_location("replay_defend", PATH)
+replay_defend = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(replay_defend)
+
+
+def test_a_replay_rejects_a_10m_spoofer_and_leaves_out_the_attackers_own_calls():
+    """Two steps of the protocol's 10 m spoof on urban_intersection, seed 0 (cav_1 lies):
+    every honest ego's defend rejects the attacker on both steps (8 decisions) and none of
+    its 3 honest collaborators (24); the attacker's own calls are not counted; a variant
+    that switches every test off rejects nobody."""
+    calls = replay_defend.record("urban_intersection", "spoof 10 m", 0, 2)
+    assert len(calls) == 2 and len(calls[0]) == 5
+    attackers, honest = replay_defend.replay(calls, {})
+    assert attackers == [1] * 8 and honest == [0] * 24
+    off = replay_defend.parse_variant("use_correction=false,use_consistency=false")
+    assert replay_defend.replay(calls, off) == ([0] * 8, [0] * 24)
+
+
+def test_variants_and_seeds_are_parsed_and_a_bad_parameter_names_itself():
+    assert replay_defend.parse_variant("") == {}
+    assert replay_defend.parse_variant("sticky=0,orphan_rate=0.03") == {
+        "sticky": 0, "orphan_rate": 0.03}
+    assert replay_defend.parse_seeds("2-4") == [2, 3, 4]
+    assert replay_defend.parse_seeds("2,5") == [2, 5]
+    with pytest.raises(ValueError, match=r"sticky=2.0 is out of range"):
+        replay_defend.main(["--seeds", "0", "--steps", "1", "--variant", "sticky=2.0"])
