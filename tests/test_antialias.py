@@ -6,7 +6,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import roco_env.policies.hypotheses as hypotheses
 from roco_env.policies import make_policy
 from roco_env.policies.antialias import antialias_align
 from roco_env.policies.base import apply_correction
@@ -158,23 +157,17 @@ def test_track_overruled_by_the_evidence_is_dropped():
     assert not decisions[0].track_dropped and error_m(kept.corrected, scene) < 0.1
 
 
-def test_roco_correction_without_hypotheses_that_its_boxes_support_is_applied(monkeypatch):
-    """A scatter of cars, the collaborator reported 9.5 m / 5 deg off: with the hypotheses
-    of the heading vote's rotation alone (the second vote at the reported rotation switched
-    off) nothing refines within the 7 m search, RoCo's matching finds the truth itself,
-    which explains the collaborator's boxes far better than the reported pose, so the
-    correction stands (keeping the reported pose whenever a pose beyond the search explains
-    the boxes better than the reported one cost v2x_crossroad at 5 m/deg such corrections).
-    With the second vote the truth is a hypothesis and the decision itself takes it."""
+def test_roco_correction_without_hypotheses_that_its_boxes_support_is_applied():
+    """A scatter of cars, the collaborator reported 9.5 m / 5 deg off: nothing refines within
+    the 7 m search, RoCo's matching finds the truth itself, which explains the
+    collaborator's boxes far better than the reported pose, so the correction stands
+    (keeping the reported pose whenever a pose beyond the search explains the boxes better
+    than the reported one cost v2x_crossroad at 5 m/deg such corrections)."""
     rng = np.random.default_rng(0)
     objects = random_objects(rng, 80, 80.0, min_gap=5.0)
     scene = make_scene(objects, np.array([[0.0, 0.0, 0.0], [10.0, 5.0, 0.5]]),
                        [pose_error(9.5, 5.0, 1.0)], sensor_range=70.0,
                        noise=(0.05, 0.05, 0.01), rng=rng)
-    result, decisions = antialias_align(*scene.args())
-    assert decisions[0].pose is not None and decisions[0].margin >= 20.0
-    assert result.applied[0] and error_m(result.corrected, scene) < 0.1
-    monkeypatch.setattr(hypotheses, "SECOND_VOTE_DEG", 180.0)
     result, decisions = antialias_align(*scene.args())
     assert decisions[0].hypotheses == 0 and decisions[0].support >= 20.0
     assert result.applied[0] and error_m(result.corrected, scene) < 0.1
@@ -194,11 +187,10 @@ FOUND_HIGHWAY = {
 
 
 def test_roco_correction_without_hypotheses_that_its_boxes_do_not_support_is_not_applied(
-        tmp_path, monkeypatch):
-    """On the found highway, with the hypotheses of the heading vote's rotation alone, the
-    collaborator RoCo moved through the others' boxes keeps its reported pose
-    (Decision.support below min_margin, the slot's reason) and no pose is made worse; with
-    the second vote no pose is made worse either."""
+        tmp_path):
+    """On the found highway the collaborator RoCo moved through the others' boxes keeps its
+    reported pose (Decision.support below min_margin, the slot's reason) and no pose is made
+    worse."""
     from roco_env.metrics import harm_share
     from roco_env.policies.antialias import AntiAliasPolicy
     from roco_env.scenario import save_scenario
@@ -217,14 +209,8 @@ def test_roco_correction_without_hypotheses_that_its_boxes_do_not_support_is_not
                            if d.support < 20.0 and not result.applied[j])
             return result
 
-    cell = Cell(str(path), None, "roco_antialias", 1, 4)
-    # With the second vote at the reported rotation (hypotheses, step 1) the collaborator
-    # has hypotheses and the rule is not asked; with the heading vote's rotation alone it
-    # has none and the rule keeps its reported pose.
-    _, samples = run_episode(cell, policy_factory=Recording)
-    assert harm_share(samples["before"], samples["after"]) == 0.0
-    monkeypatch.setattr(hypotheses, "SECOND_VOTE_DEG", 180.0)
-    _, samples = run_episode(cell, policy_factory=Recording)
+    _, samples = run_episode(Cell(str(path), None, "roco_antialias", 1, 4),
+                             policy_factory=Recording)
     assert doubted and all("better than the reported pose (< 20), reported pose kept" in r
                            for r in doubted)
     assert harm_share(samples["before"], samples["after"]) == 0.0

@@ -15,7 +15,6 @@ from conftest import assert_equal_to_rounding
 from scipy.spatial import cKDTree
 
 from roco_env.policies.hypotheses import (
-    SECOND_VOTE_DEG,
     EvidenceParams,
     box_set,
     evidence_terms,
@@ -71,13 +70,7 @@ def numpy_generate_hypotheses(ego, collab, reported, p):
     dyaw = numpy_half_turn(ego.poses[i, 2] - mapped[j, 2])
     use = np.abs(dyaw) <= half
     rotation = numpy_vote_peak(dyaw[use], size_weight[use], half, np.deg2rad(0.25))
-    starts = [reported + np.array([0.0, 0.0, rotation])]
-    if abs(np.rad2deg(rotation)) > SECOND_VOTE_DEG:
-        starts.append(reported)
-    return np.concatenate([numpy_translation_peaks(ego, collab, s, p) for s in starts])
-
-
-def numpy_translation_peaks(ego, collab, rotated, p):
+    rotated = reported + np.array([0.0, 0.0, rotation])
     mapped = numpy_map(rotated, collab.poses)
     i, j = close_pairs(ego.poses[:, :2], mapped[:, :2], float(p.search_radius * np.sqrt(2.0)))
     size_weight = (np.exp(-0.5 * numpy_size_chi2(ego, collab, i, j, p)) if p.use_size

@@ -9,10 +9,7 @@ makes the shifts explicit:
    headings (modulo pi) of nearby box pairs, then the translation error from their
    centre offsets on a 2D grid (a Hough vote); the ``max_hypotheses`` strongest local
    maxima within ``search_radius`` become hypotheses (plus the reported pose and any
-   extra seeds, e.g. a temporal track's prediction); when the voted rotation lies more
-   than ``SECOND_VOTE_DEG`` from the reported one, a second translation vote at the
-   reported rotation adds its maxima (the heading vote can land degrees off: on a road
-   every car heads the same way);
+   extra seeds, e.g. a temporal track's prediction);
 2. refinement (:func:`refine_terms`): nearest-neighbour matching within ``refine_gate``
    and a robust single-vertex pose-graph solve (the solver of
    :func:`~roco_env.policies.posegraph.optimize_pose`), twice, in one compiled pass;
@@ -62,7 +59,6 @@ __all__ = [
     "evidence_terms",
     "refine_terms",
     "score_hypotheses",
-    "SECOND_VOTE_DEG",
 ]
 
 
@@ -72,11 +68,6 @@ _SMOOTHING.flags.writeable = False
 
 # LM cap and relative-decrease stop of a refinement solve (they only steer the hypothesis).
 _REFINE_ITERATIONS, _REFINE_TOLERANCE = 50, 1e-4
-
-# deg: a voted rotation farther than this from the reported one gets a second translation
-# vote at the reported rotation (generate_hypotheses). The decision's default distinct yaw
-# (AntiAliasParams.distinct_r_deg): nearer, the two votes' hypotheses would count as the same.
-SECOND_VOTE_DEG = 1.0
 
 @dataclass(frozen=True)
 class EvidenceParams:
@@ -218,11 +209,8 @@ def generate_hypotheses(
     The rotation is the strongest (5-cell smoothed) bin of the heading-difference votes;
     the translation votes are smoothed by a 3x3 box sum (a true offset splits its votes
     over neighbouring cells); peaks are taken in decreasing vote order, above
-    ``vote_floor`` of the strongest, away from the earlier ones. A rotation voted more
-    than :data:`SECOND_VOTE_DEG` from the reported one adds the peaks of a second
-    translation vote at the reported rotation (up to ``max_hypotheses`` more), after the
-    first vote's. The votes and the peak scan are compiled loops
-    (:mod:`roco_env.policies.hypothesis_kernels`)."""
+    ``vote_floor`` of the strongest, away from the earlier ones. The votes and the peak
+    scan are compiled loops (:mod:`roco_env.policies.hypothesis_kernels`)."""
     settings = _vote_settings(p)
     votes = tuple(settings)
     counts, n_pairs = rotation_votes(ego.terms, collab.terms, reported, votes)
@@ -232,32 +220,9 @@ def generate_hypotheses(
     peak = int(np.argmax(smooth))  # the first maximum: smooth[peak] is smooth.max()
     half, cell = settings.half, settings.cell
     rotation = -half + (peak + 0.5) * cell if smooth[peak] > 0 else 0.0
-    return np.concatenate([
-        _translation_peaks(ego, collab, start, votes)
-        for start in _vote_rotations(reported, rotation)
-    ])
-
-
-def _vote_rotations(reported: np.ndarray, rotation: float) -> list[np.ndarray]:
-    """The poses (3,) whose translation votes give the hypotheses: ``reported`` turned by
-    the voted ``rotation`` (rad), and ``reported`` itself when the vote lies more than
-    :data:`SECOND_VOTE_DEG` from it. The heading vote of a road, where every car heads the
-    same way, can land degrees off; at 60 m a few degrees move the boxes by metres, so every
-    translation peak at the voted rotation is an alias while the reported rotation's votes
-    find the truth (two RSUs 118 m apart in the stress search: docs/stress.md)."""
     rotated = reported + np.array([0.0, 0.0, rotation])
-    if abs(rotation) <= np.deg2rad(SECOND_VOTE_DEG):
-        return [rotated]
-    return [rotated, reported]
-
-
-def _translation_peaks(ego: BoxSet, collab: BoxSet, start: np.ndarray,
-                       votes: tuple) -> np.ndarray:
-    """Hypotheses (H, 3) at the peaks of the translation votes around ``start`` (3,), with
-    its rotation (compiled: :func:`~roco_env.policies.hypothesis_kernels.translation_votes`,
-    :func:`~roco_env.policies.hypothesis_kernels.vote_peaks`)."""
-    grid = translation_votes(ego.terms, collab.terms, start, votes)
-    return vote_peaks(grid, np.argsort(-grid, axis=None), start, votes)
+    grid = translation_votes(ego.terms, collab.terms, rotated, votes)
+    return vote_peaks(grid, np.argsort(-grid, axis=None), rotated, votes)
 
 
 def refine_terms(
