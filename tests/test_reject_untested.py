@@ -85,3 +85,50 @@ def test_the_shipped_learned_select_takes_exactly_its_actions():
             assert set(np.unique(learned[agent])) <= {3, 4}
             rejected += int(action.sum())
     assert rejected >= 1
+
+
+def test_tested_and_untested_name_the_choices_each_kind_of_slot_takes():
+    """``untested=roco_fallback``: choices [roco_antialias, roco_fallback], untested slots
+    take 1 and none is rejected; ``tested=roco_fallback``: tested slots take 1, untested
+    ones reject (2); the diagnostics that decide stay the base's."""
+    diagnostics = np.zeros((3, len(DIAGNOSTICS)), np.float32)
+    diagnostics[:, STATISTIC] = [NO_STATISTIC, 2.5, NO_STATISTIC]
+    observation = {"collab_mask": np.array([1, 1, 0], np.int8), "diagnostics": diagnostics}
+    fallback = make_policy("reject_untested", untested="roco_fallback")
+    assert fallback.env_overrides["action.choices"] == ["roco_antialias", "roco_fallback"]
+    assert fallback.env_overrides["action.base"] == "roco_antialias"
+    np.testing.assert_array_equal(fallback(observation), [1, 0, 0])
+    refined = make_policy("reject_untested", tested="roco_fallback")
+    assert refined.env_overrides["action.choices"] == ["roco_antialias", "roco_fallback"]
+    np.testing.assert_array_equal(refined(observation), [2, 1, 1])
+    both = make_policy("reject_untested", tested="roco_fallback", untested="roco_fallback")
+    np.testing.assert_array_equal(both(observation), [1, 1, 1])
+
+
+@pytest.mark.parametrize("params, field", [({"tested": "reject"}, "tested"),
+                                           ({"untested": "defend"}, "base must be"),
+                                           ({"untested": ""}, "base must be")])
+def test_a_tested_or_untested_that_is_no_aligner_is_refused(params, field):
+    with pytest.raises(ValueError, match=field):
+        make_policy("reject_untested", **params)
+
+
+def test_with_untested_roco_fallback_the_env_fuses_every_collaborator():
+    """urban_intersection at 3 m / 3 deg, seed 0 (one untested slot, above): that slot
+    takes roco_fallback's pose (choice 1), the others roco_antialias's; nothing rejected."""
+    policy = make_policy("reject_untested", untested="roco_fallback")
+    env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
+                                **merge_env_overrides({}, policy))
+    observations, infos = env.reset(seed=0)
+    fallen_back = 0
+    while env.agents:
+        actions = {a: policy(observations[a], infos[a]) for a in env.agents}
+        for agent, action in actions.items():
+            filled = observations[agent]["collab_mask"] > 0
+            blind = observations[agent]["diagnostics"][:, STATISTIC] == NO_STATISTIC
+            np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
+            fallen_back += int((filled & blind).sum())
+        observations, _, _, _, infos = env.step(actions)
+        for agent in actions:
+            assert not np.any(infos[agent]["rejected"])
+    assert fallen_back >= 1
