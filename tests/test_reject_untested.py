@@ -132,3 +132,22 @@ def test_with_untested_roco_fallback_the_env_fuses_every_collaborator():
         for agent in actions:
             assert not np.any(infos[agent]["rejected"])
     assert fallen_back >= 1
+
+
+def test_tested_within_m_takes_the_tested_choice_only_near_the_base_pose():
+    """Slot 0 tested, roco_fallback 0.1 m from roco_antialias: roco_fallback (1); slot 1
+    tested, 2.5 m apart (a stall's alias): roco_antialias (0); slot 2 untested: reject."""
+    from roco_env.observation_modes import CHOICE_DIAGNOSTICS
+    from roco_env.policies.reject_untested import GAP_M
+
+    assert CHOICE_DIAGNOSTICS[GAP_M][0] == "gap_m"
+    diagnostics = np.zeros((3, len(DIAGNOSTICS)), np.float32)
+    diagnostics[:, STATISTIC] = [2.0, 2.5, NO_STATISTIC]
+    choice = np.zeros((3, 2, len(CHOICE_DIAGNOSTICS)), np.float32)
+    choice[:, 1, GAP_M] = [0.1, 2.5, 0.0]
+    policy = make_policy("reject_untested", tested="roco_fallback", tested_within_m=0.5)
+    action = policy({"collab_mask": np.ones(3, np.int8), "diagnostics": diagnostics,
+                     "choice_diagnostics": choice})
+    np.testing.assert_array_equal(action, [1, 0, 2])
+    with pytest.raises(ValueError, match="tested_within_m needs tested other than base"):
+        make_policy("reject_untested", tested_within_m=0.5)

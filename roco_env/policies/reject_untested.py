@@ -21,7 +21,12 @@ base aligner tested, ``untested`` (default ``"reject"``) the others, e.g.
 ``reject_untested:untested=roco_fallback`` keeps roco_antialias where it tested and takes
 roco_fallback's prior-free recovery elsewhere. The env's ``action.choices`` are then
 ``base`` followed by the other specs named (each run as the env's own aligner, every
-step); the diagnostics that decide are ``base``'s.
+step); the diagnostics that decide are ``base``'s. ``tested_within_m`` (m; with two
+choices, ``tested`` other than ``base``) gives a tested slot ``tested``'s pose only where
+it lies within that distance of ``base``'s (``choice_diagnostics`` column ``gap_m``), else
+``base``'s: e.g. roco_fallback's second RoCo pass refines roco_antialias's poses by
+centimetres, while on a parking lot roco's alias lies a stall (2.5 m) away from
+roco_antialias's pose.
 
 Why it pays: behind roco_antialias, from noise 0.8 m/deg up, 232 of 241 such slots lie
 more than 1 m / 1 deg from the truth, against at most 5 of 1,000-2,000 tested slots per
@@ -49,6 +54,7 @@ __all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
 # tests/test_reject_untested.py checks the index) and its value where none was computed
 STATISTIC, NO_STATISTIC = 3, -1.0
 REJECT = "reject"  # reject_untested's ``untested`` value that leaves the slot out
+GAP_M = 7  # column "gap_m" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (checked too)
 
 
 def untested_slots(statistic: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
@@ -69,6 +75,9 @@ class RejectUntestedParams:
                        "take; empty: base")
     untested: str = spec(REJECT, doc="what the untested slots take: 'reject', or an "
                          "aligner's policy spec")
+    tested_within_m: float | None = spec(None, low=0.0, doc="m: a tested slot takes "
+                                         "tested's pose only within this distance of "
+                                         "base's (None: always); two choices only")
 
     def __post_init__(self) -> None:
         check_aligner_base("reject_untested", self.base)
@@ -79,6 +88,10 @@ class RejectUntestedParams:
             check_aligner_base("reject_untested", self.tested)
         if self.untested != REJECT:
             check_aligner_base("reject_untested", self.untested)
+        if self.tested_within_m is not None and (
+                len(self.choices) != 2 or self.tested in ("", self.base)):
+            raise ValueError("reject_untested: tested_within_m needs tested other than "
+                             f"base and two choices in all; got choices {self.choices}")
 
     @property
     def choices(self) -> list[str]:
@@ -112,4 +125,8 @@ class RejectUntested(StatelessPolicy):
                              "env_overrides; sweeps and EgoEnv merge them)")
         statistic = np.asarray(observation["diagnostics"])[:, STATISTIC]
         untested = untested_slots(statistic, observation["collab_mask"])
-        return np.where(untested, self._untested, self._tested).astype(np.int64)
+        tested = np.full(len(untested), self._tested)
+        if self.params.tested_within_m is not None:
+            gap = np.asarray(observation["choice_diagnostics"])[:, self._tested, GAP_M]
+            tested = np.where(gap <= self.params.tested_within_m, self._tested, 0)
+        return np.where(untested, self._untested, tested).astype(np.int64)
