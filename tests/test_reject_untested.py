@@ -20,25 +20,32 @@ def test_it_acts_in_select_mode_on_the_aligned_observation_with_its_base():
     assert make_policy("reject_untested", base="roco").env_overrides["action.base"] == "roco"
 
 
-def test_it_rejects_exactly_the_untested_collaborators_in_an_episode():
-    """urban_intersection at 3 m / 3 deg, seed 0: roco_antialias leaves 1 of 40 slots
-    untested over two steps; that one, and only it, is rejected by the env."""
-    policy = make_policy("reject_untested")
+def urban_episode(policy):
+    """(action, filled, untested, rejected) of every agent's step of a two-step
+    urban_intersection episode at 3 m / 3 deg, seed 0, where ``policy`` acts."""
     env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
                                 **merge_env_overrides({}, policy))
     observations, infos = env.reset(seed=0)
-    untested = tested = 0
+    rows = []
     while env.agents:
         actions = {a: policy(observations[a], infos[a]) for a in env.agents}
-        for agent, action in actions.items():
-            filled = observations[agent]["collab_mask"] > 0
-            blind = observations[agent]["diagnostics"][:, STATISTIC] == NO_STATISTIC
-            np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
-            untested += int((filled & blind).sum())
-            tested += int((filled & ~blind).sum())
+        slots = {a: (observations[a]["collab_mask"] > 0,
+                     observations[a]["diagnostics"][:, STATISTIC] == NO_STATISTIC)
+                 for a in actions}
         observations, _, _, _, infos = env.step(actions)
-        for agent, action in actions.items():
-            np.testing.assert_array_equal(infos[agent]["rejected"], action > 0)
+        rows += [(actions[a], *slots[a], infos[a]["rejected"]) for a in actions]
+    return rows
+
+
+def test_it_rejects_exactly_the_untested_collaborators_in_an_episode():
+    """urban_intersection at 3 m / 3 deg, seed 0: roco_antialias leaves 1 of 40 slots
+    untested over two steps; that one, and only it, is rejected by the env."""
+    untested = tested = 0
+    for action, filled, blind, rejected in urban_episode(make_policy("reject_untested")):
+        np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
+        np.testing.assert_array_equal(rejected, action > 0)
+        untested += int((filled & blind).sum())
+        tested += int((filled & ~blind).sum())
     assert untested >= 1 and tested >= 30
 
 
@@ -116,21 +123,12 @@ def test_a_tested_or_untested_that_is_no_aligner_is_refused(params, field):
 def test_with_untested_roco_fallback_the_env_fuses_every_collaborator():
     """urban_intersection at 3 m / 3 deg, seed 0 (one untested slot, above): that slot
     takes roco_fallback's pose (choice 1), the others roco_antialias's; nothing rejected."""
-    policy = make_policy("reject_untested", untested="roco_fallback")
-    env = roco_env.parallel_env("urban_intersection", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
-                                **merge_env_overrides({}, policy))
-    observations, infos = env.reset(seed=0)
     fallen_back = 0
-    while env.agents:
-        actions = {a: policy(observations[a], infos[a]) for a in env.agents}
-        for agent, action in actions.items():
-            filled = observations[agent]["collab_mask"] > 0
-            blind = observations[agent]["diagnostics"][:, STATISTIC] == NO_STATISTIC
-            np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
-            fallen_back += int((filled & blind).sum())
-        observations, _, _, _, infos = env.step(actions)
-        for agent in actions:
-            assert not np.any(infos[agent]["rejected"])
+    policy = make_policy("reject_untested", untested="roco_fallback")
+    for action, filled, blind, rejected in urban_episode(policy):
+        np.testing.assert_array_equal(action, (filled & blind).astype(np.int64))
+        assert not np.any(rejected)
+        fallen_back += int((filled & blind).sum())
     assert fallen_back >= 1
 
 

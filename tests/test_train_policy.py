@@ -180,13 +180,8 @@ def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_po
 
     config = build_config(GUARDED)
     env = CurriculumEnv(config)
-    env.reset(seed=1)
     untested = 0
-    for _ in range(2):
-        observation = env._observation
-        filled = observation["collab_mask"] > 0
-        blind = filled & (observation["choice_diagnostics"][:, 3, STATISTIC] == -1)
-        _, _, _, _, info = env.step(np.zeros(len(filled), np.int64))  # identity everywhere
+    for _, filled, blind, info in guarded_steps(env, 3, 0):  # identity everywhere
         np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
         untested += int(blind.sum())
     assert untested >= 1
@@ -197,6 +192,23 @@ def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_po
     play = condition_env(config, draw_condition(config, 3))
     observation, info = play.reset(seed=1)
     np.testing.assert_array_equal(learned(observation, info), sb3(observation, info))
+
+
+def guarded_steps(env, base, choice):
+    """(action played behind the guard, filled, untested by choice ``base``, info) of two
+    steps of ``env`` (reset with seed 1) where the network samples ``choice`` everywhere."""
+    from roco_env.training.rl.curriculum import guarded_action
+
+    env.reset(seed=1)
+    rows = []
+    for _ in range(2):
+        observation = env._observation
+        filled = observation["collab_mask"] > 0
+        blind = filled & (observation["choice_diagnostics"][:, base, STATISTIC] == -1)
+        sampled = np.full(len(filled), choice, np.int64)
+        played = guarded_action(env.guard, sampled, observation)
+        rows.append((played, filled, blind, env.step(sampled)[4]))
+    return rows
 
 
 def test_reward_over_the_base_pays_only_what_a_deviation_changes():
@@ -269,20 +281,14 @@ def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_
     exported file records the choices and its guard, and acts as the greedy SB3 policy."""
     from roco_env.policies import make_policy
     from roco_env.policies.learned import Guard
-    from roco_env.training.rl.curriculum import CurriculumEnv, guarded_action
+    from roco_env.training.rl.curriculum import CurriculumEnv
     from roco_env.training.rl.policy_export import save_policy
 
     config = build_config(KEEP_TESTED)
     env = CurriculumEnv(config)
-    env.reset(seed=1)
     untested = 0
-    for _ in range(2):
-        observation = env._observation
-        filled = observation["collab_mask"] > 0
-        blind = filled & (observation["choice_diagnostics"][:, 0, STATISTIC] == -1)
-        action = guarded_action(env.guard, np.ones(len(filled), np.int64), observation)
-        np.testing.assert_array_equal(action[filled], blind[filled].astype(np.int64))
-        _, _, _, _, info = env.step(np.ones(len(filled), np.int64))
+    for played, filled, blind, info in guarded_steps(env, 0, 1):
+        np.testing.assert_array_equal(played[filled], blind[filled].astype(np.int64))
         assert not np.any(info["rejected"])
         untested += int(blind.sum())
     assert untested >= 1
