@@ -189,6 +189,23 @@ def test_the_rule_guard_rejects_every_untested_slot_and_lets_the_network_decide_
                                   [4, 4, 4, 2])
 
 
+def test_the_keep_tested_guard_keeps_tested_slots_and_lets_the_network_decide_the_rest():
+    """``train-policy --guard keep_tested``'s guard over [roco_antialias, roco_fallback]:
+    slot 0 (tested) takes roco_antialias (0) whatever the logits, slots 1 and 2 (untested)
+    the network's argmax (reject, roco_fallback), slot 3 (empty) choice 0."""
+    from roco_env.policies.learned import Guard
+
+    logits = np.array([[0.0, 1.0, 9.0], [0.0, 1.0, 2.0], [0.0, 3.0, 2.0], [0.0, 1.0, 9.0]])
+    diagnostics = np.zeros((4, 2, 8))
+    diagnostics[:, :, _statistic_column()] = -1.0
+    diagnostics[0, 0, _statistic_column()] = 4.2
+    mask = np.array([1, 1, 1, 0])
+    guard = Guard(0, None, "keep", "network")
+    np.testing.assert_array_equal(guard.act(logits, diagnostics, mask), [0, 2, 1, 0])
+    np.testing.assert_array_equal(
+        guard.constrain(np.array([2, 2, 1, 1]), 2, diagnostics, mask), [0, 2, 1, 0])
+
+
 def test_a_file_with_the_rule_guard_loads_it_and_refuses_a_margin(tmp_path):
     from roco_env.policies.learned import Guard, rule_guard
 

@@ -104,6 +104,14 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     assert "learning_rate" in capsys.readouterr().err
 
 
+GUARDED_KEYS = {"observation_mode": "aligned",
+                "observation_keys": ["choice_diagnostics", "collab_mask"], "noise_low": 3.0,
+                "noise_high": 3.0}
+GUARDED = {**TINY, **GUARDED_KEYS, "guard": "reject_untested"}
+KEEP_TESTED = {**GUARDED, "guard": "keep_tested",
+               "action_choices": ["roco_antialias", "roco_fallback"]}
+
+
 @pytest.mark.parametrize("values, field", [
     ({"n_steps": 7}, "n_steps"),
     ({"scenarios": ["nowhere"]}, "scenarios"),
@@ -122,6 +130,11 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
       "observation_keys": ["diagnostics", "collab_mask"]}, "guard"),
     ({"reward_over": "base", "action_mode": "gate"}, "reward_over"),
     ({"reward_over": "base", "action_base": "oracle"}, "reward_over"),
+    ({"action_choices": ["roco", "nonesuch"]}, "action_choices"),
+    ({"action_choices": ["roco", "roco"]}, "action_choices"),
+    ({"action_choices": ["roco"], "action_mode": "gate"}, "action_choices"),
+    ({**GUARDED_KEYS, "guard": "keep_tested",
+      "action_choices": ["roco", "roco_fallback"]}, "action_choices"),  # base not a choice
 ])
 def test_bad_options_name_the_field(values, field):
     with pytest.raises(ConfigError, match=field):
@@ -155,9 +168,6 @@ def test_observation_keys_choose_what_the_policy_reads(tmp_path):
         CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))
 
 
-GUARDED = {**TINY, "observation_mode": "aligned", "guard": "reject_untested",
-           "observation_keys": ["choice_diagnostics", "collab_mask"], "noise_low": 3.0,
-           "noise_high": 3.0}
 
 
 def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_policy(tmp_path):
@@ -170,13 +180,8 @@ def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_po
 
     config = build_config(GUARDED)
     env = CurriculumEnv(config)
-    env.reset(seed=1)
     untested = 0
-    for _ in range(2):
-        observation = env._observation
-        filled = observation["collab_mask"] > 0
-        blind = filled & (observation["choice_diagnostics"][:, 3, STATISTIC] == -1)
-        _, _, _, _, info = env.step(np.zeros(len(filled), np.int64))  # identity everywhere
+    for _, filled, blind, info in guarded_steps(env, 3, 0):  # identity everywhere
         np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
         untested += int(blind.sum())
     assert untested >= 1
@@ -187,6 +192,23 @@ def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_po
     play = condition_env(config, draw_condition(config, 3))
     observation, info = play.reset(seed=1)
     np.testing.assert_array_equal(learned(observation, info), sb3(observation, info))
+
+
+def guarded_steps(env, base, choice):
+    """(action played behind the guard, filled, untested by choice ``base``, info) of two
+    steps of ``env`` (reset with seed 1) where the network samples ``choice`` everywhere."""
+    from roco_env.training.rl.curriculum import guarded_action
+
+    env.reset(seed=1)
+    rows = []
+    for _ in range(2):
+        observation = env._observation
+        filled = observation["collab_mask"] > 0
+        blind = filled & (observation["choice_diagnostics"][:, base, STATISTIC] == -1)
+        sampled = np.full(len(filled), choice, np.int64)
+        played = guarded_action(env.guard, sampled, observation)
+        rows.append((played, filled, blind, env.step(sampled)[4]))
+    return rows
 
 
 def test_reward_over_the_base_pays_only_what_a_deviation_changes():
@@ -249,3 +271,56 @@ def test_the_guard_refuses_an_env_with_other_choices(monkeypatch):
     env = curriculum.CurriculumEnv(build_config(GUARDED))
     with pytest.raises(ValueError, match="action.choices"):
         env.reset(seed=1)
+
+
+def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_elsewhere(
+        tmp_path):
+    """--action-choices roco_antialias roco_fallback --guard keep_tested, v2xset_like at
+    3 m / 3 deg: whatever the sampled action, every slot roco_antialias tested takes it
+    (0) and the untested ones take the action (here roco_fallback, 1, none rejected); the
+    exported file records the choices and its guard, and acts as the greedy SB3 policy."""
+    from roco_env.policies import make_policy
+    from roco_env.policies.learned import Guard
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    from roco_env.training.rl.policy_export import save_policy
+
+    config = build_config(KEEP_TESTED)
+    env = CurriculumEnv(config)
+    untested = 0
+    for played, filled, blind, info in guarded_steps(env, 0, 1):
+        np.testing.assert_array_equal(played[filled], blind[filled].astype(np.int64))
+        assert not np.any(info["rejected"])
+        untested += int(blind.sum())
+    assert untested >= 1
+    model = build_model(config, env)
+    save_policy(tmp_path / "w.pt", model.policy, env, config, {})
+    learned = make_policy("learned_select", weights=str(tmp_path / "w.pt"))
+    assert learned.guard == Guard(0, None, "keep", "network")
+    assert learned.env_overrides["action.choices"] == ["roco_antialias", "roco_fallback"]
+    sb3 = greedy(model, env)
+    play = condition_env(config, draw_condition(config, 3))
+    observation, info = play.reset(seed=1)
+    np.testing.assert_array_equal(learned(observation, info), sb3(observation, info))
+
+
+def test_a_file_for_other_choices_is_refused_naming_them(tmp_path):
+    """A file trained over [roco_antialias, roco_fallback] run in an env with the default
+    four choices: the error names action.choices and the file's choices."""
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    from roco_env.training.rl.policy_export import save_policy
+
+    config = build_config(KEEP_TESTED)
+    env = CurriculumEnv(config)
+    save_policy(tmp_path / "w.pt", build_model(config, env).policy, env, config, {})
+    learned = LearnedPolicy(str(tmp_path / "w.pt"))
+    other = condition_env(build_config(GUARDED), draw_condition(config, 0))
+    observation, info = other.reset(seed=1)
+    with pytest.raises(ValueError, match=r"choice_diagnostics.*action\.choices="
+                                         r"\['roco_antialias', 'roco_fallback'\]"):
+        learned(observation, info)
+
+
+def test_action_choices_on_the_command_line(tmp_path, capsys):
+    assert run_cli(tmp_path, "--total-timesteps=8", "--action-choices", "roco",
+                   "nonesuch") == 2
+    assert "action_choices" in capsys.readouterr().err

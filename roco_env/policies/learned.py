@@ -30,6 +30,10 @@ such a slot is "untested"):
   reject_untested``): every untested slot is rejected by rule, and the network's argmax
   decides every tested slot (any choice or reject). Training applied the same rule to the
   sampled actions, so the network learned only the decisions the rule leaves open.
+* ``{"keep": k, "tested": "keep", "untested": "network"}`` (``train-policy --guard
+  keep_tested``): every tested slot takes choice ``k``, and the network's argmax decides
+  every untested slot (any choice or reject): where ``k`` could not test a pose, another
+  choice (e.g. roco_fallback's prior-free recovery) may.
 
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
@@ -64,19 +68,24 @@ class Guard:
     the choice whose statistic says which slots are untested; ``reject_margin``, how far
     (in logits) the reject logit may fall below choice ``keep``'s on an untested slot and
     still win, or None: every untested slot is rejected; ``tested``, who decides a tested
-    slot: ``"keep"`` (choice ``keep``) or ``"network"`` (the network's argmax)."""
+    slot: ``"keep"`` (choice ``keep``) or ``"network"`` (the network's argmax);
+    ``untested``, who decides an untested slot: ``"rule"`` (``reject_margin``) or
+    ``"network"`` (the network's argmax, ``reject_margin`` None)."""
 
     keep: int
     reject_margin: float | None
     tested: str = "keep"
+    untested: str = "rule"
 
     def act(self, logits: np.ndarray, choice_diagnostics: np.ndarray,
             collab_mask: np.ndarray) -> np.ndarray:
         """(N,) int64 actions from (N, C + 1) logits (last: reject) and the (N, C, ...)
         choice diagnostics of the observation."""
         reject = logits.shape[1] - 1
-        blind = self.untested(choice_diagnostics, collab_mask)
-        if self.reject_margin is None:
+        blind = self.untested_slots(choice_diagnostics, collab_mask)
+        if self.untested == "network":
+            on_blind = np.argmax(logits, axis=1)
+        elif self.reject_margin is None:
             on_blind = np.full(len(blind), reject)
         else:
             wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
@@ -84,7 +93,18 @@ class Guard:
         on_tested = np.argmax(logits, axis=1) if self.tested == "network" else self.keep
         return np.where(blind, on_blind, on_tested).astype(np.int64)
 
-    def untested(self, choice_diagnostics: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
+    def constrain(self, action: np.ndarray, reject: int, choice_diagnostics: np.ndarray,
+                  collab_mask: np.ndarray) -> np.ndarray:
+        """(N,) int64: a sampled ``action`` (N,) with the guard's rules applied (training
+        plays them so): untested slots rejected (index ``reject``) unless the network
+        decides them, tested ones given choice ``keep`` unless the network decides them."""
+        blind = self.untested_slots(choice_diagnostics, collab_mask)
+        on_blind = action if self.untested == "network" else reject
+        on_tested = action if self.tested == "network" else self.keep
+        return np.where(blind, on_blind, on_tested).astype(np.int64)
+
+    def untested_slots(self, choice_diagnostics: np.ndarray,
+                       collab_mask: np.ndarray) -> np.ndarray:
         """(N,) bool: the filled slots choice ``keep`` computed no statistic for."""
         # "statistic" has one index in DIAGNOSTICS and CHOICE_DIAGNOSTICS (tested)
         return untested_slots(np.asarray(choice_diagnostics)[:, self.keep, STATISTIC],
@@ -95,6 +115,12 @@ def rule_guard(keep: int) -> dict:
     """The metadata of the guard that rejects every slot choice ``keep`` left untested and
     lets the network decide the tested ones (``train-policy --guard reject_untested``)."""
     return {"keep": keep, "untested": "reject", "tested": "network"}
+
+
+def keep_tested_guard(keep: int) -> dict:
+    """The metadata of the guard that gives every slot choice ``keep`` tested that choice
+    and lets the network decide the untested ones (``train-policy --guard keep_tested``)."""
+    return {"keep": keep, "tested": "keep", "untested": "network"}
 
 
 def load_weights(path: str | Path) -> tuple[dict, dict]:
@@ -198,7 +224,8 @@ class LearnedPolicy(StatelessPolicy):
         return (f"policy {self.name!r} ({self.path.name}) was trained with observation.mode="
                 f"{self.env_overrides.get('observation.mode', 'raw')!r}, max_collaborators="
                 f"{self.env_overrides.get('max_collaborators')}, max_boxes="
-                f"{self.env_overrides.get('max_boxes')}: build the env with the policy's "
+                f"{self.env_overrides.get('max_boxes')}, action.choices="
+                f"{self.env_overrides.get('action.choices')}: build the env with the policy's "
                 "env_overrides (sweeps and EgoEnv do)")
 
 
@@ -214,20 +241,26 @@ def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | N
     keys = [key for key, _ in metadata["observation"]]
     nvec = metadata["action"].get("nvec", [])
     rule = isinstance(raw, dict) and raw == rule_guard(raw.get("keep"))
-    if not isinstance(raw, dict) or (set(raw) != {"keep", "reject_margin"} and not rule) \
+    keep_tested = isinstance(raw, dict) and raw == keep_tested_guard(raw.get("keep"))
+    if not isinstance(raw, dict) or (set(raw) != {"keep", "reject_margin"} and not rule
+                                     and not keep_tested) \
             or "choice_diagnostics" not in keys or "collab_mask" not in keys \
             or len(set(nvec)) != 1 or not isinstance(raw["keep"], int) \
             or not 0 <= raw["keep"] < nvec[0] - 1:
         raise ValueError(f"learned policy weights file {path}: guard must be "
                          "{'keep': a choice index, 'reject_margin': logits} or "
                          "{'keep': a choice index, 'untested': 'reject', 'tested': "
-                         "'network'} on a select policy that reads choice_diagnostics and "
+                         "'network'} or {'keep': a choice index, 'tested': 'keep', "
+                         "'untested': 'network'} on a select policy that reads "
+                         "choice_diagnostics and "
                          f"collab_mask; got {raw!r}")
-    if rule:
+    if rule or keep_tested:
         if reject_margin is not None:
-            raise ValueError(f"learned policy weights file {path}: its guard rejects every "
+            what = "rejects" if rule else "lets the network decide"
+            raise ValueError(f"learned policy weights file {path}: its guard {what} every "
                              "untested slot; reject_margin applies only to a guard with one")
-        return Guard(raw["keep"], None, "network")
+        return Guard(raw["keep"], None, "network") if rule else \
+            Guard(raw["keep"], None, "keep", "network")
     margin = raw["reject_margin"] if reject_margin is None else reject_margin
     if not isinstance(margin, int | float) or isinstance(margin, bool) \
             or not np.isfinite(margin):

@@ -15,6 +15,19 @@ boxes still tie the others together). It is the rule ``learned_select``'s guard 
 policies built on them): behind identity, coalign or the oracle every slot is untested,
 so every collaborator is rejected (no fusion).
 
+``tested`` and ``untested`` (policy specs, or ``"reject"`` for ``untested``) generalise
+the rule to a choice per kind of slot: ``tested`` (default: ``base``) poses the slots the
+base aligner tested, ``untested`` (default ``"reject"``) the others, e.g.
+``reject_untested:untested=roco_fallback`` keeps roco_antialias where it tested and takes
+roco_fallback's prior-free recovery elsewhere. The env's ``action.choices`` are then
+``base`` followed by the other specs named (each run as the env's own aligner, every
+step); the diagnostics that decide are ``base``'s. ``tested_within_m`` (m; with two
+choices, ``tested`` other than ``base``) gives a tested slot ``tested``'s pose only where
+it lies within that distance of ``base``'s (``choice_diagnostics`` column ``gap_m``), else
+``base``'s: e.g. roco_fallback's second RoCo pass refines roco_antialias's poses by
+centimetres, while on a parking lot roco's alias lies a stall (2.5 m) away from
+roco_antialias's pose.
+
 Why it pays: behind roco_antialias, from noise 0.8 m/deg up, 232 of 241 such slots lie
 more than 1 m / 1 deg from the truth, against at most 5 of 1,000-2,000 tested slots per
 condition (training seeds 1,000,000-1,000,009, ``baselines/learned_select/slot_errors.py``);
@@ -40,6 +53,8 @@ __all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
 # column "statistic" of roco_env.observation_modes.DIAGNOSTICS (a higher layer;
 # tests/test_reject_untested.py checks the index) and its value where none was computed
 STATISTIC, NO_STATISTIC = 3, -1.0
+REJECT = "reject"  # reject_untested's ``untested`` value that leaves the slot out
+GAP_M = 7  # column "gap_m" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (checked too)
 
 
 def untested_slots(statistic: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
@@ -56,19 +71,50 @@ class RejectUntestedParams:
                      "(action.base); one that computes a do-no-harm statistic (roco, "
                      "roco_antialias and their wrappers): behind one that computes none "
                      "(identity, coalign, oracle, ...) every collaborator is rejected")
+    tested: str = spec("", doc="the aligner's policy spec whose pose the tested slots "
+                       "take; empty: base")
+    untested: str = spec(REJECT, doc="what the untested slots take: 'reject', or an "
+                         "aligner's policy spec")
+    tested_within_m: float | None = spec(None, low=0.0, doc="m: a tested slot takes "
+                                         "tested's pose only within this distance of "
+                                         "base's (None: always); two choices only")
 
     def __post_init__(self) -> None:
         check_aligner_base("reject_untested", self.base)
+        if self.tested == REJECT:
+            raise ValueError("reject_untested: tested must be the policy spec of an aligner "
+                             f"(empty: base); got {self.tested!r}")
+        if self.tested:
+            check_aligner_base("reject_untested", self.tested)
+        if self.untested != REJECT:
+            check_aligner_base("reject_untested", self.untested)
+        if self.tested_within_m is not None and (
+                len(self.choices) != 2 or self.tested in ("", self.base)):
+            raise ValueError("reject_untested: tested_within_m needs tested other than "
+                             f"base and two choices in all; got choices {self.choices}")
+
+    @property
+    def choices(self) -> list[str]:
+        """The env's ``action.choices``: ``base``, then ``tested`` and ``untested`` where
+        they name other aligners."""
+        named = [self.base, self.tested or self.base, self.untested]
+        return list(dict.fromkeys(c for c in named if c != REJECT))
 
 
 class RejectUntested(StatelessPolicy):
-    """``RejectUntested(base="roco_antialias")(obs, info) -> (N,) int64`` select action: 1
-    (reject) for the filled slots the base aligner left untested, else 0 (its pose). It
-    reports no alignment of its own (the env's base aligner aligns)."""
+    """``RejectUntested(base="roco_antialias")(obs, info) -> (N,) int64`` select action: by
+    default 1 (reject) for the filled slots the base aligner left untested, else 0 (its
+    pose); with ``tested`` / ``untested`` the indices of those choices in
+    :attr:`RejectUntestedParams.choices` (reject = their count). It reports no alignment
+    of its own (the env's aligners align)."""
 
     def __init__(self, **params: Any) -> None:
         self.params = params_from_kwargs(RejectUntestedParams, params, "reject_untested")
-        self.env_overrides = {"action.mode": "select", "action.choices": [self.params.base],
+        choices = self.params.choices
+        self._tested = choices.index(self.params.tested or self.params.base)
+        self._untested = (len(choices) if self.params.untested == REJECT
+                          else choices.index(self.params.untested))
+        self.env_overrides = {"action.mode": "select", "action.choices": choices,
                               "action.base": self.params.base, "observation.mode": "aligned"}
 
     def __call__(self, observation: Mapping[str, Any], info: Mapping | None = None
@@ -78,4 +124,9 @@ class RejectUntested(StatelessPolicy):
                              "run the env with observation.mode='aligned' (its "
                              "env_overrides; sweeps and EgoEnv merge them)")
         statistic = np.asarray(observation["diagnostics"])[:, STATISTIC]
-        return untested_slots(statistic, observation["collab_mask"]).astype(np.int64)
+        untested = untested_slots(statistic, observation["collab_mask"])
+        tested = np.full(len(untested), self._tested)
+        if self.params.tested_within_m is not None:
+            gap = np.asarray(observation["choice_diagnostics"])[:, self._tested, GAP_M]
+            tested = np.where(gap <= self.params.tested_within_m, self._tested, 0)
+        return np.where(untested, self._untested, tested).astype(np.int64)

@@ -15,13 +15,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from roco_env.flags import SpecFlags
+from roco_env.policies.spec import validate_policy_spec
 from roco_env.scenario import OBSERVATION_MODES, ActionConfig, list_scenarios
 from roco_env.schema import ConfigError, build, check_fields, spec
 
 ACTION_MODES = ("correction", "residual", "select", "gate")
 NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
 REWARDS = ("ap70_gain", "ap50_gain", "ap70", "ap50")
-GUARDS = ("none", "reject_untested")
+GUARDS = ("none", "reject_untested", "keep_tested")
 REWARD_OVER = ("none", "base")
 WHERE = "train-policy"
 
@@ -35,6 +36,10 @@ class PolicyTrainConfig:
                                  doc="the env's observation.mode")
     observation_keys: list[str] = spec([], doc="the observation entries the policy reads, "
                                        "in the space's order (empty: all)")
+    action_choices: list[str] = spec([], doc="action.choices of select mode: the aligners' "
+                                     "policy specs a slot picks among, reject after them "
+                                     "(empty: the scenario's, by default identity, coalign, "
+                                     "roco, roco_antialias)")
     action_base: str = spec("roco_antialias", doc="action.base: the aligner of residual and "
                             "gate modes and of the aligned observation's diagnostics")
     scenarios: list[str] = spec(["urban_intersection", "parking_lot", "v2xset_like"],
@@ -54,7 +59,9 @@ class PolicyTrainConfig:
     reward: str = spec("ap70_gain", choices=REWARDS, doc="the env's reward")
     guard: str = spec("none", choices=GUARDS, doc="reject_untested: the slots action_base "
                       "computed no statistic for are rejected by rule (in training, "
-                      "evaluation and the exported policy), the network decides the others "
+                      "evaluation and the exported policy), the network decides the others; "
+                      "keep_tested: the slots action_base tested take its pose by rule, the "
+                      "network decides the untested ones (any choice or reject) "
                       "(select mode, aligned observation, action_base one of the choices)")
     reward_over: str = spec("none", choices=REWARD_OVER, doc="base: each training step's "
                             "reward minus the reward of taking action_base's pose for every "
@@ -117,7 +124,29 @@ def _check_lists(config: PolicyTrainConfig) -> None:
                           "[0, 20]")
 
 
+def select_choices(config: PolicyTrainConfig) -> list[str]:
+    """The select mode's choices: ``action_choices``, or the scenario default's."""
+    return list(config.action_choices) or list(ActionConfig().choices)
+
+
+def _check_choices(config: PolicyTrainConfig) -> None:
+    if not config.action_choices:
+        return
+    if config.action_mode != "select":
+        raise ConfigError(f"{WHERE}: action_choices applies to action_mode='select' only; "
+                          f"got action_mode={config.action_mode!r}")
+    for text in config.action_choices:
+        try:
+            validate_policy_spec(text)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{WHERE}: action_choices: {exc}") from exc
+    if len(set(config.action_choices)) != len(config.action_choices):
+        raise ConfigError(f"{WHERE}: action_choices={config.action_choices!r} must be "
+                          "distinct")
+
+
 def _check_ties(config: PolicyTrainConfig) -> None:
+    _check_choices(config)
     if config.noise_high < config.noise_low:
         raise ConfigError(f"{WHERE}: noise_high={config.noise_high} must be >= "
                           f"noise_low={config.noise_low}")
@@ -133,20 +162,21 @@ def _check_ties(config: PolicyTrainConfig) -> None:
     if config.total_timesteps % config.n_steps:
         raise ConfigError(f"{WHERE}: total_timesteps={config.total_timesteps} must be a "
                           f"multiple of n_steps={config.n_steps}")
+    choices = select_choices(config)
     if config.reward_over != "none" and (config.action_mode != "select" or
-                                          config.action_base not in ActionConfig().choices):
+                                          config.action_base not in choices):
         raise ConfigError(f"{WHERE}: reward_over={config.reward_over!r} needs "
-                          f"action_mode='select' and action_base one of "
-                          f"{ActionConfig().choices}")
+                          f"action_mode='select' and action_base one of action_choices "
+                          f"{choices}")
     if config.guard != "none" and (
             config.action_mode != "select" or config.observation_mode != "aligned"
-            or config.action_base not in ActionConfig().choices
+            or config.action_base not in choices
             or not {"choice_diagnostics", "collab_mask"} <= set(config.observation_keys
                                                                or ("choice_diagnostics",
                                                                    "collab_mask"))):
         raise ConfigError(f"{WHERE}: guard={config.guard!r} needs action_mode='select', "
-                          "observation_mode='aligned', action_base one of "
-                          f"{ActionConfig().choices} and observation_keys holding "
+                          "observation_mode='aligned', action_base one of action_choices "
+                          f"{choices} and observation_keys holding "
                           "choice_diagnostics and collab_mask (or empty)")
     if config.batch_size > config.n_steps:
         raise ConfigError(f"{WHERE}: batch_size={config.batch_size} must be <= "

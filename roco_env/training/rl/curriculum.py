@@ -23,8 +23,8 @@ import numpy as np
 from gymnasium import spaces
 
 from roco_env.policies.learned import Guard, scaled_observation
-from roco_env.scenario import ActionConfig, load_scenario
-from roco_env.training.rl.config import PolicyTrainConfig
+from roco_env.scenario import load_scenario
+from roco_env.training.rl.config import PolicyTrainConfig, select_choices
 from roco_env.wrappers import EgoEnv
 
 # Training env seeds are drawn at or above this; held-out evaluation seeds lie below it
@@ -59,30 +59,37 @@ def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
         overrides["observation.mode"] = config.observation_mode
     if config.action_mode in ("residual", "gate") or config.observation_mode == "aligned":
         overrides["action.base"] = config.action_base
+    if config.action_choices:
+        overrides["action.choices"] = list(config.action_choices)
     return overrides
 
 
 def base_choice(config: PolicyTrainConfig) -> int:
-    """The index of ``action_base`` among the default choices: the action the guard keys
+    """The index of ``action_base`` among the select choices: the action the guard keys
     on and the reference action of ``reward_over`` (the config checks it is a choice)."""
-    return ActionConfig().choices.index(config.action_base)
+    return select_choices(config).index(config.action_base)
 
 
 def training_guard(config: PolicyTrainConfig) -> Guard | None:
-    """The rule ``config.guard`` applies to every action (None for ``"none"``): reject
-    the slots ``action_base`` left untested, the network's action elsewhere."""
+    """The rule ``config.guard`` applies to every action (None for ``"none"``):
+    ``reject_untested`` rejects the slots ``action_base`` left untested and takes the
+    network's action elsewhere; ``keep_tested`` takes ``action_base`` where it tested
+    and the network's action elsewhere."""
     if config.guard == "none":
         return None
+    if config.guard == "keep_tested":
+        return Guard(base_choice(config), None, "keep", "network")
     return Guard(base_choice(config), None, "network")
 
 
 def guarded_action(guard: Guard | None, action: np.ndarray, observation: dict) -> np.ndarray:
-    """``action`` (N,) with the untested slots of the Dict ``observation`` rejected
-    (unchanged without a guard)."""
+    """``action`` (N,) with the guard's rules applied on the Dict ``observation``
+    (unchanged without a guard); reject is the index after the observation's choices."""
     if guard is None:
         return action
-    blind = guard.untested(observation["choice_diagnostics"], observation["collab_mask"])
-    return np.where(blind, len(ActionConfig().choices), action).astype(np.int64)
+    diagnostics = observation["choice_diagnostics"]
+    return guard.constrain(action, np.shape(diagnostics)[1], diagnostics,
+                           observation["collab_mask"])
 
 
 def draw_condition(config: PolicyTrainConfig, index: int) -> Condition:
@@ -205,11 +212,10 @@ class CurriculumEnv(gymnasium.Env):
                              f"{self._env.action_space}, not {self.action_space}")
         choices = list(self._env.env.config.action.choices)
         if (self.guard is not None or self.config.reward_over != "none") \
-                and choices != list(ActionConfig().choices):
-            # the guard and the reference action index the default choices
+                and choices != select_choices(self.config):
+            # the guard and the reference action index the config's choices
             raise ValueError(f"scenario {self.condition.scenario!r}: guard / reward_over need "
-                             f"the default action.choices {list(ActionConfig().choices)}; "
-                             f"got {choices}")
+                             f"action.choices {select_choices(self.config)}; got {choices}")
         observation, info = self._env.reset(seed=self.condition.seed)
         self._fresh = True
         self._observation = observation

@@ -6,7 +6,7 @@ an undefined AP left out) of the controlled agent over :func:`eval_conditions`. 
 baselines run in ``correction`` mode with their policy (the same conditions, seeds and
 reward; selecting aligner k equals aligner k, tests/test_action_modes.py): identity,
 no fusion (``fusion="none"``), coalign, roco, roco_antialias and the oracle. A network
-trained behind a guard (``guard="reject_untested"``) is also compared with the rule alone
+trained behind the ``reject_untested`` guard is also compared with the rule alone
 (:func:`baselines_of`): its base aligner's choice for every slot, the guard's rejections,
 in the training env's mode; what the network adds is its score minus that row.
 """
@@ -70,12 +70,12 @@ def evaluate(config: PolicyTrainConfig, make_act: Callable[[], Act],
 def baselines_of(config: PolicyTrainConfig) -> tuple[str, ...]:
     """The baselines a run of ``config`` is compared with: :data:`BASELINES`, and
     :data:`RULE` when the network acts behind a guard."""
-    return BASELINES + ((RULE,) if config.guard != "none" else ())
+    return BASELINES + ((RULE,) if config.guard == "reject_untested" else ())
 
 
 def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
     """One of :func:`baselines_of` on the held-out conditions."""
-    if name == RULE and config.guard != "none":
+    if name == RULE and config.guard == "reject_untested":
         guard, base = training_guard(config), base_choice(config)
 
         def rule() -> Act:

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from roco_env.policies.learned import FORMAT, rule_guard
-from roco_env.training.rl.config import PolicyTrainConfig
+from roco_env.policies.learned import FORMAT, keep_tested_guard, rule_guard
+from roco_env.training.rl.config import PolicyTrainConfig, select_choices
 from roco_env.training.rl.curriculum import INPUT_CLIP, CurriculumEnv, env_overrides
 
 
@@ -52,6 +52,8 @@ def policy_env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
     overrides = env_overrides(config)
     overrides.pop("reward")
     overrides.setdefault("observation.mode", config.observation_mode)
+    if config.action_mode == "select":  # the file says which choices its actions index
+        overrides["action.choices"] = select_choices(config)
     return overrides
 
 
@@ -62,7 +64,8 @@ def save_policy(path: Path, policy: torch.nn.Module, env: CurriculumEnv,
                 "observation": [[key, list(shape)] for key, shape in env.keys],
                 "action": action_metadata(env.action_space), **provenance}
     if env.guard is not None:  # the exported policy acts behind the rule it trained behind
-        metadata["guard"] = rule_guard(env.guard.keep)
+        metadata["guard"] = (keep_tested_guard if env.guard.untested == "network"
+                             else rule_guard)(env.guard.keep)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"state_dict": actor_state_dict(policy, env.scale),
                 "metadata": json.dumps(metadata, sort_keys=True)}, path)
