@@ -16,10 +16,11 @@ What a replay is not: the protocol's episodes are played with defend's own actio
 rejection makes the gate mode solve the kept collaborators' poses again without the
 rejected ones; the recording keeps everyone, so a kept collaborator's pose here is the one
 the base aligner found with the liar still in. On the protocol's seeds 0-1 the replay of
-defend as of commit 1a34410 gave the protocol record's detection within a point and its
-honest rejections within 0.1 point on every attack (docs/attacks.md). Use seeds other
-than 0-1 (the protocol's) to choose parameters. Nothing is written; the recordings live in memory, one
-episode at a time.
+defend as of commit 8d56ac5 gave the protocol record's detection within a point on every
+attack of both scenes (equal to the printed whole per cent on all but two cells) and
+its honest rejections within 0.1 point (docs/attacks.md has the comparison). Use seeds
+other than 0-1 (the protocol's) to choose parameters. Nothing is written; the
+recordings live in memory, one episode at a time.
 """
 
 from __future__ import annotations

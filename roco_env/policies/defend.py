@@ -41,12 +41,14 @@ Six tests, each a statistical test at level ``alpha``:
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts. Evidence
-  of boxes nobody confirms holds, though: where the window's unconfirmed boxes alone
-  (or, in the relative and orphan tests below, their window) have a p-value below
-  ``sticky`` (1e-4), the collaborator fails whatever this step says, until clean steps
-  dilute its window (conflicts never hold: an honest collaborator the aligner leaves a
-  metre off shows many). A box within ``own_car_m`` (2.5 m) of a source's origin is its
-  own car, which it does not detect: never unconfirmed by it.
+  of boxes nobody has holds, though: where the window's lone unconfirmed boxes (no box
+  of the judge within ``orphan_m``) alone have a p-value below ``sticky`` (1e-4), in
+  this test and the relative test below (the orphan test: its window), the collaborator
+  fails whatever this step says, until clean steps dilute its window (conflicts and
+  missed claims never hold, nor boxes a judge places a little off: an honest
+  collaborator the aligner leaves a metre or two off shows many). A box within
+  ``own_car_m`` (2.5 m) of a vehicle source's origin (id starting with ``car_prefix``)
+  is its own car, which it does not detect: never unconfirmed by it.
 * **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
   has no car) aligned pose puts its own car at a place in the ego frame; every other
   vehicle source (the ego included when it is one; an RSU is no witness) with that place
