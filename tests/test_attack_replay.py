@@ -3,6 +3,7 @@ replayed through variants of ``defend``."""
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 from pathlib import Path
 
@@ -35,3 +36,14 @@ def test_variants_and_seeds_are_parsed_and_a_bad_parameter_names_itself():
     assert replay_defend.parse_seeds("2,5") == [2, 5]
     with pytest.raises(ValueError, match=r"sticky=2.0 is out of range"):
         replay_defend.main(["--seeds", "0", "--steps", "1", "--variant", "sticky=2.0"])
+    with pytest.raises(ValueError, match=r"base is not a variant parameter"):
+        replay_defend.parse_variant("base=identity,sticky=0")
+
+
+@pytest.mark.parametrize("seeds", ["1-", "-1", "3-1", "a", "1,,2", "1-2-3", ""])
+def test_bad_seeds_are_refused_naming_the_option(seeds, capsys):
+    with pytest.raises(argparse.ArgumentTypeError, match="--seeds"):
+        replay_defend.parse_seeds(seeds)
+    with pytest.raises(SystemExit):
+        replay_defend.main(["--seeds", seeds, "--steps", "1"])
+    assert "--seeds" in capsys.readouterr().err

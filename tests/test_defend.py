@@ -89,6 +89,55 @@ def test_a_source_does_not_confirm_its_own_car_and_is_not_asked_to():
         == [False, True]
 
 
+def test_the_viewers_own_car_blocks_no_sight_line_as_far_as_it_is_blind():
+    """A box 1.5 m from the viewer (its own car, within ``blind`` 2.5 m though beyond
+    ``own`` 1 m) is no target and no occluder either: the car 20 m behind it is seen."""
+    occluders = np.array([[1.5, 0.0], [20.0, 0.0]])
+    seen = clear_view(np.zeros(2), occluders, occluders, reach=40.0, radius=1.5, own=1.0,
+                      blind=2.5)
+    assert seen.tolist() == [False, True]
+
+
+def test_a_vehicle_judge_does_not_confirm_its_own_car_and_an_rsu_has_none():
+    """The ego sees a car where a collaborator stands: a vehicle (``cav_`` id) has no box
+    of its own car, so the ego's box is not unconfirmed by it (``own_car_m``, with the
+    claim test on or off; 0: it is); an RSU has no car there, so the box is."""
+    ego = cars(*SCENE, (15.0, 4.0))
+    obs = observation(ego, [(cars(*SCENE), np.array([15.0, 4.0, 0.0]))])
+    for name, params, unconfirmed in (("cav_1", {}, 0), ("cav_1", {"use_claim": False}, 0),
+                                      ("cav_1", {"own_car_m": 0.0}, 1), ("rsu_1", {}, 1)):
+        defend = Defend(use_correction=False, **params)
+        defend(obs, {"agent": "cav_0", "collaborators": [name]})
+        assert defend.last_now[EGO, 0].unconfirmed == unconfirmed, (name, params)
+
+
+def test_ghosts_hold_the_relative_and_orphan_tests_past_the_recent_rule():
+    """Collaborator 0 adds four ghosts (nobody's boxes, 5 m from any car) for five steps,
+    then sends the scene; collaborator 1 is honest. Each of the relative and orphan tests
+    alone (the fixed miss rate at 0.5 says nothing) rejects it and, its window's evidence
+    below ``sticky``, holds it on the clean steps; with ``sticky=0`` the first clean step
+    releases it."""
+    ghosts = [(x + 5.0, 4.0) for x in (-30, -20, -10, 0)]
+    poses = [np.array([0.0, 20.0, 0.0]), np.array([0.0, -12.0, 0.0])]
+    scene = cars(*SCENE)
+
+    def verdicts(test: str, **params) -> tuple[list[int], set[str]]:
+        defend = Defend(use_correction=False, miss_rate=0.5, use_relative=test == "relative",
+                        use_orphan=test == "orphan", **params)
+        out, reasons = [], set()
+        for step in range(8):
+            sent = cars(*SCENE, *ghosts) if step < 5 else scene
+            action = defend(observation(scene, [(sent, poses[0]), (scene, poses[1])]), info(2))
+            assert action[1] == 0
+            out.append(int(action[0]))
+            reasons.add(defend.last_reasons[0])
+        return out, reasons - {""}
+    for test in ("relative", "orphan"):
+        held, reasons = verdicts(test)
+        assert held[1:] == [1] * 7 and reasons == {test}, test
+        assert verdicts(test, sticky=0.0)[0][1:] == [1] * 4 + [0] * 3, test
+
+
 def test_a_collaborator_that_disagrees_with_everyone_is_rejected_and_the_rest_kept():
     honest = [(cars(*SCENE), np.array([5.0, 4.0, 0.0])) for _ in range(2)]
     liar = (cars(*[(x + 3.0, y) for x, y in SCENE]), np.array([-5.0, 4.0, 0.0]))
@@ -134,9 +183,13 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     ego's boxes unconfirmed by it; window p-value 1e-8) stays rejected on the first clean
     step (5e-6 < 1e-4, the default) and is released on the next (3e-4: the clean steps
     dilute the window); with ``sticky=0`` it is released at once. A collaborator whose
-    boxes sit 2.5 m off for five steps (conflicts: an aligner that leaves an honest one
-    off) is released at once whatever ``sticky`` says. Honest random misses are never
-    rejected."""
+    boxes sit 2.5 m off along x for five steps (conflicts: an aligner that leaves an
+    honest one off) is released at once whatever ``sticky`` says; so is one 1.95 m off
+    sideways (no overlap: every box unconfirmed, but each with a box of the judge within
+    ``orphan_m``, 2 m: not lone), and one 2.2 m off sideways with ``orphan_m`` 3 (with
+    the default 2 m such boxes are lone, and hold). Honest random misses well above
+    ``miss_rate`` (20 % per car and source) fail the window at times; ``sticky`` holds
+    them a step or two at most, the window alone (``sticky=1``) many more."""
     scene = cars(*SCENE)
     pose = np.array([5.0, 4.0, 0.0])
 
@@ -149,10 +202,15 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
     assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
     assert verdicts(cars(*[(x + 2.5, y) for x, y in SCENE])) == [1] * 5 + [0] * 5
-    # honest noise (each source misses each car with probability 0.05, seeded): never held
-    rng = np.random.default_rng(11)
-    honest = Defend(use_correction=False)
-    assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(10))
+    sideways = cars(*[(x, y + 2.2) for x, y in SCENE])
+    assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE])) == [1] * 5 + [0] * 5
+    assert verdicts(sideways, orphan_m=3.0) == [1] * 5 + [0] * 5
+    assert verdicts(sideways) == [1] * 10
+
+    def rejected(sticky: float) -> int:  # of 20 steps x 3 honest collaborators
+        rng, defend = np.random.default_rng(11), Defend(use_correction=False, sticky=sticky)
+        return sum(int(defend(*_orphan_scene(rng, [], miss=0.2)).sum()) for _ in range(20))
+    assert rejected(1e-4) <= rejected(0.0) + 2 and rejected(1.0) >= rejected(0.0) + 20
 
 
 def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():
@@ -463,19 +521,22 @@ def test_the_relative_test_has_power_where_both_shares_sit_at_0_or_1():
     from roco_env.policies.defend import PairEvidence, _relative_tail
 
     assert _relative_tail(PairEvidence(0, 0, 4), PairEvidence(60, 0, 0), 1.2) < 1e-3
-    assert _relative_tail(PairEvidence(4, 0, 0), PairEvidence(60, 0, 0), 1.2) >= 0.5
+    # no unconfirmed box of its own: no evidence, so a clean step passes the recent rule
+    assert _relative_tail(PairEvidence(4, 0, 0), PairEvidence(60, 0, 0), 1.2) == 1.0
+    assert _relative_tail(PairEvidence(4, 0, 0), PairEvidence(50, 0, 10), 1.2) == 1.0
     assert _relative_tail(PairEvidence(0, 0, 0), PairEvidence(60, 0, 0), 1.2) == 1.0
 
 
-def _orphan_scene(rng: np.random.Generator, ghosts: list[tuple[float, float]]) -> tuple:
+def _orphan_scene(rng: np.random.Generator, ghosts: list[tuple[float, float]],
+                  miss: float = 0.05) -> tuple:
     """One step of SCENE seen by the ego and three collaborators (ego frame): every source
-    misses each car with probability 0.05 and places the others 0.2 m off (std, seeded);
-    collaborator 2 adds ``ghosts``."""
+    misses each car with probability ``miss`` and places the others 0.2 m off (std,
+    seeded); collaborator 2 adds ``ghosts``."""
     poses = [np.array([0.0, 20.0, 0.0]), np.array([0.0, -12.0, 0.0]),
              np.array([5.0, 25.0, 0.0])]
 
     def seen(extra=()):
-        kept = [xy for xy in SCENE if rng.random() > 0.05]
+        kept = [xy for xy in SCENE if rng.random() > miss]
         return cars(*(np.array(kept) + rng.normal(0.0, 0.2, (len(kept), 2))), *extra)
 
     sent = [seen(), seen(), seen(ghosts)]

@@ -41,12 +41,14 @@ Six tests, each a statistical test at level ``alpha``:
   It fails when the window's counts are significant at ``alpha`` and this step's alone
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts. Evidence
-  of boxes nobody confirms holds, though: where the window's unconfirmed boxes alone
-  (or, in the relative and orphan tests below, their window) have a p-value below
-  ``sticky`` (1e-4), the collaborator fails whatever this step says, until clean steps
-  dilute its window (conflicts never hold: an honest collaborator the aligner leaves a
-  metre off shows many). A box within ``own_car_m`` (2.5 m) of a source's origin is its
-  own car, which it does not detect: never unconfirmed by it.
+  of boxes nobody has holds, though: where the window's lone unconfirmed boxes (no box
+  of the judge within ``orphan_m``) alone have a p-value below ``sticky`` (1e-4), in
+  this test and the relative test below (the orphan test: its window), the collaborator
+  fails whatever this step says, until clean steps dilute its window (conflicts and
+  missed claims never hold, nor boxes a judge places a little off: an honest
+  collaborator the aligner leaves a metre or two off shows many). A box within
+  ``own_car_m`` (2.5 m) of a vehicle source's origin (id starting with ``car_prefix``)
+  is its own car, which it does not detect: never unconfirmed by it.
 * **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
   has no car) aligned pose puts its own car at a place in the ego frame; every other
   vehicle source (the ego included when it is one; an RSU is no witness) with that place
@@ -85,7 +87,7 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Hashable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -109,18 +111,21 @@ class PairEvidence:
     """What one source's boxes say about another's: counts of boxes that match, conflict
     (overlap without matching) or are unconfirmed (in the other's clear view, nothing
     there); and of claimed places (a vehicle collaborator's car where its pose puts it) in
-    the other's clear view, and of those where the other sees no car."""
+    the other's clear view, and of those where the other sees no car; ``lone``: the
+    unconfirmed boxes with no box of the other within a given distance (a box the other
+    has nowhere near, not one it places a little off)."""
 
     matches: int
     conflicts: int
     unconfirmed: int
     claims: int = 0
     claims_missed: int = 0
+    lone: int = 0
 
     def __add__(self, other: PairEvidence) -> PairEvidence:
         return PairEvidence(self.matches + other.matches, self.conflicts + other.conflicts,
                             self.unconfirmed + other.unconfirmed, self.claims + other.claims,
-                            self.claims_missed + other.claims_missed)
+                            self.claims_missed + other.claims_missed, self.lone + other.lone)
 
 
 NO_EVIDENCE = PairEvidence(0, 0, 0)
@@ -131,8 +136,8 @@ def clear_view(origin: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
     """(k,) bool: whether each target point (k, 2) lies within ``reach`` m of ``origin``
     (2,), and not within ``blind`` m (the viewer's own car, which it does not detect), with
     no occluder centre (M, 2) within ``radius`` m of the sight line between them; occluders
-    within ``own`` m of the target (its own box) or of the origin (the viewer's car) block
-    nothing. Metres, one frame."""
+    within ``own`` m of the target (its own box), or within ``max(own, blind)`` m of the
+    origin (the viewer's car), block nothing. Metres, one frame."""
     ray = targets - origin
     length2 = np.maximum(np.sum(ray**2, axis=1), 1e-12)
     near = (np.sqrt(length2) < reach) & (np.sqrt(length2) >= blind)
@@ -147,7 +152,7 @@ def clear_view(origin: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
     across = np.hypot(rel[None, :, 0] - along * ray[:, None, 0],
                       rel[None, :, 1] - along * ray[:, None, 1])
     own_box = np.hypot(*(occluders[None, :, :] - targets[:, None, :]).transpose(2, 0, 1)) < own
-    viewer = np.hypot(*rel.T) < own
+    viewer = np.hypot(*rel.T) < max(own, blind)
     blocked = (along > 0.0) & (along < 1.0) & (across < radius) & ~own_box & ~viewer[None, :]
     seen[near] = ~blocked.any(axis=1)
     return seen
@@ -170,10 +175,12 @@ class BoxStatus(NamedTuple):
     unconfirmed: np.ndarray
     gap: np.ndarray
 
-    def evidence(self) -> PairEvidence:
-        """The counts of :class:`PairEvidence`."""
+    def evidence(self, lone_m: float | None = None) -> PairEvidence:
+        """The counts of :class:`PairEvidence`; ``lone`` those of the unconfirmed boxes
+        whose ``gap`` exceeds ``lone_m`` (m; None: not counted, 0)."""
+        lone = 0 if lone_m is None else int(np.sum(self.unconfirmed & (self.gap > lone_m)))
         return PairEvidence(int(self.matched.sum()), int(self.conflict.sum()),
-                            int(self.unconfirmed.sum()))
+                            int(self.unconfirmed.sum()), lone=lone)
 
 
 def box_status(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray,
@@ -272,11 +279,13 @@ class DefendParams:
     strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
                          "(this step alone) is below this fails at once, however quiet "
                          "the window (0: the window decides alone)")
-    sticky: float = spec(1e-4, low=0.0, high=1.0, doc="a consistency test whose window "
-                         "p-value (Bonferroni included) is below this fails whatever this "
-                         "step's evidence says (the recent rule is waived: a collaborator "
-                         "caught with this confidence stays rejected until the evidence "
-                         "leaves the window; 0: never waived)")
+    sticky: float = spec(1e-4, low=0.0, high=1.0, doc="where the window's evidence of "
+                         "boxes nobody has (unconfirmed with no box of the judge within "
+                         "orphan_m: the unconfirmed test's, the relative test's; the orphan "
+                         "test's window) has a p-value (Bonferroni included) below this, the "
+                         "test fails whatever this step's evidence says (the recent rule is "
+                         "waived until the evidence leaves the window; conflicts and missed "
+                         "claims never hold; 0: never waived)")
     use_correction: bool = spec(True, doc="the correction (temporal) tests")
     use_offset: bool = spec(True, doc="the mean-offset test among the correction tests "
                             "(off: the sum of q alone, at level alpha)")
@@ -424,20 +433,24 @@ class Defend:
         sources = _sources(observation, filled)
         occluders = np.concatenate([boxes[:, :2] for boxes, _ in sources.values()])
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
-        # vehicles claim a place and witness others' claims (an RSU's view misses cars)
-        cars = {key for key, name in ids.items() if self.use["claim"] and str(
-            ego if key == EGO else name).startswith(self.params.car_prefix)}
+        # vehicles have a car of their own, which they do not detect; they claim a place
+        # and witness others' claims (an RSU's view misses cars)
+        vehicles = {key for key, name in ids.items()
+                    if str(ego if key == EGO else name).startswith(self.params.car_prefix)}
+        cars = vehicles if self.use["claim"] else set()
+        blind = {key: self.params.own_car_m if key in vehicles else 0.0 for key in ids}
         self.last_pairs, self.last_now, self._status = {}, {}, {}
         for a, b in itertools.combinations(sources, 2):
             (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
             distance = centre_distances(boxes_a, boxes_b)
             # directed: what b says about a's boxes (and a's claimed place), and back
             status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders,
-                                         *self._geometry, distance, self.params.own_car_m),
+                                         *self._geometry, distance, blind[b]),
                       (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
-                                         *self._geometry, distance.T, self.params.own_car_m)}
+                                         *self._geometry, distance.T, blind[a])}
             self._status.update(status)
-            directed = {key: judged.evidence() for key, judged in status.items()}
+            directed = {key: judged.evidence(self.params.orphan_m)
+                        for key, judged in status.items()}
             if a in cars and b in cars and a != EGO:
                 directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
                                                  *self._claim)
@@ -471,13 +484,14 @@ class Defend:
         """Whether ``slot`` passes the test against ``group``: its disagreements over the
         window are not significant at alpha, or this step's alone have a p-value above
         ``recent`` (a past disagreement since resolved, an early misalignment the aligner
-        has corrected, no longer counts) and its unconfirmed boxes over the window alone
-        are not below ``sticky`` (conflicts never hold: a misaligned honest collaborator
-        shows many, and the aligner may correct it)."""
+        has corrected, no longer counts) and its lone unconfirmed boxes (no box of the
+        judge within ``orphan_m``) over the window alone are not below ``sticky``
+        (conflicts never hold, nor boxes a judge places a little off: a misaligned honest
+        collaborator shows many, and the aligner may correct it)."""
         return not self._fails(
             self._p_value(slot, group, self.last_pairs),
             lambda: self._p_value(slot, group, self.last_now),
-            lambda: self._p_value(slot, group, self.last_pairs, unconfirmed_only=True))
+            lambda: self._p_value(slot, group, self.last_pairs, lone_only=True))
 
     def _fails(self, window: float, now: Callable[[], float],
                held: Callable[[], float] | None = None) -> bool:
@@ -491,23 +505,24 @@ class Defend:
             or now() <= self.params.recent
 
     def _p_value(self, slot: int, group: tuple[int, ...] | list[int],
-                 pairs: dict[tuple, PairEvidence], unconfirmed_only: bool = False) -> float:
+                 pairs: dict[tuple, PairEvidence], lone_only: bool = False) -> float:
         """How likely an honest collaborator shows the conflicts, unconfirmed boxes or
         missed claims that ``slot`` shows against the ego and the other collaborators of
         ``group`` in ``pairs`` (directed: (judged, judge) -> evidence): the smallest
         p-value of the one-sided binomial tests times the number of consistency tests
         (Bonferroni: conflicts and unconfirmed boxes, missed claims with the claim test, the
         relative test of :meth:`relatively_unconfirmed` and the orphan test of
-        :meth:`orphaned` when on; 1 without evidence); ``unconfirmed_only``: the test of
-        unconfirmed boxes alone (same Bonferroni)."""
+        :meth:`orphaned` when on; 1 without evidence); ``lone_only``: the test of the lone
+        unconfirmed boxes alone (:class:`PairEvidence`; same Bonferroni)."""
         others = [other for other in (EGO, *group) if other != slot]
         evidence = sum((pairs[slot, other] + pairs[other, slot] for other in others),
                        NO_EVIDENCE)
         total = evidence.matches + evidence.conflicts + evidence.unconfirmed
-        tails = [bdtrc(evidence.unconfirmed - 1, total, self.params.miss_rate)] if total else []
-        if total and not unconfirmed_only:
+        unconfirmed = evidence.lone if lone_only else evidence.unconfirmed
+        tails = [bdtrc(unconfirmed - 1, total, self.params.miss_rate)] if total else []
+        if total and not lone_only:
             tails.append(bdtrc(evidence.conflicts - 1, total, self.params.conflict_rate))
-        if evidence.claims and not unconfirmed_only:
+        if evidence.claims and not lone_only:
             tails.append(bdtrc(evidence.claims_missed - 1, evidence.claims,
                                self.params.claim_miss_rate))
         return float(min(1.0, self._tests * min(tails))) if tails else 1.0
@@ -517,17 +532,23 @@ class Defend:
         collaborator judge them, exceeds ``relative_margin`` times the pooled share of the
         other collaborators' boxes (judged by all but it) significantly over the window
         (level alpha over the consistency tests' Bonferroni) and this step's alone have a
-        p-value of at most ``recent``. Judged against every collaborator, not a consensus
-        set's: a liar's boxes lie in its pool, a smaller pool's share is noisier."""
-        def tail(slot: int, pairs: dict[tuple, PairEvidence]) -> float:
+        p-value of at most ``recent`` (or the same test of the lone unconfirmed boxes over
+        the window, :class:`PairEvidence`, is below ``sticky``). Judged against every
+        collaborator, not a consensus set's: a liar's boxes lie in its pool, a smaller
+        pool's share is noisier."""
+        def tail(slot: int, pairs: dict[tuple, PairEvidence], lone: bool = False) -> float:
             judges = [EGO, *(other for other in slots if other != slot)]
             own = sum((pairs[slot, judge] for judge in judges), NO_EVIDENCE)
             rest = sum((pairs[member, judge] for member in judges[1:] for judge in judges
                         if judge != member), NO_EVIDENCE)
+            if lone:
+                own, rest = replace(own, unconfirmed=own.lone), replace(rest, unconfirmed=rest.lone)
             return _relative_tail(own, rest, self.params.relative_margin)
         return {slot for slot in slots
                 if self._fails(self._tests * tail(slot, self.last_pairs),
-                               lambda slot=slot: tail(slot, self.last_now))}
+                               lambda slot=slot: tail(slot, self.last_now),
+                               lambda slot=slot: self._tests * tail(slot, self.last_pairs,
+                                                                    lone=True))}
 
 
     def orphaned(self, slots: list[int], judges: list[Hashable], ego: Hashable,
@@ -567,10 +588,11 @@ def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> floa
     """One-sided p-value of a collaborator's share of unconfirmed boxes (``own``: its boxes
     as the others judge them) exceeding ``margin`` times the pooled share of the other
     collaborators' boxes (``rest``: as judged by everyone but it): a Wald z-test of the
-    difference ``p_own - margin p_rest``; 1 where either side has nothing judged."""
+    difference ``p_own - margin p_rest``; 1 where either side has nothing judged or
+    ``own`` has no unconfirmed box (no evidence against it)."""
     n_own = own.matches + own.conflicts + own.unconfirmed
     n_rest = rest.matches + rest.conflicts + rest.unconfirmed
-    if n_own == 0 or n_rest == 0:
+    if n_own == 0 or n_rest == 0 or own.unconfirmed == 0:
         return 1.0
     p_own, p_rest = own.unconfirmed / n_own, rest.unconfirmed / n_rest
     variance = _share_variance(p_own, n_own, p_rest, n_rest, margin)
