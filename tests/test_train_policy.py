@@ -104,6 +104,19 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     assert "learning_rate" in capsys.readouterr().err
 
 
+def test_a_checkpoint_saved_before_a_config_field_existed_resumes(tmp_path):
+    """A field the saved config lacks (action_choices, added later) compares as its
+    default: adding a field never blocks a resume with the same options."""
+    assert run_cli(tmp_path, "--total-timesteps=8") == 0
+    path = tmp_path / "checkpoint" / "state.json"
+    state = json.loads(path.read_text())
+    del state["config"]["action_choices"]
+    path.write_text(json.dumps(state))
+    assert run_cli(tmp_path, "--total-timesteps=16") == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert [p["timesteps"] for p in report["curve"]] == [0, 8, 16]
+
+
 GUARDED_KEYS = {"observation_mode": "aligned",
                 "observation_keys": ["choice_diagnostics", "collab_mask"], "noise_low": 3.0,
                 "noise_high": 3.0}
