@@ -21,7 +21,12 @@ from roco_env.policies.learned import LearnedPolicy  # noqa: E402
 from roco_env.policies.reject_untested import STATISTIC  # noqa: E402
 from roco_env.schema import ConfigError  # noqa: E402
 from roco_env.training.rl.config import build_config  # noqa: E402
-from roco_env.training.rl.curriculum import condition_env, draw_condition, eval_conditions  # noqa: E402
+from roco_env.training.rl.curriculum import (  # noqa: E402
+    condition_env,
+    draw_condition,
+    env_overrides,
+    eval_conditions,
+)
 from roco_env.training.rl.ppo import build_model, greedy, train  # noqa: E402
 
 TINY = {"scenarios": ["v2xset_like"], "observation_mode": "raw", "episode_steps": 2,
@@ -102,6 +107,18 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     assert run_cli(tmp_path, "--total-timesteps=8") == 0
     assert run_cli(tmp_path, "--total-timesteps=16", "--learning-rate=0.01") == 2
     assert "learning_rate" in capsys.readouterr().err
+
+
+def test_the_training_env_sets_the_choices_the_exported_file_records():
+    """In select mode the training env sets action.choices even without --action-choices
+    (the defaults), so a scenario's own choices never train what the file calls others."""
+    from roco_env.training.rl.policy_export import policy_env_overrides
+    config = build_config(TINY)
+    env = condition_env(config, draw_condition(config, 0))
+    assert env_overrides(config)["action.choices"] == \
+        policy_env_overrides(config)["action.choices"] == \
+        list(env.env.config.action.choices) == ["identity", "coalign", "roco", "roco_antialias"]
+    env.close()
 
 
 def test_a_checkpoint_saved_before_a_config_field_existed_resumes(tmp_path):
@@ -274,20 +291,6 @@ def test_a_guarded_run_is_compared_with_its_rule_alone():
     assert rejected >= 1  # the rule had something to reject
     assert evaluate_baseline(guarded, RULE)["reward"] == pytest.approx(np.mean(rewards),
                                                                        abs=1e-12)
-
-
-def test_the_guard_refuses_an_env_with_other_choices(monkeypatch):
-    """The guard and reward_over index the default action.choices: an env that names
-    others (no shipped scenario does today) is refused, naming the field, before a step."""
-    from roco_env.training.rl import curriculum
-
-    build = curriculum.condition_env
-    swapped = ["identity", "roco", "coalign", "roco_antialias"]
-    monkeypatch.setattr(curriculum, "condition_env", lambda config, condition, **extra: build(
-        config, condition, **{"action.choices": swapped}, **extra))
-    env = curriculum.CurriculumEnv(build_config(GUARDED))
-    with pytest.raises(ValueError, match="action.choices"):
-        env.reset(seed=1)
 
 
 def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_elsewhere(
