@@ -202,8 +202,6 @@ def test_observation_keys_choose_what_the_policy_reads(tmp_path):
         CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))
 
 
-
-
 def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_policy(tmp_path):
     """v2xset_like at 3 m / 3 deg: the training env rejects exactly the slots
     roco_antialias left untested whatever the action, and the exported file acts behind
@@ -297,7 +295,7 @@ def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_
         tmp_path):
     """--action-choices roco_antialias roco_fallback --guard keep_tested, v2xset_like at
     3 m / 3 deg: whatever the sampled action, every slot roco_antialias tested takes it
-    (0) and the untested ones take the action (here roco_fallback, 1, none rejected); the
+    (0) and the untested ones take the action (here reject: the env rejects exactly them); the
     exported file records the choices and its guard, and acts as the greedy SB3 policy."""
     from roco_env.policies import make_policy
     from roco_env.policies.learned import Guard
@@ -307,9 +305,11 @@ def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_
     config = build_config(KEEP_TESTED)
     env = CurriculumEnv(config)
     untested = 0
-    for played, filled, blind, info in guarded_steps(env, 0, 1):
-        np.testing.assert_array_equal(played[filled], blind[filled].astype(np.int64))
-        assert not np.any(info["rejected"])
+    reject = len(config.action_choices)
+    for played, filled, blind, info in guarded_steps(env, 0, reject):  # reject everywhere
+        np.testing.assert_array_equal(played[filled], np.where(blind, reject, 0)[filled])
+        # what the env applied: without the guard every filled slot would be rejected
+        np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
         untested += int(blind.sum())
     assert untested >= 1
     model = build_model(config, env)
