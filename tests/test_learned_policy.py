@@ -97,6 +97,15 @@ def test_an_observation_of_another_mode_or_size_is_refused_naming_the_field():
         policy(observations["cav_0"])
 
 
+def test_the_hint_names_the_default_choices_for_a_file_that_records_none():
+    """The shipped file predates recorded action.choices: the hint names the default."""
+    policy = make_policy("learned_select")
+    assert "action.choices" not in policy.env_overrides
+    with pytest.raises(ValueError, match=r"action\.choices=the default \(identity, coalign, "
+                                         r"roco, roco_antialias\)"):
+        policy({})
+
+
 def test_weights_from_before_the_age_column_are_refused_naming_the_mismatch(tmp_path):
     """A file trained on (N, 8) diagnostics (before ``age_ms``) loads, and acting on
     today's (N, 9) diagnostics is a ValueError naming the entry and both shapes."""

@@ -112,10 +112,21 @@ def test_tested_and_untested_name_the_choices_each_kind_of_slot_takes():
     np.testing.assert_array_equal(both(observation), [1, 1, 1])
 
 
-@pytest.mark.parametrize("params, field", [({"tested": "reject"}, "tested"),
-                                           ({"untested": "defend"}, "base must be"),
-                                           ({"untested": ""}, "base must be")])
+@pytest.mark.parametrize("params, field", [
+    ({"tested": "reject"}, "tested must be"),
+    ({"untested": "defend"}, "untested .or 'reject'. must be"),
+    ({"untested": ""}, "untested .or 'reject'. must be"),
+    ({"untested": "nonesuch"}, "untested .or 'reject'. must be .*unknown policy"),
+    ({"untested": "roco:nope=1"}, "untested .or 'reject'. must be .*nope"),
+    ({"untested": "learned_select"}, "untested .*action.mode 'select'"),
+    ({"tested": "reject_untested"}, "tested must be .*action.mode 'select'"),
+    ({"tested": "privileged_gate"}, "tested must be .*action.mode 'gate'"),
+    ({"base": "nonesuch"}, "base must be .*unknown policy"),
+    ({"tested": "roco_fallback", "tested_within_m": 20.0}, r"tested_within_m.*\[0.0, 20.0\)"),
+])
 def test_a_tested_or_untested_that_is_no_aligner_is_refused(params, field):
+    """Each field is checked against the registry when the policy is built (not at env
+    build), and the error names the field and what it allows."""
     with pytest.raises(ValueError, match=field):
         make_policy("reject_untested", **params)
 

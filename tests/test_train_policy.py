@@ -21,7 +21,12 @@ from roco_env.policies.learned import LearnedPolicy  # noqa: E402
 from roco_env.policies.reject_untested import STATISTIC  # noqa: E402
 from roco_env.schema import ConfigError  # noqa: E402
 from roco_env.training.rl.config import build_config  # noqa: E402
-from roco_env.training.rl.curriculum import condition_env, draw_condition, eval_conditions  # noqa: E402
+from roco_env.training.rl.curriculum import (  # noqa: E402
+    condition_env,
+    draw_condition,
+    env_overrides,
+    eval_conditions,
+)
 from roco_env.training.rl.ppo import build_model, greedy, train  # noqa: E402
 
 TINY = {"scenarios": ["v2xset_like"], "observation_mode": "raw", "episode_steps": 2,
@@ -104,6 +109,31 @@ def test_a_checkpoint_of_other_options_is_refused(tmp_path, capsys):
     assert "learning_rate" in capsys.readouterr().err
 
 
+def test_the_training_env_sets_the_choices_the_exported_file_records():
+    """In select mode the training env sets action.choices even without --action-choices
+    (the defaults), so a scenario's own choices never train what the file calls others."""
+    from roco_env.training.rl.policy_export import policy_env_overrides
+    config = build_config(TINY)
+    env = condition_env(config, draw_condition(config, 0))
+    assert env_overrides(config)["action.choices"] == \
+        policy_env_overrides(config)["action.choices"] == \
+        list(env.env.config.action.choices) == ["identity", "coalign", "roco", "roco_antialias"]
+    env.close()
+
+
+def test_a_checkpoint_saved_before_a_config_field_existed_resumes(tmp_path):
+    """A field the saved config lacks (action_choices, added later) compares as its
+    default: adding a field never blocks a resume with the same options."""
+    assert run_cli(tmp_path, "--total-timesteps=8") == 0
+    path = tmp_path / "checkpoint" / "state.json"
+    state = json.loads(path.read_text())
+    del state["config"]["action_choices"]
+    path.write_text(json.dumps(state))
+    assert run_cli(tmp_path, "--total-timesteps=16") == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert [p["timesteps"] for p in report["curve"]] == [0, 8, 16]
+
+
 GUARDED_KEYS = {"observation_mode": "aligned",
                 "observation_keys": ["choice_diagnostics", "collab_mask"], "noise_low": 3.0,
                 "noise_high": 3.0}
@@ -132,6 +162,10 @@ KEEP_TESTED = {**GUARDED, "guard": "keep_tested",
     ({"reward_over": "base", "action_base": "oracle"}, "reward_over"),
     ({"action_choices": ["roco", "nonesuch"]}, "action_choices"),
     ({"action_choices": ["roco", "roco"]}, "action_choices"),
+    ({"action_choices": [1]}, "action_choices must be .* aligner.*got 1"),
+    ({"action_choices": ["roco", "defend"]}, "action_choices .*action.mode 'gate'"),
+    ({"action_choices": ["roco", "reject_untested"]}, "action_choices .*action.mode 'select'"),
+    ({"action_choices": ["learned_select"]}, "action_choices .*action.mode 'select'"),
     ({"action_choices": ["roco"], "action_mode": "gate"}, "action_choices"),
     ({**GUARDED_KEYS, "guard": "keep_tested",
       "action_choices": ["roco", "roco_fallback"]}, "action_choices"),  # base not a choice
@@ -166,8 +200,6 @@ def test_observation_keys_choose_what_the_policy_reads(tmp_path):
     assert env.observation_space.shape == (5 + 5 * len(DIAGNOSTICS),)
     with pytest.raises(ValueError, match=r"observation_keys names \['pose'\]"):
         CurriculumEnv(build_config({**config.__dict__, "observation_keys": ["pose"]}))
-
-
 
 
 def test_the_guard_rejects_the_untested_slots_in_training_and_in_the_exported_policy(tmp_path):
@@ -259,25 +291,11 @@ def test_a_guarded_run_is_compared_with_its_rule_alone():
                                                                        abs=1e-12)
 
 
-def test_the_guard_refuses_an_env_with_other_choices(monkeypatch):
-    """The guard and reward_over index the default action.choices: an env that names
-    others (no shipped scenario does today) is refused, naming the field, before a step."""
-    from roco_env.training.rl import curriculum
-
-    build = curriculum.condition_env
-    swapped = ["identity", "roco", "coalign", "roco_antialias"]
-    monkeypatch.setattr(curriculum, "condition_env", lambda config, condition, **extra: build(
-        config, condition, **{"action.choices": swapped}, **extra))
-    env = curriculum.CurriculumEnv(build_config(GUARDED))
-    with pytest.raises(ValueError, match="action.choices"):
-        env.reset(seed=1)
-
-
 def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_elsewhere(
         tmp_path):
     """--action-choices roco_antialias roco_fallback --guard keep_tested, v2xset_like at
     3 m / 3 deg: whatever the sampled action, every slot roco_antialias tested takes it
-    (0) and the untested ones take the action (here roco_fallback, 1, none rejected); the
+    (0) and the untested ones take the action (here reject: the env rejects exactly them); the
     exported file records the choices and its guard, and acts as the greedy SB3 policy."""
     from roco_env.policies import make_policy
     from roco_env.policies.learned import Guard
@@ -287,9 +305,11 @@ def test_keep_tested_takes_the_base_on_tested_slots_and_lets_the_network_choose_
     config = build_config(KEEP_TESTED)
     env = CurriculumEnv(config)
     untested = 0
-    for played, filled, blind, info in guarded_steps(env, 0, 1):
-        np.testing.assert_array_equal(played[filled], blind[filled].astype(np.int64))
-        assert not np.any(info["rejected"])
+    reject = len(config.action_choices)
+    for played, filled, blind, info in guarded_steps(env, 0, reject):  # reject everywhere
+        np.testing.assert_array_equal(played[filled], np.where(blind, reject, 0)[filled])
+        # what the env applied: without the guard every filled slot would be rejected
+        np.testing.assert_array_equal(info["rejected"][filled], blind[filled])
         untested += int(blind.sum())
     assert untested >= 1
     model = build_model(config, env)

@@ -221,12 +221,16 @@ class LearnedPolicy(StatelessPolicy):
         return [self.path]
 
     def _hint(self) -> str:
+        choices = self.env_overrides.get("action.choices")
+        if choices is None:  # files from before the choices were recorded
+            from roco_env.scenario import ActionConfig  # lazy: the scenario layer is higher
+
+            choices = f"the default ({', '.join(ActionConfig().choices)})"
         return (f"policy {self.name!r} ({self.path.name}) was trained with observation.mode="
                 f"{self.env_overrides.get('observation.mode', 'raw')!r}, max_collaborators="
                 f"{self.env_overrides.get('max_collaborators')}, max_boxes="
-                f"{self.env_overrides.get('max_boxes')}, action.choices="
-                f"{self.env_overrides.get('action.choices')}: build the env with the policy's "
-                "env_overrides (sweeps and EgoEnv do)")
+                f"{self.env_overrides.get('max_boxes')}, action.choices={choices}: build the "
+                "env with the policy's env_overrides (sweeps and EgoEnv do)")
 
 
 def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | None:

@@ -44,17 +44,40 @@ from typing import Any
 
 import numpy as np
 
-from roco_env.policies.base import StatelessPolicy, check_aligner_base
+from roco_env.policies.base import StatelessPolicy
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
+__all__ = ["RejectUntested", "RejectUntestedParams", "check_aligner_spec", "untested_slots"]
 
 # column "statistic" of roco_env.observation_modes.DIAGNOSTICS (a higher layer;
 # tests/test_reject_untested.py checks the index) and its value where none was computed
 STATISTIC, NO_STATISTIC = 3, -1.0
 REJECT = "reject"  # reject_untested's ``untested`` value that leaves the slot out
 GAP_M = 7  # column "gap_m" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (checked too)
+GAP_CLIP_M = 20.0  # the observation clips gap_m to [0, this] (observation_modes.py)
+ALIGNER = ("the policy spec of an aligner (e.g. 'roco', 'roco_antialias', 'roco_fallback'), "
+           "not a policy that declares its own action.mode (defend, privileged_gate, "
+           "reject_untested, learned_select)")
+
+
+def check_aligner_spec(where: str, field: str, text: object) -> None:
+    """Raise ValueError naming ``where`` and ``field`` unless ``text`` is a policy spec the
+    registry builds (a registered name or import target, with valid parameters) into a
+    policy that declares no ``action.mode`` in its ``env_overrides``: an aligner the env
+    can run as one of its ``action.choices`` or as ``action.base``."""
+    from roco_env.policies.spec import parse_policy_spec  # lazy: spec imports the registry
+
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}")
+    try:
+        policy = parse_policy_spec(text).build()
+    except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}: {exc}") from exc
+    mode = (getattr(policy, "env_overrides", None) or {}).get("action.mode")
+    if mode is not None:
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}, which acts in "
+                         f"action.mode {mode!r}")
 
 
 def untested_slots(statistic: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
@@ -75,19 +98,23 @@ class RejectUntestedParams:
                        "take; empty: base")
     untested: str = spec(REJECT, doc="what the untested slots take: 'reject', or an "
                          "aligner's policy spec")
-    tested_within_m: float | None = spec(None, low=0.0, doc="m: a tested slot takes "
-                                         "tested's pose only within this distance of "
-                                         "base's (None: always); two choices only")
+    tested_within_m: float | None = spec(None, low=0.0, high=GAP_CLIP_M,
+                                         high_open=True, doc="m, in [0, 20) (the "
+                                         "observation clips gap_m at 20 m, so 20 would "
+                                         "mean always): "
+                                         "a tested slot takes tested's pose only within "
+                                         "this distance of base's (None: always); two "
+                                         "choices only")
 
     def __post_init__(self) -> None:
-        check_aligner_base("reject_untested", self.base)
+        check_aligner_spec("reject_untested", "base", self.base)
         if self.tested == REJECT:
-            raise ValueError("reject_untested: tested must be the policy spec of an aligner "
-                             f"(empty: base); got {self.tested!r}")
+            raise ValueError(f"reject_untested: tested must be {ALIGNER} (empty: base); got "
+                             f"{self.tested!r}")
         if self.tested:
-            check_aligner_base("reject_untested", self.tested)
+            check_aligner_spec("reject_untested", "tested", self.tested)
         if self.untested != REJECT:
-            check_aligner_base("reject_untested", self.untested)
+            check_aligner_spec("reject_untested", "untested (or 'reject')", self.untested)
         if self.tested_within_m is not None and (
                 len(self.choices) != 2 or self.tested in ("", self.base)):
             raise ValueError("reject_untested: tested_within_m needs tested other than "

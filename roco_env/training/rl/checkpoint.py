@@ -49,7 +49,8 @@ def save_checkpoint(out: Path, model: Any, episodes: int, state: dict[str, Any])
 def load_state(out: Path, config: PolicyTrainConfig) -> dict[str, Any] | None:
     """The saved ``state.json`` (None when there is no checkpoint); a checkpoint of another
     config is a ValueError naming the fields that differ (``total_timesteps`` may grow: a
-    longer run continues a shorter one)."""
+    longer run continues a shorter one; a field the saved config lacks, added since,
+    compares as its default)."""
     path = out / FOLDER / "state.json"
     if not path.is_file():
         return None
@@ -60,6 +61,9 @@ def load_state(out: Path, config: PolicyTrainConfig) -> dict[str, Any] | None:
                          f"{saved['total_timesteps']}; ask for at least as many")
     saved.pop("total_timesteps", None)
     now.pop("total_timesteps")
+    # a field added since the checkpoint was saved compares as its default
+    defaults = asdict(PolicyTrainConfig())
+    saved = {**{k: v for k, v in defaults.items() if k in now}, **saved}
     differ = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
     if differ:
         raise ValueError(f"{out} holds a checkpoint of another configuration (fields "

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from roco_env.flags import SpecFlags
-from roco_env.policies.spec import validate_policy_spec
+from roco_env.policies.reject_untested import check_aligner_spec
 from roco_env.scenario import OBSERVATION_MODES, ActionConfig, list_scenarios
 from roco_env.schema import ConfigError, build, check_fields, spec
 
@@ -137,9 +137,9 @@ def _check_choices(config: PolicyTrainConfig) -> None:
                           f"got action_mode={config.action_mode!r}")
     for text in config.action_choices:
         try:
-            validate_policy_spec(text)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{WHERE}: action_choices: {exc}") from exc
+            check_aligner_spec(WHERE, "each of action_choices", text)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
     if len(set(config.action_choices)) != len(config.action_choices):
         raise ConfigError(f"{WHERE}: action_choices={config.action_choices!r} must be "
                           "distinct")

@@ -59,8 +59,8 @@ def env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
         overrides["observation.mode"] = config.observation_mode
     if config.action_mode in ("residual", "gate") or config.observation_mode == "aligned":
         overrides["action.base"] = config.action_base
-    if config.action_choices:
-        overrides["action.choices"] = list(config.action_choices)
+    if config.action_mode == "select":  # a scenario's own choices never replace them
+        overrides["action.choices"] = select_choices(config)
     return overrides
 
 
@@ -126,6 +126,7 @@ def condition_env(config: PolicyTrainConfig, condition: Condition, *,
         overrides["action.mode"] = "correction"
         overrides.pop("observation.mode", None)
         overrides.pop("action.base", None)
+        overrides.pop("action.choices", None)
     if condition.density is not None:
         overrides["density"] = condition.density
     info_level = extra.pop("info_level", "metrics")
@@ -210,12 +211,6 @@ class CurriculumEnv(gymnasium.Env):
         if self._env.action_space != self.action_space:
             raise ValueError(f"scenario {self.condition.scenario!r} gives the action space "
                              f"{self._env.action_space}, not {self.action_space}")
-        choices = list(self._env.env.config.action.choices)
-        if (self.guard is not None or self.config.reward_over != "none") \
-                and choices != select_choices(self.config):
-            # the guard and the reference action index the config's choices
-            raise ValueError(f"scenario {self.condition.scenario!r}: guard / reward_over need "
-                             f"action.choices {select_choices(self.config)}; got {choices}")
         observation, info = self._env.reset(seed=self.condition.seed)
         self._fresh = True
         self._observation = observation

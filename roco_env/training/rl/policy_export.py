@@ -18,7 +18,7 @@ import torch
 from gymnasium import spaces
 
 from roco_env.policies.learned import FORMAT, keep_tested_guard, rule_guard
-from roco_env.training.rl.config import PolicyTrainConfig, select_choices
+from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import INPUT_CLIP, CurriculumEnv, env_overrides
 
 
@@ -48,12 +48,11 @@ def action_metadata(space: spaces.Space) -> dict[str, Any]:
 
 
 def policy_env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
-    """The env modes the exported policy acts in (no reward: that is the evaluator's)."""
+    """The env modes the exported policy acts in (no reward: that is the evaluator's),
+    in select mode with the training env's ``action.choices``, which its actions index."""
     overrides = env_overrides(config)
     overrides.pop("reward")
     overrides.setdefault("observation.mode", config.observation_mode)
-    if config.action_mode == "select":  # the file says which choices its actions index
-        overrides["action.choices"] = select_choices(config)
     return overrides
 
 
