@@ -48,7 +48,7 @@ from roco_env.policies.base import StatelessPolicy
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["RejectUntested", "RejectUntestedParams", "check_aligner_spec", "untested_slots"]
+__all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
 
 # column "statistic" of roco_env.observation_modes.DIAGNOSTICS (a higher layer;
 # tests/test_reject_untested.py checks the index) and its value where none was computed
@@ -56,30 +56,6 @@ STATISTIC, NO_STATISTIC = 3, -1.0
 REJECT = "reject"  # reject_untested's ``untested`` value that leaves the slot out
 GAP_M = 7  # column "gap_m" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (checked too)
 GAP_CLIP_M = 20.0  # the observation clips gap_m to [0, this] (observation_modes.py)
-ALIGNER = ("the policy spec of an aligner (e.g. 'roco', 'roco_antialias', 'roco_fallback'), "
-           "not a policy that declares its own action.mode (defend, privileged_gate, "
-           "reject_untested, learned_select)")
-
-
-def check_aligner_spec(where: str, field: str, text: object) -> None:
-    """Raise ValueError naming ``where`` and ``field`` unless ``text`` is a policy spec the
-    registry builds (a registered name or import target, with valid parameters) into a
-    policy that declares no ``action.mode`` in its ``env_overrides``: an aligner the env
-    can run as one of its ``action.choices`` or as ``action.base``."""
-    from roco_env.policies.spec import parse_policy_spec  # lazy: spec imports the registry
-
-    if not isinstance(text, str) or not text.strip():
-        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}")
-    try:
-        policy = parse_policy_spec(text).build()
-    except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
-        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}: {exc}") from exc
-    mode = (getattr(policy, "env_overrides", None) or {}).get("action.mode")
-    if mode is not None:
-        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}, which acts in "
-                         f"action.mode {mode!r}")
-
-
 def untested_slots(statistic: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
     """(N,) bool: the filled slots (``collab_mask`` > 0) whose aligner ``statistic``
     (N,) is :data:`NO_STATISTIC` (none computed)."""
@@ -107,6 +83,9 @@ class RejectUntestedParams:
                                          "choices only")
 
     def __post_init__(self) -> None:
+        # lazy: the spec module imports the registry (and the scenario layer)
+        from roco_env.policies.spec import ALIGNER, check_aligner_spec
+
         check_aligner_spec("reject_untested", "base", self.base)
         if self.tested == REJECT:
             raise ValueError(f"reject_untested: tested must be {ALIGNER} (empty: base); got "

@@ -139,3 +139,25 @@ def merge_env_overrides(overrides: Mapping[str, Any], policy: object,
         if dotted not in given:
             merged[key] = value
     return merged
+
+
+ALIGNER = ("the policy spec of an aligner (e.g. 'roco', 'roco_antialias', 'roco_fallback'), "
+           "not a policy that declares its own action.mode (defend, privileged_gate, "
+           "reject_untested, learned_select)")
+
+
+def check_aligner_spec(where: str, field: str, text: object) -> None:
+    """Raise ValueError naming ``where`` and ``field`` unless ``text`` is a policy spec the
+    registry builds (a registered name or import target, with valid parameters) into a
+    policy that declares no ``action.mode`` in its ``env_overrides``: an aligner the env
+    can run as one of its ``action.choices`` or as ``action.base``."""
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}")
+    try:
+        policy = parse_policy_spec(text).build()
+    except (TypeError, ValueError) as exc:  # TypeError: an unknown keyword argument
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}: {exc}") from exc
+    mode = (getattr(policy, "env_overrides", None) or {}).get("action.mode")
+    if mode is not None:
+        raise ValueError(f"{where}: {field} must be {ALIGNER}; got {text!r}, which acts in "
+                         f"action.mode {mode!r}")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from roco_env.flags import SpecFlags
-from roco_env.policies.reject_untested import check_aligner_spec
+from roco_env.policies.spec import check_aligner_spec
 from roco_env.scenario import OBSERVATION_MODES, ActionConfig, list_scenarios
 from roco_env.schema import ConfigError, build, check_fields, spec
 
