@@ -18,7 +18,11 @@ choice's pose (the env's own alignments) against the truth:
   rejected;
 * ``tested_reject``: a tested slot is rejected where C's pose has e >
   ``--reject-error``;
-* ``both``: ``untested_best`` and ``tested_reject``.
+* ``tested_far_best``: a tested slot where the two choices' poses lie more than 0.5 m
+  apart (C kept roco_antialias's) takes the choice with the smallest e;
+* ``both``: ``untested_best`` and ``tested_reject``;
+* ``open_best``: ``untested_best`` and ``tested_far_best`` (every slot C's rule does
+  not settle by the 0.5 m agreement).
 
 Cells of the README's grid (default: the held-out seeds 0-2 of the mixed benchmark, which
 is fine for a bound nobody ships). Writes ``results.jsonl`` in the ``roco-env compare``
@@ -38,23 +42,28 @@ import numpy as np
 from env_hook import run_with_env
 from privileged_bound import REJECT_ERROR, grid_parser, pose_errors
 
-from roco_env.policies.reject_untested import STATISTIC, untested_slots
+from roco_env.policies.reject_untested import GAP_M, STATISTIC, untested_slots
 from roco_env.policies.spec import parse_policy_spec
 from roco_env.sweeps.cells import build_grid
 
 RULE_C = "reject_untested:tested=roco_fallback,tested_within_m=0.5"
-VARIANTS = ("c", "untested_best", "untested_keep", "tested_reject", "both")
+VARIANTS = ("c", "untested_best", "untested_keep", "tested_reject", "tested_far_best", "both",
+            "open_best")
+WITHIN_M = 0.5  # C's tested_within_m
 
 
 def decide(variant: str, rule: np.ndarray, errors: np.ndarray, untested: np.ndarray,
-           reject_error: float) -> np.ndarray:
+           reject_error: float, gap: np.ndarray) -> np.ndarray:
     """(n,) select actions of ``variant``: C's ``rule`` (n,) changed with the (C, n) choice
-    errors on the ``untested`` (n,) or tested slots; reject = the number of choices."""
+    errors on the ``untested`` (n,) or tested slots (``gap`` (n,): m between the two
+    choices' poses); reject = the number of choices."""
     reject = len(errors)
     best, best_error = np.argmin(errors, axis=0), errors.min(axis=0)
     action = rule.copy()
-    if variant in ("untested_best", "both"):
+    if variant in ("untested_best", "both", "open_best"):
         action = np.where(untested, np.where(best_error <= reject_error, best, reject), action)
+    if variant in ("tested_far_best", "open_best"):
+        action = np.where(~untested & (gap > WITHIN_M), best, action)
     if variant == "untested_keep":
         action = np.where(untested, best, action)
     if variant in ("tested_reject", "both"):
@@ -91,8 +100,9 @@ def main(argv: list[str] | None = None) -> None:
                         untested = untested_slots(
                             observation["diagnostics"][:n, STATISTIC], mask[:n])
                         action = rule_c(observation, info)
+                        gap = observation["choice_diagnostics"][:n, 1, GAP_M]
                         action[:n] = decide(variant, action[:n], errors, untested,
-                                            args.reject_error)
+                                            args.reject_error, gap)
                         if variant == "c":
                             _count(counts, cell, errors, untested, action[:n],
                                    args.reject_error)
