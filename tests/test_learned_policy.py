@@ -23,13 +23,16 @@ from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
 from roco_env.wrappers import EgoEnv
 
-SHIPPED_SHA256 = "03f972cd5ddfe6ef7ba08e064127bab94101f75d27ee6c5fd805c6220ac1a6bc"
+SHIPPED_SHA256 = {
+    "learned_select": "03f972cd5ddfe6ef7ba08e064127bab94101f75d27ee6c5fd805c6220ac1a6bc",
+    "learned_fallback": "8816851981dcebd15fedcfe9db016166dee05e6ccc9359d722cdce4e0bb939ae"}
 SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
 
 
-def test_the_shipped_weights_match_their_checksum_and_size():
-    data = SHIPPED_FILE.read_bytes()
-    assert hashlib.sha256(data).hexdigest() == SHIPPED_SHA256
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_the_shipped_weights_match_their_checksum_and_size(name):
+    data = (WEIGHTS_DIR / SHIPPED[name][0]).read_bytes()
+    assert hashlib.sha256(data).hexdigest() == SHIPPED_SHA256[name]
     assert len(data) <= 5 * 2**20
 
 
@@ -47,8 +50,9 @@ def test_the_shipped_policy_declares_its_modes_and_acts_by_slot():
     np.testing.assert_array_equal(policy(observation, info), action)  # deterministic
 
 
-def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically():
-    cell = Cell(scenario="v2xset_like", policy="learned_select", noise=1.5, density=None,
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically(name):
+    cell = Cell(scenario="v2xset_like", policy=name, noise=1.5, density=None,
                 seed=0, steps=2)
     first, _ = run_episode(cell)
     second, _ = run_episode(cell)
@@ -331,3 +335,36 @@ def test_the_shipped_policy_keeps_roco_antialias_on_every_tested_slot():
         assert np.all(statistic[action == 4] == -1.0)
         rejected += int(np.sum(action == 4))
     assert rejected >= 1
+
+
+def test_learned_fallback_follows_rule_c_on_tested_slots_and_decides_the_untested_ones():
+    """learned_fallback (docs/learning.md): select over [roco_antialias, roco_fallback]
+    behind the prefer guard; on parking_lot at 3 m / 3 deg (seed 1, every agent, 2 steps)
+    its action on every slot roco_antialias tested equals hand rule C's, and it decides
+    some untested slots."""
+    from roco_env.policies.learned import Guard
+    from roco_env.policies.reject_untested import STATISTIC
+    from roco_env.policies.spec import parse_policy_spec
+
+    policy = make_policy("learned_fallback")
+    assert policy.guard == Guard(0, None, "keep", "network", prefer=1, prefer_within_m=0.5)
+    rule_c = parse_policy_spec("reject_untested:tested=roco_fallback,tested_within_m=0.5"
+                               ).build()
+    assert policy.env_overrides == {**rule_c.env_overrides, "max_collaborators": 5,
+                                    "max_boxes": 64}
+    env = roco_env.parallel_env("parking_lot", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
+                                **policy.env_overrides)
+    observations, infos = env.reset(seed=1)
+    untested = 0
+    while env.agents:
+        actions = {}
+        for agent in env.agents:
+            observation = observations[agent]
+            actions[agent] = action = policy(observation, infos[agent])
+            filled = observation["collab_mask"] > 0
+            blind = filled & (observation["choice_diagnostics"][:, 0, STATISTIC] == -1)
+            np.testing.assert_array_equal(action[filled & ~blind],
+                                          rule_c(observation)[filled & ~blind])
+            untested += int(blind.sum())
+        observations, _, _, _, infos = env.step(actions)
+    assert untested >= 1

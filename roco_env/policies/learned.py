@@ -63,7 +63,8 @@ from roco_env.schema import build, spec
 FORMAT = "roco_env.learned_policy/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
-SHIPPED = {"learned_select": ("learned_select.pt", "select")}
+SHIPPED = {"learned_select": ("learned_select.pt", "select"),
+           "learned_fallback": ("learned_fallback.pt", "select")}
 _REQUIRED_META = ("format", "env_overrides", "observation", "action")
 
 
@@ -400,9 +401,23 @@ class LearnedSelectParams:
 
 
 def learned_select(**params: Any) -> LearnedPolicy:
-    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md);
-    params: the fields of :class:`LearnedSelectParams`."""
-    built = build(LearnedSelectParams, params, "learned_select")
-    return LearnedPolicy(built.weights, name="learned_select", action_mode="select",
+    """The shipped select-mode policy over identity / coalign / roco / roco_antialias
+    (``roco-env train-policy``; docs/learning.md); params: the fields of
+    :class:`LearnedSelectParams`."""
+    return _shipped_select("learned_select", params)
+
+
+def learned_fallback(**params: Any) -> LearnedPolicy:
+    """The shipped select-mode policy over [roco_antialias, roco_fallback]: hand rule C
+    (``reject_untested:tested=roco_fallback,tested_within_m=0.5``) on the slots
+    roco_antialias tested, a PPO-trained network on the untested ones (roco_antialias,
+    roco_fallback or reject; docs/learning.md); params: the fields of
+    :class:`LearnedSelectParams` (its guard has no reject_margin)."""
+    return _shipped_select("learned_fallback", params)
+
+
+def _shipped_select(name: str, params: dict[str, Any]) -> LearnedPolicy:
+    built = build(LearnedSelectParams, params, name)
+    return LearnedPolicy(built.weights, name=name, action_mode="select",
                          reject_margin=built.reject_margin)
 
