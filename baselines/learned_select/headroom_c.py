@@ -33,13 +33,11 @@ slots per kind from C's own episodes: filled, untested, untested with a choice w
 
 from __future__ import annotations
 
-import json
-import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from env_hook import run_with_env
+from env_hook import print_counts, record_cell, run_with_env
 from privileged_bound import REJECT_ERROR, grid_parser, pose_errors
 
 from roco_env.policies.reject_untested import GAP_M, STATISTIC, untested_slots
@@ -110,19 +108,10 @@ def main(argv: list[str] | None = None) -> None:
                     act.env_overrides = rule_c.env_overrides
                     return act
                 label = f"headroom_c_{variant}"
-                metrics = run_with_env(cell, label, make_act)
-                sink.write(json.dumps({"cell": {"scenario": cell.scenario,
-                                                "noise": cell.noise, "policy": label,
-                                                "seed": cell.seed, "overrides": {}},
-                                       "metrics": {"ap70": metrics["ap70"]}}) + "\n")
-                sink.flush()
-                print(variant, cell.scenario, cell.noise, cell.seed,
-                      round(metrics["ap70"], 4), file=sys.stderr)
-    print("| scenario | noise | filled slots | untested | untested, a choice within "
-          f"{args.reject_error:g} | of those, roco_fallback's best | tested, C's pose off "
-          f"> {args.reject_error:g} |\n|---|---|---|---|---|---|---|")
-    for (scenario, noise), row in sorted(counts.items()):
-        print(f"| {scenario} | {noise} | " + " | ".join(str(value) for value in row) + " |")
+                record_cell(sink, cell, label, run_with_env(cell, label, make_act))
+    print_counts(f"filled slots | untested | untested, a choice within {args.reject_error:g} | "
+                 f"of those, roco_fallback's best | tested, C's pose off > "
+                 f"{args.reject_error:g}", counts)
 
 
 def _count(counts: dict, cell, errors: np.ndarray, untested: np.ndarray, action: np.ndarray,
