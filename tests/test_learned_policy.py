@@ -23,13 +23,16 @@ from roco_env.sweeps.cells import Cell
 from roco_env.sweeps.episode import run_episode
 from roco_env.wrappers import EgoEnv
 
-SHIPPED_SHA256 = "03f972cd5ddfe6ef7ba08e064127bab94101f75d27ee6c5fd805c6220ac1a6bc"
+SHIPPED_SHA256 = {
+    "learned_select": "03f972cd5ddfe6ef7ba08e064127bab94101f75d27ee6c5fd805c6220ac1a6bc",
+    "learned_fallback": "8816851981dcebd15fedcfe9db016166dee05e6ccc9359d722cdce4e0bb939ae"}
 SHIPPED_FILE = WEIGHTS_DIR / SHIPPED["learned_select"][0]
 
 
-def test_the_shipped_weights_match_their_checksum_and_size():
-    data = SHIPPED_FILE.read_bytes()
-    assert hashlib.sha256(data).hexdigest() == SHIPPED_SHA256
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_the_shipped_weights_match_their_checksum_and_size(name):
+    data = (WEIGHTS_DIR / SHIPPED[name][0]).read_bytes()
+    assert hashlib.sha256(data).hexdigest() == SHIPPED_SHA256[name]
     assert len(data) <= 5 * 2**20
 
 
@@ -47,8 +50,9 @@ def test_the_shipped_policy_declares_its_modes_and_acts_by_slot():
     np.testing.assert_array_equal(policy(observation, info), action)  # deterministic
 
 
-def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically():
-    cell = Cell(scenario="v2xset_like", policy="learned_select", noise=1.5, density=None,
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_the_shipped_policy_runs_as_a_sweep_cell_deterministically(name):
+    cell = Cell(scenario="v2xset_like", policy=name, noise=1.5, density=None,
                 seed=0, steps=2)
     first, _ = run_episode(cell)
     second, _ = run_episode(cell)
@@ -233,16 +237,59 @@ def _statistic_column() -> int:
     return STATISTIC
 
 
-def guarded_weights(path, guard):
-    """A select-mode file reading choice_diagnostics and collab_mask (random network)
-    with ``guard`` in its metadata."""
+def guarded_weights(path, guard, choices=4):
+    """A select-mode file over ``choices`` choices reading choice_diagnostics and
+    collab_mask (random network) with ``guard`` in its metadata."""
     torch.manual_seed(0)
-    size = 5 * 4 * 8 + 5
+    size = 5 * choices * 8 + 5
     state = {"layers.0.weight": torch.randn(8, size), "layers.0.bias": torch.zeros(8),
-             "layers.1.weight": torch.randn(25, 8), "layers.1.bias": torch.zeros(25),
+             "layers.1.weight": torch.randn(5 * (choices + 1), 8),
+             "layers.1.bias": torch.zeros(5 * (choices + 1)),
              "input_scale": torch.ones(size, dtype=torch.float64)}
-    return write_weights(path, state, guard=guard,
-                         observation=[["choice_diagnostics", [5, 4, 8]], ["collab_mask", [5]]])
+    return write_weights(path, state, guard=guard, action={"nvec": [choices + 1] * 5},
+                         observation=[["choice_diagnostics", [5, choices, 8]],
+                                      ["collab_mask", [5]]])
+
+
+def test_the_prefer_guard_takes_the_preferred_choice_within_its_gap_on_tested_slots():
+    """keep_tested with prefer 1 within 0.5 m over [roco_antialias, roco_fallback]: tested
+    slot 0 (gap 0.2 m) takes 1, tested slot 1 (gap 2.5 m, an alias) 0, untested slot 2 the
+    network's argmax whatever the gap; the rule alone rejects slot 2."""
+    from roco_env.policies.learned import Guard
+    from roco_env.policies.reject_untested import GAP_M
+
+    logits = np.array([[9.0, 0.0, 0.0], [0.0, 9.0, 0.0], [0.0, 9.0, 0.0], [0.0, 0.0, 9.0]])
+    diagnostics = np.zeros((4, 2, 8))
+    diagnostics[:, :, _statistic_column()] = -1.0
+    diagnostics[:2, 0, _statistic_column()] = 4.2
+    diagnostics[:, 1, GAP_M] = [0.2, 2.5, 0.1, 0.0]
+    mask = np.array([1, 1, 1, 0])
+    guard = Guard(0, None, "keep", "network", prefer=1, prefer_within_m=0.5)
+    np.testing.assert_array_equal(guard.act(logits, diagnostics, mask), [1, 0, 1, 1])
+    np.testing.assert_array_equal(guard.rule(2, diagnostics, mask), [1, 0, 2, 1])
+    always = Guard(0, None, "keep", "network", prefer=1)
+    np.testing.assert_array_equal(always.rule(2, diagnostics, mask), [1, 1, 2, 1])
+
+
+def test_a_file_with_the_prefer_guard_loads_it_and_refuses_bad_prefer_fields(tmp_path):
+    from roco_env.policies.learned import Guard, keep_tested_guard
+
+    path = guarded_weights(tmp_path / "c.pt", keep_tested_guard(0, 1, 0.5), choices=2)
+    assert make_policy("learned_select", weights=path).guard == \
+        Guard(0, None, "keep", "network", 1, 0.5)
+    old = guarded_weights(tmp_path / "old.pt", keep_tested_guard(0), choices=2)
+    assert make_policy("learned_select", weights=old).guard == Guard(0, None, "keep", "network")
+    for guard, field, choices in (
+            (keep_tested_guard(0, 0, 0.5), "prefer must", 2),  # keep itself
+            (keep_tested_guard(0, 2, 0.5), "prefer must", 2),  # not a choice
+            (keep_tested_guard(0, 1, 0.5), "prefer must", 4),  # gap_m needs two choices
+            ({**keep_tested_guard(0, 1), "prefer": True}, "prefer must", 2),
+            (keep_tested_guard(0, 1, 20.0), "prefer_within_m must", 2),
+            (keep_tested_guard(0, 1, "near"), "prefer_within_m must", 2),
+            ({**keep_tested_guard(0), "prefer_within_m": 0.5}, "must be", 2)):
+        bad = guarded_weights(tmp_path / "bad.pt", guard, choices=choices)
+        with pytest.raises(ValueError, match=rf"bad\.pt: guard {field}"):
+            make_policy("learned_select", weights=bad)
 
 
 def test_a_guarded_policy_that_never_rejects_is_its_kept_choice(tmp_path):
@@ -288,3 +335,36 @@ def test_the_shipped_policy_keeps_roco_antialias_on_every_tested_slot():
         assert np.all(statistic[action == 4] == -1.0)
         rejected += int(np.sum(action == 4))
     assert rejected >= 1
+
+
+def test_learned_fallback_follows_rule_c_on_tested_slots_and_decides_the_untested_ones():
+    """learned_fallback (docs/learning.md): select over [roco_antialias, roco_fallback]
+    behind the prefer guard; on parking_lot at 3 m / 3 deg (seed 1, every agent, 2 steps)
+    its action on every slot roco_antialias tested equals hand rule C's, and it decides
+    some untested slots."""
+    from roco_env.policies.learned import Guard
+    from roco_env.policies.reject_untested import STATISTIC
+    from roco_env.policies.spec import parse_policy_spec
+
+    policy = make_policy("learned_fallback")
+    assert policy.guard == Guard(0, None, "keep", "network", prefer=1, prefer_within_m=0.5)
+    rule_c = parse_policy_spec("reject_untested:tested=roco_fallback,tested_within_m=0.5"
+                               ).build()
+    assert policy.env_overrides == {**rule_c.env_overrides, "max_collaborators": 5,
+                                    "max_boxes": 64}
+    env = roco_env.parallel_env("parking_lot", max_cycles=2, sigma_t=3.0, sigma_r=3.0,
+                                **policy.env_overrides)
+    observations, infos = env.reset(seed=1)
+    untested = 0
+    while env.agents:
+        actions = {}
+        for agent in env.agents:
+            observation = observations[agent]
+            actions[agent] = action = policy(observation, infos[agent])
+            filled = observation["collab_mask"] > 0
+            blind = filled & (observation["choice_diagnostics"][:, 0, STATISTIC] == -1)
+            np.testing.assert_array_equal(action[filled & ~blind],
+                                          rule_c(observation)[filled & ~blind])
+            untested += int(blind.sum())
+        observations, _, _, _, infos = env.step(actions)
+    assert untested >= 1

@@ -140,6 +140,8 @@ GUARDED_KEYS = {"observation_mode": "aligned",
 GUARDED = {**TINY, **GUARDED_KEYS, "guard": "reject_untested"}
 KEEP_TESTED = {**GUARDED, "guard": "keep_tested",
                "action_choices": ["roco_antialias", "roco_fallback"]}
+RULE_C = "reject_untested:tested=roco_fallback,tested_within_m=0.5"  # hand rule C
+PREFER = {**KEEP_TESTED, "guard_prefer": "roco_fallback", "guard_prefer_within_m": 0.5}
 
 
 @pytest.mark.parametrize("values, field", [
@@ -169,6 +171,15 @@ KEEP_TESTED = {**GUARDED, "guard": "keep_tested",
     ({"action_choices": ["roco"], "action_mode": "gate"}, "action_choices"),
     ({**GUARDED_KEYS, "guard": "keep_tested",
       "action_choices": ["roco", "roco_fallback"]}, "action_choices"),  # base not a choice
+    ({**PREFER, "guard": "reject_untested"}, "guard_prefer"),
+    ({**PREFER, "guard_prefer": "roco_antialias"}, "guard_prefer"),  # action_base itself
+    ({**PREFER, "guard_prefer": "roco"}, "guard_prefer"),  # not a choice
+    ({**PREFER, "action_choices": ["roco_antialias", "roco_fallback", "roco"]},
+     "guard_prefer"),  # gap_m is to the nearest other choice: two choices only
+    ({**PREFER, "guard_prefer": ""}, "guard_prefer_within_m=0.5 needs guard_prefer"),
+    ({**PREFER, "guard_prefer_within_m": 20.0}, "guard_prefer_within_m"),
+    ({**PREFER, "guard_prefer_within_m": -0.1}, "guard_prefer_within_m"),
+    ({**GUARDED, "guard": "none", "reward_over": "rule"}, "reward_over"),
 ])
 def test_bad_options_name_the_field(values, field):
     with pytest.raises(ConfigError, match=field):
@@ -344,3 +355,101 @@ def test_action_choices_on_the_command_line(tmp_path, capsys):
     assert run_cli(tmp_path, "--total-timesteps=8", "--action-choices", "roco",
                    "nonesuch") == 2
     assert "action_choices" in capsys.readouterr().err
+
+
+def rule_c_episode():
+    """(config, env, observation, info) of parking_lot at 3 m / 3 deg, env seed 1, in the
+    PREFER run's modes: in two steps rule C keeps roco_antialias on 3 tested slots (an
+    alias: roco_fallback's pose more than 0.5 m away), takes roco_fallback on 4 and
+    rejects 1 untested slot."""
+    from roco_env.training.rl.curriculum import Condition
+
+    config = build_config(PREFER)
+    env = condition_env(config, Condition("parking_lot", 3.0, None, "gaussian", 1))
+    return (config, env, *env.reset(seed=1))
+
+
+def test_the_prefer_guard_follows_rule_c_on_tested_slots_exactly():
+    """--guard keep_tested --guard-prefer roco_fallback --guard-prefer-within-m 0.5: on a
+    seeded episode the guard's rule alone equals the fixed policy C's action on every slot,
+    and whatever the network samples (reject, roco_fallback, roco_antialias) the tested
+    slots take C's choice and the untested ones the sample."""
+    from roco_env.policies.spec import parse_policy_spec
+    from roco_env.training.rl.curriculum import guarded_action, training_guard
+
+    config, env, observation, info = rule_c_episode()
+    guard, rule_c = training_guard(config), parse_policy_spec(RULE_C).build()
+    kinds = set()
+    for _ in range(2):
+        expected = rule_c(observation, info)
+        filled = observation["collab_mask"] > 0
+        untested = filled & (observation["choice_diagnostics"][:, 0, STATISTIC] == -1)
+        np.testing.assert_array_equal(
+            guard.rule(2, observation["choice_diagnostics"], observation["collab_mask"]),
+            expected)
+        for sampled in range(3):
+            played = guarded_action(guard, np.full(5, sampled), observation)
+            np.testing.assert_array_equal(played[filled & ~untested],
+                                          expected[filled & ~untested])
+            np.testing.assert_array_equal(played[untested], sampled)
+        kinds |= {int(a) for a in expected[filled]}
+        observation, _, _, _, info = env.step(expected)
+    assert kinds == {0, 1, 2}  # C kept roco_antialias, took roco_fallback and rejected
+
+
+def test_a_prefer_guarded_file_records_its_guard_and_acts_as_the_sb3_policy(tmp_path):
+    """The exported file's guard holds prefer / prefer_within_m; loaded, it acts as the
+    greedy SB3 policy behind the same guard, and its tested slots as rule C."""
+    from roco_env.policies import make_policy
+    from roco_env.policies.learned import Guard
+    from roco_env.policies.spec import parse_policy_spec
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    from roco_env.training.rl.policy_export import save_policy
+
+    config = build_config(PREFER)
+    env = CurriculumEnv(config)
+    model = build_model(config, env)
+    save_policy(tmp_path / "w.pt", model.policy, env, config, {})
+    learned = make_policy("learned_select", weights=str(tmp_path / "w.pt"))
+    assert learned.guard == Guard(0, None, "keep", "network", 1, 0.5)
+    assert learned.metadata["guard"] == {"keep": 0, "tested": "keep", "untested": "network",
+                                         "prefer": 1, "prefer_within_m": 0.5}
+    _, _, observation, info = rule_c_episode()
+    action = learned(observation, info)
+    np.testing.assert_array_equal(action, greedy(model, env)(observation, info))
+    tested = (observation["collab_mask"] > 0) & \
+        (observation["choice_diagnostics"][:, 0, STATISTIC] != -1)
+    np.testing.assert_array_equal(action[tested],
+                                  parse_policy_spec(RULE_C).build()(observation, info)[tested])
+
+
+def test_reward_over_the_rule_pays_only_what_a_deviation_from_rule_c_changes():
+    """reward_over=rule behind the prefer guard: a step that plays rule C's action pays
+    exactly 0, one that keeps an untested slot (with roco_antialias's untested pose) its
+    reward minus C's on the same frame; the run is compared with C (the rule alone) in its evaluation."""
+    from roco_env.training.rl.curriculum import CurriculumEnv
+    from roco_env.training.rl.evaluate import RULE, baselines_of
+
+    assert baselines_of(build_config(PREFER))[-1] == RULE
+    over, plain, twin = (CurriculumEnv(build_config({**PREFER, "reward_over": value}))
+                         for value in ("rule", "none", "none"))
+    for env in (over, plain, twin):
+        env.reset(seed=1)
+    paid, gained, reference = [], [], []
+    for _ in range(2):
+        observation = over._observation
+        rule = over.guard.rule(2, observation["choice_diagnostics"], observation["collab_mask"])
+        keep_all = np.zeros(5, np.int64)  # untested slots: roco_antialias, not reject
+        paid.append(over.step(keep_all)[1])
+        gained.append(plain.step(keep_all)[1])
+        reference.append(twin.step(rule)[1])
+        deviates = not np.array_equal(over.guard.constrain(keep_all, 2, observation[
+            "choice_diagnostics"], observation["collab_mask"]), rule)
+        assert paid[-1] == (pytest.approx(gained[-1] - reference[-1], abs=1e-12) if deviates
+                            else 0.0)
+    assert any(value != 0.0 for value in paid)  # a step deviated from C, and paid so
+    rule_env = CurriculumEnv(build_config({**PREFER, "reward_over": "rule"}))
+    rule_env.reset(seed=1)
+    observation = rule_env._observation
+    assert rule_env.step(rule_env.guard.rule(2, observation["choice_diagnostics"],
+                                             observation["collab_mask"]))[1] == 0.0

@@ -3,6 +3,8 @@ alignments (``env._choices``): the baselines' scripts that compare them with the
 
 from __future__ import annotations
 
+import json
+import sys
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -29,3 +31,23 @@ def run_with_env(cell: Cell, label: str, make_act: Callable) -> dict[str, float]
     finally:
         episode.make_env = make_env
     return metrics
+
+
+def record_cell(sink, cell: Cell, label: str, metrics: dict[str, float]) -> None:
+    """Append ``cell``'s AP@0.7 under policy ``label`` to ``sink`` as one line of the
+    ``roco-env compare`` results.jsonl layout (``table.py`` reads it) and log it."""
+    sink.write(json.dumps({"cell": {"scenario": cell.scenario, "noise": cell.noise,
+                                    "policy": label, "seed": cell.seed, "overrides": {}},
+                           "metrics": {"ap70": metrics["ap70"]}}) + "\n")
+    sink.flush()
+    print(label, cell.scenario, cell.noise, cell.seed, round(metrics["ap70"], 4),
+          file=sys.stderr)
+
+
+def print_counts(header: str, counts: dict) -> None:
+    """A Markdown table: ``header`` (its column names after scenario and noise), then one
+    row per (scenario, noise) key of ``counts`` with its values."""
+    columns = header.split(" | ")
+    print("| scenario | noise | " + header + " |\n|---|---|" + "---|" * len(columns))
+    for (scenario, noise), row in sorted(counts.items()):
+        print(f"| {scenario} | {noise} | " + " | ".join(str(value) for value in row) + " |")

@@ -26,13 +26,11 @@ touches (from the rule's episodes).
 
 from __future__ import annotations
 
-import json
-import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from env_hook import run_with_env
+from env_hook import print_counts, record_cell, run_with_env
 from privileged_bound import CHOICES, REJECT_ERROR, grid_parser, pose_errors
 
 from roco_env.policies import make_policy
@@ -95,18 +93,9 @@ def main(argv: list[str] | None = None) -> None:
                     return act
                 label = f"headroom_{variant}" + (
                     f"_{args.reject_error:g}" if variant == "tested_reject" else "")
-                metrics = run_with_env(cell, label, make_act)
-                sink.write(json.dumps({"cell": {"scenario": cell.scenario,
-                                                "noise": cell.noise, "policy": label,
-                                                "seed": cell.seed, "overrides": {}},
-                                       "metrics": {"ap70": metrics["ap70"]}}) + "\n")
-                sink.flush()
-                print(variant, cell.scenario, cell.noise, cell.seed,
-                      round(metrics["ap70"], 4), file=sys.stderr)
-    print("| scenario | noise | slots | tested: finer choice | tested: off > 1 | "
-          "untested | untested: a choice within 1 |\n|---|---|---|---|---|---|---|")
-    for (scenario, noise), row in sorted(counts.items()):
-        print(f"| {scenario} | {noise} | " + " | ".join(str(value) for value in row) + " |")
+                record_cell(sink, cell, label, run_with_env(cell, label, make_act))
+    print_counts("slots | tested: finer choice | tested: off > 1 | untested | "
+                 "untested: a choice within 1", counts)
 
 
 def _count(counts: dict, cell, errors: np.ndarray, tested: np.ndarray) -> None:

@@ -62,6 +62,8 @@ _REGISTRY: dict[str, str] = {
     "reject_untested": "roco_env.policies.reject_untested:RejectUntested",
     # acts in action.mode select (its env_overrides; roco_env.policies.learned)
     "learned_select": "roco_env.policies.learned:learned_select",
+    # hand rule C on tested slots, a network on the untested ones (select mode)
+    "learned_fallback": "roco_env.policies.learned:learned_fallback",
 }
 
 

@@ -33,7 +33,12 @@ such a slot is "untested"):
 * ``{"keep": k, "tested": "keep", "untested": "network"}`` (``train-policy --guard
   keep_tested``): every tested slot takes choice ``k``, and the network's argmax decides
   every untested slot (any choice or reject): where ``k`` could not test a pose, another
-  choice (e.g. roco_fallback's prior-free recovery) may.
+  choice (e.g. roco_fallback's prior-free recovery) may. With ``"prefer": p`` (and
+  ``"prefer_within_m": m``; ``train-policy --guard-prefer``, two choices) a tested slot
+  takes choice ``p`` instead where its pose lies within ``m`` metres of choice ``k``'s
+  (``choice_diagnostics`` column ``gap_m``; no ``m``: always): the tested slots follow
+  the fixed rule ``reject_untested:tested=...,tested_within_m=m`` (hand rule C over
+  [roco_antialias, roco_fallback]) and the network decides only the untested ones.
 
 Because it acts in the env modes it was trained in, it declares them in
 :attr:`LearnedPolicy.env_overrides`; sweeps (``roco-env compare``/``run``) and
@@ -52,13 +57,14 @@ from typing import Any
 import numpy as np
 
 from roco_env.policies.base import StatelessPolicy
-from roco_env.policies.reject_untested import STATISTIC, untested_slots
+from roco_env.policies.reject_untested import GAP_CLIP_M, GAP_M, STATISTIC, untested_slots
 from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 # registered name -> (shipped weights file, the action mode that name acts in)
-SHIPPED = {"learned_select": ("learned_select.pt", "select")}
+SHIPPED = {"learned_select": ("learned_select.pt", "select"),
+           "learned_fallback": ("learned_fallback.pt", "select")}
 _REQUIRED_META = ("format", "env_overrides", "observation", "action")
 
 
@@ -70,12 +76,17 @@ class Guard:
     still win, or None: every untested slot is rejected; ``tested``, who decides a tested
     slot: ``"keep"`` (choice ``keep``) or ``"network"`` (the network's argmax);
     ``untested``, who decides an untested slot: ``"rule"`` (``reject_margin``) or
-    ``"network"`` (the network's argmax, ``reject_margin`` None)."""
+    ``"network"`` (the network's argmax, ``reject_margin`` None); ``prefer`` (with
+    ``tested`` ``"keep"``): the index of the choice a tested slot takes instead of
+    ``keep`` where its ``gap_m`` is at most ``prefer_within_m`` m (None: always), or
+    None."""
 
     keep: int
     reject_margin: float | None
     tested: str = "keep"
     untested: str = "rule"
+    prefer: int | None = None
+    prefer_within_m: float | None = None
 
     def act(self, logits: np.ndarray, choice_diagnostics: np.ndarray,
             collab_mask: np.ndarray) -> np.ndarray:
@@ -90,7 +101,8 @@ class Guard:
         else:
             wants = logits[:, reject] >= logits[:, self.keep] - self.reject_margin
             on_blind = np.where(wants, reject, self.keep)
-        on_tested = np.argmax(logits, axis=1) if self.tested == "network" else self.keep
+        on_tested = np.argmax(logits, axis=1) if self.tested == "network" else \
+            self.tested_choice(choice_diagnostics)
         return np.where(blind, on_blind, on_tested).astype(np.int64)
 
     def constrain(self, action: np.ndarray, reject: int, choice_diagnostics: np.ndarray,
@@ -100,8 +112,28 @@ class Guard:
         decides them, tested ones given choice ``keep`` unless the network decides them."""
         blind = self.untested_slots(choice_diagnostics, collab_mask)
         on_blind = action if self.untested == "network" else reject
-        on_tested = action if self.tested == "network" else self.keep
+        on_tested = action if self.tested == "network" else \
+            self.tested_choice(choice_diagnostics)
         return np.where(blind, on_blind, on_tested).astype(np.int64)
+
+    def rule(self, reject: int, choice_diagnostics: np.ndarray,
+             collab_mask: np.ndarray) -> np.ndarray:
+        """(N,) int64: the guard's fixed rule alone, the reference a network behind it has
+        to beat: every untested slot rejected (index ``reject``), every tested one given
+        :meth:`tested_choice` (``keep`` where the network decides them)."""
+        blind = self.untested_slots(choice_diagnostics, collab_mask)
+        return np.where(blind, reject, self.tested_choice(choice_diagnostics)).astype(np.int64)
+
+    def tested_choice(self, choice_diagnostics: np.ndarray) -> np.ndarray:
+        """(N,) int64: the choice the rule gives each slot it treats as tested: ``keep``,
+        or ``prefer`` where its ``gap_m`` is at most ``prefer_within_m`` (or always)."""
+        count = np.shape(choice_diagnostics)[0]
+        if self.prefer is None:
+            return np.full(count, self.keep, np.int64)
+        if self.prefer_within_m is None:
+            return np.full(count, self.prefer, np.int64)
+        gap = np.asarray(choice_diagnostics)[:, self.prefer, GAP_M]
+        return np.where(gap <= self.prefer_within_m, self.prefer, self.keep).astype(np.int64)
 
     def untested_slots(self, choice_diagnostics: np.ndarray,
                        collab_mask: np.ndarray) -> np.ndarray:
@@ -117,10 +149,24 @@ def rule_guard(keep: int) -> dict:
     return {"keep": keep, "untested": "reject", "tested": "network"}
 
 
-def keep_tested_guard(keep: int) -> dict:
+def keep_tested_guard(keep: int, prefer: int | None = None,
+                      prefer_within_m: float | None = None) -> dict:
     """The metadata of the guard that gives every slot choice ``keep`` tested that choice
-    and lets the network decide the untested ones (``train-policy --guard keep_tested``)."""
-    return {"keep": keep, "tested": "keep", "untested": "network"}
+    (or ``prefer`` within ``prefer_within_m`` m of it, :class:`Guard`) and lets the network
+    decide the untested ones (``train-policy --guard keep_tested [--guard-prefer ...]``)."""
+    guard: dict = {"keep": keep, "tested": "keep", "untested": "network"}
+    if prefer is not None:
+        guard["prefer"] = prefer
+        if prefer_within_m is not None:
+            guard["prefer_within_m"] = prefer_within_m
+    return guard
+
+
+def guard_metadata(guard: Guard) -> dict:
+    """The metadata of a training guard (:func:`rule_guard` or :func:`keep_tested_guard`)."""
+    if guard.untested == "network":
+        return keep_tested_guard(guard.keep, guard.prefer, guard.prefer_within_m)
+    return rule_guard(guard.keep)
 
 
 def load_weights(path: str | Path) -> tuple[dict, dict]:
@@ -245,7 +291,8 @@ def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | N
     keys = [key for key, _ in metadata["observation"]]
     nvec = metadata["action"].get("nvec", [])
     rule = isinstance(raw, dict) and raw == rule_guard(raw.get("keep"))
-    keep_tested = isinstance(raw, dict) and raw == keep_tested_guard(raw.get("keep"))
+    keep_tested = isinstance(raw, dict) and raw == keep_tested_guard(
+        raw.get("keep"), raw.get("prefer"), raw.get("prefer_within_m"))
     if not isinstance(raw, dict) or (set(raw) != {"keep", "reject_margin"} and not rule
                                      and not keep_tested) \
             or "choice_diagnostics" not in keys or "collab_mask" not in keys \
@@ -255,7 +302,8 @@ def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | N
                          "{'keep': a choice index, 'reject_margin': logits} or "
                          "{'keep': a choice index, 'untested': 'reject', 'tested': "
                          "'network'} or {'keep': a choice index, 'tested': 'keep', "
-                         "'untested': 'network'} on a select policy that reads "
+                         "'untested': 'network'[, 'prefer': a choice index[, "
+                         "'prefer_within_m': m]]} on a select policy that reads "
                          "choice_diagnostics and "
                          f"collab_mask; got {raw!r}")
     if rule or keep_tested:
@@ -263,14 +311,33 @@ def _guard(metadata: dict, path: Path, reject_margin: float | None) -> Guard | N
             what = "rejects" if rule else "lets the network decide"
             raise ValueError(f"learned policy weights file {path}: its guard {what} every "
                              "untested slot; reject_margin applies only to a guard with one")
-        return Guard(raw["keep"], None, "network") if rule else \
-            Guard(raw["keep"], None, "keep", "network")
+        if rule:
+            return Guard(raw["keep"], None, "network")
+        return Guard(raw["keep"], None, "keep", "network", *_prefer(raw, nvec[0] - 1, path))
     margin = raw["reject_margin"] if reject_margin is None else reject_margin
     if not isinstance(margin, int | float) or isinstance(margin, bool) \
             or not np.isfinite(margin):
         raise ValueError(f"learned policy weights file {path}: reject_margin must be a "
                          f"finite number of logits; got {margin!r}")
     return Guard(raw["keep"], float(margin))
+
+
+def _prefer(raw: dict, choices: int, path: Path) -> tuple[int | None, float | None]:
+    """(prefer, prefer_within_m) of a keep_tested guard's metadata ``raw``, checked: a
+    choice index other than ``keep`` among two ``choices``, and m in [0, 20) or absent."""
+    prefer, within = raw.get("prefer"), raw.get("prefer_within_m")
+    if prefer is None:
+        return None, None
+    if not isinstance(prefer, int) or isinstance(prefer, bool) or choices != 2 \
+            or not 0 <= prefer < choices or prefer == raw["keep"]:
+        raise ValueError(f"learned policy weights file {path}: guard prefer must be the "
+                         f"index of the other of two choices (keep is {raw['keep']}, "
+                         f"choices {choices}); got {prefer!r}")
+    if within is not None and (not isinstance(within, int | float) or isinstance(within, bool)
+                               or not 0 <= within < GAP_CLIP_M):
+        raise ValueError(f"learned policy weights file {path}: guard prefer_within_m must "
+                         f"be m in [0, {GAP_CLIP_M:g}) or absent; got {within!r}")
+    return prefer, None if within is None else float(within)
 
 
 def scaled_observation(observation: Mapping[str, Any], keys: list[tuple[str, tuple]],
@@ -334,9 +401,23 @@ class LearnedSelectParams:
 
 
 def learned_select(**params: Any) -> LearnedPolicy:
-    """The shipped select-mode policy (``roco-env train-policy``; docs/learning.md);
-    params: the fields of :class:`LearnedSelectParams`."""
-    built = build(LearnedSelectParams, params, "learned_select")
-    return LearnedPolicy(built.weights, name="learned_select", action_mode="select",
+    """The shipped select-mode policy over identity / coalign / roco / roco_antialias
+    (``roco-env train-policy``; docs/learning.md); params: the fields of
+    :class:`LearnedSelectParams`."""
+    return _shipped_select("learned_select", params)
+
+
+def learned_fallback(**params: Any) -> LearnedPolicy:
+    """The shipped select-mode policy over [roco_antialias, roco_fallback]: hand rule C
+    (``reject_untested:tested=roco_fallback,tested_within_m=0.5``) on the slots
+    roco_antialias tested, a PPO-trained network on the untested ones (roco_antialias,
+    roco_fallback or reject; docs/learning.md); params: the fields of
+    :class:`LearnedSelectParams` (its guard has no reject_margin)."""
+    return _shipped_select("learned_fallback", params)
+
+
+def _shipped_select(name: str, params: dict[str, Any]) -> LearnedPolicy:
+    built = build(LearnedSelectParams, params, name)
+    return LearnedPolicy(built.weights, name=name, action_mode="select",
                          reject_margin=built.reject_margin)
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from roco_env.flags import SpecFlags
+from roco_env.policies.reject_untested import GAP_CLIP_M
 from roco_env.policies.spec import check_aligner_spec
 from roco_env.scenario import OBSERVATION_MODES, ActionConfig, list_scenarios
 from roco_env.schema import ConfigError, build, check_fields, spec
@@ -23,7 +24,7 @@ ACTION_MODES = ("correction", "residual", "select", "gate")
 NOISE_MODELS = ("gaussian", "laplace", "bias", "drift", "ar1", "localization")
 REWARDS = ("ap70_gain", "ap50_gain", "ap70", "ap50")
 GUARDS = ("none", "reject_untested", "keep_tested")
-REWARD_OVER = ("none", "base")
+REWARD_OVER = ("none", "base", "rule")
 WHERE = "train-policy"
 
 
@@ -63,10 +64,22 @@ class PolicyTrainConfig:
                       "keep_tested: the slots action_base tested take its pose by rule, the "
                       "network decides the untested ones (any choice or reject) "
                       "(select mode, aligned observation, action_base one of the choices)")
+    guard_prefer: str = spec("", doc="keep_tested only, two action_choices: the other "
+                             "choice, whose pose a tested slot takes instead of "
+                             "action_base's (within guard_prefer_within_m of it), so the "
+                             "tested slots follow the rule reject_untested:tested=THIS,"
+                             "tested_within_m=M; empty: action_base's")
+    guard_prefer_within_m: float | None = spec(
+        None, low=0.0, high=GAP_CLIP_M, high_open=True, doc="m, in [0, 20) (gap_m is "
+        "clipped at 20 m): a tested slot takes guard_prefer's pose only where it lies within "
+        "this distance of action_base's (None: always); needs guard_prefer")
     reward_over: str = spec("none", choices=REWARD_OVER, doc="base: each training step's "
                             "reward minus the reward of taking action_base's pose for every "
                             "slot (behind the guard) on the same frame, so only deviations "
-                            "from it are paid (select mode; evaluation keeps the plain reward)")
+                            "from it are paid; rule: minus the reward of the guard's rule "
+                            "alone (its tested slots' choice, untested slots rejected), so a "
+                            "step that agrees with the rule pays 0 (select mode; evaluation "
+                            "keeps the plain reward)")
     total_timesteps: int = spec(9600, low=1, doc="PPO env steps in all")
     n_steps: int = spec(320, low=1, doc="env steps per PPO rollout (a multiple of "
                         "episode_steps, so a checkpoint falls between episodes)")
@@ -178,9 +191,27 @@ def _check_ties(config: PolicyTrainConfig) -> None:
                           "observation_mode='aligned', action_base one of action_choices "
                           f"{choices} and observation_keys holding "
                           "choice_diagnostics and collab_mask (or empty)")
+    _check_prefer(config, choices)
+    if config.reward_over == "rule" and config.guard == "none":
+        raise ConfigError(f"{WHERE}: reward_over='rule' needs a guard (reject_untested or "
+                          "keep_tested): the rule is the guard's")
     if config.batch_size > config.n_steps:
         raise ConfigError(f"{WHERE}: batch_size={config.batch_size} must be <= "
                           f"n_steps={config.n_steps}")
+
+
+def _check_prefer(config: PolicyTrainConfig, choices: list[str]) -> None:
+    if config.guard_prefer_within_m is not None and not config.guard_prefer:
+        raise ConfigError(f"{WHERE}: guard_prefer_within_m="
+                          f"{config.guard_prefer_within_m} needs guard_prefer")
+    if not config.guard_prefer:
+        return
+    if config.guard != "keep_tested" or len(choices) != 2 \
+            or config.guard_prefer not in choices or config.guard_prefer == config.action_base:
+        raise ConfigError(f"{WHERE}: guard_prefer={config.guard_prefer!r} needs "
+                          f"guard='keep_tested' (got {config.guard!r}) and two "
+                          f"action_choices, it the one other than action_base="
+                          f"{config.action_base!r} (got {choices})")
 
 
 # The command line's options (roco-env train-policy), one per field.

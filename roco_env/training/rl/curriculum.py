@@ -7,8 +7,8 @@ single-agent Gymnasium env PPO trains on: each episode an :class:`~roco_env.wrap
 of the drawn condition, its Dict observation flattened (keys in the space's order) and
 divided by a fixed per-entry scale (:func:`observation_layout`). Every condition shares
 the spaces: ``max_collaborators`` and ``max_boxes`` are fixed by the config.
-With ``reward_over="base"`` a step's reward is paid relative to the base's action on the
-same frame: a copy of the EgoEnv (``copy.deepcopy``: its generators and aligners' state
+With ``reward_over="base"`` (``"rule"``) a step's reward is paid relative to the base's
+action (the guard's rule alone) on the same frame: a copy of the EgoEnv (``copy.deepcopy``: its generators and aligners' state
 too) takes that action, when it differs from the policy's on a filled slot.
 """
 
@@ -74,11 +74,15 @@ def training_guard(config: PolicyTrainConfig) -> Guard | None:
     """The rule ``config.guard`` applies to every action (None for ``"none"``):
     ``reject_untested`` rejects the slots ``action_base`` left untested and takes the
     network's action elsewhere; ``keep_tested`` takes ``action_base`` where it tested
-    and the network's action elsewhere."""
+    (or ``guard_prefer`` within ``guard_prefer_within_m`` of it) and the network's
+    action elsewhere."""
     if config.guard == "none":
         return None
     if config.guard == "keep_tested":
-        return Guard(base_choice(config), None, "keep", "network")
+        choices = select_choices(config)
+        prefer = choices.index(config.guard_prefer) if config.guard_prefer else None
+        return Guard(base_choice(config), None, "keep", "network", prefer,
+                     config.guard_prefer_within_m)
     return Guard(base_choice(config), None, "network")
 
 
@@ -90,6 +94,17 @@ def guarded_action(guard: Guard | None, action: np.ndarray, observation: dict) -
     diagnostics = observation["choice_diagnostics"]
     return guard.constrain(action, np.shape(diagnostics)[1], diagnostics,
                            observation["collab_mask"])
+
+
+def reference_action(config: PolicyTrainConfig, guard: Guard | None,
+                     observation: dict) -> np.ndarray:
+    """(N,) the action ``reward_over`` pays against: ``base``, action_base's choice on every
+    slot behind the guard; ``rule``, the guard's rule alone (:meth:`Guard.rule`)."""
+    count = len(observation["collab_mask"])
+    if config.reward_over == "rule":
+        diagnostics = observation["choice_diagnostics"]
+        return guard.rule(np.shape(diagnostics)[1], diagnostics, observation["collab_mask"])
+    return guarded_action(guard, np.full(count, base_choice(config)), observation)
 
 
 def draw_condition(config: PolicyTrainConfig, index: int) -> Condition:
@@ -234,8 +249,7 @@ class CurriculumEnv(gymnasium.Env):
         every filled slot (the step then pays 0 with ``reward_over``)."""
         if self.config.reward_over == "none":
             return None
-        reference = guarded_action(self.guard, np.full(len(action), base_choice(self.config)),
-                                   self._observation)
+        reference = reference_action(self.config, self.guard, self._observation)
         filled = np.asarray(self._observation["collab_mask"]) > 0
         if np.array_equal(reference[filled], np.asarray(action)[filled]):
             return None

@@ -6,9 +6,10 @@ an undefined AP left out) of the controlled agent over :func:`eval_conditions`. 
 baselines run in ``correction`` mode with their policy (the same conditions, seeds and
 reward; selecting aligner k equals aligner k, tests/test_action_modes.py): identity,
 no fusion (``fusion="none"``), coalign, roco, roco_antialias and the oracle. A network
-trained behind the ``reject_untested`` guard is also compared with the rule alone
-(:func:`baselines_of`): its base aligner's choice for every slot, the guard's rejections,
-in the training env's mode; what the network adds is its score minus that row.
+trained behind a guard is also compared with the guard's rule alone (:func:`baselines_of`,
+:meth:`~roco_env.policies.learned.Guard.rule`): its tested slots' choice (the base
+aligner's, or ``guard_prefer``'s within ``guard_prefer_within_m``), its untested slots
+rejected, in the training env's mode; what the network adds is its score minus that row.
 """
 
 from __future__ import annotations
@@ -21,10 +22,8 @@ from roco_env.policies import make_policy
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import (
     Condition,
-    base_choice,
     condition_env,
     eval_conditions,
-    guarded_action,
     training_guard,
 )
 
@@ -70,17 +69,18 @@ def evaluate(config: PolicyTrainConfig, make_act: Callable[[], Act],
 def baselines_of(config: PolicyTrainConfig) -> tuple[str, ...]:
     """The baselines a run of ``config`` is compared with: :data:`BASELINES`, and
     :data:`RULE` when the network acts behind a guard."""
-    return BASELINES + ((RULE,) if config.guard == "reject_untested" else ())
+    return BASELINES + ((RULE,) if config.guard != "none" else ())
 
 
 def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
     """One of :func:`baselines_of` on the held-out conditions."""
-    if name == RULE and config.guard == "reject_untested":
-        guard, base = training_guard(config), base_choice(config)
+    if name == RULE and config.guard != "none":
+        guard = training_guard(config)
 
         def rule() -> Act:
-            return lambda observation, info: guarded_action(
-                guard, np.full(len(observation["collab_mask"]), base), observation)
+            return lambda observation, info: guard.rule(
+                np.shape(observation["choice_diagnostics"])[1],
+                observation["choice_diagnostics"], observation["collab_mask"])
         return evaluate(config, rule)
     if name == "no_fusion":
         return evaluate(config, lambda: make_policy("identity"), baseline=True, fusion="none")

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from roco_env.policies.learned import FORMAT, keep_tested_guard, rule_guard
+from roco_env.policies.learned import FORMAT, guard_metadata
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import INPUT_CLIP, CurriculumEnv, env_overrides
 
@@ -63,8 +63,7 @@ def save_policy(path: Path, policy: torch.nn.Module, env: CurriculumEnv,
                 "observation": [[key, list(shape)] for key, shape in env.keys],
                 "action": action_metadata(env.action_space), **provenance}
     if env.guard is not None:  # the exported policy acts behind the rule it trained behind
-        metadata["guard"] = (keep_tested_guard if env.guard.untested == "network"
-                             else rule_guard)(env.guard.keep)
+        metadata["guard"] = guard_metadata(env.guard)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"state_dict": actor_state_dict(policy, env.scale),
                 "metadata": json.dumps(metadata, sort_keys=True)}, path)
