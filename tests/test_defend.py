@@ -190,7 +190,7 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     the default 2 m such boxes are lone, and hold). Honest random misses well above
     ``miss_rate`` (20 % per car and source) fail the window at times; ``sticky`` holds
     them a step or two at most, the window alone (``sticky=1``) many more (the witnessed
-    orphan test off: at 20 % a car is missed by two judges in 4 % of cases, forty times
+    orphan test off: at 20 % a car is missed by two judges in 4 % of cases, eighty times
     ``witnessed_rate``, and it is no subject of this test)."""
     scene = cars(*SCENE)
     pose = np.array([5.0, 4.0, 0.0])
@@ -287,6 +287,7 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"witnessed_rate": 0.0}, r"witnessed_rate=0.0 is out of range; allowed \(0.0, 1.0\)"),
     ({"witness_judges": 1}, r"witness_judges=1 is out of range"),
     ({"use_witnessed": "yes"}, r"use_witnessed"),
+    ({"witnessed_level": 1.0}, r"witnessed_level=1.0 is out of range; allowed \(0.0, 1.0\)"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
@@ -610,7 +611,8 @@ def test_witnessed_orphans_reject_two_ghosts_on_the_first_step_not_honest_misses
     them, a witnessed orphan, which an honest collaborator shows in
     about 0.02 % of its boxes (docs/attacks.md). On the first step (no history) the plain
     orphan test (2 of about 16 boxes against 1.5 %: p 0.02 x 5 tests) lets collaborator 2
-    pass; with the witnessed test (against 0.1 %: p 1e-4 x 6 tests) it is rejected. Honest
+    pass; with the witnessed test (against 0.05 %: p 3e-5 / 0.25 x 5 tests) it is
+    rejected. Honest
     random misses (5 % per car and source, seeded) are missed by two judges in 0.25 % of
     cases, and matched by the others: no honest collaborator is rejected in 20 steps."""
     ghosts = [(0.0, -4.0), (10.0, -4.0)]

@@ -74,8 +74,11 @@ Six tests, each a statistical test at level ``alpha``:
   clear view is matched by none. A *witnessed* orphan is one that ``witness_judges`` (2)
   judges or more have in clear view and leave unconfirmed: rarer still for an honest
   box (about 0.02 % of them behind roco at noise 0.4), so two of them are evidence on a
-  first step; they are tested against ``witnessed_rate`` (0.001) beside the orphans
-  (``use_witnessed``, a sixth test of the Bonferroni, same window and rules).
+  first step; they are tested against ``witnessed_rate`` (0.0005) beside the orphans
+  (``use_witnessed``): the orphan test spends ``witnessed_level`` (a quarter) of its level
+  on them and the rest on all orphans (a weighted Bonferroni inside the test: p-values
+  divided by 0.25 and 0.75, the smaller counts; same window and rules, the other tests'
+  Bonferroni unchanged).
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -316,8 +319,10 @@ class DefendParams:
                                "test: runs only with use_consistency and use_orphan)")
     witness_judges: int = spec(2, low=2, doc="an orphan this many judges have in clear view "
                                "and leave unconfirmed is a witnessed orphan")
-    witnessed_rate: float = _open_share(0.001, "share of an honest collaborator's boxes that "
+    witnessed_rate: float = _open_share(0.0005, "share of an honest collaborator's boxes that "
                                         "are witnessed orphans")
+    witnessed_level: float = _open_share(0.25, "share of the orphan test's level spent on "
+                                         "the witnessed orphans (the rest on all orphans)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
                                   "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
@@ -353,8 +358,7 @@ class Defend:
                     "consensus": p.use_consensus, "claim": p.use_claim,
                     "relative": p.use_relative, "orphan": p.use_orphan}
         # the consistency tests' Bonferroni
-        self._tests = 2 + p.use_claim + p.use_relative + p.use_orphan \
-            + (p.use_orphan and p.use_witnessed)
+        self._tests = 2 + p.use_claim + p.use_relative + p.use_orphan
         # per key, each step: (q,), or with the mean test (q, z, b): the whitened offset z
         # and bias std b, (3,) each
         self._q: dict[Hashable, deque] = {}
@@ -601,14 +605,18 @@ class Defend:
                                    *self.last_orphans[slot][1], self.last_witnessed[slot][1]))}
 
     def _orphan_tail(self, orphans: int, boxes: int, witnessed: int) -> float:
-        """The smaller one-sided binomial p-value of ``orphans`` among ``boxes`` against
-        ``orphan_rate`` and of ``witnessed`` orphans against ``witnessed_rate`` (that one
-        only with ``use_witnessed``; the Bonferroni counts both); 1 without boxes."""
+        """The one-sided binomial p-value of ``orphans`` among ``boxes`` against
+        ``orphan_rate``; with ``use_witnessed`` the smaller of it over ``1 -
+        witnessed_level`` and that of ``witnessed`` orphans against ``witnessed_rate`` over
+        ``witnessed_level`` (a weighted Bonferroni inside the orphan test, which leaves the
+        other consistency tests' as it was); 1 without boxes."""
         if not boxes:
             return 1.0
         tail = float(bdtrc(orphans - 1, boxes, self.params.orphan_rate))
         if self.params.use_witnessed:
-            tail = min(tail, float(bdtrc(witnessed - 1, boxes, self.params.witnessed_rate)))
+            share = self.params.witnessed_level
+            tail = min(1.0, tail / (1.0 - share), float(bdtrc(
+                witnessed - 1, boxes, self.params.witnessed_rate)) / share)
         return tail
 
 
