@@ -71,7 +71,14 @@ Six tests, each a statistical test at level ``alpha``:
   orphans over the window are tested against the share ``orphan_rate`` (one-sided
   binomial, a fifth test of the same Bonferroni, window and ``recent`` rule), judged
   against every collaborator. Honest misses are matched by another source; a ghost in
-  clear view is matched by none.
+  clear view is matched by none. A *witnessed* orphan is one that ``witness_judges`` (2)
+  judges or more have in clear view and leave unconfirmed: rarer still for an honest
+  box (about 0.02 % of them behind roco at noise 0.4), so two of them are evidence on a
+  first step; they are tested against ``witnessed_rate`` (0.0005) beside the orphans
+  (``use_witnessed``): the orphan test spends ``witnessed_level`` (a quarter) of its level
+  on them and the rest on all orphans (a weighted Bonferroni inside the test: p-values
+  divided by 0.25 and 0.75, the smaller counts; same window and rules, the other tests'
+  Bonferroni unchanged).
 * **Consensus** (ROBOSAC-style): the largest set of collaborators each of which passes
   that test against the ego and the others *of the set* is kept (every subset is tried,
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
@@ -307,6 +314,15 @@ class DefendParams:
     orphan_rate: float = _open_share(0.015, "share of an honest collaborator's boxes that are "
                                      "orphans (unconfirmed by a source with them in clear "
                                      "view, matched by none)")
+    use_witnessed: bool = spec(True, doc="the test of witnessed orphans: orphans left "
+                               "unconfirmed by witness_judges judges or more (a consistency "
+                               "test: runs only with use_consistency and use_orphan)")
+    witness_judges: int = spec(2, low=2, doc="an orphan this many judges have in clear view "
+                               "and leave unconfirmed is a witnessed orphan")
+    witnessed_rate: float = _open_share(0.0005, "share of an honest collaborator's boxes that "
+                                        "are witnessed orphans")
+    witnessed_level: float = _open_share(0.25, "share of the orphan test's level spent on "
+                                         "the witnessed orphans (the rest on all orphans)")
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
                                   "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
@@ -347,13 +363,16 @@ class Defend:
         # and bias std b, (3,) each
         self._q: dict[Hashable, deque] = {}
         self._pairs: dict[Hashable, deque] = {}
-        self._orphans: dict[Hashable, deque] = {}  # per key, each step: (orphans, boxes)
+        # per key, each step: (orphans, boxes, witnessed orphans)
+        self._orphans: dict[Hashable, deque] = {}
         self.last_reasons: tuple[str, ...] = ()
         self.last_pairs: dict[tuple, PairEvidence] = {}  # (judged, judge) -> window's
         self.last_now: dict[tuple, PairEvidence] = {}  # (judged, judge) -> this step's
         self._status: dict[tuple, BoxStatus] = {}  # (judged, judge) -> this step's per box
         # slot -> (orphans, boxes) over the window and this step's
         self.last_orphans: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
+        # slot -> witnessed orphans over the window and this step's
+        self.last_witnessed: dict[int, tuple[int, int]] = {}
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
@@ -562,26 +581,43 @@ class Defend:
         orphans exceed the share ``orphan_rate`` significantly over the window (one-sided
         binomial, level alpha over the consistency tests' Bonferroni) and this step's alone
         have a p-value of at most ``recent``."""
-        self.last_orphans = {}
+        self.last_orphans, self.last_witnessed = {}, {}
         for slot, name, counted in zip(slots, names, scored, strict=True):
             others = [self._status[slot, judge] for judge in judges if judge != slot]
             count = self._status[slot, EGO].matched.shape[0]
             near = np.full(count, np.inf)
-            doubted = np.zeros(count, dtype=bool)
+            doubts = np.zeros(count, dtype=int)  # judges leaving the box unconfirmed
             for judged in others:
                 near = np.minimum(near, judged.gap)
-                doubted |= judged.unconfirmed
-            now = (int(np.sum(doubted & (near > self.params.orphan_m) & counted)),
-                   int(counted.sum()))
+                doubts += judged.unconfirmed
+            orphan = (doubts > 0) & (near > self.params.orphan_m) & counted
+            now = (int(orphan.sum()), int(counted.sum()),
+                   int(np.sum(orphan & (doubts >= self.params.witness_judges))))
             history = self._orphans.setdefault((ego, name), deque(maxlen=self.params.window))
             history.append(now)
-            self.last_orphans[slot] = (tuple(np.sum(history, axis=0).tolist()), now)
-
-        def tail(orphans: int, boxes: int) -> float:
-            return float(bdtrc(orphans - 1, boxes, self.params.orphan_rate)) if boxes else 1.0
+            window = np.sum(history, axis=0).tolist()
+            self.last_orphans[slot] = ((window[0], window[1]), now[:2])
+            self.last_witnessed[slot] = (window[2], now[2])
         return {slot for slot in slots
-                if self._fails(self._tests * tail(*self.last_orphans[slot][0]),
-                               lambda slot=slot: tail(*self.last_orphans[slot][1]))}
+                if self._fails(self._tests * self._orphan_tail(
+                    *self.last_orphans[slot][0], self.last_witnessed[slot][0]),
+                               lambda slot=slot: self._orphan_tail(
+                                   *self.last_orphans[slot][1], self.last_witnessed[slot][1]))}
+
+    def _orphan_tail(self, orphans: int, boxes: int, witnessed: int) -> float:
+        """The one-sided binomial p-value of ``orphans`` among ``boxes`` against
+        ``orphan_rate``; with ``use_witnessed`` the smaller of it over ``1 -
+        witnessed_level`` and that of ``witnessed`` orphans against ``witnessed_rate`` over
+        ``witnessed_level`` (a weighted Bonferroni inside the orphan test, which leaves the
+        other consistency tests' as it was); 1 without boxes."""
+        if not boxes:
+            return 1.0
+        tail = float(bdtrc(orphans - 1, boxes, self.params.orphan_rate))
+        if self.params.use_witnessed:
+            share = self.params.witnessed_level
+            tail = min(1.0, tail / (1.0 - share), float(bdtrc(
+                witnessed - 1, boxes, self.params.witnessed_rate)) / share)
+        return tail
 
 
 def _relative_tail(own: PairEvidence, rest: PairEvidence, margin: float) -> float:
