@@ -261,6 +261,20 @@ def test_wald_statistic_weighs_the_determined_part():
         np.testing.assert_allclose(ambiguity.projected(np.zeros(3)), [0.0, shift, 0.0])
 
 
+def test_move_statistic_weighs_the_whole_move_by_the_pairs_information():
+    """Information 100 per scale unit (1 m, 1 deg): a move of 0.3 m and 0.2 deg is worth
+    100 (0.3^2 + 0.1^2 + 0.2^2) = 14, across pi as anywhere (the turn wrapped); no move 0."""
+    scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
+    ambiguity = Ambiguity(np.zeros(3), scale, np.zeros((0, 3)), np.eye(3) * 100.0, 10,
+                          np.zeros((0, 3)))
+    reported = np.array([1.0, 2.0, np.pi - np.deg2rad(0.1)])
+    assert ambiguity.move_statistic(reported, reported) == 0.0
+    pose = reported + [0.3, -0.1, np.deg2rad(0.2)]
+    pose[2] = wrap_angle(pose[2])
+    assert pose[2] < 0.0
+    assert ambiguity.move_statistic(reported, pose) == pytest.approx(100.0 * 0.14)
+
+
 def test_alias_won_by_the_reported_prior_alone_no_longer_harms():
     """Rows 7 m apart along x, the collaborator reported 5.5 m along and 2 m across them:
     the alias one pitch over is nearer the reported pose, so the prior alone makes it win

@@ -172,6 +172,16 @@ class Ambiguity:
         covariance = basis @ inverse @ basis.T
         return float(coords @ np.linalg.solve(covariance, coords))
 
+    def move_statistic(self, reported: np.ndarray, pose: np.ndarray) -> float:
+        """What the pairs' information says for moving ``reported`` (3,) to ``pose`` (3,):
+        ``z^T A z`` with z their difference in scaled coordinates (the turn wrapped) and A
+        :attr:`information` (chi2 units: the Gaussian part of how much better ``pose``
+        explains the pairs, without the gain of boxes paired at one pose and not at the
+        other; chi-square with 3 dof when ``reported`` is right and ``pose`` the pairs' fit)."""
+        offset = scaled_offsets(np.asarray(pose, dtype=float)[None],
+                                np.asarray(reported, dtype=float), self.scale)[0]
+        return float(offset @ self.information @ offset)
+
     def significant(self, reported: np.ndarray, significance: float | None) -> bool:
         """Whether the determined part of the correction is beyond the estimation noise:
         :meth:`statistic` > ``chi2.ppf(significance, determined)``; ``significance`` None

@@ -323,17 +323,20 @@ def _own_support(
     each collaborator's; chi2 units)."""
     supported = list(decisions)
     for j, decision in enumerate(decisions):
-        if decision.hypotheses:
-            continue
         if not result.applied[j]:
             # a support below min_margin is why the slot is out of RoCo (kept); a support
             # from an earlier round whose correction RoCo no longer applies is void
             if decision.support >= p.min_margin:
                 supported[j] = replace(decision, support=float("nan"))
             continue
-        evidence = score_hypotheses(sets[0], sets[j + 1],
-                                    np.stack([result.corrected[j], reported[j]]), p)
-        supported[j] = replace(decision, support=float(evidence[0] - evidence[1]))
+        if decision.hypotheses:
+            # applied with hypotheses: a trusted pick, diagnosed (use_ambiguity)
+            support = decision.ambiguity.move_statistic(reported[j], result.corrected[j])
+        else:
+            evidence = score_hypotheses(sets[0], sets[j + 1],
+                                        np.stack([result.corrected[j], reported[j]]), p)
+            support = float(evidence[0] - evidence[1])
+        supported[j] = replace(decision, support=support)
     return supported
 
 
@@ -414,7 +417,10 @@ def antialias_align(
     corrected, applied = result.corrected.copy(), result.applied.copy()
     reasons = list(result.slot_reasons)
     for j in unsupported:
-        reasons[j] = (f"no hypothesis within search_radius and RoCo's correction explains the "
+        reasons[j] = (f"RoCo's correction is worth only {decisions[j].support:.1f} of its "
+                      f"hypothesis' pairs' information (< {p.min_margin:g}), reported pose kept"
+                      if decisions[j].hypotheses else
+                      f"no hypothesis within search_radius and RoCo's correction explains the "
                       f"boxes only {decisions[j].support:.1f} better than the reported pose "
                       f"(< {p.min_margin:g}), reported pose kept")
     for j in ambiguous:
