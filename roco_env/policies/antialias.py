@@ -57,6 +57,13 @@ starting points.
    ``min_margin`` in evidence (the two scored together against the ego's boxes,
    :attr:`Decision.support`). Otherwise the collaborator is left out of RoCo too and keeps
    its reported pose, and RoCo solves again without it (until no such collaborator is left).
+   A trusted pick's correction is held to the same margin by its own pairs: RoCo's pose
+   must be worth ``min_margin`` of the pick's pairs' information over the reported pose
+   (:meth:`~roco_env.policies.ambiguity.Ambiguity.move_statistic`, the Gaussian part of
+   the evidence, with the evidence's pose slack; RoCo's significance test weighs the
+   boxes' covariances alone at 1% false alarms, and a fit on 3-4 boxes 60 m from two
+   far-apart agents moves a pose reported 0.1-0.2 m off by 0.5-0.9 m where it passes);
+   else the same.
 
 :class:`AntiAliasPolicy` keeps one track per (ego, collaborator) agent-id pair from the
 info dict (``info["agent"]`` and ``info["collaborators"]``), so one instance may serve
@@ -155,10 +162,11 @@ class Decision:
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
     ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
     was overruled by the evidence (step 5 of the module docstring), so the decision was
-    taken without it and the track is to be forgotten; support: with no hypothesis and a
-    pose RoCo corrected, how much better RoCo's pose explains the collaborator's boxes than
-    the reported pose does (evidence difference, chi2 units; below ``min_margin`` the
-    correction is not applied: step 6 of the module docstring), NaN otherwise.
+    taken without it and the track is to be forgotten; support: for a pose RoCo corrected,
+    how much better RoCo's pose explains the collaborator's boxes than the reported pose
+    does (chi2 units; below ``min_margin`` the correction is not applied: step 6 of the
+    module docstring): with no hypothesis the evidence difference, with a trusted pick the
+    move's worth by the pick's pairs' information; NaN otherwise.
     """
 
     pose: np.ndarray | None
@@ -316,11 +324,12 @@ def _own_support(
     decisions: list[Decision], p: AntiAliasParams,
 ) -> list[Decision]:
     """Step 6 of the module docstring: ``decisions`` with :attr:`Decision.support` set for
-    each collaborator without hypotheses whose pose RoCo corrected (``result``; NaN again
-    where an earlier round's supported correction is no longer applied): the
+    each collaborator whose pose RoCo corrected (``result``; NaN again where an earlier
+    round's supported correction is no longer applied), chi2 units: without hypotheses the
     evidence of RoCo's pose minus that of the reported one (``reported`` (N, 3)), scored
     together on the collaborator's boxes against the ego's (``sets``: the ego's boxes, then
-    each collaborator's; chi2 units)."""
+    each collaborator's); with a trusted pick the move's worth by its diagnosed pairs'
+    information (:meth:`~roco_env.policies.ambiguity.Ambiguity.move_statistic`)."""
     supported = list(decisions)
     for j, decision in enumerate(decisions):
         if not result.applied[j]:
