@@ -367,7 +367,12 @@ def _kept_out(
         return f"{note} and elsewhere (margin {ambiguity.margin:.1f} < {p.min_margin:g})", None
     if not ambiguity.significant(reported, p.significance):
         return f"{note}; the determined part is not significant", None
-    return note, ambiguity.projected(reported)
+    projected = ambiguity.projected(reported)
+    worth = ambiguity.move_statistic(reported, projected)
+    if worth < p.min_margin:
+        return (f"{note}; the determined part is worth only {worth:.1f} of its pairs' "
+                f"information (< {p.min_margin:g})"), None
+    return note, projected
 
 
 def antialias_align(
