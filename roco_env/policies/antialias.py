@@ -25,8 +25,10 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    not trusted: the collaborator is left out of RoCo, and its pose keeps the reported one
    along the undetermined directions and takes the best hypothesis's determined part
    (:meth:`~roco_env.policies.ambiguity.Ambiguity.projected`), if that part wins by
-   ``min_margin`` and is significant (a Wald test with the pairs' information at RoCo's
-   ``significance``); with nothing determined, or a translation the pairs themselves pin
+   ``min_margin``, is significant (a Wald test with the pairs' information at RoCo's
+   ``significance``) and is worth ``min_margin`` of that information
+   (:meth:`~roco_env.policies.ambiguity.Ambiguity.move_statistic`, as in step 6); with
+   nothing determined, or a translation the pairs themselves pin
    poorly, it keeps the reported pose. The diagnosis also looks ``BEYOND`` (2) times as far
    as the hypotheses (votes over twice ``search_radius``, four times ``max_hypotheses``
    peaks, refined alike): a pose there whose evidence beats the best hypothesis's by
