@@ -275,6 +275,24 @@ def test_move_statistic_weighs_the_whole_move_by_the_pairs_information():
     assert ambiguity.move_statistic(reported, pose) == pytest.approx(100.0 * 0.14)
 
 
+def test_translation_std_levers_the_yaw_by_the_pairs_distance():
+    """One pair 60 m along x from the collaborator's origin, 0.5 m std per axis (a = 4 per
+    m^2) and its heading to 1 deg: the turn moves the box by 60 m per rad across x, so the
+    origin's translation variance is 2 / a plus 60^2 times the yaw's (1 deg)^2; a singular
+    information pins nothing."""
+    scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
+    a, lever, heading = 4.0, 60.0, 1.0 / np.deg2rad(1.0) ** 2
+    physical = np.array([[a, 0.0, 0.0], [0.0, a, a * lever], [0.0, a * lever, a * lever**2]])
+    physical[2, 2] += heading
+    ambiguity = Ambiguity(np.zeros(3), scale, np.zeros((0, 3)), physical * np.outer(scale, scale),
+                          1, np.zeros((0, 3)))
+    expected = np.sqrt(2.0 / a + lever**2 / heading)
+    assert ambiguity.translation_std == pytest.approx(expected)
+    assert expected > 1.2
+    singular = Ambiguity(np.zeros(3), scale, np.eye(3), np.zeros((3, 3)), 0, np.zeros((0, 3)))
+    assert singular.translation_std == float("inf")
+
+
 def test_alias_won_by_the_reported_prior_alone_no_longer_harms():
     """Rows 7 m apart along x, the collaborator reported 5.5 m along and 2 m across them:
     the alias one pitch over is nearer the reported pose, so the prior alone makes it win

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from roco_env.policies import make_policy
-from roco_env.policies.antialias import antialias_align
+from roco_env.policies.antialias import THIN_FIT_T, antialias_align
 from roco_env.policies.base import apply_correction
 from roco_env.policies.roco import roco_align
 from roco_env.testing.constructed_scenes import (
@@ -281,16 +281,18 @@ def test_determined_part_its_pairs_do_not_support_is_not_applied(tmp_path):
     assert harm_share(samples["before"], samples["after"]) == 0.0
 
 
-def test_correction_its_hypothesis_pairs_support_is_applied():
+def test_correction_of_a_fit_that_is_not_thin_is_applied():
     """A scatter of cars, the collaborator reported 1.5 m / 1 deg off: the trusted pick's
-    correction is worth far more than min_margin of its pairs' information and stands."""
+    pairs pin its origin to well under THIN_FIT_T, so its correction is not asked for its
+    worth (support NaN) and stands."""
     rng = np.random.default_rng(1)
     objects = random_objects(rng, 80, 80.0, min_gap=5.0)
     scene = make_scene(objects, np.array([[0.0, 0.0, 0.0], [10.0, 5.0, 0.5]]),
                        [pose_error(1.5, 1.0, 2.0)], sensor_range=70.0,
                        noise=(0.05, 0.05, 0.01), rng=rng)
     result, decisions = antialias_align(*scene.args())
-    assert decisions[0].pose is not None and decisions[0].support >= 20.0
+    assert decisions[0].ambiguity.translation_std < THIN_FIT_T
+    assert decisions[0].pose is not None and np.isnan(decisions[0].support)
     assert result.applied[0] and error_m(result.corrected, scene) < 0.1
 
 

@@ -182,6 +182,17 @@ class Ambiguity:
                                 np.asarray(reported, dtype=float), self.scale)[0]
         return float(offset @ self.information @ offset)
 
+    @property
+    def translation_std(self) -> float:
+        """How well the pairs pin the collaborator's origin: the root of the translation's
+        marginal variance (x plus y, m^2) under :attr:`information` (the yaw's uncertainty
+        included, levered by the pairs' distance); inf when the information is singular."""
+        try:
+            covariance = np.linalg.inv(self.information)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        return float(np.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)) * self.scale[0])
+
     def significant(self, reported: np.ndarray, significance: float | None) -> bool:
         """Whether the determined part of the correction is beyond the estimation noise:
         :meth:`statistic` > ``chi2.ppf(significance, determined)``; ``significance`` None
