@@ -153,6 +153,19 @@ def test_rival_beyond_the_candidates_opens_its_shift():
     assert projected[1] == pytest.approx(scene.true[0, 1]) and ambiguity.determined == 2
 
 
+def test_box_std_is_one_pair_of_boxes_precision():
+    """The diagnosis carries the boxes' own precision: the root of the ego's and the
+    collaborator's median centre variances summed (what one pair pins its centre to)."""
+    rng = np.random.default_rng(4)
+    agents = [[-20.0, 0.0, 0.0], [0.0, -25.0, np.pi / 2]]
+    scene = make_scene(crossing(), np.asarray(agents), [pose_error(0.8, 0.6, 1.0)],
+                       sensor_range=60.0, noise=(0.05, 0.05, 0.01), rng=rng)
+    ego, collab = box_sets_of(scene)
+    ambiguity = diagnose_truth(scene)
+    expected = np.sqrt(np.median(ego.var_t) + np.median(collab.var_t))
+    assert ambiguity.box_std == pytest.approx(expected) and 0.0 < expected < 1.0
+
+
 def test_spectrum_too_few_pairs_determine_nothing():
     objects = np.tile(CAR, (2, 1))
     objects[:, 0] = [5.0, -5.0]

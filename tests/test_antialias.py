@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from roco_env.policies import make_policy
-from roco_env.policies.antialias import THIN_FIT_T, antialias_align
+from roco_env.policies.ambiguity import Ambiguity
+from roco_env.policies.antialias import THIN_FIT_T, _thin, antialias_align
 from roco_env.policies.base import apply_correction
 from roco_env.policies.roco import roco_align
 from roco_env.testing.constructed_scenes import (
@@ -345,3 +346,21 @@ def test_degenerate_inputs():
         antialias_align(*scene.args(), tracks=[])
     with pytest.raises(ValueError, match="unknown roco_antialias parameter"):
         make_policy("roco_antialias", tau3=1.0)
+
+
+@pytest.mark.parametrize(("translation_std", "box_std", "thin"), [
+    (0.43, 0.33, True),   # an RSU-pair fit that harmed: 1.3 times one pair's precision
+    (0.50, 0.47, True),   # at least one pair's precision and THIN_FIT_T
+    (0.50, 0.52, False),  # paper_table1_calibrated's boxes (0.3 m each): no thinner than a pair
+    (0.25, 0.10, False),  # below THIN_FIT_T however precise the boxes
+    (0.35, float("nan"), True),  # box precision unknown: THIN_FIT_T alone
+])
+def test_thin_fit_is_thin_against_the_boxes_own_precision(translation_std, box_std, thin):
+    """A fit is thin from THIN_FIT_T and from THIN_FIT_BOXES times the boxes' own precision
+    (one pair's): translation std sqrt(0.5) * s for isotropic information 1 / s^2."""
+    s = translation_std / np.sqrt(2.0)
+    information = np.diag([1.0 / s**2, 1.0 / s**2, 1e6])
+    ambiguity = Ambiguity(np.zeros(3), np.ones(3), np.zeros((0, 3)), information, 5,
+                          np.zeros((0, 3)), box_std=box_std)
+    assert ambiguity.translation_std == pytest.approx(translation_std, rel=1e-3)
+    assert _thin(ambiguity) is thin

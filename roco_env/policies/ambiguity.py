@@ -96,7 +96,9 @@ class Ambiguity:
     boxes nearly as well; margin: how decisively the candidates' scores (priors included)
     pick the pose's determined part (chi2 units, step 4 of the module docstring; NaN when
     nothing is determined); weak_translation: step 1 left a translation direction open
-    (the pairs themselves pin it poorly).
+    (the pairs themselves pin it poorly); box_std: the boxes' own precision (m), the root
+    of the ego's and the collaborator's median centre variances (x and y mean) summed: how
+    well one pair pins its centre (NaN: not known).
     """
 
     pose: np.ndarray
@@ -107,6 +109,7 @@ class Ambiguity:
     rivals: np.ndarray
     margin: float = float("nan")
     weak_translation: bool = False
+    box_std: float = float("nan")
 
     @property
     def determined(self) -> int:
@@ -293,7 +296,15 @@ def diagnose(
     return Ambiguity(pose, scale, undetermined, information, matches,
                      np.concatenate([candidates[rival], beyond]),
                      _determined_margin(offset, undetermined, score, distinct_rows, p),
-                     weak_translation)
+                     weak_translation, _box_std(ego, collab))
+
+
+def _box_std(ego: BoxSet, collab: BoxSet) -> float:
+    """The boxes' own precision (:attr:`Ambiguity.box_std`, m): the root of the summed
+    median centre variances (x and y mean) of the two agents' boxes; NaN without boxes."""
+    if not ego.var_t.size or not collab.var_t.size:
+        return float("nan")
+    return float(np.sqrt(np.median(ego.var_t) + np.median(collab.var_t)))
 
 
 def scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
