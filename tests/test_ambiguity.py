@@ -153,6 +153,19 @@ def test_rival_beyond_the_candidates_opens_its_shift():
     assert projected[1] == pytest.approx(scene.true[0, 1]) and ambiguity.determined == 2
 
 
+def test_box_std_is_one_pair_of_boxes_precision():
+    """The diagnosis carries the boxes' own precision: the root of the ego's and the
+    collaborator's median centre variances summed (what one pair pins its centre to)."""
+    rng = np.random.default_rng(4)
+    agents = [[-20.0, 0.0, 0.0], [0.0, -25.0, np.pi / 2]]
+    scene = make_scene(crossing(), np.asarray(agents), [pose_error(0.8, 0.6, 1.0)],
+                       sensor_range=60.0, noise=(0.05, 0.05, 0.01), rng=rng)
+    ego, collab = box_sets_of(scene)
+    ambiguity = diagnose_truth(scene)
+    expected = np.sqrt(np.median(ego.var_t) + np.median(collab.var_t))
+    assert ambiguity.box_std == pytest.approx(expected) and 0.0 < expected < 1.0
+
+
 def test_spectrum_too_few_pairs_determine_nothing():
     objects = np.tile(CAR, (2, 1))
     objects[:, 0] = [5.0, -5.0]
@@ -259,6 +272,38 @@ def test_wald_statistic_weighs_the_determined_part():
         assert ambiguity.significant(np.zeros(3), 0.99) is significant
         assert ambiguity.significant(np.zeros(3), None)
         np.testing.assert_allclose(ambiguity.projected(np.zeros(3)), [0.0, shift, 0.0])
+
+
+def test_move_statistic_weighs_the_whole_move_by_the_pairs_information():
+    """Information 100 per scale unit (1 m, 1 deg): a move of 0.3 m and 0.2 deg is worth
+    100 (0.3^2 + 0.1^2 + 0.2^2) = 14, across pi as anywhere (the turn wrapped); no move 0."""
+    scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
+    ambiguity = Ambiguity(np.zeros(3), scale, np.zeros((0, 3)), np.eye(3) * 100.0, 10,
+                          np.zeros((0, 3)))
+    reported = np.array([1.0, 2.0, np.pi - np.deg2rad(0.1)])
+    assert ambiguity.move_statistic(reported, reported) == 0.0
+    pose = reported + [0.3, -0.1, np.deg2rad(0.2)]
+    pose[2] = wrap_angle(pose[2])
+    assert pose[2] < 0.0
+    assert ambiguity.move_statistic(reported, pose) == pytest.approx(100.0 * 0.14)
+
+
+def test_translation_std_levers_the_yaw_by_the_pairs_distance():
+    """One pair 60 m along x from the collaborator's origin, 0.5 m std per axis (a = 4 per
+    m^2) and its heading to 1 deg: the turn moves the box by 60 m per rad across x, so the
+    origin's translation variance is 2 / a plus 60^2 times the yaw's (1 deg)^2; a singular
+    information pins nothing."""
+    scale = np.array([1.0, 1.0, np.deg2rad(1.0)])
+    a, lever, heading = 4.0, 60.0, 1.0 / np.deg2rad(1.0) ** 2
+    physical = np.array([[a, 0.0, 0.0], [0.0, a, a * lever], [0.0, a * lever, a * lever**2]])
+    physical[2, 2] += heading
+    ambiguity = Ambiguity(np.zeros(3), scale, np.zeros((0, 3)), physical * np.outer(scale, scale),
+                          1, np.zeros((0, 3)))
+    expected = np.sqrt(2.0 / a + lever**2 / heading)
+    assert ambiguity.translation_std == pytest.approx(expected)
+    assert expected > 1.2
+    singular = Ambiguity(np.zeros(3), scale, np.eye(3), np.zeros((3, 3)), 0, np.zeros((0, 3)))
+    assert singular.translation_std == float("inf")
 
 
 def test_alias_won_by_the_reported_prior_alone_no_longer_harms():

@@ -96,7 +96,9 @@ class Ambiguity:
     boxes nearly as well; margin: how decisively the candidates' scores (priors included)
     pick the pose's determined part (chi2 units, step 4 of the module docstring; NaN when
     nothing is determined); weak_translation: step 1 left a translation direction open
-    (the pairs themselves pin it poorly).
+    (the pairs themselves pin it poorly); box_std: the boxes' own precision (m), the root
+    of the ego's and the collaborator's median centre variances (x and y mean) summed: how
+    well one pair pins its centre (NaN: not known).
     """
 
     pose: np.ndarray
@@ -107,6 +109,7 @@ class Ambiguity:
     rivals: np.ndarray
     margin: float = float("nan")
     weak_translation: bool = False
+    box_std: float = float("nan")
 
     @property
     def determined(self) -> int:
@@ -171,6 +174,27 @@ class Ambiguity:
         inverse[np.ix_(kept, kept)] = np.linalg.inv(self.information[np.ix_(kept, kept)])
         covariance = basis @ inverse @ basis.T
         return float(coords @ np.linalg.solve(covariance, coords))
+
+    def move_statistic(self, reported: np.ndarray, pose: np.ndarray) -> float:
+        """What the pairs' information says for moving ``reported`` (3,) to ``pose`` (3,):
+        ``z^T A z`` with z their difference in scaled coordinates (the turn wrapped) and A
+        :attr:`information` (chi2 units: the Gaussian part of how much better ``pose``
+        explains the pairs, without the gain of boxes paired at one pose and not at the
+        other; chi-square with 3 dof when ``reported`` is right and ``pose`` the pairs' fit)."""
+        offset = scaled_offsets(np.asarray(pose, dtype=float)[None],
+                                np.asarray(reported, dtype=float), self.scale)[0]
+        return float(offset @ self.information @ offset)
+
+    @property
+    def translation_std(self) -> float:
+        """How well the pairs pin the collaborator's origin: the root of the translation's
+        marginal variance (x plus y, m^2) under :attr:`information` (the yaw's uncertainty
+        included, levered by the pairs' distance); inf when the information is singular."""
+        try:
+            covariance = np.linalg.inv(self.information)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        return float(np.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)) * self.scale[0])
 
     def significant(self, reported: np.ndarray, significance: float | None) -> bool:
         """Whether the determined part of the correction is beyond the estimation noise:
@@ -272,7 +296,15 @@ def diagnose(
     return Ambiguity(pose, scale, undetermined, information, matches,
                      np.concatenate([candidates[rival], beyond]),
                      _determined_margin(offset, undetermined, score, distinct_rows, p),
-                     weak_translation)
+                     weak_translation, _box_std(ego, collab))
+
+
+def _box_std(ego: BoxSet, collab: BoxSet) -> float:
+    """The boxes' own precision (:attr:`Ambiguity.box_std`, m): the root of the summed
+    median centre variances (x and y mean) of the two agents' boxes; NaN without boxes."""
+    if not ego.var_t.size or not collab.var_t.size:
+        return float("nan")
+    return float(np.sqrt(np.median(ego.var_t) + np.median(collab.var_t)))
 
 
 def scaled_offsets(poses: np.ndarray, pose: np.ndarray, scale: np.ndarray) -> np.ndarray:
