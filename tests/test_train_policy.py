@@ -67,6 +67,26 @@ def test_a_tiny_run_writes_weights_report_and_command(tmp_path):
     assert policy.env_overrides["action.mode"] == "select"
 
 
+def test_every_baseline_gets_a_line_in_the_learning_curve(tmp_path):
+    """More baselines than colours (a guarded run has 7, here 9): each is a dashed line
+    with its name in the legend, none dropped; replot() redraws a saved report's PNG."""
+    from roco_env.training.rl.policy_report import COLOURS, PLOT, replot
+
+    names = [f"baseline_{k}" for k in range(len(COLOURS) + 2)]
+    report = {"config": {"action_mode": "select", "reward": "ap70_gain"},
+              "curve": [{"timesteps": 0, "wall_s": 0.0, "reward": 0.1},
+                        {"timesteps": 8, "wall_s": 2.0, "reward": 0.2}],
+              "baselines": {name: {"reward": k / 10} for k, name in enumerate(names)}}
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    axes = replot(tmp_path).axes[0]
+    dashed = [line for line in axes.get_lines() if line.get_linestyle() == "--"]
+    assert [line.get_label() for line in dashed] == names
+    assert [line.get_ydata()[0] for line in dashed] == [k / 10 for k in range(len(names))]
+    legend = [text.get_text() for text in axes.get_legend().get_texts()]
+    assert legend == ["learned (select)", *names]
+    assert (tmp_path / PLOT).stat().st_size > 1000
+
+
 def test_the_exported_policy_acts_as_the_sb3_policy(tmp_path):
     config = build_config(TINY)
     result = train(config, tmp_path, progress=False, log=lambda m: None)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict
+from itertools import cycle
 from pathlib import Path
 from typing import Any
 
@@ -18,27 +19,42 @@ from roco_env.training.rl.ppo import TrainResult
 PLOT = "learning_curve.png"
 
 
-def plot_curve(result: TrainResult, path: Path) -> None:
-    """Learned reward vs steps with the baselines as horizontal lines (Figure API)."""
+# one colour per baseline line, cycled past the last: every baseline gets its line
+COLOURS = ("tab:gray", "tab:brown", "tab:blue", "tab:orange", "tab:green", "tab:red",
+           "tab:purple")
+
+
+def plot_curve(curve: list[dict[str, float]], baselines: dict[str, dict[str, float]],
+               action_mode: str, reward: str, path: Path) -> Any:
+    """Learned reward vs steps (``curve``: timesteps, wall_s in s, reward) with each of
+    ``baselines`` (name -> score with "reward") as a horizontal dashed line, written as a
+    PNG to ``path``; returns the matplotlib Figure (Figure API, no pyplot state)."""
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(7.5, 4.5))
     axes = figure.add_subplot()
-    steps = [point["timesteps"] for point in result.curve]
-    axes.plot(steps, [point["reward"] for point in result.curve], "o-", color="black",
-              label=f"learned ({result.config.action_mode})")
-    colours = ("tab:gray", "tab:brown", "tab:blue", "tab:orange", "tab:green", "tab:red")
-    for (name, score), colour in zip(result.baselines.items(), colours, strict=False):
+    axes.plot([point["timesteps"] for point in curve], [point["reward"] for point in curve],
+              "o-", color="black", label=f"learned ({action_mode})")
+    for (name, score), colour in zip(baselines.items(), cycle(COLOURS)):
         axes.axhline(score["reward"], color=colour, linestyle="--", label=name)
     axes.set_xlabel("training env steps")
-    axes.set_ylabel(f"mean per-step {result.config.reward} (held-out)")
-    if result.curve and result.curve[-1]["timesteps"] > 0:
-        top = axes.secondary_xaxis("top", functions=_wall_axis(result.curve))
+    axes.set_ylabel(f"mean per-step {reward} (held-out)")
+    if curve and curve[-1]["timesteps"] > 0:
+        top = axes.secondary_xaxis("top", functions=_wall_axis(curve))
         top.set_xlabel("wall time (s)")
     axes.legend(fontsize=8, loc="best")
     axes.grid(alpha=0.3)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
+    return figure
+
+
+def replot(folder: Path) -> Any:
+    """Redraw ``folder``'s learning curve PNG from its saved ``report.json`` (no training);
+    returns the Figure."""
+    data = json.loads((folder / "report.json").read_text())
+    return plot_curve(data["curve"], data["baselines"], data["config"]["action_mode"],
+                      data["config"]["reward"], folder / PLOT)
 
 
 def _wall_axis(curve: list[dict[str, float]]):
@@ -50,7 +66,8 @@ def _wall_axis(curve: list[dict[str, float]]):
 def write_report(result: TrainResult, out: Path, command: str, weights: Path,
                  sha256: str) -> dict[str, Any]:
     """Write ``report.json``, ``report.md`` and the PNG into ``out``; returns the JSON data."""
-    plot_curve(result, out / PLOT)
+    plot_curve(result.curve, result.baselines, result.config.action_mode,
+               result.config.reward, out / PLOT)
     final = result.curve[-1]
     data = {"command": command, "weights": weights.name, "sha256": sha256,
             "config": asdict(result.config), "final": final, "curve": result.curve,
