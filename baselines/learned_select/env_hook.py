@@ -8,6 +8,9 @@ import sys
 from collections.abc import Callable
 from dataclasses import replace
 
+import numpy as np
+from privileged_bound import pose_errors
+
 import roco_env.sweeps.episode as episode
 from roco_env.sweeps.cells import Cell
 
@@ -51,3 +54,12 @@ def print_counts(header: str, counts: dict) -> None:
     print("| scenario | noise | " + header + " |\n|---|---|" + "---|" * len(columns))
     for (scenario, noise), row in sorted(counts.items()):
         print(f"| {scenario} | {noise} | " + " | ".join(str(value) for value in row) + " |")
+
+
+def choice_errors(alignments, observation: dict, info: dict) -> tuple[int, np.ndarray]:
+    """(n, (C, n) errors): the filled slot count n of ``observation`` and each select-mode
+    choice's pose error on them (``alignments``: the env's ``_choices`` of the agent; the
+    error of :func:`privileged_bound.pose_errors`, m / deg, against the privileged truth)."""
+    n = int(np.sum(observation["collab_mask"]))
+    truth = info["privileged"]["true_relative_poses"][:n]
+    return n, np.stack([pose_errors(np.asarray(a.corrected)[:n], truth) for a in alignments])

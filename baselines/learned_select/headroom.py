@@ -30,8 +30,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from env_hook import print_counts, record_cell, run_with_env
-from privileged_bound import CHOICES, REJECT_ERROR, grid_parser, pose_errors
+from env_hook import choice_errors, print_counts, record_cell, run_with_env
+from privileged_bound import CHOICES, REJECT_ERROR, grid_parser
 
 from roco_env.policies import make_policy
 from roco_env.policies.reject_untested import STATISTIC, untested_slots
@@ -77,10 +77,7 @@ def main(argv: list[str] | None = None) -> None:
                     def act(observation, info):
                         env = env_of()
                         alignments = env._choices[env.possible_agents[index]]
-                        n = int(np.sum(observation["collab_mask"]))
-                        truth = info["privileged"]["true_relative_poses"][:n]
-                        errors = np.stack([pose_errors(np.asarray(a.corrected)[:n], truth)
-                                           for a in alignments])
+                        n, errors = choice_errors(alignments, observation, info)
                         tested = ~untested_slots(
                             observation["choice_diagnostics"][:n, KEEP, STATISTIC],
                             observation["collab_mask"][:n])

@@ -37,8 +37,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from env_hook import print_counts, record_cell, run_with_env
-from privileged_bound import REJECT_ERROR, grid_parser, pose_errors
+from env_hook import choice_errors, print_counts, record_cell, run_with_env
+from privileged_bound import REJECT_ERROR, grid_parser
 
 from roco_env.policies.reject_untested import GAP_M, STATISTIC, untested_slots
 from roco_env.policies.spec import parse_policy_spec
@@ -91,10 +91,7 @@ def main(argv: list[str] | None = None) -> None:
                         env = env_of()
                         alignments = env._choices[env.possible_agents[index]]
                         mask = observation["collab_mask"]
-                        n = int(np.sum(mask))
-                        truth = info["privileged"]["true_relative_poses"][:n]
-                        errors = np.stack([pose_errors(np.asarray(a.corrected)[:n], truth)
-                                           for a in alignments])
+                        n, errors = choice_errors(alignments, observation, info)
                         untested = untested_slots(
                             observation["diagnostics"][:n, STATISTIC], mask[:n])
                         action = rule_c(observation, info)

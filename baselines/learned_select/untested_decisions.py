@@ -18,7 +18,8 @@ import argparse
 from collections import defaultdict
 
 import numpy as np
-from privileged_bound import REJECT_ERROR, pose_errors
+from env_hook import choice_errors
+from privileged_bound import REJECT_ERROR
 
 import roco_env
 from roco_env.policies import make_policy
@@ -35,6 +36,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=10)
     args = parser.parse_args(argv)
     policy = make_policy("learned_select", weights=args.weights)
+    if getattr(policy, "guard", None) is None:
+        parser.error(f"weights {args.weights}: the file holds no guard, so no slot is "
+                     "'untested' to it (train with --guard keep_tested or reject_untested)")
     choices = list(policy.env_overrides["action.choices"])
     names = [*choices, "reject"]
     print("| scenario | noise | untested slots | " + " | ".join(
@@ -61,13 +65,10 @@ def _play(policy, scenario: str, noise: float, seed: int, steps: int, counts: di
             observation, info = observations[agent], infos[agent]
             actions[agent] = action = policy(observation, info)
             mask = observation["collab_mask"]
-            n = int(np.sum(mask))
-            untested = policy.guard.untested_slots(observation["choice_diagnostics"], mask)[:n]
-            truth = info["privileged"]["true_relative_poses"][:n]
             alignments = env.unwrapped._choices[agent] if hasattr(env, "unwrapped") \
                 else env._choices[agent]
-            errors = np.stack([pose_errors(np.asarray(a.corrected)[:n], truth)
-                               for a in alignments])
+            n, errors = choice_errors(alignments, observation, info)
+            untested = policy.guard.untested_slots(observation["choice_diagnostics"], mask)[:n]
             for slot in np.flatnonzero(untested):
                 chosen = int(action[slot])
                 right = chosen < len(errors) and errors[chosen, slot] <= REJECT_ERROR
