@@ -292,6 +292,65 @@ def test_correction_of_a_fit_that_is_not_thin_is_applied():
     assert result.applied[0] and error_m(result.corrected, scene) < 0.1
 
 
+def shifted_pattern(error, seed=0):
+    """Identical cars in two lanes, seen in part by each agent (the rest hidden, as in a
+    jam): the ego sees cars at x = 10, 15 (lane y = 0) and 21, 26 (lane y = 4), the
+    collaborator (8 m from the ego) at 15, 20 and 26, 31. At the truth they share 2 boxes
+    (too few to refine into a hypothesis); 5 m along the lanes the collaborator's four boxes
+    fall on the ego's four (the alias, the only hypothesis). The collaborator is reported
+    ``error`` (3,) off."""
+    ego_xy = np.array([[10.0, 0.0], [15.0, 0.0], [21.0, 4.0], [26.0, 4.0]])
+    collab_xy = np.array([[15.0, 0.0], [20.0, 0.0], [26.0, 4.0], [31.0, 4.0]])
+    world = np.unique(np.vstack([ego_xy, collab_xy]), axis=0)
+    objects = np.tile(ROW_CAR, (world.shape[0], 1))
+    objects[:, :2] = world
+    scene = make_scene(objects, np.array([[16.0, -6.0, 0.0], [24.0, -6.0, 0.0]]),
+                       [np.asarray(error, dtype=float)], sensor_range=60.0,
+                       noise=(0.05, 0.05, 0.01), rng=np.random.default_rng(seed))
+
+    def seen(ids, xy):
+        return (np.hypot(*(world[ids][:, None] - xy[None]).transpose(2, 0, 1)) < 1e-9).any(1)
+
+    ego, collab = seen(scene.ego_ids, ego_xy), seen(scene.collab_ids[0], collab_xy)
+    return replace(
+        scene, ego_boxes=scene.ego_boxes[ego], ego_unc=scene.ego_unc[ego],
+        ego_ids=scene.ego_ids[ego], collab_boxes=[scene.collab_boxes[0][collab]],
+        collab_unc=[scene.collab_unc[0][collab]], collab_ids=[scene.collab_ids[0][collab]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_far_pick_that_the_reported_pose_explains_nearly_as_well_is_not_trusted(seed):
+    """The stress search's packed-row aliases, constructed (shifted_pattern): reported 0.3 m
+    off, the only hypothesis is the alias 5 m along the lanes (4 pairs, 25 chi2 units of
+    prior for the move), which beats no distinct hypothesis (margin about 80) and was
+    applied (5 m off). The reported pose refined with its own 2 pairs scores within
+    min_margin of it, priors counted: the pick is not trusted and the reported pose is
+    kept."""
+    scene = shifted_pattern([0.3, 0.0, 0.0], seed)
+    old, old_decisions = antialias_align(*scene.args(), use_ambiguity=False)
+    assert old_decisions[0].hypotheses == 1 and old_decisions[0].margin >= 20.0
+    assert abs(error_m(old.corrected, scene) - 5.0) < 0.2
+    result, decisions = antialias_align(*scene.args())
+    assert decisions[0].pose is None and decisions[0].margin < 20.0
+    assert decisions[0].ambiguity.determined == 3
+    np.testing.assert_array_equal(result.corrected[0], scene.reported[0])
+    assert result.slot_reasons[0].startswith("ambiguous (margin")
+    again, repeated = antialias_align(*scene.args())
+    np.testing.assert_array_equal(again.corrected, result.corrected)
+    assert repeated[0].margin == decisions[0].margin
+
+
+def test_far_pick_that_explains_the_boxes_far_better_than_the_reported_pose_is_applied():
+    """A scatter of cars, the collaborator reported 3 m / 2 deg off: the pick is distinct
+    from the reported pose, which explains the boxes far worse even with the move's prior
+    counted, so the pick stays trusted and the truth is found."""
+    scene = scatter(2, pose_error(3.0, 2.0, 2.0))
+    result, decisions = antialias_align(*scene.args())
+    assert np.hypot(*(decisions[0].pose[:2] - scene.reported[0, :2])) > 2.5
+    assert decisions[0].margin >= 20.0 and result.applied[0]
+    assert error_m(result.corrected, scene) < 0.1
+
+
 def test_hypotheses_switch_off_is_plain_roco():
     scene = lot(0, -1.4, rows=3, per_row=16, origin=-18.0, size_jitter=0.06, collab_x=12.0,
                 sensor_range=70.0)
