@@ -7,8 +7,11 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
 
 1. hypotheses for T_{j->i}: the strongest rotation + translation votes of nearby box
    pairs within ``search_radius`` of the reported pose, the reported pose itself and,
-   when given, the temporal track's prediction; each refined by matching and a robust
-   pose solve against the ego's boxes (:mod:`roco_env.policies.hypotheses`);
+   when given, the temporal track's prediction; when the rotation vote lands more than
+   ``distinct_r_deg`` from the reported rotation, also the strongest translation vote at
+   the reported rotation (a heading vote degrees off, along a straight road seen by two
+   RSUs 118 m apart, left only aliases among the peaks); each refined by matching and a
+   robust pose solve against the ego's boxes (:mod:`roco_env.policies.hypotheses`);
 2. each hypothesis h gets the score (chi-square units, -2 ln of a likelihood ratio)
    ``S(h) = evidence(h) - d(h, reported)^T P d(h, reported) - d(h, track)^T Q d(h, track)``
    with evidence from box pairs (position, heading modulo pi, log size), free space and
@@ -106,6 +109,7 @@ from roco_env.policies.hypotheses import (
     generate_hypotheses,
     refine_terms,
     score_hypotheses,
+    translation_peaks,
 )
 from roco_env.policies.hypothesis_kernels import decision_margin
 from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs
@@ -343,7 +347,10 @@ def _decide(
     p: AntiAliasParams,
 ) -> Decision:
     """Steps 1-3 of the module docstring for one collaborator: the vote peaks
-    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`); with the reported pose and
+    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`; when their rotation is more
+    than ``distinct_r_deg`` from the reported one, the strongest translation peak at the
+    reported rotation too, :func:`~roco_env.policies.hypotheses.translation_peaks`); with
+    the reported pose and
     the track's prediction, refined in one compiled pass
     (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
@@ -354,6 +361,8 @@ def _decide(
     refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
+    if peaks.shape[0] and abs(wrap_angle(peaks[0, 2] - reported[2])) > distinct[1]:
+        peaks = np.concatenate([peaks, translation_peaks(ego, collab, reported, p, most=1)])
     if track is None:
         centre, seeds, priors = reported, reported[None], prior + (1.0, 1.0)
     else:
