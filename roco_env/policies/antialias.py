@@ -350,8 +350,7 @@ def _decide(
     (:func:`~roco_env.policies.hypotheses.generate_hypotheses`; when their rotation is more
     than ``distinct_r_deg`` from the reported one, the strongest translation peak at the
     reported rotation too, :func:`~roco_env.policies.hypotheses.translation_peaks`); with
-    the reported pose and
-    the track's prediction, refined in one compiled pass
+    the reported pose and the track's prediction, refined in one compiled pass
     (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
     0.3 deg of an earlier one is dropped); evidence, priors and margin in another
