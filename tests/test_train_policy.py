@@ -73,10 +73,12 @@ def test_every_baseline_gets_a_line_in_the_learning_curve(tmp_path):
     from roco_env.training.rl.policy_report import COLOURS, PLOT, replot
 
     names = [f"baseline_{k}" for k in range(len(COLOURS) + 2)]
-    report = {"config": {"action_mode": "select", "reward": "ap70_gain"},
-              "curve": [{"timesteps": 0, "wall_s": 0.0, "reward": 0.1},
-                        {"timesteps": 8, "wall_s": 2.0, "reward": 0.2}],
-              "baselines": {name: {"reward": k / 10} for k, name in enumerate(names)}}
+    curve = [{"timesteps": 0, "wall_s": 0.0, "reward": 0.1, "ap70": 0.3},
+             {"timesteps": 8, "wall_s": 2.0, "reward": 0.2, "ap70": 0.4}]
+    report = {"config": {"action_mode": "select"}, "command": "roco-env train-policy",
+              "weights": "w.pt", "sha256": "0", "curve": curve, "final": curve[-1],
+              "baselines": {name: {"reward": k / 10, "ap70": 0.5}
+                            for k, name in enumerate(names)}}
     (tmp_path / "report.json").write_text(json.dumps(report))
     axes = replot(tmp_path).axes[0]
     dashed = [line for line in axes.get_lines() if line.get_linestyle() == "--"]
@@ -85,6 +87,7 @@ def test_every_baseline_gets_a_line_in_the_learning_curve(tmp_path):
     legend = [text.get_text() for text in axes.get_legend().get_texts()]
     assert legend == ["learned (select)", *names]
     assert (tmp_path / PLOT).stat().st_size > 1000
+    assert "| baseline_8 | 0.8000 | 0.5000 |" in (tmp_path / "report.md").read_text()
 
 
 def test_the_exported_policy_acts_as_the_sb3_policy(tmp_path):
@@ -204,6 +207,26 @@ PREFER = {**KEEP_TESTED, "guard_prefer": "roco_fallback", "guard_prefer_within_m
 def test_bad_options_name_the_field(values, field):
     with pytest.raises(ConfigError, match=field):
         build_config({**TINY, **values})
+
+
+@pytest.mark.parametrize("values, message, unsaid", [
+    ({"guard": "reject_untested"}, "guard_prefer='roco_fallback' needs guard='keep_tested'; "
+     "got guard='reject_untested'$", "action_choices"),
+    ({"guard_prefer": "roco_antialias"}, "guard_prefer='roco_antialias' must be the "
+     r"action_choices entry other than action_base='roco_antialias': one of "
+     r"\['roco_fallback'\]$", "keep_tested"),
+    ({"guard_prefer": "roco"}, r"guard_prefer='roco' must be .*one of \['roco_fallback'\]$",
+     "keep_tested"),
+    ({"action_choices": ["roco_antialias", "roco_fallback", "roco"]},
+     r"guard_prefer needs exactly two action_choices .*got action_choices="
+     r"\['roco_antialias', 'roco_fallback', 'roco'\]$", "keep_tested"),
+])
+def test_a_bad_guard_prefer_names_the_one_condition_it_fails(values, message, unsaid):
+    """The guard_prefer error says which condition failed (the guard, the number of
+    choices, or which choice) with its allowed values, not the list of all of them."""
+    with pytest.raises(ConfigError, match=message) as error:
+        build_config({**PREFER, **values})
+    assert unsaid not in str(error.value)
 
 
 def test_bad_options_on_the_command_line_exit_2(tmp_path, capsys):
@@ -443,10 +466,71 @@ def test_a_prefer_guarded_file_records_its_guard_and_acts_as_the_sb3_policy(tmp_
                                   parse_policy_spec(RULE_C).build()(observation, info)[tested])
 
 
+def test_the_rule_row_is_named_by_the_fixed_policy_it_plays():
+    """The guard's rule alone is the row ``rule``, labelled with the reject_untested spec
+    it plays: rule C behind the prefer guard, reject_untested's default otherwise."""
+    from roco_env.training.rl.evaluate import RULE, rule_spec
+
+    assert RULE == "rule"
+    assert rule_spec(build_config(PREFER)) == RULE_C
+    assert rule_spec(build_config(GUARDED)) == rule_spec(build_config(KEEP_TESTED)) == \
+        "reject_untested"
+    assert rule_spec(build_config({**PREFER, "guard_prefer_within_m": None})) == \
+        "reject_untested:tested=roco_fallback"
+    assert rule_spec(build_config({**GUARDED, "action_base": "roco"})) == \
+        "reject_untested:base=roco"
+
+
+def old_rule_key(baselines):
+    """``baselines`` as written before the rule row was renamed ``rule``."""
+    return {("reject_untested" if name == "rule" else name): score
+            for name, score in baselines.items()}
+
+
+def test_a_checkpoint_naming_the_rule_reject_untested_resumes_with_the_row_rule(tmp_path):
+    """Checkpoints written before the rename call the rule row ``reject_untested``: a
+    resumed run reads it as ``rule`` and report.md writes the spec it plays beside it."""
+    guarded = ["--observation-mode=aligned", "--observation-keys", "choice_diagnostics",
+               "collab_mask", "--guard=reject_untested"]
+    assert run_cli(tmp_path, "--total-timesteps=8", *guarded) == 0
+    path = tmp_path / "checkpoint" / "state.json"
+    state = json.loads(path.read_text())
+    state["baselines"] = old_rule_key(state["baselines"])
+    path.write_text(json.dumps(state))
+    assert run_cli(tmp_path, "--total-timesteps=16", *guarded) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert list(report["baselines"]) == ["identity", "no_fusion", "coalign", "roco",
+                                         "roco_antialias", "oracle", "rule"]
+    assert f"| rule (`reject_untested`) | {report['baselines']['rule']['reward']:.4f} |" \
+        in (tmp_path / "report.md").read_text()
+
+
+def test_replot_of_an_old_report_labels_the_rule_row_with_rule_c(tmp_path):
+    """replot() of a report.json whose rule row is ``reject_untested`` (written before the
+    rename) writes it as ``rule`` with rule C's spec beside it, in report.md and the
+    legend."""
+    from dataclasses import asdict
+
+    from roco_env.training.rl.policy_report import replot
+
+    curve = [{"timesteps": 0, "wall_s": 0.0, "reward": 0.1, "ap70": 0.3}]
+    report = {"config": asdict(build_config(PREFER)), "command": "roco-env train-policy",
+              "weights": "w.pt", "sha256": "0", "curve": curve, "final": curve[0],
+              "baselines": {"roco_antialias": {"reward": 0.2, "ap70": 0.4},
+                            "reject_untested": {"reward": 0.25, "ap70": 0.45}}}
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    legend = [text.get_text() for text in replot(tmp_path).axes[0].get_legend().get_texts()]
+    assert legend == ["learned (select)", "roco_antialias", f"rule: {RULE_C}"]
+    written = (tmp_path / "report.md").read_text()
+    assert f"| rule (`{RULE_C}`) | 0.2500 | 0.4500 |" in written
+    assert "reject_untested |" not in written
+
+
 def test_reward_over_the_rule_pays_only_what_a_deviation_from_rule_c_changes():
     """reward_over=rule behind the prefer guard: a step that plays rule C's action pays
     exactly 0, one that keeps an untested slot (with roco_antialias's untested pose) its
-    reward minus C's on the same frame; the run is compared with C (the rule alone) in its evaluation."""
+    reward minus C's on the same frame; the run is compared with C (the rule alone) in its
+    evaluation."""
     from roco_env.training.rl.curriculum import CurriculumEnv
     from roco_env.training.rl.evaluate import RULE, baselines_of
 

@@ -14,8 +14,15 @@ A weights file (``torch.save`` of a plain dict, read back with ``weights_only=Tr
   (``command``, training summary).
 
 The policy flattens the observation (keys in the stored order, each raveled), divides by
-``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per slot the argmax
-of its logits (``select``/``gate``), or the mean clipped to the bounds (Box modes).
+``input_scale``, clips to +-``input_clip``, runs the MLP and acts deterministically: per
+slot the argmax of its logits (``select``/``gate``), or the mean clipped to the bounds
+(Box modes).
+
+Two files are shipped, each registered under its name (:data:`SHIPPED`):
+``learned_select`` (select over identity / coalign / roco / roco_antialias behind the
+``reject_margin`` guard) and ``learned_fallback`` (select over [roco_antialias,
+roco_fallback] behind the ``keep_tested`` guard with ``prefer``, below); any other file
+is ``learned_select:weights=PATH``.
 
 A select-mode file may hold a ``guard`` in its metadata (:class:`Guard`), which reads
 choice ``k``'s significance statistic (``choice_diagnostics[slot, k, statistic] == -1``:
@@ -391,7 +398,8 @@ def _build_mlp(state: dict, path: Path, size: int):
 
 @dataclass(frozen=True)
 class LearnedSelectParams:
-    """The parameters of ``learned_select``."""
+    """The parameters of the shipped select policies ``learned_select`` and
+    ``learned_fallback`` (:data:`SHIPPED`)."""
 
     weights: str | None = spec(None, doc="weights file (None: the shipped one)")
     reject_margin: float | None = spec(None, doc="logits by which the reject logit may "

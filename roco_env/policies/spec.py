@@ -8,8 +8,8 @@ e.g. ``roco``, ``roco:tau2=2``, ``roco:use_edge_similarity=false,tau2=1.5``; NAM
 registered policy or an import target ``my_pkg.module:make_policy`` (then
 ``my_pkg.module:make_policy:KEY=VALUE``).
 Values are YAML scalars (``2`` -> int, ``1.5`` -> float, ``false`` -> bool,
-``null`` -> None, e.g. ``roco:robust_kernel=null``; anything else -> str). The canonical form sorts the keys, so ``roco:b=1,a=2`` and
-``roco:a=2,b=1`` name the same sweep cell.
+``null`` -> None, e.g. ``roco:robust_kernel=null``; anything else -> str). The canonical
+form sorts the keys, so ``roco:b=1,a=2`` and ``roco:a=2,b=1`` name the same sweep cell.
 """
 
 from __future__ import annotations
@@ -142,8 +142,8 @@ def merge_env_overrides(overrides: Mapping[str, Any], policy: object,
 
 
 ALIGNER = ("the policy spec of an aligner (e.g. 'roco', 'roco_antialias', 'roco_fallback'), "
-           "not a policy that declares its own action.mode (defend, privileged_gate, "
-           "reject_untested, learned_select)")
+           "not a registered policy that declares its own action.mode (e.g. defend, "
+           "privileged_gate, reject_untested, learned_select, learned_fallback)")
 
 
 def check_aligner_spec(where: str, field: str, text: object) -> None:

@@ -206,12 +206,18 @@ def _check_prefer(config: PolicyTrainConfig, choices: list[str]) -> None:
                           f"{config.guard_prefer_within_m} needs guard_prefer")
     if not config.guard_prefer:
         return
-    if config.guard != "keep_tested" or len(choices) != 2 \
-            or config.guard_prefer not in choices or config.guard_prefer == config.action_base:
+    if config.guard != "keep_tested":
         raise ConfigError(f"{WHERE}: guard_prefer={config.guard_prefer!r} needs "
-                          f"guard='keep_tested' (got {config.guard!r}) and two "
-                          f"action_choices, it the one other than action_base="
-                          f"{config.action_base!r} (got {choices})")
+                          f"guard='keep_tested'; got guard={config.guard!r}")
+    if len(choices) != 2:
+        raise ConfigError(f"{WHERE}: guard_prefer needs exactly two action_choices "
+                          f"(action_base={config.action_base!r} and the preferred one); got "
+                          f"action_choices={choices}")
+    allowed = [c for c in choices if c != config.action_base]
+    if config.guard_prefer not in allowed:
+        raise ConfigError(f"{WHERE}: guard_prefer={config.guard_prefer!r} must be the "
+                          f"action_choices entry other than action_base="
+                          f"{config.action_base!r}: one of {allowed}")
 
 
 # The command line's options (roco-env train-policy), one per field.

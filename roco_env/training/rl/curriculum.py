@@ -8,8 +8,9 @@ of the drawn condition, its Dict observation flattened (keys in the space's orde
 divided by a fixed per-entry scale (:func:`observation_layout`). Every condition shares
 the spaces: ``max_collaborators`` and ``max_boxes`` are fixed by the config.
 With ``reward_over="base"`` (``"rule"``) a step's reward is paid relative to the base's
-action (the guard's rule alone) on the same frame: a copy of the EgoEnv (``copy.deepcopy``: its generators and aligners' state
-too) takes that action, when it differs from the policy's on a filled slot.
+action (the guard's rule alone) on the same frame: a copy of the EgoEnv
+(``copy.deepcopy``: its generators and aligners' state too) takes that action, when it
+differs from the policy's on a filled slot.
 """
 
 from __future__ import annotations
@@ -100,11 +101,17 @@ def reference_action(config: PolicyTrainConfig, guard: Guard | None,
                      observation: dict) -> np.ndarray:
     """(N,) the action ``reward_over`` pays against: ``base``, action_base's choice on every
     slot behind the guard; ``rule``, the guard's rule alone (:meth:`Guard.rule`)."""
-    count = len(observation["collab_mask"])
     if config.reward_over == "rule":
-        diagnostics = observation["choice_diagnostics"]
-        return guard.rule(np.shape(diagnostics)[1], diagnostics, observation["collab_mask"])
-    return guarded_action(guard, np.full(count, base_choice(config)), observation)
+        return rule_action(guard, observation)
+    return guarded_action(guard, np.full(len(observation["collab_mask"]), base_choice(config)),
+                          observation)
+
+
+def rule_action(guard: Guard, observation: dict) -> np.ndarray:
+    """(N,) the guard's rule alone (:meth:`Guard.rule`) on the Dict ``observation``: its
+    tested slots' choice, its untested slots rejected (the index after the choices)."""
+    diagnostics = observation["choice_diagnostics"]
+    return guard.rule(np.shape(diagnostics)[1], diagnostics, observation["collab_mask"])
 
 
 def draw_condition(config: PolicyTrainConfig, index: int) -> Condition:
@@ -244,9 +251,11 @@ class CurriculumEnv(gymnasium.Env):
         return self.flat(observation), reward, terminated, truncated, info
 
     def _reference_reward(self, action: np.ndarray) -> float | None:
-        """What the base's action (behind the guard) earns on this step's frame, played on
-        a copy of the env; None without ``reward_over`` or where it equals ``action`` on
-        every filled slot (the step then pays 0 with ``reward_over``)."""
+        """What :func:`reference_action` earns on this step's frame (``reward_over="base"``:
+        action_base's choice on every slot behind the guard; ``"rule"``: the guard's rule
+        alone), played on a copy of the env; None without ``reward_over`` or where it
+        equals ``action`` on every filled slot (the step then pays 0 with
+        ``reward_over``)."""
         if self.config.reward_over == "none":
             return None
         reference = reference_action(self.config, self.guard, self._observation)

@@ -10,6 +10,10 @@ trained behind a guard is also compared with the guard's rule alone (:func:`base
 :meth:`~roco_env.policies.learned.Guard.rule`): its tested slots' choice (the base
 aligner's, or ``guard_prefer``'s within ``guard_prefer_within_m``), its untested slots
 rejected, in the training env's mode; what the network adds is its score minus that row.
+That row is named :data:`RULE`; :func:`rule_spec` is the fixed policy it plays (e.g. hand
+rule C, ``reject_untested:tested=roco_fallback,tested_within_m=0.5``). Reports and
+checkpoints written before the row had its name call it ``reject_untested``
+(:func:`with_rule_key` reads them).
 """
 
 from __future__ import annotations
@@ -19,16 +23,19 @@ from collections.abc import Callable
 import numpy as np
 
 from roco_env.policies import make_policy
+from roco_env.policies.reject_untested import RejectUntestedParams
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import (
     Condition,
     condition_env,
     eval_conditions,
+    rule_action,
     training_guard,
 )
 
 BASELINES = ("identity", "no_fusion", "coalign", "roco", "roco_antialias", "oracle")
-RULE = "reject_untested"  # the guard's rule alone, the baseline of a guarded network
+RULE = "rule"  # the guard's rule alone, the baseline of a guarded network (rule_spec)
+OLD_RULE = "reject_untested"  # RULE's name in reports and checkpoints written before
 
 Act = Callable[[dict, dict], np.ndarray]
 
@@ -66,6 +73,26 @@ def evaluate(config: PolicyTrainConfig, make_act: Callable[[], Act],
             "steps": len(rewards)}
 
 
+def rule_spec(config: PolicyTrainConfig) -> str:
+    """The fixed policy spec whose actions the :data:`RULE` row plays: ``reject_untested``
+    with ``action_base`` as its base (named where not the default), ``guard_prefer`` as
+    ``tested`` and ``guard_prefer_within_m`` (m) as ``tested_within_m``."""
+    params = []
+    if config.action_base != RejectUntestedParams().base:
+        params.append(f"base={config.action_base}")
+    if config.guard_prefer:
+        params.append(f"tested={config.guard_prefer}")
+    if config.guard_prefer_within_m is not None:
+        params.append(f"tested_within_m={config.guard_prefer_within_m:g}")
+    return "reject_untested" + (":" + ",".join(params) if params else "")
+
+
+def with_rule_key(baselines: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """``baselines`` (name -> score) with :data:`OLD_RULE` renamed :data:`RULE`, in
+    place in the order (a report or checkpoint written before the rename)."""
+    return {RULE if name == OLD_RULE else name: score for name, score in baselines.items()}
+
+
 def baselines_of(config: PolicyTrainConfig) -> tuple[str, ...]:
     """The baselines a run of ``config`` is compared with: :data:`BASELINES`, and
     :data:`RULE` when the network acts behind a guard."""
@@ -78,9 +105,7 @@ def evaluate_baseline(config: PolicyTrainConfig, name: str) -> dict[str, float]:
         guard = training_guard(config)
 
         def rule() -> Act:
-            return lambda observation, info: guard.rule(
-                np.shape(observation["choice_diagnostics"])[1],
-                observation["choice_diagnostics"], observation["collab_mask"])
+            return lambda observation, info: rule_action(guard, observation)
         return evaluate(config, rule)
     if name == "no_fusion":
         return evaluate(config, lambda: make_policy("identity"), baseline=True, fusion="none")

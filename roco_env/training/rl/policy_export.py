@@ -59,7 +59,8 @@ def policy_env_overrides(config: PolicyTrainConfig) -> dict[str, Any]:
 def save_policy(path: Path, policy: torch.nn.Module, env: CurriculumEnv,
                 config: PolicyTrainConfig, provenance: dict[str, Any]) -> None:
     """Write the weights file (``torch.save`` of tensors and a JSON text)."""
-    metadata = {"format": FORMAT, "input_clip": INPUT_CLIP, "env_overrides": policy_env_overrides(config),
+    metadata = {"format": FORMAT, "input_clip": INPUT_CLIP,
+                "env_overrides": policy_env_overrides(config),
                 "observation": [[key, list(shape)] for key, shape in env.keys],
                 "action": action_metadata(env.action_space), **provenance}
     if env.guard is not None:  # the exported policy acts behind the rule it trained behind

@@ -23,7 +23,12 @@ import torch
 from roco_env.training.rl.checkpoint import load_state, restore_checkpoint, save_checkpoint
 from roco_env.training.rl.config import PolicyTrainConfig
 from roco_env.training.rl.curriculum import CurriculumEnv, guarded_action
-from roco_env.training.rl.evaluate import baselines_of, evaluate, evaluate_baseline
+from roco_env.training.rl.evaluate import (
+    baselines_of,
+    evaluate,
+    evaluate_baseline,
+    with_rule_key,
+)
 
 
 @dataclass
@@ -98,7 +103,8 @@ def train(config: PolicyTrainConfig, out: Path, progress: bool = True,
     else:
         restore_checkpoint(out, model, state)
         env.episodes = int(state["episodes"])
-        baselines, curve, wall = state["baselines"], state["curve"], float(state["wall_s"])
+        baselines, curve = with_rule_key(state["baselines"]), state["curve"]
+        wall = float(state["wall_s"])
         log(f"resuming {out} at {model.num_timesteps} of {config.total_timesteps} steps")
 
     def checkpoint(started: float) -> None:
