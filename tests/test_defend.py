@@ -9,7 +9,7 @@ from scipy import stats
 from scipy.special import bdtrc, chdtrc
 
 import roco_env
-from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, transform_boxes
 from roco_env.policies import make_policy
 from roco_env.policies.defend import (
     EGO,
@@ -287,6 +287,8 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"witnessed_rate": 0.0}, r"witnessed_rate=0.0 is out of range; allowed \(0.0, 1.0\)"),
     ({"witness_judges": 1}, r"witness_judges=1 is out of range"),
     ({"use_witnessed": "yes"}, r"use_witnessed"),
+    ({"use_repose": "yes"}, r"use_repose"),
+    ({"refit_m": 0.0}, r"refit_m=0.0 is out of range"),
     ({"witnessed_level": 1.0}, r"witnessed_level=1.0 is out of range; allowed \(0.0, 1.0\)"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
@@ -628,3 +630,27 @@ def test_witnessed_orphans_reject_two_ghosts_on_the_first_step_not_honest_misses
     assert first == {True: [0, 0, 1, 0], False: [0, 0, 0, 0]}
     rng, honest = np.random.default_rng(12), Defend(use_correction=False)
     assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(20))
+
+
+def test_an_honest_collaborator_left_misaligned_is_kept_under_a_re_fit_and_a_liar_is_not():
+    """Collaborator 0 is honest, but the aligner placed it 2.5 m and 1.1 deg off (its
+    reported pose, seeded noise, is near the truth); collaborator 1 lies: its row of cars
+    at y = 8 forged 4 m along x (no rigid pose brings both rows onto the others'). Without
+    ``use_repose`` both fail the consistency test; with it the honest one passes under a
+    re-fit of its boxes near its true pose and is kept, the liar fails under every pose."""
+    rng = np.random.default_rng(11)
+    scene = cars(*SCENE)
+    true = np.array([5.0, 4.0, 0.0])
+    local = transform_boxes(scene, se2_inverse(true))
+    reported = true + rng.normal(0.0, [0.3, 0.3, 0.005])
+    aligned = se2_compose(true, np.array([2.5, 0.0, 0.02]))
+    forged = cars(*[(x + 4.0 if y > 4.0 else x, y) for x, y in SCENE])
+    others = [(scene, np.array([-5.0, 4.0, 0.0])), (scene, np.array([15.0, -4.0, 0.0]))]
+    obs = observation(scene, [(transform_boxes(local, aligned), aligned), (forged, true),
+                              *others])
+    obs["collab_reported_poses"][0] = reported
+    assert Defend(use_correction=False)(obs, info(4)).tolist() == [1, 1, 0, 0]
+    defend = Defend(use_correction=False, use_repose=True)
+    assert defend(obs, info(4)).tolist() == [0, 1, 0, 0]
+    assert defend.last_reasons[1] == "consistency" and list(defend.last_reposed) == [0]
+    assert np.hypot(*(defend.last_reposed[0][:2] - true[:2])) < 0.05
