@@ -159,7 +159,7 @@ def test_the_consensus_clears_the_honest_collaborator_a_liar_disagrees_with():
     liar = (cars(*left, *[(x + 2.5, y) for x, y in right]), np.array([15.0, 4.0, 0.0]))
     obs = observation(ego, [honest, liar, witness])
     assert Defend(use_correction=False)(obs, info(4)).tolist() == [0, 1, 0, 0]
-    alone = Defend(use_correction=False, use_consensus=False)
+    alone = Defend(use_correction=False, use_consensus=False, use_repose=False)
     assert alone(obs, info(4)).tolist() == [1, 1, 1, 0]
 
 
@@ -172,7 +172,7 @@ def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
                                  np.array([5.0, 4.0, 0.0]))])
     later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
     for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
-        defend = Defend(use_correction=False, recent=recent)
+        defend = Defend(use_correction=False, recent=recent, use_repose=False)
         assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
         assert defend(later, info(1)).tolist() == verdict
 
@@ -203,11 +203,14 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     withheld = cars(*SCENE[::2])
     assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
     assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
-    assert verdicts(cars(*[(x + 2.5, y) for x, y in SCENE])) == [1] * 5 + [0] * 5
+    off = cars(*[(x + 2.5, y) for x, y in SCENE])
+    assert verdicts(off, use_repose=False) == [1] * 5 + [0] * 5
+    assert verdicts(off) == [0] * 10  # a re-fit of its boxes alone agrees: kept
     sideways = cars(*[(x, y + 2.2) for x, y in SCENE])
-    assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE])) == [1] * 5 + [0] * 5
-    assert verdicts(sideways, orphan_m=3.0) == [1] * 5 + [0] * 5
-    assert verdicts(sideways) == [1] * 10
+    assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE]), use_repose=False) \
+        == [1] * 5 + [0] * 5
+    assert verdicts(sideways, orphan_m=3.0, use_repose=False) == [1] * 5 + [0] * 5
+    assert verdicts(sideways, use_repose=False) == [1] * 10
 
     def rejected(sticky: float) -> int:  # of 20 steps x 3 honest collaborators
         rng = np.random.default_rng(11)
@@ -465,7 +468,9 @@ def test_the_offset_test_needs_the_reported_poses():
     del obs["collab_reported_poses"]
     with pytest.raises(ValueError, match="collab_reported_poses.*use_offset=False"):
         Defend()(obs, info(1))
-    assert Defend(use_offset=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
+    with pytest.raises(ValueError, match="collab_reported_poses.*use_repose=False"):
+        Defend(use_offset=False)(obs, info(1))
+    assert Defend(use_offset=False, use_repose=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
 
 
 def test_the_aligned_observation_carries_the_reported_poses():
@@ -586,7 +591,7 @@ def test_a_misaligned_collaborators_boxes_are_no_orphans():
     obs["collab_boxes"][2] = shifted
     counts = {}
     for orphan_m in (3.0, 1.0):
-        defend = Defend(use_correction=False, orphan_m=orphan_m)
+        defend = Defend(use_correction=False, orphan_m=orphan_m, use_repose=False)
         defend(obs, slots)
         counts[orphan_m] = defend.last_orphans[2][1][0]
     assert counts[3.0] == 0 and counts[1.0] > 5
@@ -649,7 +654,7 @@ def test_an_honest_collaborator_left_misaligned_is_kept_under_a_re_fit_and_a_lia
     obs = observation(scene, [(transform_boxes(local, aligned), aligned), (forged, true),
                               *others])
     obs["collab_reported_poses"][0] = reported
-    assert Defend(use_correction=False)(obs, info(4)).tolist() == [1, 1, 0, 0]
+    assert Defend(use_correction=False, use_repose=False)(obs, info(4)).tolist() == [1, 1, 0, 0]
     defend = Defend(use_correction=False, use_repose=True)
     assert defend(obs, info(4)).tolist() == [0, 1, 0, 0]
     assert defend.last_reasons[1] == "consistency" and list(defend.last_reposed) == [0]

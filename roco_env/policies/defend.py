@@ -330,7 +330,7 @@ class DefendParams:
     claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
                                          "clear view where an honest vehicle's car is not "
                                          "seen")
-    use_repose: bool = spec(False, doc="before the consistency test rejects a collaborator, "
+    use_repose: bool = spec(True, doc="before the consistency test rejects a collaborator, "
                             "re-test it under its reported pose and a re-fit of its boxes "
                             "against the ego's and the kept collaborators' (an honest one the "
                             "aligner left misaligned agrees again; a liar does not): kept "
@@ -511,11 +511,17 @@ class Defend:
         :func:`alternative_poses` (its reported pose, a re-fit against the ego's and the
         kept collaborators' boxes), this step's evidence of every pair it is in judged
         again under that pose (the window's earlier steps as they were): the first pose
-        under which it and every kept collaborator pass the consistency test keeps it
+        under which its window is not significant (no ``recent`` rule: a liar whose
+        evidence has built up, an eraser's withheld boxes, is not released by one quiet
+        step) and every kept collaborator passes the consistency test keeps it
         (added to ``kept``; its evidence and statuses replaced by that pose's, for the
         relative and orphan tests; the pose in :attr:`last_reposed`). ``context``: (ego
         id, key -> id, vehicle keys, key -> blind radius)."""
         ego, ids, cars, blind = context
+        if "collab_reported_poses" not in observation:
+            raise ValueError("defend's use_repose re-fits from observation["
+                             "'collab_reported_poses'] (the aligned observation's reported "
+                             "relative poses); give it, or use_repose=False")
         aligned = np.asarray(observation["collab_rel_poses"], dtype=float)
         reported = np.asarray(observation["collab_reported_poses"], dtype=float)
         gates = (self.params.refit_m, self.params.refit_m / 2.0)
@@ -535,7 +541,8 @@ class Defend:
                     self.last_pairs[key] = sum(list(histories[key])[:-1], evidence)
                     self.last_now[key] = evidence
                 group = sorted(kept | {slot})
-                if all(self._consistent(member, group) for member in group):
+                if self._p_value(slot, group, self.last_pairs) >= self.params.alpha \
+                        and all(self._consistent(member, group) for member in group):
                     for key, (evidence, status) in judged.items():
                         histories[key][-1] = evidence
                         self._status[key] = status
