@@ -6,7 +6,7 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Six tests, each a statistical test at level ``alpha``:
+Six tests, each a statistical test at level ``alpha``, and a re-test:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -84,6 +84,13 @@ Six tests, each a statistical test at level ``alpha``:
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
   others are rejected. Without it a liar's disagreement also weighs on the honest
   collaborators it disagrees with.
+* **Re-test under another pose** (``use_repose``): before the consistency test rejects a
+  collaborator, it is judged again under poses that do not trust the base aligner's fit
+  (:func:`roco_env.policies.defend_refit.alternative_poses`: a re-fit of its boxes alone
+  against the ego's and the kept collaborators', then its reported pose); it is kept
+  where its window is no longer significant and every kept collaborator still passes.
+  An honest collaborator the aligner left misaligned agrees again; a liar's forged,
+  ghost or withheld boxes do not.
 
 The ego's own boxes are trusted. State (the windows) is kept per ego and collaborator id
 (``info["agent"]``, ``info["collaborators"]``); :meth:`Defend.reset` forgets it.
