@@ -20,6 +20,7 @@ from roco_env.policies.hypotheses import (
     evidence_terms,
     generate_hypotheses,
     score_hypotheses,
+    translation_peaks,
 )
 from roco_env.policies.hypothesis_kernels import best_pair_gains, close_pairs, pairwise_sum
 from roco_env.policies.landmarks import UncertaintyParams, prepare_inputs
@@ -70,7 +71,12 @@ def numpy_generate_hypotheses(ego, collab, reported, p):
     dyaw = numpy_half_turn(ego.poses[i, 2] - mapped[j, 2])
     use = np.abs(dyaw) <= half
     rotation = numpy_vote_peak(dyaw[use], size_weight[use], half, np.deg2rad(0.25))
-    rotated = reported + np.array([0.0, 0.0, rotation])
+    return numpy_translation_peaks(ego, collab, reported + np.array([0.0, 0.0, rotation]), p)
+
+
+def numpy_translation_peaks(ego, collab, rotated, p, most=None):
+    """The array path of hypotheses.translation_peaks."""
+    most = p.max_hypotheses if most is None else most
     mapped = numpy_map(rotated, collab.poses)
     i, j = close_pairs(ego.poses[:, :2], mapped[:, :2], float(p.search_radius * np.sqrt(2.0)))
     size_weight = (np.exp(-0.5 * numpy_size_chi2(ego, collab, i, j, p)) if p.use_size
@@ -91,7 +97,7 @@ def numpy_generate_hypotheses(ego, collab, reported, p):
     suppress = (1.25 / p.vote_bin) ** 2
     floor = max(p.vote_floor * smooth.max(), 0.0)
     for flat in np.argsort(-smooth, axis=None):
-        if len(peaks) == p.max_hypotheses or smooth.flat[flat] <= floor:
+        if len(peaks) == most or smooth.flat[flat] <= floor:
             break
         a, b = divmod(int(flat), n)
         if all((a - c) ** 2 + (b - d) ** 2 > suppress for c, d in peaks):
@@ -201,6 +207,10 @@ def test_hypotheses_and_scores_match_the_numpy_path(p):
             got = generate_hypotheses(sets[0], sets[j + 1], reported, p)
             assert_equal_to_rounding(got, numpy_generate_hypotheses(sets[0], sets[j + 1],
                                                                      reported, p))
+            for most in (None, 1):  # the votes at the reported rotation itself
+                assert_equal_to_rounding(
+                    translation_peaks(sets[0], sets[j + 1], reported, p, most),
+                    numpy_translation_peaks(sets[0], sets[j + 1], reported, p, most))
             # Hypotheses near the truth and the reported pose, as _decide scores them.
             poses = np.vstack([got, scene.true[j], reported,
                                scene.true[j] + rng.normal(0.0, [1.5, 1.5, 0.02], (3, 3))])
@@ -254,7 +264,8 @@ def test_best_pair_gains_match_the_numpy_path(use_size):
 
 
 def numpy_decide(ego, collab, reported, track, p):
-    """The Python path of antialias._decide: (pose or None, margin, refined count)."""
+    """The Python path of antialias._decide without the diagnosis (steps 1-3 of its module
+    docstring, ``use_ambiguity`` off): (pose or None, margin, refined count)."""
     import math
 
     from roco_env.geometry import wrap_angle
@@ -271,7 +282,10 @@ def numpy_decide(ego, collab, reported, track, p):
         yaw = wrap_angle(d[:, 2])
         return (d[:, 0] ** 2 + d[:, 1] ** 2) / sigma_t**2 + yaw**2 / sigma_r**2
 
-    starts = [numpy_generate_hypotheses(ego, collab, reported, p)]
+    peaks = numpy_generate_hypotheses(ego, collab, reported, p)
+    if peaks.shape[0] and abs(wrap_angle(peaks[0, 2] - reported[2])) > np.deg2rad(p.distinct_r_deg):
+        peaks = np.concatenate([peaks, numpy_translation_peaks(ego, collab, reported, p, 1)])
+    starts = [peaks]
     for seed in (reported, None if track is None else track[0]):
         if seed is not None and not any(close(seed, peak, 0.5) for peak in starts[0]):
             starts.append(seed[None])
@@ -303,8 +317,10 @@ def test_decisions_match_the_python_path(with_track):
 
     rng = np.random.default_rng(17)
     outcomes = set()
-    # The second set's margin is out of reach: every slot is left ambiguous.
-    for p in (AntiAliasParams(), AntiAliasParams(use_free_space=False, min_margin=1e4)):
+    # The second set's margin is out of reach: every slot is left ambiguous. The diagnosis
+    # (use_ambiguity) is compared in tests/test_ambiguity.py.
+    for p in (AntiAliasParams(use_ambiguity=False),
+              AntiAliasParams(use_free_space=False, min_margin=1e4, use_ambiguity=False)):
         for scene in _scenes():
             sets = _box_sets(scene)
             for j, reported in enumerate(scene.reported):

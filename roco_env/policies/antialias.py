@@ -7,8 +7,11 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
 
 1. hypotheses for T_{j->i}: the strongest rotation + translation votes of nearby box
    pairs within ``search_radius`` of the reported pose, the reported pose itself and,
-   when given, the temporal track's prediction; each refined by matching and a robust
-   pose solve against the ego's boxes (:mod:`roco_env.policies.hypotheses`);
+   when given, the temporal track's prediction; when the rotation vote lands more than
+   ``distinct_r_deg`` from the reported rotation, also the strongest translation vote at
+   the reported rotation (a heading vote degrees off, along a straight road seen by two
+   RSUs 118 m apart, left only aliases among the peaks); each refined by matching and a
+   robust pose solve against the ego's boxes (:mod:`roco_env.policies.hypotheses`);
 2. each hypothesis h gets the score (chi-square units, -2 ln of a likelihood ratio)
    ``S(h) = evidence(h) - d(h, reported)^T P d(h, reported) - d(h, track)^T Q d(h, track)``
    with evidence from box pairs (position, heading modulo pi, log size), free space and
@@ -42,7 +45,15 @@ front of :func:`~roco_env.policies.roco.roco_align`, per collaborator j:
    reported pose refined with ``min_matches - 1`` pairs) by ``min_margin`` in evidence;
    one that does not, and that pairs other boxes (the pick's own pairs put it at least
    ``outlier_chi2`` per pair away), is a rival too (a sparse queue: the truth pairs 2
-   boxes, an alias one car along it 3);
+   boxes, an alias one car along it 3). The best hypothesis must also beat the reported
+   pose where no hypothesis stands for it, by ``min_margin`` in score (the priors
+   counted, as the decision's margin counts them): the reported pose as it stands and the
+   seeds refined with ``min_matches - 1`` pairs, those of them that pair other boxes than
+   the best (as above), scored together with it; else it is not trusted (the decision's
+   margin is the smaller of the two). The decision's margin counts only the poses that
+   refine with ``min_matches`` pairs, so an alias 5 m along packed rows that pairs 4 boxes
+   (25 chi2 units of prior for the move) beat nothing and was trusted, where the reported
+   pose, 0.3 m off with 2 pairs, scored as well;
 5. (``use_track``) the track must not carry an alias the evidence rejects: when the pick
    made with the track's prior is beaten by another hypothesis's evidence alone by
    ``min_margin``, the decision is taken again without the track
@@ -98,6 +109,7 @@ from roco_env.policies.hypotheses import (
     generate_hypotheses,
     refine_terms,
     score_hypotheses,
+    translation_peaks,
 )
 from roco_env.policies.hypothesis_kernels import decision_margin
 from roco_env.policies.landmarks import params_from_kwargs, prepare_inputs
@@ -179,8 +191,9 @@ class Decision:
 
     pose (3,) or None: the chosen hypothesis (None = ambiguous, not determined in every
     direction, or no evidence);
-    margin: its score minus the best distinct hypothesis's (chi2 units; nan when
-    nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
+    margin: its score minus the best distinct hypothesis's or, when smaller, minus the
+    reported pose's where no hypothesis stands for it (step 4 of the module docstring;
+    chi2 units; nan when nothing was scored); hypotheses: how many were scored (0: too few boxes to match, RoCo
     runs from the reported pose); ambiguity: the diagnosis of the best hypothesis
     (:class:`~roco_env.policies.ambiguity.Ambiguity`; None when nothing was scored or
     ``use_ambiguity`` is off); track_dropped: the track's prediction was given but its pick
@@ -260,29 +273,61 @@ def _few_pairs(matches: int, p: AntiAliasParams) -> bool:
     return p.min_matches > 1 and p.outlier_chi2 * (matches - p.min_matches + 1) < p.min_margin
 
 
-def _weak_rivals(
+def _weak_candidates(
     ego: BoxSet, collab: BoxSet, peaks: np.ndarray, seeds: np.ndarray, ambiguity: Ambiguity,
     p: AntiAliasParams,
 ) -> np.ndarray:
-    """Candidates (R, 3) that the hypotheses' ``min_matches`` left out and that explain the
-    boxes about as well as the diagnosed pose ``ambiguity.pose`` (3,) by other pairs
-    (module docstring, step 4): the vote ``peaks`` (H, 3) and ``seeds`` (S, 3) refined
-    with one pair fewer, distinct from the pose, whose evidence comes within
-    ``min_margin`` of its own (scored together, chi2 units), and which the pose's own pairs
-    put at least ``outlier_chi2`` per pair away (``d^T A d``, A their information
-    :attr:`~roco_env.policies.ambiguity.Ambiguity.information`): nearer, the candidate
-    re-fits those pairs within the boxes' noise rather than pairing other boxes."""
-    pose = ambiguity.pose
+    """Candidates (R, 3) that the hypotheses' ``min_matches`` left out and that pair other
+    boxes than the diagnosed pose (module docstring, step 4): the vote ``peaks`` (H, 3) and
+    ``seeds`` (S, 3) refined with one pair fewer, as :func:`_apart` keeps them."""
     weak = refine_starts(peaks, seeds, ego.poses, collab.poses, collab.information,
                          _weak_refine(p))
-    weak = weak[poses_distinct(weak[:, None], pose[None], p).all(axis=1)]
+    return _apart(weak, ambiguity, p)
+
+
+def _apart(candidates: np.ndarray, ambiguity: Ambiguity, p: AntiAliasParams) -> np.ndarray:
+    """The ``candidates`` (R, 3) distinct from the diagnosed pose ``ambiguity.pose`` (3,)
+    that its own pairs put at least ``outlier_chi2`` per pair away (``d^T A d``, A their
+    information :attr:`~roco_env.policies.ambiguity.Ambiguity.information`): nearer, a
+    candidate re-fits those pairs within the boxes' noise rather than pairing other boxes."""
+    pose = ambiguity.pose
+    candidates = candidates[poses_distinct(candidates[:, None], pose[None], p).all(axis=1)]
+    offset = scaled_offsets(candidates, pose, ambiguity.scale)
+    apart = np.einsum("ri,ij,rj->r", offset, ambiguity.information, offset)
+    return candidates[apart >= p.outlier_chi2 * ambiguity.matches]
+
+
+def _weak_rivals(ego: BoxSet, collab: BoxSet, pose: np.ndarray, weak: np.ndarray,
+                 p: AntiAliasParams) -> np.ndarray:
+    """The weak candidates ``weak`` (R, 3) (:func:`_weak_candidates`) whose evidence comes
+    within ``min_margin`` of that of ``pose`` (3,) (scored together, chi2 units): they
+    explain the boxes about as well by other pairs (module docstring, step 4)."""
     if weak.shape[0] == 0:
         return weak
     evidence = score_hypotheses(ego, collab, np.concatenate([pose[None], weak]), p)
-    offset = scaled_offsets(weak, pose, ambiguity.scale)
-    apart = np.einsum("ri,ij,rj->r", offset, ambiguity.information, offset)
-    return weak[(evidence[1:] >= evidence[0] - p.min_margin)
-                & (apart >= p.outlier_chi2 * ambiguity.matches)]
+    return weak[evidence[1:] >= evidence[0] - p.min_margin]
+
+
+def _reported_margin(
+    ego: BoxSet, collab: BoxSet, ambiguity: Ambiguity, reported: np.ndarray,
+    seeds: np.ndarray, track: np.ndarray | None, priors: tuple, p: AntiAliasParams,
+) -> float:
+    """How much the pick ``ambiguity.pose`` (3,) beats the reported pose where no hypothesis
+    stands for it (module docstring, step 4): its score minus the best score of the
+    reported pose (3,) as it stands and the ``seeds`` (S, 3: the reported pose, the track's
+    prediction) refined with one pair fewer than ``min_matches``, those of them that
+    :func:`_apart` keeps, all scored together with the decision's priors (the reported
+    pose's, the ``track``'s; chi2 units); inf when none is kept."""
+    weak = refine_starts(np.zeros((0, 3)), seeds, ego.poses, collab.poses, collab.information,
+                         _weak_refine(p))
+    others = _apart(np.concatenate([reported[None], weak]), ambiguity, p)
+    if others.shape[0] == 0:
+        return float("inf")
+    terms = _decision_terms(p)
+    _, _, scores, _ = decision_margin(
+        ego.terms, collab.terms, np.concatenate([ambiguity.pose[None], others]), reported,
+        track, terms[1], priors, terms[4])
+    return float(scores[0] - scores[1:].max())
 
 
 def _overruled(ego: BoxSet, collab: BoxSet, poses: np.ndarray, best: int,
@@ -302,8 +347,10 @@ def _decide(
     p: AntiAliasParams,
 ) -> Decision:
     """Steps 1-3 of the module docstring for one collaborator: the vote peaks
-    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`); with the reported pose and
-    the track's prediction, refined in one compiled pass
+    (:func:`~roco_env.policies.hypotheses.generate_hypotheses`; when their rotation is more
+    than ``distinct_r_deg`` from the reported one, the strongest translation peak at the
+    reported rotation too, :func:`~roco_env.policies.hypotheses.translation_peaks`); with
+    the reported pose and the track's prediction, refined in one compiled pass
     (:func:`~roco_env.policies.pose_kernels.refine_starts`: a seed within 0.5 m / 0.5 deg
     of a peak would refine to the same pose and is skipped; a refined pose within 0.3 m /
     0.3 deg of an earlier one is dropped); evidence, priors and margin in another
@@ -313,6 +360,8 @@ def _decide(
     refine, evidence, prior, (track_t, track_r), distinct = _decision_terms(p)
     reported = np.ascontiguousarray(reported, dtype=float)
     peaks = generate_hypotheses(ego, collab, reported, p)
+    if peaks.shape[0] and abs(wrap_angle(peaks[0, 2] - reported[2])) > distinct[1]:
+        peaks = np.concatenate([peaks, translation_peaks(ego, collab, reported, p, most=1)])
     if track is None:
         centre, seeds, priors = reported, reported[None], prior + (1.0, 1.0)
     else:
@@ -333,11 +382,16 @@ def _decide(
         beyond = _beyond_search(ego, collab, reported, poses, int(best), p)
         ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
                              slack=evidence[:2], beyond=beyond)
-        if ambiguity.matches >= p.min_matches and _few_pairs(ambiguity.matches, p):
-            weak = _weak_rivals(ego, collab, peaks, seeds, ambiguity, p)
-            if weak.shape[0]:
-                ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
-                                     slack=evidence[:2], beyond=np.concatenate([beyond, weak]))
+        if ambiguity.matches >= p.min_matches:
+            if _few_pairs(ambiguity.matches, p):
+                weak = _weak_rivals(ego, collab, poses[best],
+                                    _weak_candidates(ego, collab, peaks, seeds, ambiguity, p), p)
+                if weak.shape[0]:
+                    ambiguity = diagnose(ego, collab, poses, int(best), unreported, scores, p,
+                                         slack=evidence[:2],
+                                         beyond=np.concatenate([beyond, weak]))
+            margin = min(margin, _reported_margin(ego, collab, ambiguity, reported, seeds,
+                                                  None if track is None else centre, priors, p))
     trusted = margin >= p.min_margin and (ambiguity is None or ambiguity.determined == 3)
     return Decision(poses[best] if trusted else None, float(margin), poses.shape[0], ambiguity)
 

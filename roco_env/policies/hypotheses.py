@@ -59,6 +59,7 @@ __all__ = [
     "evidence_terms",
     "refine_terms",
     "score_hypotheses",
+    "translation_peaks",
 ]
 
 
@@ -221,6 +222,19 @@ def generate_hypotheses(
     half, cell = settings.half, settings.cell
     rotation = -half + (peak + 0.5) * cell if smooth[peak] > 0 else 0.0
     rotated = reported + np.array([0.0, 0.0, rotation])
+    return translation_peaks(ego, collab, rotated, p)
+
+
+def translation_peaks(
+    ego: BoxSet, collab: BoxSet, rotated: np.ndarray, p: EvidenceParams, most: int | None = None
+) -> np.ndarray:
+    """The translation vote's peaks (H, 3) around ``rotated`` (3,) at its rotation (step 1 of
+    the module docstring, the compiled vote and peak scan), strongest first: at most
+    ``most`` of them (default ``max_hypotheses``)."""
+    settings = _vote_settings(p)
+    if most is not None:
+        settings = settings._replace(max_hypotheses=int(most))
+    votes = tuple(settings)
     grid = translation_votes(ego.terms, collab.terms, rotated, votes)
     return vote_peaks(grid, np.argsort(-grid, axis=None), rotated, votes)
 
