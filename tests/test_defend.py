@@ -205,7 +205,9 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
     off = cars(*[(x + 2.5, y) for x, y in SCENE])
     assert verdicts(off, use_repose=False) == [1] * 5 + [0] * 5
-    assert verdicts(off) == [0] * 10  # a re-fit of its boxes alone agrees: kept
+    # its reported pose is the one that placed it: a re-fit 2.5 m away is no correction
+    # the assumed noise explains (a spoofer's true pose), so use_repose keeps it no sooner
+    assert verdicts(off, use_repose=True) == [1] * 5 + [0] * 5
     sideways = cars(*[(x, y + 2.2) for x, y in SCENE])
     assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE]), use_repose=False) \
         == [1] * 5 + [0] * 5
@@ -642,7 +644,8 @@ def test_an_honest_collaborator_left_misaligned_is_kept_under_a_re_fit_and_a_lia
     reported pose, seeded noise, is near the truth); collaborator 1 lies: its row of cars
     at y = 8 forged 4 m along x (no rigid pose brings both rows onto the others'). Without
     ``use_repose`` both fail the consistency test; with it the honest one passes under a
-    re-fit of its boxes near its true pose and is kept, the liar fails under every pose."""
+    re-fit of its boxes near its true pose and is kept, the liar fails under every pose,
+    and so does collaborator 4, a plain spoofer whose re-fit is far from its report."""
     rng = np.random.default_rng(11)
     scene = cars(*SCENE)
     true = np.array([5.0, 4.0, 0.0])
@@ -651,11 +654,17 @@ def test_an_honest_collaborator_left_misaligned_is_kept_under_a_re_fit_and_a_lia
     aligned = se2_compose(true, np.array([2.5, 0.0, 0.02]))
     forged = cars(*[(x + 4.0 if y > 4.0 else x, y) for x, y in SCENE])
     others = [(scene, np.array([-5.0, 4.0, 0.0])), (scene, np.array([15.0, -4.0, 0.0]))]
+    # a plain spoofer the aligner did not correct: true boxes, pose reported 2.5 m off
+    spoofed = se2_compose(true, np.array([0.0, 2.5, 0.0]))
     obs = observation(scene, [(transform_boxes(local, aligned), aligned), (forged, true),
-                              *others])
+                              *others, (transform_boxes(local, spoofed), spoofed)], slots=5)
     obs["collab_reported_poses"][0] = reported
-    assert Defend(use_correction=False, use_repose=False)(obs, info(4)).tolist() == [1, 1, 0, 0]
+    assert Defend(use_correction=False, use_repose=False)(obs, info(5)).tolist() \
+        == [1, 1, 0, 0, 1]
     defend = Defend(use_correction=False, use_repose=True)
-    assert defend(obs, info(4)).tolist() == [0, 1, 0, 0]
-    assert defend.last_reasons[1] == "consistency" and list(defend.last_reposed) == [0]
+    # the spoofer's re-fit (its true pose) is 2.5 m from its report: no correction the
+    # noise explains, so it stays rejected
+    assert defend(obs, info(5)).tolist() == [0, 1, 0, 0, 1]
+    assert defend.last_reasons[1] == defend.last_reasons[4] == "consistency"
+    assert list(defend.last_reposed) == [0]
     assert np.hypot(*(defend.last_reposed[0][:2] - true[:2])) < 0.05

@@ -431,6 +431,21 @@ class Defend:
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
+    def _spread(self, distance: float) -> tuple[float, float]:
+        """The variances (m^2, rad^2) of an honest correction's shift and turn for a
+        collaborator ``distance`` m away: ``s_t^2``, ``s_r^2`` of the module docstring."""
+        return (2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2,
+                2.0 * self.sigma_r**2)
+
+    def _plausible(self, pose: np.ndarray, reported: np.ndarray) -> bool:
+        """Whether ``pose`` (3,) is a correction of ``reported`` (3,) (m, m, rad, ego
+        frame) the assumed noise explains: its q (module docstring) has a p-value of at
+        least ``alpha`` (a re-fit that moves a spoofer back to its true pose is not)."""
+        s_t2, s_r2 = self._spread(float(np.hypot(*reported[:2])))
+        turn = float(wrap_angle(pose[2] - reported[2]))
+        q = float(np.sum((pose[:2] - reported[:2]) ** 2)) / s_t2 + turn**2 / s_r2
+        return bool(chdtrc(3, q) >= self.params.alpha)
+
     def _implausible(self, key: Hashable, diagnostics: np.ndarray,
                      offset: np.ndarray | None) -> bool:
         """Record this step's correction statistic q of ``key`` and its whitened signed
@@ -438,8 +453,7 @@ class Defend:
         the mean test is off); whether the window fails the sum test or the mean test
         (each at alpha / 2 when both run), or this step's q alone fails at ``strong``."""
         distance = float(diagnostics[_DISTANCE])
-        s_t2 = 2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2
-        s_r2 = 2.0 * self.sigma_r**2
+        s_t2, s_r2 = self._spread(distance)
         q = float(diagnostics[_SHIFT]) ** 2 / s_t2 + np.radians(float(diagnostics[_TURN])) ** 2 \
             / s_r2
         step: tuple = (q,)
@@ -516,7 +530,8 @@ class Defend:
                 kept: set[int], context: tuple) -> None:
         """Re-test each filled slot ``kept`` lacks under the alternative poses of
         :func:`alternative_poses` (its reported pose, a re-fit against the ego's and the
-        kept collaborators' boxes), this step's evidence of every pair it is in judged
+        kept collaborators' boxes) that the assumed noise explains as a correction of
+        its reported pose (:meth:`_plausible`), this step's evidence of every pair it is in judged
         again under that pose (the window's earlier steps as they were): the first pose
         under which its window is not significant (no ``recent`` rule: a liar whose
         evidence has built up, an eraser's withheld boxes, is not released by one quiet
@@ -536,6 +551,8 @@ class Defend:
             targets = np.concatenate([sources[key][0][:, :2] for key in (EGO, *sorted(kept))])
             for pose, boxes in alternative_poses(sources[slot][0], aligned[slot],
                                                  reported[slot], targets, gates):
+                if not self._plausible(pose, reported[slot]):
+                    continue
                 trial = {**sources, slot: (boxes, pose[:2])}
                 occluders = np.concatenate([placed[:, :2] for placed, _ in trial.values()])
                 judged = {}
