@@ -9,7 +9,7 @@ from scipy import stats
 from scipy.special import bdtrc, chdtrc
 
 import roco_env
-from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse
+from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, transform_boxes
 from roco_env.policies import make_policy
 from roco_env.policies.defend import (
     EGO,
@@ -159,7 +159,7 @@ def test_the_consensus_clears_the_honest_collaborator_a_liar_disagrees_with():
     liar = (cars(*left, *[(x + 2.5, y) for x, y in right]), np.array([15.0, 4.0, 0.0]))
     obs = observation(ego, [honest, liar, witness])
     assert Defend(use_correction=False)(obs, info(4)).tolist() == [0, 1, 0, 0]
-    alone = Defend(use_correction=False, use_consensus=False)
+    alone = Defend(use_correction=False, use_consensus=False, use_repose=False)
     assert alone(obs, info(4)).tolist() == [1, 1, 1, 0]
 
 
@@ -172,7 +172,7 @@ def test_a_disagreement_the_aligner_has_since_resolved_no_longer_counts():
                                  np.array([5.0, 4.0, 0.0]))])
     later = observation(scene, [(scene, np.array([5.0, 4.0, 0.0]))])
     for recent, verdict in ((0.5, [0, 0, 0, 0]), (1.0, [1, 0, 0, 0])):
-        defend = Defend(use_correction=False, recent=recent)
+        defend = Defend(use_correction=False, recent=recent, use_repose=False)
         assert defend(early, info(1)).tolist() == [1, 0, 0, 0]
         assert defend(later, info(1)).tolist() == verdict
 
@@ -203,11 +203,16 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     withheld = cars(*SCENE[::2])
     assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
     assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
-    assert verdicts(cars(*[(x + 2.5, y) for x, y in SCENE])) == [1] * 5 + [0] * 5
+    off = cars(*[(x + 2.5, y) for x, y in SCENE])
+    assert verdicts(off, use_repose=False) == [1] * 5 + [0] * 5
+    # its reported pose is the one that placed it: a re-fit 2.5 m away is no correction
+    # the assumed noise explains (a spoofer's true pose), so use_repose keeps it no sooner
+    assert verdicts(off, use_repose=True) == [1] * 5 + [0] * 5
     sideways = cars(*[(x, y + 2.2) for x, y in SCENE])
-    assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE])) == [1] * 5 + [0] * 5
-    assert verdicts(sideways, orphan_m=3.0) == [1] * 5 + [0] * 5
-    assert verdicts(sideways) == [1] * 10
+    assert verdicts(cars(*[(x, y + 1.95) for x, y in SCENE]), use_repose=False) \
+        == [1] * 5 + [0] * 5
+    assert verdicts(sideways, orphan_m=3.0, use_repose=False) == [1] * 5 + [0] * 5
+    assert verdicts(sideways, use_repose=False) == [1] * 10
 
     def rejected(sticky: float) -> int:  # of 20 steps x 3 honest collaborators
         rng = np.random.default_rng(11)
@@ -287,6 +292,8 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"witnessed_rate": 0.0}, r"witnessed_rate=0.0 is out of range; allowed \(0.0, 1.0\)"),
     ({"witness_judges": 1}, r"witness_judges=1 is out of range"),
     ({"use_witnessed": "yes"}, r"use_witnessed"),
+    ({"use_repose": "yes"}, r"use_repose"),
+    ({"refit_m": 0.0}, r"refit_m=0.0 is out of range"),
     ({"witnessed_level": 1.0}, r"witnessed_level=1.0 is out of range; allowed \(0.0, 1.0\)"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
@@ -463,7 +470,9 @@ def test_the_offset_test_needs_the_reported_poses():
     del obs["collab_reported_poses"]
     with pytest.raises(ValueError, match="collab_reported_poses.*use_offset=False"):
         Defend()(obs, info(1))
-    assert Defend(use_offset=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
+    with pytest.raises(ValueError, match="collab_reported_poses.*use_repose=False"):
+        Defend(use_offset=False)(obs, info(1))
+    assert Defend(use_offset=False, use_repose=False)(obs, info(1)).tolist() == [0, 0, 0, 0]
 
 
 def test_the_aligned_observation_carries_the_reported_poses():
@@ -584,7 +593,7 @@ def test_a_misaligned_collaborators_boxes_are_no_orphans():
     obs["collab_boxes"][2] = shifted
     counts = {}
     for orphan_m in (3.0, 1.0):
-        defend = Defend(use_correction=False, orphan_m=orphan_m)
+        defend = Defend(use_correction=False, orphan_m=orphan_m, use_repose=False)
         defend(obs, slots)
         counts[orphan_m] = defend.last_orphans[2][1][0]
     assert counts[3.0] == 0 and counts[1.0] > 5
@@ -628,3 +637,34 @@ def test_witnessed_orphans_reject_two_ghosts_on_the_first_step_not_honest_misses
     assert first == {True: [0, 0, 1, 0], False: [0, 0, 0, 0]}
     rng, honest = np.random.default_rng(12), Defend(use_correction=False)
     assert not any(honest(*_orphan_scene(rng, [])).any() for _ in range(20))
+
+
+def test_an_honest_collaborator_left_misaligned_is_kept_under_a_re_fit_and_a_liar_is_not():
+    """Collaborator 0 is honest, but the aligner placed it 2.5 m and 1.1 deg off (its
+    reported pose, seeded noise, is near the truth); collaborator 1 lies: its row of cars
+    at y = 8 forged 4 m along x (no rigid pose brings both rows onto the others'). Without
+    ``use_repose`` both fail the consistency test; with it the honest one passes under a
+    re-fit of its boxes near its true pose and is kept, the liar fails under every pose,
+    and so does collaborator 4, a plain spoofer whose re-fit is far from its report."""
+    rng = np.random.default_rng(11)
+    scene = cars(*SCENE)
+    true = np.array([5.0, 4.0, 0.0])
+    local = transform_boxes(scene, se2_inverse(true))
+    reported = true + rng.normal(0.0, [0.3, 0.3, 0.005])
+    aligned = se2_compose(true, np.array([2.5, 0.0, 0.02]))
+    forged = cars(*[(x + 4.0 if y > 4.0 else x, y) for x, y in SCENE])
+    others = [(scene, np.array([-5.0, 4.0, 0.0])), (scene, np.array([15.0, -4.0, 0.0]))]
+    # a plain spoofer the aligner did not correct: true boxes, pose reported 2.5 m off
+    spoofed = se2_compose(true, np.array([0.0, 2.5, 0.0]))
+    obs = observation(scene, [(transform_boxes(local, aligned), aligned), (forged, true),
+                              *others, (transform_boxes(local, spoofed), spoofed)], slots=5)
+    obs["collab_reported_poses"][0] = reported
+    assert Defend(use_correction=False, use_repose=False)(obs, info(5)).tolist() \
+        == [1, 1, 0, 0, 1]
+    defend = Defend(use_correction=False, use_repose=True)
+    # the spoofer's re-fit (its true pose) is 2.5 m from its report: no correction the
+    # noise explains, so it stays rejected
+    assert defend(obs, info(5)).tolist() == [0, 1, 0, 0, 1]
+    assert defend.last_reasons[1] == defend.last_reasons[4] == "consistency"
+    assert list(defend.last_reposed) == [0]
+    assert np.hypot(*(defend.last_reposed[0][:2] - true[:2])) < 0.05

@@ -6,7 +6,7 @@
 aligner, every collaborator's boxes arrive moved into the ego frame by its pose, and the
 action keeps a collaborator with that pose (0) or rejects it (1), the explicit reject of
 the gate mode (which solves the kept collaborators' poses again without the rejected ones).
-Six tests, each a statistical test at level ``alpha``:
+Six tests, each a statistical test at level ``alpha``, and a re-test:
 
 * **Correction** (temporal consistency): the base aligner's correction of a
   collaborator's reported pose (``shift_m``, ``turn_deg`` of the diagnostics), against
@@ -84,6 +84,13 @@ Six tests, each a statistical test at level ``alpha``:
   largest first: at most 2^N of them; ties go to the set whose members agree best); the
   others are rejected. Without it a liar's disagreement also weighs on the honest
   collaborators it disagrees with.
+* **Re-test under another pose** (``use_repose``): before the consistency test rejects a
+  collaborator, it is judged again under poses that do not trust the base aligner's fit
+  (:func:`roco_env.policies.defend_refit.alternative_poses`: a re-fit of its boxes alone
+  against the ego's and the kept collaborators', then its reported pose); it is kept
+  where its window is no longer significant and every kept collaborator still passes.
+  An honest collaborator the aligner left misaligned agrees again; a liar's forged,
+  ghost or withheld boxes do not.
 
 The ego's own boxes are trusted. State (the windows) is kept per ego and collaborator id
 (``info["agent"]``, ``info["collaborators"]``); :meth:`Defend.reset` forgets it.
@@ -103,6 +110,7 @@ from scipy.special import bdtrc, chdtrc, ndtr
 from roco_env.geometry import bev_iou_pairs, se2_compose, se2_inverse, wrap_angle
 from roco_env.policies.adapter import collaborator_keys
 from roco_env.policies.base import check_aligner_base
+from roco_env.policies.defend_refit import alternative_poses
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
@@ -329,6 +337,13 @@ class DefendParams:
     claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
                                          "clear view where an honest vehicle's car is not "
                                          "seen")
+    use_repose: bool = spec(True, doc="before the consistency test rejects a collaborator, "
+                            "re-test it under its reported pose and a re-fit of its boxes "
+                            "against the ego's and the kept collaborators' (an honest one the "
+                            "aligner left misaligned agrees again; a liar does not): kept "
+                            "when one passes")
+    refit_m: float = _positive(3.0, "the re-fit of use_repose pairs each box with the nearest "
+                               "target box within this (m), then within half of it")
     car_prefix: str = spec("cav_", doc="agent ids of vehicles start so (the others, RSUs, "
                            "have no car to see)")
 
@@ -373,6 +388,8 @@ class Defend:
         self.last_orphans: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
         # slot -> witnessed orphans over the window and this step's
         self.last_witnessed: dict[int, tuple[int, int]] = {}
+        # slot -> the alternative pose (3,) under which use_repose kept it, this step
+        self.last_reposed: dict[int, np.ndarray] = {}
 
     def reset(self) -> None:
         """Forget every collaborator's and pair's history (call between episodes)."""
@@ -414,6 +431,21 @@ class Defend:
         self.last_reasons = tuple(reasons)
         return np.array([1 if reason else 0 for reason in reasons], dtype=np.int64)
 
+    def _spread(self, distance: float) -> tuple[float, float]:
+        """The variances (m^2, rad^2) of an honest correction's shift and turn for a
+        collaborator ``distance`` m away: ``s_t^2``, ``s_r^2`` of the module docstring."""
+        return (2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2,
+                2.0 * self.sigma_r**2)
+
+    def _plausible(self, pose: np.ndarray, reported: np.ndarray) -> bool:
+        """Whether ``pose`` (3,) is a correction of ``reported`` (3,) (m, m, rad, ego
+        frame) the assumed noise explains: its q (module docstring) has a p-value of at
+        least ``alpha`` (a re-fit that moves a spoofer back to its true pose is not)."""
+        s_t2, s_r2 = self._spread(float(np.hypot(*reported[:2])))
+        turn = float(wrap_angle(pose[2] - reported[2]))
+        q = float(np.sum((pose[:2] - reported[:2]) ** 2)) / s_t2 + turn**2 / s_r2
+        return bool(chdtrc(3, q) >= self.params.alpha)
+
     def _implausible(self, key: Hashable, diagnostics: np.ndarray,
                      offset: np.ndarray | None) -> bool:
         """Record this step's correction statistic q of ``key`` and its whitened signed
@@ -421,8 +453,7 @@ class Defend:
         the mean test is off); whether the window fails the sum test or the mean test
         (each at alpha / 2 when both run), or this step's q alone fails at ``strong``."""
         distance = float(diagnostics[_DISTANCE])
-        s_t2 = 2.0 * self.params.sigma_t**2 + 2.0 * (distance * self.sigma_r) ** 2
-        s_r2 = 2.0 * self.sigma_r**2
+        s_t2, s_r2 = self._spread(distance)
         q = float(diagnostics[_SHIFT]) ** 2 / s_t2 + np.radians(float(diagnostics[_TURN])) ** 2 \
             / s_r2
         step: tuple = (q,)
@@ -460,29 +491,91 @@ class Defend:
         blind = {key: self.params.own_car_m if key in vehicles else 0.0 for key in ids}
         self.last_pairs, self.last_now, self._status = {}, {}, {}
         for a, b in itertools.combinations(sources, 2):
-            (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
-            distance = centre_distances(boxes_a, boxes_b)
-            # directed: what b says about a's boxes (and a's claimed place), and back
-            status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders,
-                                         *self._geometry, distance, blind[b]),
-                      (b, a): box_status(boxes_b, boxes_a, origin_a, occluders,
-                                         *self._geometry, distance.T, blind[a])}
-            self._status.update(status)
-            directed = {key: judged.evidence(self.params.orphan_m)
-                        for key, judged in status.items()}
-            if a in cars and b in cars and a != EGO:
-                directed[a, b] += claim_evidence(origin_a, boxes_b, origin_b, occluders,
-                                                 *self._claim)
-            if a in cars and b in cars:
-                directed[b, a] += claim_evidence(origin_b, boxes_a, origin_a, occluders,
-                                                 *self._claim)
-            for (judged, judge), evidence in directed.items():
+            for (judged, judge), (evidence, status) in self._judge(
+                    a, b, sources, occluders, cars, blind).items():
                 history = self._pairs.setdefault((ego, ids[judged], ids[judge]),
                                                  deque(maxlen=self.params.window))
                 history.append(evidence)
+                self._status[judged, judge] = status
                 self.last_pairs[judged, judge] = sum(history, NO_EVIDENCE)
                 self.last_now[judged, judge] = evidence
-        return self.kept([int(s) for s in filled])
+        kept = self.kept([int(s) for s in filled])
+        self.last_reposed = {}
+        if self.params.use_repose:
+            self._repose(observation, filled, sources, kept, (ego, ids, cars, blind))
+        return kept
+
+    def _judge(self, a: Hashable, b: Hashable, sources: Mapping, occluders: np.ndarray,
+               cars: set, blind: Mapping) -> dict[tuple, tuple[PairEvidence, BoxStatus]]:
+        """This step's evidence and per-box status of the pair of sources ``a``, ``b``
+        (keys of ``sources``: (boxes, origin), ego frame), both ways: (judged, judge) ->
+        (what the judge's boxes say about the judged's boxes, and about its claimed place
+        when both are in ``cars`` and the judged is no ego; the :func:`box_status`)."""
+        (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
+        distance = centre_distances(boxes_a, boxes_b)
+        status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
+                                     distance, blind[b]),
+                  (b, a): box_status(boxes_b, boxes_a, origin_a, occluders, *self._geometry,
+                                     distance.T, blind[a])}
+        judged = {}
+        for (one, other), seen in status.items():
+            evidence = seen.evidence(self.params.orphan_m)
+            if one in cars and other in cars and one != EGO:
+                evidence += claim_evidence(sources[one][1], sources[other][0],
+                                           sources[other][1], occluders, *self._claim)
+            judged[one, other] = (evidence, seen)
+        return judged
+
+    def _repose(self, observation: Mapping[str, Any], filled: np.ndarray, sources: dict,
+                kept: set[int], context: tuple) -> None:
+        """Re-test each filled slot ``kept`` lacks under the alternative poses of
+        :func:`alternative_poses` (its reported pose, a re-fit against the ego's and the
+        kept collaborators' boxes) that the assumed noise explains as a correction of
+        its reported pose (:meth:`_plausible`), this step's evidence of every pair it is in judged
+        again under that pose (the window's earlier steps as they were): the first pose
+        under which its window is not significant (no ``recent`` rule: a liar whose
+        evidence has built up, an eraser's withheld boxes, is not released by one quiet
+        step) and every kept collaborator passes the consistency test keeps it
+        (added to ``kept``; its evidence and statuses replaced by that pose's, for the
+        relative and orphan tests; the pose in :attr:`last_reposed`). ``context``: (ego
+        id, key -> id, vehicle keys, key -> blind radius)."""
+        ego, ids, cars, blind = context
+        if "collab_reported_poses" not in observation:
+            raise ValueError("defend's use_repose re-fits from observation["
+                             "'collab_reported_poses'] (the aligned observation's reported "
+                             "relative poses); give it, or use_repose=False")
+        aligned = np.asarray(observation["collab_rel_poses"], dtype=float)
+        reported = np.asarray(observation["collab_reported_poses"], dtype=float)
+        gates = (self.params.refit_m, self.params.refit_m / 2.0)
+        for slot in (int(s) for s in filled if int(s) not in kept):
+            targets = np.concatenate([sources[key][0][:, :2] for key in (EGO, *sorted(kept))])
+            for pose, boxes in alternative_poses(sources[slot][0], aligned[slot],
+                                                 reported[slot], targets, gates):
+                if not self._plausible(pose, reported[slot]):
+                    continue
+                trial = {**sources, slot: (boxes, pose[:2])}
+                occluders = np.concatenate([placed[:, :2] for placed, _ in trial.values()])
+                judged = {}
+                for other in trial:
+                    if other != slot:
+                        judged.update(self._judge(slot, other, trial, occluders, cars, blind))
+                saved = {key: (self.last_pairs[key], self.last_now[key]) for key in judged}
+                histories = {key: self._pairs[ego, ids[key[0]], ids[key[1]]] for key in judged}
+                for key, (evidence, _) in judged.items():
+                    self.last_pairs[key] = sum(list(histories[key])[:-1], evidence)
+                    self.last_now[key] = evidence
+                group = sorted(kept | {slot})
+                if self._p_value(slot, group, self.last_pairs) >= self.params.alpha \
+                        and all(self._consistent(member, group) for member in group):
+                    for key, (evidence, status) in judged.items():
+                        histories[key][-1] = evidence
+                        self._status[key] = status
+                    kept.add(slot)
+                    sources[slot] = trial[slot]
+                    self.last_reposed[slot] = pose
+                    break
+                for key, (window, now) in saved.items():
+                    self.last_pairs[key], self.last_now[key] = window, now
 
     def kept(self, slots: list[int]) -> set[int]:
         """The slots the consistency test (and the consensus, when on) keeps, judged on
