@@ -64,7 +64,12 @@ from typing import Any
 import numpy as np
 
 from roco_env.policies.base import StatelessPolicy
-from roco_env.policies.reject_untested import GAP_CLIP_M, GAP_M, STATISTIC, untested_slots
+from roco_env.policies.reject_untested import (
+    GAP_CLIP_M,
+    STATISTIC,
+    tested_choice,
+    untested_slots,
+)
 from roco_env.schema import build, spec
 
 FORMAT = "roco_env.learned_policy/1"
@@ -134,13 +139,7 @@ class Guard:
     def tested_choice(self, choice_diagnostics: np.ndarray) -> np.ndarray:
         """(N,) int64: the choice the rule gives each slot it treats as tested: ``keep``,
         or ``prefer`` where its ``gap_m`` is at most ``prefer_within_m`` (or always)."""
-        count = np.shape(choice_diagnostics)[0]
-        if self.prefer is None:
-            return np.full(count, self.keep, np.int64)
-        if self.prefer_within_m is None:
-            return np.full(count, self.prefer, np.int64)
-        gap = np.asarray(choice_diagnostics)[:, self.prefer, GAP_M]
-        return np.where(gap <= self.prefer_within_m, self.prefer, self.keep).astype(np.int64)
+        return tested_choice(choice_diagnostics, self.keep, self.prefer, self.prefer_within_m)
 
     def untested_slots(self, choice_diagnostics: np.ndarray,
                        collab_mask: np.ndarray) -> np.ndarray:

@@ -48,7 +48,7 @@ from roco_env.policies.base import StatelessPolicy
 from roco_env.policies.landmarks import params_from_kwargs
 from roco_env.schema import spec
 
-__all__ = ["RejectUntested", "RejectUntestedParams", "untested_slots"]
+__all__ = ["RejectUntested", "RejectUntestedParams", "tested_choice", "untested_slots"]
 
 # column "statistic" of roco_env.observation_modes.DIAGNOSTICS (a higher layer;
 # tests/test_reject_untested.py checks the index) and its value where none was computed
@@ -56,6 +56,18 @@ STATISTIC, NO_STATISTIC = 3, -1.0
 REJECT = "reject"  # reject_untested's ``untested`` value that leaves the slot out
 GAP_M = 7  # column "gap_m" of roco_env.observation_modes.CHOICE_DIAGNOSTICS (checked too)
 GAP_CLIP_M = 20.0  # the observation clips gap_m to [0, this] (observation_modes.py)
+def tested_choice(choice_diagnostics: np.ndarray, keep: int, prefer: int | None,
+                  within_m: float | None) -> np.ndarray:
+    """(N,) int64: the choice a tested slot takes: ``keep``; or ``prefer`` where that
+    choice's ``gap_m`` (m between its pose and ``keep``'s, column :data:`GAP_M` of the
+    (N, C, D) ``choice_diagnostics``) is at most ``within_m`` (None: always)."""
+    count = np.shape(choice_diagnostics)[0]
+    if prefer is None or within_m is None:
+        return np.full(count, keep if prefer is None else prefer, np.int64)
+    gap = np.asarray(choice_diagnostics)[:, prefer, GAP_M]
+    return np.where(gap <= within_m, prefer, keep).astype(np.int64)
+
+
 def untested_slots(statistic: np.ndarray, collab_mask: np.ndarray) -> np.ndarray:
     """(N,) bool: the filled slots (``collab_mask`` > 0) whose aligner ``statistic``
     (N,) is :data:`NO_STATISTIC` (none computed)."""
@@ -133,6 +145,6 @@ class RejectUntested(StatelessPolicy):
         untested = untested_slots(statistic, observation["collab_mask"])
         tested = np.full(len(untested), self._tested)
         if self.params.tested_within_m is not None:
-            gap = np.asarray(observation["choice_diagnostics"])[:, self._tested, GAP_M]
-            tested = np.where(gap <= self.params.tested_within_m, self._tested, 0)
+            tested = tested_choice(observation["choice_diagnostics"], 0, self._tested,
+                                   self.params.tested_within_m)
         return np.where(untested, self._untested, tested).astype(np.int64)
