@@ -11,6 +11,7 @@ ego frame unless said otherwise.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from roco_env.geometry import se2_apply, se2_inverse, transform_boxes
 from roco_env.policies.prior_free import fit_se2
@@ -30,12 +31,10 @@ def refit_pose(local: np.ndarray, start: np.ndarray, targets: np.ndarray,
     pose = np.asarray(start, dtype=float)
     if local.shape[0] < MIN_PAIRS or targets.shape[0] < MIN_PAIRS:
         return None
+    tree = cKDTree(targets)
     for gate in gates:
-        placed = se2_apply(pose, local)
-        distance = np.hypot(placed[:, None, 0] - targets[None, :, 0],
-                            placed[:, None, 1] - targets[None, :, 1])
-        nearest = np.argmin(distance, axis=1)
-        near = distance[np.arange(local.shape[0]), nearest] < gate
+        distance, nearest = tree.query(se2_apply(pose, local))
+        near = distance < gate
         if int(near.sum()) < MIN_PAIRS:
             return None
         pose = fit_se2(local[near], targets[nearest[near]])
