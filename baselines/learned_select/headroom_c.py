@@ -49,13 +49,16 @@ of the mixed benchmark, which is fine for a bound nobody ships). Writes ``result
 in the ``roco-env compare`` layout (policy ``headroom_c_<variant>``) for ``table.py``, and
 prints, per condition, the slots per kind from C's own episodes: filled, untested,
 untested with a pair's choice within ``--reject-error`` (and of those, roco_fallback's),
-tested with C's pose off by more.
+tested with C's pose off by more; and with ``ap_greedy`` the slots it decides unlike C:
+tested ones it rejects (and of those, how many C's pose put within ``--reject-error``),
+tested ones it gives another choice, untested ones it keeps.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -135,17 +138,70 @@ def ap_greedy(rule: np.ndarray, options: list[int], slots: np.ndarray,
     return action
 
 
-def variant_picks(variant: str, rule: np.ndarray, errors: np.ndarray, untested: np.ndarray,
-                  gap: np.ndarray, reject_error: float,
-                  frame_ap: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """(n,) select actions of any variant: :func:`decide`'s, or :func:`ap_greedy`'s over the
-    options and slots :data:`GREEDY` gives it (arguments as theirs)."""
+@dataclass(frozen=True)
+class CFrame:
+    """One evaluated agent's observation in C's episode, what a variant decides from: its n
+    filled slots' (C, n) choice ``errors`` (m / deg, against the truth), (C, n, 3) choice
+    ``poses`` T_{j->i} (x m, y m, yaw rad), (n,) ``gap`` (m between the pair's poses),
+    (n,) ``untested`` and (n,) C's ``rule`` actions; ``evaluate`` scores (K, n) select
+    actions on this frame (:func:`env_hook.frame_evaluations`)."""
+
+    observation: dict
+    errors: np.ndarray
+    poses: np.ndarray
+    gap: np.ndarray
+    untested: np.ndarray
+    rule: np.ndarray
+    evaluate: Callable[[np.ndarray], list]
+
+    def frame_ap(self, picks: np.ndarray) -> np.ndarray:
+        """(K,) AP@0.7 of this frame with each row of the (K, n) select actions."""
+        return np.array([evaluation.ap[0.7] for evaluation in self.evaluate(picks)])
+
+
+def play_c(cell, choices: list[str], on_frame: Callable[[CFrame], None]) -> dict:
+    """The env's metrics of ``cell`` played by C in an env whose ``action.choices`` are
+    ``choices`` (the pair first), calling ``on_frame`` on every evaluated agent's
+    observation before C acts on it."""
+    if tuple(choices[:len(PAIR)]) != PAIR:
+        raise ValueError(f"choices must start with {' '.join(PAIR)}; got {choices}")
+
+    def make_act(index, env_of):
+        def act(observation, info):
+            env = env_of()
+            alignments = env._choices[env.possible_agents[index]]
+            mask = observation["collab_mask"]
+            n, errors = choice_errors(alignments, observation, info)
+            poses = np.stack([np.asarray(a.corrected, dtype=float)[:n]
+                              for a in alignments])  # (C, n, 3)
+            gap = np.hypot(*(poses[1, :, :2] - poses[0, :, :2]).T)
+            untested = untested_slots(observation["diagnostics"][:n, STATISTIC], mask[:n])
+            rule = rule_c(untested, gap, len(alignments))
+            reported = info["privileged"]["reported_relative_poses"][:n]
+            if info.get("evaluated", True):
+                on_frame(CFrame(observation, errors, poses, gap, untested, rule,
+                                lambda picks: frame_evaluations(
+                                    env, index, select_decisions(reported, poses, picks))))
+            action = np.full(len(mask), len(alignments), dtype=np.int64)
+            action[:n] = rule
+            return action
+        act.env_overrides = {**parse_policy_spec(RULE_C).build().env_overrides,
+                             "action.choices": list(choices)}
+        return act
+    return run_with_env(cell, "headroom_c_played", make_act)
+
+
+def variant_picks(variant: str, frame: CFrame, reject_error: float) -> np.ndarray:
+    """(n,) select actions of any variant on ``frame``: :func:`decide`'s, or
+    :func:`ap_greedy`'s over the options and slots :data:`GREEDY` gives it."""
     if variant not in GREEDY:
-        return decide(variant, rule, errors, untested, reject_error, gap)
+        return decide(variant, frame.rule, frame.errors, frame.untested, reject_error,
+                      frame.gap)
     tries, only_open = GREEDY[variant]
-    reject = len(errors)
-    slots = np.flatnonzero(untested | (gap <= WITHIN_M)) if only_open else np.arange(len(rule))
-    return ap_greedy(rule, [*range(tries or reject), reject], slots, frame_ap)
+    reject = len(frame.errors)
+    slots = (np.flatnonzero(frame.untested | (frame.gap <= WITHIN_M)) if only_open
+             else np.arange(len(frame.rule)))
+    return ap_greedy(frame.rule, [*range(tries or reject), reject], slots, frame.frame_ap)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -157,51 +213,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--choices", nargs="+", default=list(PAIR),
                         help="the env's action.choices (policy specs), C's pair first")
     args = parser.parse_args(argv)
-    if tuple(args.choices[:len(PAIR)]) != PAIR:
-        parser.error(f"--choices must start with {' '.join(PAIR)}; got {args.choices}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     counts: dict = defaultdict(lambda: np.zeros(5, dtype=int))
+    changes: dict = defaultdict(lambda: np.zeros(5, dtype=int))
     with (out / "results.jsonl").open("a") as sink:
         for cell in build_grid(args.scenarios, args.noise, [RULE_C],
                                list(range(args.seeds)), args.steps):
             scored = {variant: APAccumulator() for variant in args.variants}
 
-            def make_act(index, env_of, cell=cell, scored=scored):
-                overrides = {**parse_policy_spec(RULE_C).build().env_overrides,
-                             "action.choices": list(args.choices)}
-
-                def act(observation, info):
-                    env = env_of()
-                    alignments = env._choices[env.possible_agents[index]]
-                    mask = observation["collab_mask"]
-                    n, errors = choice_errors(alignments, observation, info)
-                    poses = np.stack([np.asarray(a.corrected, dtype=float)[:n]
-                                      for a in alignments])  # (C, n, 3)
-                    gap = np.hypot(*(poses[1, :, :2] - poses[0, :, :2]).T)
-                    untested = untested_slots(
-                        observation["diagnostics"][:n, STATISTIC], mask[:n])
-                    rule = rule_c(untested, gap, len(alignments))
-                    reported = info["privileged"]["reported_relative_poses"][:n]
-
-                    def frame_evaluated(picks):
-                        return frame_evaluations(env, index,
-                                                 select_decisions(reported, poses, picks))
-
-                    def frame_ap(picks):
-                        return np.array([e.ap[0.7] for e in frame_evaluated(picks)])
-
-                    for variant in args.variants if info.get("evaluated", True) else ():
-                        picks = variant_picks(variant, rule, errors, untested, gap,
-                                              args.reject_error, frame_ap)
-                        scored[variant].add_stats(frame_evaluated(picks)[0].stats)
-                    _count(counts, cell, errors, untested, rule, args.reject_error)
-                    action = np.full(len(mask), len(alignments), dtype=np.int64)
-                    action[:n] = rule
-                    return action
-                act.env_overrides = overrides
-                return act
-            played = run_with_env(cell, "headroom_c_played", make_act)
+            def on_frame(frame: CFrame, cell=cell, scored=scored) -> None:
+                for variant, accumulator in scored.items():
+                    picks = variant_picks(variant, frame, args.reject_error)
+                    accumulator.add_stats(frame.evaluate(picks[None])[0].stats)
+                    if variant == "ap_greedy":
+                        _count_changes(changes, cell, frame, picks, args.reject_error)
+                _count(counts, cell, frame, args.reject_error)
+            played = play_c(cell, args.choices, on_frame)
             for variant, accumulator in scored.items():
                 record_cell(sink, cell, f"headroom_c_{variant}",
                             {"ap70": accumulator.ap()[0.7]})
@@ -212,11 +240,27 @@ def main(argv: list[str] | None = None) -> None:
     print_counts(f"filled slots | untested | untested, a choice within {args.reject_error:g} | "
                  f"of those, roco_fallback's best | tested, C's pose off > "
                  f"{args.reject_error:g}", counts)
+    if changes:
+        print_counts(f"ap_greedy's slots unlike C | tested, rejected | of those, C's pose within "
+                     f"{args.reject_error:g} | tested, another choice | untested, kept", changes)
 
 
-def _count(counts: dict, cell, errors: np.ndarray, untested: np.ndarray, action: np.ndarray,
-           reject_error: float) -> None:
+def _count_changes(changes: dict, cell, frame: CFrame, picks: np.ndarray,
+                   reject_error: float) -> None:
+    """Add to ``changes[(scenario, noise)]`` the slots where ``picks`` (n,) differ from C's
+    action on ``frame``, by kind (the columns ``main`` prints)."""
+    reject = len(frame.errors)
+    changed, tested = picks != frame.rule, ~frame.untested
+    rejected = changed & tested & (picks == reject)
+    kept_error = np.take_along_axis(frame.errors, np.minimum(frame.rule, reject - 1)[None], 0)[0]
+    changes[(cell.scenario, cell.noise)] += [
+        int(changed.sum()), int(rejected.sum()), int(np.sum(rejected & (kept_error <= reject_error))),
+        int(np.sum(changed & tested & (picks != reject))), int(np.sum(changed & frame.untested))]
+
+
+def _count(counts: dict, cell, frame: CFrame, reject_error: float) -> None:
     """Add one observation's slots to ``counts[(scenario, noise)]`` (module docstring)."""
+    errors, untested, action = frame.errors, frame.untested, frame.rule
     pair = errors[:len(PAIR)]
     best, rescued = np.argmin(pair, axis=0), pair.min(axis=0) <= reject_error
     kept = np.take_along_axis(errors, np.minimum(action, len(errors) - 1)[None], 0)[0]

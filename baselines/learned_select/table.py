@@ -10,8 +10,9 @@ policy at one scenario, noise level and seed) and prints a Markdown table: rows 
 rows are the mean over all conditions and each policy's count of conditions where it is
 the best (ties count for each), to ``--digits`` decimals (default 3). Bold marks the
 best per row among the policies that see no privileged truth: ``oracle`` (the true
-poses), the ``bound_*`` columns of ``privileged_bound.py`` and the ``headroom_*`` ones of
-``headroom.py`` / ``headroom_c.py`` are upper bounds, not contenders.
+poses), the ``bound_*`` columns of ``privileged_bound.py``, the ``headroom_*`` ones of
+``headroom.py`` / ``headroom_c.py`` and the ``truth_*`` ones of ``choice_probe.py`` read
+the truth: upper bounds or heuristics, not contenders.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-PRIVILEGED = ("oracle", "bound_", "headroom")  # column names that start so read the truth
+PRIVILEGED = ("oracle", "bound_", "headroom", "truth_")  # column names that start so read the truth
 
 
 def load(folders: list[str]) -> dict[tuple[str, float], dict[str, list[float]]]:
