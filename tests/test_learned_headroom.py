@@ -100,11 +100,24 @@ def test_ap_greedy_takes_the_best_option_per_listed_slot_and_keeps_ties(scripts)
     assert nan_lowest.tolist() == [1]
 
 
-def test_the_probe_fits_a_separable_label_and_its_auc_reads_the_ranking(scripts):
+def _separable():
+    """(inputs (24, 2), labels (24,), held (24,)): the first column separates the labels."""
+    labels = np.array([False, True, False, True, True, False] * 4)
+    return np.c_[np.where(labels, 1.0, -1.0), np.arange(24.0)], labels, np.arange(24) >= 18
+
+
+def test_the_logistic_probe_fits_a_separable_label_and_auc_reads_the_ranking(scripts):
     _, choice_probe, _ = scripts
-    labels = np.array([False, True, False, True, True, False])
-    assert choice_probe.auc(labels, np.arange(6.0) * labels) == 1.0
-    assert choice_probe.auc(labels, -np.arange(6.0) * labels) == 0.0
-    inputs = np.c_[np.where(labels, 1.0, -1.0), np.arange(6.0)]
-    model = choice_probe.fit(inputs, labels)
-    assert ((choice_probe.predict(model, inputs) > 0.5) == labels).all()
+    inputs, labels, held = _separable()
+    assert choice_probe.auc(labels, np.arange(24.0) * labels) == 1.0
+    assert choice_probe.auc(labels, -np.arange(24.0) * labels) == 0.0
+    probe = choice_probe.PROBES["logistic"](inputs, labels, held)
+    assert ((probe(inputs) > 0.5) == labels).all()
+
+
+@pytest.mark.slow
+def test_the_mlp_probe_fits_a_separable_label(scripts):
+    _, choice_probe, _ = scripts
+    inputs, labels, held = _separable()
+    probe = choice_probe.PROBES["mlp"](inputs, labels, held)
+    assert ((probe(inputs) > 0.5) == labels).all()
