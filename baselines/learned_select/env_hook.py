@@ -12,6 +12,8 @@ import numpy as np
 from privileged_bound import pose_errors
 
 import roco_env.sweeps.episode as episode
+from roco_env.evaluation import EgoEvaluation, evaluate_egos
+from roco_env.fusion import suppress
 from roco_env.sweeps.cells import Cell
 
 
@@ -63,3 +65,37 @@ def choice_errors(alignments, observation: dict, info: dict) -> tuple[int, np.nd
     n = int(np.sum(observation["collab_mask"]))
     truth = info["privileged"]["true_relative_poses"][:n]
     return n, np.stack([pose_errors(np.asarray(a.corrected)[:n], truth) for a in alignments])
+
+
+def select_decisions(reported: np.ndarray, poses: np.ndarray,
+                     picks: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(corrected (n, 3), kept (n,) bool)] of each row of ``picks`` (K, n) select actions
+    (reject = C) as the env's select mode decides them: ``poses`` (C, n, 3) the choices'
+    T_{j->i} (x m, y m, yaw rad), ``reported`` (n, 3) the pose a rejected slot keeps."""
+    decisions = []
+    for pick in np.atleast_2d(picks):
+        corrected = np.asarray(reported, dtype=float).copy()
+        for index, choice in enumerate(poses):
+            corrected[pick == index] = choice[pick == index]
+        decisions.append((corrected, pick != len(poses)))
+    return decisions
+
+
+def frame_evaluations(env, index: int, decisions: list[tuple[np.ndarray, np.ndarray]]
+                      ) -> list[EgoEvaluation]:
+    """What agent ``index`` (of ``env.possible_agents``) would score on the env's current
+    frame (the one its last observation shows) with each (corrected, kept) decision of
+    its filled slots, fused and scored as ``env.step`` does (one batched call; the env is
+    not advanced)."""
+    frame, config = env._frame, env.config
+    egos = [index] * len(decisions)
+    sets = env.fusion.fuse(frame, egos, [kept for _, kept in decisions],
+                           [corrected[kept] for corrected, kept in decisions])
+    own_car_is_truth = config.evaluation.ground_truth == "opencood"
+    footprint = None if own_car_is_truth else frame.footprints[index]
+    fused = suppress(sets, config.fusion.nms_iou, [footprint] * len(decisions))
+    return evaluate_egos([frame.views[index]] * len(decisions), fused,
+                         [corrected for corrected, _ in decisions], frame.state,
+                         frame.visibility.visible, config.evaluation.x_range,
+                         config.evaluation.y_range, config.max_collaborators,
+                         config.evaluation.ground_truth, config.evaluation.z_range)
