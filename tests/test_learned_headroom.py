@@ -151,11 +151,8 @@ def test_slot_features_of_collaborators_whose_boxes_coincide_with_the_egos(scrip
     """Slot 0's boxes coincide with the ego's: all matched, distance / yaw 0, IoU 1, nothing
     new; the ego's higher scores keep its boxes in late fusion. Slot 1 adds one far box,
     which no other slot has and which late fusion keeps."""
-    sys.path.insert(0, str(FOLDER))
-    try:
-        from slot_features import NAMES, slot_features
-    finally:
-        sys.path.remove(str(FOLDER))
+    _, choice_probe, _ = scripts
+    slot_features, NAMES = choice_probe.slot_features, choice_probe.NAMES
     observation, true = _aligned_observation()
     rows = slot_features(observation, true, np.array([True, True]), np.array([0, 1]))
     got = [dict(zip(NAMES, row, strict=True)) for row in rows]
