@@ -35,7 +35,7 @@ also played (``..._tuned``) at the threshold of :func:`tuned_threshold` on the l
 training seed's slots (the deviation's summed per-frame gain; never a held-out seed).
 Writes ``results.jsonl`` (``table.py``) and prints each probe's held-out AUC and how many
 slots it deviates on, and per input set the single input column of the best held-out
-AUC, with the slot and label counts.
+AUC (and each slot feature's), with the slot and label counts.
 """
 
 from __future__ import annotations
@@ -268,8 +268,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _print_aucs(args, train: list, held_out: list, models: dict, with_slot: bool) -> None:
-    """Print the slot and label counts, each probe's held-out AUC and, per feature set,
-    the single input column of the best held-out AUC (either sign)."""
+    """Print the slot and label counts, each probe's held-out AUC, per feature set the
+    single input column of the best held-out AUC (either sign), and each slot feature's."""
     inputs = np.concatenate([x for x, _ in held_out])
     labels = np.concatenate([y for _, y in held_out])
     print(f"{args.target} slots: {sum(len(row[1]) for row in train)} training (label 1 on "
@@ -285,6 +285,10 @@ def _print_aucs(args, train: list, held_out: list, models: dict, with_slot: bool
         single = [(max(value, 1 - value), names[j]) for j in feature_columns(feature_set, width, with_slot)
                   if np.ptp(inputs[:, j]) > 0 for value in [auc(labels, inputs[:, j])]]
         print(f"best single input of {feature_set}: {max(single)[1]} {max(single)[0]:.3f}")
+    if with_slot:
+        print("held-out AUC of each slot feature (above 0.5: label 1 with larger values): "
+              + ", ".join(f"{name} {auc(labels, inputs[:, j]):.3f}" for name, j in zip(
+                  NAMES, feature_columns("slot", width, with_slot), strict=True)))
 
 
 if __name__ == "__main__":
