@@ -121,3 +121,67 @@ def test_the_mlp_probe_fits_a_separable_label(scripts):
     inputs, labels, held = _separable()
     probe = choice_probe.PROBES["mlp"](inputs, labels, held)
     assert ((probe(inputs) > 0.5) == labels).all()
+
+
+def _aligned_observation():
+    """An aligned observation (K = 4 box slots, N = 3 collaborator slots, 2 filled) whose
+    collaborators' boxes are shown moved by a wrong reported pose: with their true pose,
+    slot 0's boxes coincide with the ego's two, slot 1's too plus one far new box.
+    Returns (observation, true poses (2, 3))."""
+    from roco_env.geometry import se2_inverse, transform_boxes
+
+    own = np.array([[10.0, 0.0, 0.0, 4.5, 1.9, 1.6, 0.1], [20.0, 5.0, 0.0, 4.5, 1.9, 1.6, -1.0]])
+    new = np.array([[50.0, 50.0, 0.0, 4.5, 1.9, 1.6, 0.0]])
+    true = np.array([[5.0, 2.0, 0.3], [-3.0, 8.0, -0.5]])
+    reported = true + [[1.0, -1.0, -0.1], [0.5, 0.5, 0.05]]
+    observation = {"boxes": np.zeros((4, 7)), "scores": np.zeros(4), "box_mask": np.zeros(4),
+                   "collab_boxes": np.zeros((3, 4, 7)), "collab_scores": np.zeros((3, 4)),
+                   "collab_box_mask": np.zeros((3, 4)), "collab_rel_poses": np.zeros((3, 3))}
+    observation["boxes"][:2], observation["scores"][:2], observation["box_mask"][:2] = own, 0.9, 1
+    for slot, boxes in enumerate([own, np.r_[own, new]]):
+        local = transform_boxes(boxes, se2_inverse(true[slot]))
+        observation["collab_boxes"][slot, :len(boxes)] = transform_boxes(local, reported[slot])
+        observation["collab_scores"][slot, :len(boxes)] = 0.8
+        observation["collab_box_mask"][slot, :len(boxes)] = 1
+        observation["collab_rel_poses"][slot] = reported[slot]
+    return observation, true
+
+
+def test_slot_features_of_collaborators_whose_boxes_coincide_with_the_egos(scripts):
+    """Slot 0's boxes coincide with the ego's: all matched, distance / yaw 0, IoU 1, nothing
+    new; the ego's higher scores keep its boxes in late fusion. Slot 1 adds one far box,
+    which no other slot has and which late fusion keeps."""
+    _, choice_probe, _ = scripts
+    slot_features, NAMES = choice_probe.slot_features, choice_probe.NAMES
+    observation, true = _aligned_observation()
+    rows = slot_features(observation, true, np.array([True, True]), np.array([0, 1]))
+    got = [dict(zip(NAMES, row, strict=True)) for row in rows]
+    assert got[0] == pytest.approx({
+        "boxes": 2, "share_matched": 1, "median_matched_m": 0, "max_matched_m": 0,
+        "median_matched_yaw": 0, "mean_matched_iou": 1, "overlap_unmatched": 0, "new": 0,
+        "mean_score": 0.8, "min_score": 0.8, "mean_new_score": 0,
+        "mean_range_m": got[0]["mean_range_m"], "collaborator_m": np.hypot(5, 2),
+        "mean_others": 1, "new_alone": 0, "score_minus_ego": -0.1, "fused_from_slot": 0,
+        "fused_replacing_ego": 0, "fused_shift_m": 0, "fused_new": 0}, abs=1e-9)
+    assert got[1]["share_matched"] == pytest.approx(2 / 3)
+    assert (got[1]["new"], got[1]["new_alone"], got[1]["fused_new"]) == (1, 1, 1)
+    assert got[1]["mean_new_score"] == pytest.approx(0.8)
+    # slot 0's distance to its boxes: the ego-frame centres seen from the collaborator
+    assert got[0]["mean_range_m"] == pytest.approx(np.mean(
+        [np.hypot(10 - 5, 0 - 2), np.hypot(20 - 5, 5 - 2)]))
+    # moved by the wrong (reported) pose instead, slot 0 no longer coincides
+    shown = slot_features(observation, observation["collab_rel_poses"][:2],
+                          np.array([True, True]), np.array([0]))[0]
+    assert dict(zip(NAMES, shown, strict=True))["median_matched_m"] > 0.5
+
+
+def test_the_tuned_threshold_maximises_the_gain_of_the_samples_deviated_on(scripts):
+    _, choice_probe, _ = scripts
+    probabilities = np.array([0.9, 0.8, 0.8, 0.3, 0.1])
+    assert choice_probe.tuned_threshold(probabilities, np.array([1.0, -0.5, 2.0, -3.0, 1.0])) == 0.8
+    assert choice_probe.tuned_threshold(probabilities, -np.ones(5)) == np.inf
+    assert choice_probe.tuned_threshold(probabilities, np.array([1.0, 0, 0, 0, 0])) == 0.9
+    assert choice_probe.feature_columns("obs", 30, True).tolist() == list(range(30 - 20))
+    assert choice_probe.feature_columns("obs+slot", 30, True).tolist() == list(range(30))
+    with pytest.raises(ValueError, match="feature_set"):
+        choice_probe.feature_columns("slot", 10, False)
