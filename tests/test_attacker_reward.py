@@ -88,6 +88,8 @@ def test_a_short_run_evaluates_on_schedule_and_reports_the_best_stealthy_checkpo
     assert report["best_stealthy"]["detection_rate"] == 0.0  # identity never rejects
     assert report["best_stealthy"]["removed"] == max(r["removed"] for r in report["evaluations"])
     assert report["zero_action"]["removed"] == 0.0
+    fresh = report["best_stealthy"]["fresh_seeds"]  # the chosen checkpoint on other seeds
+    assert fresh["ap70_clean"] != report["zero_action"]["ap70_clean"]
     for name in ("curve.csv", "evaluations.csv", "curve.png", "best.zip", "attacker.zip"):
         assert (tmp_path / name).is_file()
     assert len((tmp_path / "evaluations.csv").read_text().splitlines()) == 4
