@@ -70,6 +70,7 @@ def test_the_best_stealthy_evaluation_is_the_most_removed_under_the_detection_li
 @pytest.mark.parametrize("options, message", [
     ({"eval_every": 12, "rollout": 8}, "eval_every=12 must be a multiple of rollout=8"),
     ({"reward": "twins"}, "reward"),
+    ({"log_std_init": 3.0}, "log_std_init"),
 ])
 def test_bad_evaluation_options_are_refused_naming_the_field(options, message):
     with pytest.raises(ConfigError, match=message):

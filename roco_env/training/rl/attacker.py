@@ -99,6 +99,10 @@ class AttackerTrainConfig:
     eval_every: int = spec(0, low=0, doc="env steps between held-out evaluations of the "
                            "greedy policy, a multiple of rollout (0: before and after "
                            "training only)")
+    log_std_init: float = spec(0.0, low=-5.0, high=2.0,
+                               doc="PPO's initial log standard deviation of its Gaussian "
+                               "actions, in the action's [-1, 1] units (SB3's log_std_init; "
+                               "0: std 1, the whole budget explored from the start)")
     seed: int = spec(0, low=0, high=2**31 - 1, doc="training seed (weights, episodes)")
 
     def __post_init__(self) -> None:
@@ -247,7 +251,8 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
     model = PPO("MlpPolicy", env, n_steps=options.rollout,
                 batch_size=min(64, options.rollout), gamma=0.9, ent_coef=0.0,
                 learning_rate=3e-4, seed=options.seed, device="cpu",
-                policy_kwargs={"net_arch": [64, 64]}, verbose=0)
+                policy_kwargs={"net_arch": [64, 64], "log_std_init": options.log_std_init},
+                verbose=0)
     out.mkdir(parents=True, exist_ok=True)
     seeds = range(EVAL_SEED, EVAL_SEED + options.eval_episodes)
     held_out = make(EVAL_SEED, False)  # plays each clean twin once for every evaluation
