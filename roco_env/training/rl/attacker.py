@@ -238,6 +238,7 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
 
     def make(seed: int, twin_reward: bool) -> AttackerEnv:
         return AttackerEnv(options.scenario, options.victims, options.attack(), options.noise,
@@ -268,6 +269,8 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
         scores = evaluate(held_out, lambda o: model.predict(o, deterministic=True)[0], seeds)
         evaluations.append({"timesteps": timesteps, **scores,
                             "wall_s": round(time.perf_counter() - started, 1)})
+        bar.set_postfix(removed=f"{scores['removed']:.1f}",
+                        detected=f"{scores['detection_rate']:.0%}")
         if best_stealthy(evaluations) is evaluations[-1]:
             model.save(out / "best.zip")
             best_weights.update(copy.deepcopy(model.policy.state_dict()))
@@ -286,6 +289,7 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
                 checkpoint(self.num_timesteps)
 
         def _on_step(self) -> bool:
+            bar.update(1)
             self.episode += float(self.locals["rewards"][0])
             if self.locals["dones"][0]:
                 returns.append(self.episode)
@@ -298,9 +302,11 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
                           "return_sd": float(np.std(recent)),
                           "wall_s": round(time.perf_counter() - started, 1)})
 
-    model.learn(options.timesteps, callback=Curve())
-    if evaluations[-1]["timesteps"] != model.num_timesteps:
-        checkpoint(model.num_timesteps)
+    # progress on stderr: env steps, and the last held-out evaluation's AP removed / detection
+    with tqdm(total=options.timesteps, desc="attacker", unit="step") as bar:
+        model.learn(options.timesteps, callback=Curve())
+        if evaluations[-1]["timesteps"] != model.num_timesteps:
+            checkpoint(model.num_timesteps)
     model.save(out / "attacker.zip")
     zero = evaluate(held_out, lambda o: np.zeros(env.action_space.shape, np.float32), seeds)
     best = best_stealthy(evaluations)
