@@ -12,6 +12,7 @@ import pytest
 from conftest import assert_equal_to_rounding
 
 from roco_env.metrics import APAccumulator
+from roco_env.policies.reject_untested import GAP_M
 from roco_env.sweeps.cells import build_grid
 
 FOLDER = Path(__file__).resolve().parents[1] / "baselines" / "learned_select"
@@ -72,7 +73,9 @@ def test_each_variant_changes_only_its_kind_of_slot(scripts):
                        [3.0, 0.3, 0.8, 0.1]])
     untested = np.array([True, False, False, False])
     gap = np.array([4.0, 0.1, 0.6, 0.2])
-    rule = headroom_c.rule_c(untested, gap, 3)
+    choice_diagnostics = np.zeros((4, 3, GAP_M + 1))
+    choice_diagnostics[:, 1, GAP_M] = gap
+    rule = headroom_c.rule_c(untested, choice_diagnostics, 3)
     assert rule.tolist() == [3, 1, 0, 1]
 
     def decide(variant):

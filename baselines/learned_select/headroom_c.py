@@ -73,7 +73,7 @@ from env_hook import (
 from privileged_bound import REJECT_ERROR, grid_parser
 
 from roco_env.metrics import APAccumulator
-from roco_env.policies.reject_untested import STATISTIC, untested_slots
+from roco_env.policies.reject_untested import STATISTIC, tested_choice, untested_slots
 from roco_env.policies.spec import parse_policy_spec
 from roco_env.sweeps.cells import build_grid
 
@@ -88,11 +88,13 @@ GREEDY = {"ap_greedy_pair": (len(PAIR), False), "ap_greedy": (None, False),
 WITHIN_M = 0.5  # C's tested_within_m
 
 
-def rule_c(untested: np.ndarray, gap: np.ndarray, reject: int) -> np.ndarray:
-    """(n,) C's select actions: reject (index ``reject``) the ``untested`` (n,) slots,
-    roco_fallback (1) where ``gap`` (n,), m between the pair's poses, is <= 0.5 m, else
+def rule_c(untested: np.ndarray, choice_diagnostics: np.ndarray, reject: int) -> np.ndarray:
+    """(n,) C's select actions: reject (index ``reject``) the ``untested`` (n,) slots, on
+    the tested ones reject_untested's own :func:`tested_choice` over the (n, C, D)
+    ``choice_diagnostics``: roco_fallback (1) where its ``gap_m`` is <= 0.5 m, else
     roco_antialias (0)."""
-    return np.where(untested, reject, np.where(gap <= WITHIN_M, 1, 0)).astype(np.int64)
+    return np.where(untested, reject,
+                    tested_choice(choice_diagnostics, 0, 1, WITHIN_M)).astype(np.int64)
 
 
 def decide(variant: str, rule: np.ndarray, errors: np.ndarray, untested: np.ndarray,
@@ -176,7 +178,7 @@ def play_c(cell, choices: list[str], on_frame: Callable[[CFrame], None]) -> dict
                               for a in alignments])  # (C, n, 3)
             gap = np.hypot(*(poses[1, :, :2] - poses[0, :, :2]).T)
             untested = untested_slots(observation["diagnostics"][:n, STATISTIC], mask[:n])
-            rule = rule_c(untested, gap, len(alignments))
+            rule = rule_c(untested, observation["choice_diagnostics"][:n], len(alignments))
             reported = info["privileged"]["reported_relative_poses"][:n]
             if info.get("evaluated", True):
                 on_frame(CFrame(observation, errors, poses, gap, untested, rule,
