@@ -393,6 +393,46 @@ def test_claim_evidence_counts_a_claim_only_in_clear_view():
         PairEvidence(0, 0, 0, 1, 1)  # in view, empty
     assert claim_evidence(np.array([30.0, 0.0]), witness, np.zeros(2), *args) == \
         PairEvidence(0, 0, 0, 0, 0)  # behind a car
+    assert claim_evidence(np.array([10.0, 5.0]), witness, np.zeros(2), *args, blind_m=12.0) \
+        == PairEvidence(0, 0, 0, 0, 0)  # where the witness's sensor sees no car
+
+
+def _lone_witness_verdict(ego: str, claimed: tuple[float, float], extra: np.ndarray,
+                          **params) -> int:
+    """Whether the ego (id ``ego``, at the origin), the claim's only witness, rejects
+    vehicle cav_2 after four steps: its pose claims ``claimed`` (m, ego frame), where nobody
+    has a car, and its boxes agree with everyone's (a consistent spoof). The other
+    collaborator, an honest vehicle 55 m off, is kept and witnesses nothing (beyond
+    ``claim_view_m``). Everybody sees SCENE's cars and ``extra`` (k, 7)."""
+    truth = np.concatenate([cars(*SCENE), extra])
+    obs = observation(truth, [(truth, np.array([*claimed, 0.0])),
+                              (truth, np.array([-45.0, 32.0, 0.0]))])
+    defend = Defend(use_correction=False, **params)
+    for _ in range(4):
+        action = defend(obs, {"agent": ego, "collaborators": ["cav_2", "cav_1"]})
+    assert action[1] == 0
+    return int(action[0])
+
+
+def test_an_rsu_witnesses_a_claimed_place_over_the_cars_beyond_the_foot_of_its_mast():
+    """An RSU ego sees the claimed place empty (``use_rsu_witness``; off: nobody witnesses
+    it); not within ``rsu_blind_m`` (8 m) of its mast; a car on the sight line does not
+    block its view from the mast, a truck (3.5 m tall, ``rsu_over_m`` 2.5) does; for a
+    vehicle ego the car blocks. A vehicle ego witnesses a claimed place 49 m off with
+    ``claim_view_m`` 50, not with 40."""
+    car = cars((11.25, 3.0))  # on the sight line from the origin to (15, 4)
+    truck = np.array([[11.25, 3.0, 1.75, 6.0, 2.5, 3.5, 0.0]])
+    for ego, claimed, extra, params, verdict in (
+            ("rsu_0", (15.0, 4.0), cars(), {}, 1),
+            ("rsu_0", (15.0, 4.0), cars(), {"use_rsu_witness": False}, 0),
+            ("rsu_0", (6.0, 4.0), cars(), {}, 0),
+            ("rsu_0", (15.0, 4.0), car, {}, 1),
+            ("rsu_0", (15.0, 4.0), truck, {}, 0),
+            ("cav_0", (15.0, 4.0), car, {}, 0),
+            ("cav_0", (-45.0, -20.0), cars(), {}, 1),
+            ("cav_0", (-45.0, -20.0), cars(), {"claim_view_m": 40.0}, 0)):
+        assert _lone_witness_verdict(ego, claimed, extra, **params) == verdict, \
+            (ego, claimed, extra.tolist(), params)
 
 
 def test_a_strong_correction_fails_at_once_after_a_quiet_window():

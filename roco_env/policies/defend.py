@@ -51,12 +51,17 @@ Six tests, each a statistical test at level ``alpha``, and a re-test:
   is its own car, which it does not detect: never unconfirmed by it.
 * **Claimed position**: a vehicle collaborator's (id starting with ``car_prefix``; an RSU
   has no car) aligned pose puts its own car at a place in the ego frame; every other
-  vehicle source (the ego included when it is one; an RSU is no witness) with that place
+  vehicle source (the ego included when it is one; an RSU: below) with that place
   in its clear view should have a box within ``claim_m`` m of it. Each such (claim,
   witness) is a trial of the pair's evidence, its misses tested against
   ``claim_miss_rate`` (one-sided binomial, a third test of the same Bonferroni,
   window and ``recent`` rule). Forged boxes cannot move the liar's real car: a spoofed
-  pose the aligner keeps leaves its claimed place empty.
+  pose the aligner keeps leaves its claimed place empty. A claim's clear view reaches
+  ``claim_view_m`` (the rate allows for the misses of far witnesses). With
+  ``use_rsu_witness`` an RSU (ego or collaborator) witnesses too, beyond ``rsu_blind_m``
+  (the foot of its mast, below its LiDAR's lowest beam), and only boxes at least
+  ``rsu_over_m`` tall (trucks, buses) block its view: from its mast it sees a car's roof
+  over the cars.
 * **Relative share of unconfirmed boxes**: a collaborator's boxes unconfirmed by the ego
   and the others, over the window, against ``relative_margin`` times the pooled share of
   the other collaborators' boxes (judged by all but it): a one-sided Wald z-test, a
@@ -119,6 +124,7 @@ __all__ = ["BoxStatus", "Defend", "DefendParams", "PairEvidence", "box_status", 
 
 EGO = "__ego__"  # the ego's key among the sources
 _SHIFT, _TURN, _DISTANCE = 4, 5, 6  # columns of the aligned observation's diagnostics
+_OCCLUDER = [0, 1, 5]  # a box's columns that shade a view: centre x, y and height (m)
 
 
 @dataclass(frozen=True)
@@ -243,13 +249,14 @@ def pair_evidence(boxes: np.ndarray, other: np.ndarray, other_origin: np.ndarray
 
 def claim_evidence(claimed: np.ndarray, witness: np.ndarray, witness_origin: np.ndarray,
                    occluders: np.ndarray, claim_m: float, view_m: float,
-                   occlusion_m: float) -> PairEvidence:
+                   occlusion_m: float, blind_m: float = 0.0) -> PairEvidence:
     """What a witness's boxes ``witness`` (M, 7), seen from ``witness_origin`` (2,), say
     about the place ``claimed`` (2,) where a vehicle collaborator's pose puts its own car
-    (one frame, metres): nothing when the place is out of the witness's clear view, else
-    one claim, missed when no witness box centre lies within ``claim_m`` of it."""
+    (one frame, metres): nothing when the place is out of the witness's clear view (or
+    within ``blind_m`` of its origin, where its sensor sees no car), else one claim,
+    missed when no witness box centre lies within ``claim_m`` of it."""
     if not clear_view(witness_origin, claimed[None, :], occluders, view_m, occlusion_m,
-                      claim_m)[0]:
+                      claim_m, blind_m)[0]:
         return NO_EVIDENCE
     there = witness.shape[0] > 0 and bool(
         np.min(np.hypot(*(witness[:, :2] - claimed).T)) < claim_m)
@@ -334,9 +341,22 @@ class DefendParams:
     relative_margin: float = spec(1.2, low=1.0, doc="the relative test rejects a share of "
                                   "unconfirmed boxes above this many times the others'")
     claim_m: float = _positive(2.0, "a witness box this near a claimed place is the car, m")
+    claim_view_m: float = _positive(50.0, "a witness's clear view of a claimed place reaches "
+                                    "this far (m): a car seen in at least 1 - claim_miss_rate "
+                                    "of cases")
     claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
                                          "clear view where an honest vehicle's car is not "
                                          "seen")
+    use_rsu_witness: bool = spec(True, doc="RSUs (the ego or a collaborator) witness the "
+                                 "claimed places of vehicles beyond rsu_blind_m (off: only "
+                                 "vehicles witness)")
+    rsu_blind_m: float = spec(8.0, low=0.0, doc="an RSU's mast-mounted LiDAR sees no car "
+                              "nearer than this (m): no claimed place within it is witnessed "
+                              "by the RSU (5.5 m high, lowest beam 24.8 deg down: a car's roof "
+                              "enters it at about 8.7 m)")
+    rsu_over_m: float = _positive(2.5, "an RSU's LiDAR, on its mast, sees a car's roof over "
+                                  "boxes lower than this (m): only taller ones (trucks, "
+                                  "buses) block its view of a claimed place")
     use_repose: bool = spec(True, doc="before the consistency test rejects a collaborator, "
                             "re-test it under its reported pose and a re-fit of its boxes "
                             "against the ego's and the kept collaborators' (an honest one the "
@@ -368,7 +388,7 @@ class Defend:
         self.sigma_r = np.radians(p.sigma_r)
         self.bias_r = np.radians(p.bias_r)
         self._geometry = (p.match_m, p.view_m, p.occlusion_m)  # pair_evidence's thresholds
-        self._claim = (p.claim_m, p.view_m, p.occlusion_m)  # claim_evidence's
+        self._claim = (p.claim_m, p.claim_view_m, p.occlusion_m)  # claim_evidence's
         self.use = {"correction": p.use_correction, "consistency": p.use_consistency,
                     "consensus": p.use_consensus, "claim": p.use_claim,
                     "relative": p.use_relative, "orphan": p.use_orphan}
@@ -481,10 +501,10 @@ class Defend:
                    names: list[str], ego: Hashable) -> set[int]:
         """The filled slots kept by the consistency test (and the consensus, when on)."""
         sources = _sources(observation, filled)
-        occluders = np.concatenate([boxes[:, :2] for boxes, _ in sources.values()])
+        occluders = np.concatenate([boxes[:, _OCCLUDER] for boxes, _ in sources.values()])
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
         # vehicles have a car of their own, which they do not detect; they claim a place
-        # and witness others' claims (an RSU's view misses cars)
+        # and witness others' claims (so do RSUs with use_rsu_witness, see _judge)
         vehicles = {key for key, name in ids.items()
                     if str(ego if key == EGO else name).startswith(self.params.car_prefix)}
         cars = vehicles if self.use["claim"] else set()
@@ -510,8 +530,14 @@ class Defend:
         """This step's evidence and per-box status of the pair of sources ``a``, ``b``
         (keys of ``sources``: (boxes, origin), ego frame), both ways: (judged, judge) ->
         (what the judge's boxes say about the judged's boxes, and about its claimed place
-        when both are in ``cars`` and the judged is no ego; the :func:`box_status`)."""
+        when the judged is in ``cars`` and no ego and the judge is in ``cars`` too or, with
+        ``use_rsu_witness``, an RSU; the :func:`box_status`). ``occluders`` (M, 3): every
+        box's centre and height (m)."""
         (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
+        # an RSU's LiDAR looks down over the cars: only boxes as tall as rsu_over_m block
+        # its view of a car's roof (and it sees no car at its own mast's foot)
+        over = occluders[occluders[:, 2] >= self.params.rsu_over_m, :2]
+        occluders = occluders[:, :2]
         distance = centre_distances(boxes_a, boxes_b)
         status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
                                      distance, blind[b]),
@@ -520,9 +546,11 @@ class Defend:
         judged = {}
         for (one, other), seen in status.items():
             evidence = seen.evidence(self.params.orphan_m)
-            if one in cars and other in cars and one != EGO:
+            if one in cars and one != EGO and (other in cars or self.params.use_rsu_witness):
+                rsu = other not in cars  # with claims on, the sources that are no vehicle
                 evidence += claim_evidence(sources[one][1], sources[other][0],
-                                           sources[other][1], occluders, *self._claim)
+                                           sources[other][1], over if rsu else occluders,
+                                           *self._claim, self.params.rsu_blind_m if rsu else 0.0)
             judged[one, other] = (evidence, seen)
         return judged
 
@@ -554,7 +582,7 @@ class Defend:
                 if not self._plausible(pose, reported[slot]):
                     continue
                 trial = {**sources, slot: (boxes, pose[:2])}
-                occluders = np.concatenate([placed[:, :2] for placed, _ in trial.values()])
+                occluders = np.concatenate([placed[:, _OCCLUDER] for placed, _ in trial.values()])
                 judged = {}
                 for other in trial:
                     if other != slot:
