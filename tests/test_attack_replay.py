@@ -47,3 +47,22 @@ def test_bad_seeds_are_refused_naming_the_option(seeds, capsys):
     with pytest.raises(SystemExit):
         replay_defend.main(["--seeds", seeds, "--steps", "1"])
     assert "--seeds" in capsys.readouterr().err
+
+
+def test_decisions_name_each_slot_and_details_list_the_misses(capsys):
+    """The decisions behind ``replay``: per honest ego's step and collaborator, whether it
+    is the attacker (cav_1 on seed 0), rejected, and why; with every test off, ``--details``
+    lists each of the 4 honest egos' missed attacker slots of the one step played."""
+    calls = replay_defend.record("urban_intersection", "spoof 10 m", 0, 1)
+    found = replay_defend.decisions(calls, {})
+    assert len(found) == 16 and {d.step for d in found} == {0}
+    liars = [d for d in found if d.attacker]
+    assert {d.collaborator for d in liars} == {"cav_1"} and len(liars) == 4
+    assert all(d.rejected and d.reason for d in liars)
+    assert not any(d.rejected or d.reason for d in found if not d.attacker)
+    replay_defend.main(["--seeds", "0", "--steps", "1", "--scenes", "urban_intersection",
+                        "--attacks", "spoof 10 m", "--details", "--variant",
+                        "use_correction=false,use_consistency=false"])
+    missed = [line for line in capsys.readouterr().out.splitlines() if "missed" in line]
+    assert len(missed) == 4 and all("seed 0 step 0" in line and "cav_1" in line
+                                    for line in missed)

@@ -1,6 +1,7 @@
 """Replay the attack protocol's episodes through variants of ``defend`` (docs/attacks.md).
 
     python baselines/attack_protocol/replay_defend.py --seeds 2-7                # as shipped
+    python baselines/attack_protocol/replay_defend.py --seeds 8-11 --attacks "erase 50%" --details
     python baselines/attack_protocol/replay_defend.py --seeds 2-7 --variant "" \\
         --variant "orphan_rate=0.03,sticky=0,own_car_m=0" --attacks "ghosts 5" none
 
@@ -10,7 +11,10 @@ modes and the all-keep action (nobody rejected), records every agent's aligned o
 and info, and hands them, step by step, to a fresh ``Defend`` per variant and agent (a
 variant is defend's parameters as ``key=value,...``; "" = the defaults). Per variant it
 prints, pooled over the seeds, each cell's detection (share of (honest ego, step, attacker
-slot) rejected) and honest rejections (share of (honest ego, step, honest slot)).
+slot) rejected) and honest rejections (share of (honest ego, step, honest slot)), the
+latter with its spread over the seeds (mean, sd and largest of the per-seed shares);
+``--details`` lists every attacker slot missed and every honest collaborator rejected
+(seed, step, ego, collaborator, and the test that rejected it).
 
 What a replay is not: the protocol's episodes are played with defend's own actions, and a
 rejection makes the gate mode solve the kept collaborators' poses again without the
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,21 +60,46 @@ def record(scene: str, attack: str, seed: int, steps: int) -> list[dict[str, tup
     return calls
 
 
-def replay(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
-           ) -> tuple[list[int], list[int]]:
-    """defend's decisions (1 = rejected) over one recorded episode, a fresh ``Defend`` per
-    agent: (per attacker slot of an honest ego's step, per honest slot)."""
+class Decision(NamedTuple):
+    """defend's decision on one collaborator of an honest ego at one step: ``rejected``
+    (1) or kept (0), and why (``Defend.last_reasons``: "" when kept)."""
+
+    step: int
+    ego: str
+    collaborator: str
+    attacker: bool
+    rejected: int
+    reason: str
+
+
+def decisions(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
+              ) -> list[Decision]:
+    """defend's decision on every collaborator of every honest ego's step of one recorded
+    episode, a fresh ``Defend`` per agent (the attackers' own calls are played, not
+    returned)."""
     policies: dict[str, Defend] = {}
-    attackers, honest = [], []
-    for step in calls:
+    found = []
+    for number, step in enumerate(calls):
         for agent, (observation, info) in step.items():
-            action = policies.setdefault(agent, Defend(**params))(observation, info)
+            policy = policies.setdefault(agent, Defend(**params))
+            action = policy(observation, info)
             if info["privileged"]["attacker"]:
                 continue
             liars = np.asarray(info["privileged"]["collab_attackers"])
             for slot in np.flatnonzero(np.asarray(observation["collab_mask"]) > 0):
-                (attackers if liars[slot] else honest).append(int(action[slot]))
-    return attackers, honest
+                found.append(Decision(number, agent, str(info["collaborators"][slot]),
+                                      bool(liars[slot]), int(action[slot]),
+                                      policy.last_reasons[slot]))
+    return found
+
+
+def replay(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
+           ) -> tuple[list[int], list[int]]:
+    """defend's decisions (1 = rejected) over one recorded episode, a fresh ``Defend`` per
+    agent: (per attacker slot of an honest ego's step, per honest slot)."""
+    found = decisions(calls, params)
+    return ([entry.rejected for entry in found if entry.attacker],
+            [entry.rejected for entry in found if not entry.attacker])
 
 
 def parse_variant(text: str) -> dict[str, object]:
@@ -109,31 +139,66 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--attacks", nargs="+", default=list(ATTACKS), choices=list(ATTACKS))
     parser.add_argument("--variant", action="append", default=None,
                         help="defend's parameters, key=value,... (repeatable; default: '')")
+    parser.add_argument("--details", action="store_true",
+                        help="also list every missed attacker slot and every honest "
+                        "collaborator rejected (seed, step, ego, collaborator, reason)")
     args = parser.parse_args(argv)
     variants = {text: parse_variant(text) for text in (args.variant or [""])}
     for params in variants.values():
         Defend(**params)  # a bad parameter fails before anything is played
-    pooled = {(text, scene, attack): ([], []) for text in variants for scene in args.scenes
-              for attack in args.attacks}
+    # (variant, scene, attack) -> seed -> that episode's decisions
+    played: dict[tuple[str, str, str], dict[int, list[Decision]]] = {}
     for scene in args.scenes:
         for attack in args.attacks:
             for seed in args.seeds:
                 calls = record(scene, attack, seed, args.steps)
                 for text, params in variants.items():
-                    found, wrong = replay(calls, params)
-                    pooled[text, scene, attack][0].extend(found)
-                    pooled[text, scene, attack][1].extend(wrong)
+                    played.setdefault((text, scene, attack), {})[seed] = decisions(calls,
+                                                                                   params)
     seeds = ",".join(str(seed) for seed in args.seeds)
-    print(f"seeds {seeds}, {args.steps} steps: detected % / honest rejected %")
+    print(f"seeds {seeds}, {args.steps} steps: detected % / honest rejected %"
+          + (" (per seed: mean, sd, max)" if len(args.seeds) > 1 else ""))
     for text in variants:
         print(f"variant {text or '(defaults)'!r}")
         for scene in args.scenes:
             cells = []
             for attack in args.attacks:
-                found, wrong = pooled[text, scene, attack]
+                episodes = played[text, scene, attack]
+                found = [d.rejected for episode in episodes.values() for d in episode
+                         if d.attacker]
+                wrong = [d.rejected for episode in episodes.values() for d in episode
+                         if not d.attacker]
                 detected = f"{100 * np.mean(found):.0f}" if found else "-"
-                cells.append(f"{attack}: {detected} / {100 * np.mean(wrong):.1f}")
+                cells.append(f"{attack}: {detected} / {100 * np.mean(wrong):.1f}"
+                             + _spread(episodes))
             print(f"  {scene}: " + " | ".join(cells))
+        if args.details:
+            for (name, scene, attack), episodes in played.items():
+                if name == text:
+                    _print_details(scene, attack, episodes)
+
+
+def _spread(episodes: Mapping[int, Sequence[Decision]]) -> str:
+    """The share of honest slots rejected per episode (seed), as " (mean, sd, max)" in
+    per cent; "" for a single episode."""
+    if len(episodes) < 2:
+        return ""
+    shares = 100 * np.array([np.mean([d.rejected for d in episode if not d.attacker])
+                             for episode in episodes.values()])
+    return f" ({shares.mean():.1f}, {shares.std(ddof=1):.1f}, {shares.max():.1f})"
+
+
+def _print_details(scene: str, attack: str, episodes: Mapping[int, Sequence[Decision]]
+                   ) -> None:
+    """One line per missed attacker slot and per honest collaborator rejected."""
+    for seed, episode in episodes.items():
+        for d in episode:
+            if d.attacker and not d.rejected:
+                print(f"    {scene} | {attack} | seed {seed} step {d.step}: {d.ego} missed "
+                      f"the attacker {d.collaborator}")
+            elif not d.attacker and d.rejected:
+                print(f"    {scene} | {attack} | seed {seed} step {d.step}: {d.ego} rejected "
+                      f"the honest {d.collaborator} ({d.reason})")
 
 
 if __name__ == "__main__":
