@@ -181,15 +181,16 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     """``sticky``: where the window's unconfirmed boxes alone have a p-value below it, the
     recent rule is waived. A collaborator withholding every other car for five steps (the
     ego's boxes unconfirmed by it; window p-value 1e-8) stays rejected on the first clean
-    step (5e-6 < 1e-4, the default) and is released on the next (3e-4: the clean steps
-    dilute the window); with ``sticky=0`` it is released at once. A collaborator whose
+    step (5e-6 < 1e-3, the default) and the next (3e-4), and is released on the one after
+    (the clean steps dilute the window); with ``sticky=1e-4`` a step sooner, with
+    ``sticky=0`` at once. A collaborator whose
     boxes sit 2.5 m off along x for five steps (conflicts: an aligner that leaves an
     honest one off) is released at once whatever ``sticky`` says; so is one 1.95 m off
     sideways (no overlap: every box unconfirmed, but each with a box of the judge within
     ``orphan_m``, 2 m: not lone), and one 2.2 m off sideways with ``orphan_m`` 3 (with
     the default 2 m such boxes are lone, and hold). Honest random misses well above
     ``miss_rate`` (20 % per car and source) fail the window at times; ``sticky`` holds
-    them a step or two at most, the window alone (``sticky=1``) many more (the witnessed
+    them two steps per collaborator at most, the window alone (``sticky=1``) many more (the witnessed
     orphan test off: at 20 % a car is missed by two judges in 4 % of cases, eighty times
     ``witnessed_rate``, and it is no subject of this test)."""
     scene = cars(*SCENE)
@@ -201,7 +202,8 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
                            info(1))[0]) for step in range(10)]
 
     withheld = cars(*SCENE[::2])
-    assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
+    assert verdicts(withheld) == [0, 1, 1, 1, 1, 1, 1, 0, 0, 0]
+    assert verdicts(withheld, sticky=1e-4) == [0, 1, 1, 1, 1, 1, 0, 0, 0, 0]
     assert verdicts(withheld, sticky=0.0) == [0, 1, 1, 1, 1, 0, 0, 0, 0, 0]
     off = cars(*[(x + 2.5, y) for x, y in SCENE])
     assert verdicts(off, use_repose=False) == [1] * 5 + [0] * 5
@@ -218,7 +220,7 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
         rng = np.random.default_rng(11)
         defend = Defend(use_correction=False, sticky=sticky, use_witnessed=False)
         return sum(int(defend(*_orphan_scene(rng, [], miss=0.2)).sum()) for _ in range(20))
-    assert rejected(1e-4) <= rejected(0.0) + 2 and rejected(1.0) >= rejected(0.0) + 20
+    assert rejected(1e-3) <= rejected(0.0) + 2 * 3 and rejected(1.0) >= rejected(0.0) + 20
 
 
 def test_a_correction_beyond_the_assumed_noise_is_rejected_and_one_within_kept():

@@ -42,7 +42,7 @@ Six tests, each a statistical test at level ``alpha``, and a re-test:
   have a p-value of at most ``recent`` (0.5): a disagreement the aligner has since
   resolved, an honest collaborator misaligned on one step, no longer counts. Evidence
   of boxes nobody has holds, though: where the window's lone unconfirmed boxes (no box
-  of the judge within ``orphan_m``) alone have a p-value below ``sticky`` (1e-4), in
+  of the judge within ``orphan_m``) alone have a p-value below ``sticky`` (1e-3), in
   this test and the relative test below (the orphan test: its window), the collaborator
   fails whatever this step says, until clean steps dilute its window (conflicts and
   missed claims never hold, nor boxes a judge places a little off: an honest
@@ -301,7 +301,7 @@ class DefendParams:
     strong: float = spec(0.001, low=0.0, high=1.0, doc="a correction whose own p-value "
                          "(this step alone) is below this fails at once, however quiet "
                          "the window (0: the window decides alone)")
-    sticky: float = spec(1e-4, low=0.0, high=1.0, doc="where the window's evidence of "
+    sticky: float = spec(1e-3, low=0.0, high=1.0, doc="where the window's evidence of "
                          "boxes nobody has (unconfirmed with no box of the judge within "
                          "orphan_m: the unconfirmed test's, the relative test's; the orphan "
                          "test's window) has a p-value (Bonferroni included) below this, the "
