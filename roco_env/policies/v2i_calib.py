@@ -32,8 +32,9 @@ scipy's Kuhn-Munkres) or ``"sinkhorn"`` (V2I-Calib++'s optimal transport: entrop
 on A / ``sinkhorn_epsilon`` with a dustbin row and column scored ``min_affinity``, as
 in SuperGlue, ``sinkhorn_iterations`` log-domain iterations; pairs that are each
 other's best transport partner are kept). Extrinsic estimate: the affinity-weighted SVD
-(Kabsch) fit on the associated box centres, then the best single-pair transforms as
-alternatives; the shared refinement (re-association + SVD, robust least squares) and
+(Kabsch) fit on the associated box centres, then as alternatives the best distinct
+single-pair transforms of every anchor pair with at least ``min_affinity`` (associated
+or not); the shared refinement (re-association + SVD, robust least squares) and
 do-no-harm rule of :mod:`roco_env.policies.prior_free` stand in for the papers'
 optimisation stage. The papers are V2I (vehicle to roadside unit); nothing here
 assumes which agent is which.
@@ -212,14 +213,19 @@ def v2i_calib_search(ego_boxes: np.ndarray, p: V2ICalibParams) -> Proposer:
         if rows.size == 0:
             return np.zeros((0, 3))
         own = own_boxes[:, [0, 1, 6]]
-        turned = own[cols].copy()
-        turned[:, 2] += flip[rows, cols]
-        single = se2_compose(ego[rows], se2_inverse(turned))
-        weight = affinity[rows, cols]
-        top = distinct_top(single, weight, p.max_candidates, p)
+        # the alternatives come from every anchor pair the affinity admits, not only the
+        # associated ones: in a periodic layout pairs one period apart tie exactly, the
+        # association keeps one of them by index, and the rival shift must still be heard
+        # by the do-no-harm rule (which pair wins a tie must not decide the outcome)
+        pair_rows, pair_cols = np.nonzero(affinity >= p.min_affinity)
+        turned = own[pair_cols].copy()
+        turned[:, 2] += flip[pair_rows, pair_cols]
+        single = se2_compose(ego[pair_rows], se2_inverse(turned))
+        top = distinct_top(single, affinity[pair_rows, pair_cols], p.max_candidates, p)
         candidates = single[top]
         if rows.size >= 2:
-            candidates = np.vstack([fit_se2(own[cols, :2], ego[rows, :2], weight), candidates])
+            fit = fit_se2(own[cols, :2], ego[rows, :2], affinity[rows, cols])
+            candidates = np.vstack([fit, candidates])
         return candidates
 
     return propose
