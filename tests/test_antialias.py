@@ -266,21 +266,46 @@ FOUND_JAM = {
 }
 
 
-@pytest.mark.parametrize(("params", "seed", "kept_as"), [
-    (FOUND_RSU_PAIR, 0, "RoCo's correction is worth only"),
-    (FOUND_JAM, 1, "the determined part is worth only"),
-])
-def test_thin_fit_its_pairs_do_not_support_is_not_applied(tmp_path, params, seed, kept_as):
-    """On the found RSU pair a trusted pick's correction, on the found jam an ambiguous
-    collaborator's determined part, that its thin fit's pairs do not support by min_margin
-    is not applied (the slot's reason says so) and no pose is made worse (2.08% and 1.04%
-    of the poses without the rule)."""
+def test_a_thin_fit_its_pairs_do_not_support_is_not_applied_on_the_found_rsu_pair(tmp_path):
+    """On the found RSU pair a trusted pick's correction that its thin fit's pairs do not
+    support by min_margin is not applied (the slot's reason says so) and no pose is made
+    worse (2.08% of the poses without the rule)."""
     from roco_env.metrics import harm_share
 
-    records, samples = slot_records(tmp_path, params, seed)
-    kept = [r for _, _, r in records if kept_as in r]
+    records, samples = slot_records(tmp_path, FOUND_RSU_PAIR, 0)
+    kept = [r for _, _, r in records if "RoCo's correction is worth only" in r]
     assert kept and all("information (< 20)" in r for r in kept)
     assert harm_share(samples["before"], samples["after"]) == 0.0
+
+
+def test_the_found_jam_makes_no_pose_worse(tmp_path):
+    """The found jam (1.04% of its poses made worse without the thin-fit rule) makes none
+    worse. Whether its borderline episode reaches the rule at all depends on the CPU's
+    rounding (a found scene is borderline by construction: a Wald statistic of 11.33
+    against 11.34 on one machine); the constructed thin row below pins the rule."""
+    from roco_env.metrics import harm_share
+
+    _, samples = slot_records(tmp_path, FOUND_JAM, 1)
+    assert harm_share(samples["before"], samples["after"]) == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_thin_determined_part_its_pairs_do_not_support_is_not_applied(seed):
+    """One row of identical cars, the collaborator 50 m from the ego with 30 m sensors (the
+    two share the 10 m between them), reported 0.7 m across the row and 0.8 deg off: the
+    row leaves the along-row shift undetermined, and the determined part (across, yaw) is
+    significant but its few, far pairs pin the origin thinly and support the move by less
+    than min_margin (11.2 and 14.5), so the reported pose is kept in full."""
+    rng = np.random.default_rng(seed)
+    objects = parking_rows(1, 40, origin=(-40.0, 0.0), rng=rng)
+    agents = np.array([[0.0, 3.5, 0.0], [50.0, 3.5, 0.0]])
+    scene = make_scene(objects, agents, [pose_error(0.7, 0.8, np.pi / 2)], sensor_range=30.0,
+                       noise=(0.05, 0.05, 0.01), rng=rng)
+    result, decisions = antialias_align(*scene.args())
+    reason = result.slot_reasons[0]
+    assert "the determined part is worth only" in reason and "information (< 20)" in reason
+    assert decisions[0].ambiguity.determined == 2 and not result.applied[0]
+    np.testing.assert_allclose(result.corrected, scene.reported)
 
 
 def test_correction_of_a_fit_that_is_not_thin_is_applied():
