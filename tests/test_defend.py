@@ -190,9 +190,10 @@ def test_withheld_boxes_hold_a_collaborator_past_the_recent_rule_and_conflicts_d
     ``orphan_m``, 2 m: not lone), and one 2.2 m off sideways with ``orphan_m`` 3 (with
     the default 2 m such boxes are lone, and hold). Honest random misses well above
     ``miss_rate`` (20 % per car and source) fail the window at times; ``sticky`` holds
-    them two steps per collaborator at most, the window alone (``sticky=1``) many more (the witnessed
-    orphan test off: at 20 % a car is missed by two judges in 4 % of cases, eighty times
-    ``witnessed_rate``, and it is no subject of this test)."""
+    them in at most 6 of the 60 slot-steps more than ``sticky=0`` (4 measured), the
+    window alone (``sticky=1``) in many more (the witnessed orphan test off: at 20 % a car
+    is missed by two judges in 4 % of cases, eighty times ``witnessed_rate``, and it is no
+    subject of this test)."""
     scene = cars(*SCENE)
     pose = np.array([5.0, 4.0, 0.0])
 
@@ -432,9 +433,29 @@ def test_an_rsu_witnesses_a_claimed_place_over_the_cars_beyond_the_foot_of_its_m
             ("rsu_0", (15.0, 4.0), truck, {}, 0),
             ("cav_0", (15.0, 4.0), car, {}, 0),
             ("cav_0", (-45.0, -20.0), cars(), {}, 1),
-            ("cav_0", (-45.0, -20.0), cars(), {"claim_view_m": 40.0}, 0)):
+            ("cav_0", (-45.0, -20.0), cars(), {"claim_view_m": 40.0}, 0),
+            ("rsu_0", (15.0, 4.0), cars((15.0, 4.0)), {}, 0),  # its car is there
+            ("unit_0", (15.0, 4.0), cars(), {}, 0)):  # neither a vehicle nor an RSU
         assert _lone_witness_verdict(ego, claimed, extra, **params) == verdict, \
             (ego, claimed, extra.tolist(), params)
+
+
+def test_a_liars_own_tall_box_does_not_hide_its_claimed_place():
+    """The consistent spoofer cav_2 alone reports a truck on the RSU ego's sight line to
+    the place its pose claims: the RSU still sees that place empty and rejects it. The same
+    truck reported by the ego and the other collaborator too blocks the view."""
+    truck = np.array([[11.25, 3.0, 1.75, 6.0, 2.5, 3.5, 0.0]])
+    truth = cars(*SCENE)
+    verdicts = []
+    for everyone in (False, True):
+        seen = np.concatenate([truth, truck]) if everyone else truth
+        obs = observation(seen, [(np.concatenate([truth, truck]), np.array([15.0, 4.0, 0.0])),
+                                 (seen, np.array([-45.0, 32.0, 0.0]))])
+        defend = Defend(use_correction=False)
+        for _ in range(4):
+            action = defend(obs, {"agent": "rsu_0", "collaborators": ["cav_2", "cav_1"]})
+        verdicts.append(int(action[0]))
+    assert verdicts == [1, 0]
 
 
 def test_a_strong_correction_fails_at_once_after_a_quiet_window():

@@ -58,10 +58,11 @@ Six tests, each a statistical test at level ``alpha``, and a re-test:
   window and ``recent`` rule). Forged boxes cannot move the liar's real car: a spoofed
   pose the aligner keeps leaves its claimed place empty. A claim's clear view reaches
   ``claim_view_m`` (the rate allows for the misses of far witnesses). With
-  ``use_rsu_witness`` an RSU (ego or collaborator) witnesses too, beyond ``rsu_blind_m``
-  (the foot of its mast, below its LiDAR's lowest beam), and only boxes at least
-  ``rsu_over_m`` tall (trucks, buses) block its view: from its mast it sees a car's roof
-  over the cars.
+  ``use_rsu_witness`` an RSU (id starting with ``rsu_prefix``; ego or collaborator)
+  witnesses too, beyond ``rsu_blind_m`` (the foot of its mast, below its LiDAR's lowest
+  beam), and only boxes at least ``rsu_over_m`` tall (trucks, buses) block its view: from
+  its mast it sees a car's roof over the cars. The claimant's own boxes never shade its
+  claimed place (a liar could report one in the witness's line of sight).
 * **Relative share of unconfirmed boxes**: a collaborator's boxes unconfirmed by the ego
   and the others, over the window, against ``relative_margin`` times the pooled share of
   the other collaborators' boxes (judged by all but it): a one-sided Wald z-test, a
@@ -347,13 +348,18 @@ class DefendParams:
     claim_miss_rate: float = _open_share(0.1, "share of claimed places in a witness's "
                                          "clear view where an honest vehicle's car is not "
                                          "seen")
-    use_rsu_witness: bool = spec(True, doc="RSUs (the ego or a collaborator) witness the "
-                                 "claimed places of vehicles beyond rsu_blind_m (off: only "
-                                 "vehicles witness)")
-    rsu_blind_m: float = spec(8.0, low=0.0, doc="an RSU's mast-mounted LiDAR sees no car "
-                              "nearer than this (m): no claimed place within it is witnessed "
-                              "by the RSU (5.5 m high, lowest beam 24.8 deg down: a car's roof "
-                              "enters it at about 8.7 m)")
+    use_rsu_witness: bool = spec(True, doc="RSUs (ids starting with rsu_prefix; the ego or "
+                                 "a collaborator) witness the claimed places of vehicles "
+                                 "beyond rsu_blind_m (off: only vehicles witness)")
+    rsu_prefix: str = spec("rsu_", doc="agent ids of RSUs start so (a source neither a "
+                           "vehicle nor an RSU witnesses no claim)")
+    rsu_blind_m: float = spec(8.0, low=0.0, doc="no claimed place within this of an RSU is "
+                              "witnessed by it (m): its mast-mounted LiDAR sees no car at the "
+                              "mast's foot (at the scenes' rsu_height 5.5 m and lowest beam "
+                              "24.8 deg down a car's roof enters the beam at about 8.7 m; "
+                              "in the replays RSUs saw honest cars 8-12 m away in 228 of "
+                              "228 cases, 6-8 m in 135 of 155). Set it for other mast "
+                              "heights")
     rsu_over_m: float = _positive(2.5, "an RSU's LiDAR, on its mast, sees a car's roof over "
                                   "boxes lower than this (m): only taller ones (trucks, "
                                   "buses) block its view of a claimed place")
@@ -501,18 +507,22 @@ class Defend:
                    names: list[str], ego: Hashable) -> set[int]:
         """The filled slots kept by the consistency test (and the consensus, when on)."""
         sources = _sources(observation, filled)
-        occluders = np.concatenate([boxes[:, _OCCLUDER] for boxes, _ in sources.values()])
+        occluders = {key: boxes[:, _OCCLUDER] for key, (boxes, _) in sources.items()}
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
+
+        def starting(prefix: str) -> set:
+            return {key for key, name in ids.items()
+                    if str(ego if key == EGO else name).startswith(prefix)}
         # vehicles have a car of their own, which they do not detect; they claim a place
-        # and witness others' claims (so do RSUs with use_rsu_witness, see _judge)
-        vehicles = {key for key, name in ids.items()
-                    if str(ego if key == EGO else name).startswith(self.params.car_prefix)}
+        # and witness others' claims; RSUs witness them too with use_rsu_witness
+        vehicles = starting(self.params.car_prefix)
         cars = vehicles if self.use["claim"] else set()
+        rsus = starting(self.params.rsu_prefix) if self.params.use_rsu_witness else set()
         blind = {key: self.params.own_car_m if key in vehicles else 0.0 for key in ids}
         self.last_pairs, self.last_now, self._status = {}, {}, {}
         for a, b in itertools.combinations(sources, 2):
             for (judged, judge), (evidence, status) in self._judge(
-                    a, b, sources, occluders, cars, blind).items():
+                    a, b, sources, occluders, (cars, rsus), blind).items():
                 history = self._pairs.setdefault((ego, ids[judged], ids[judge]),
                                                  deque(maxlen=self.params.window))
                 history.append(evidence)
@@ -522,35 +532,41 @@ class Defend:
         kept = self.kept([int(s) for s in filled])
         self.last_reposed = {}
         if self.params.use_repose:
-            self._repose(observation, filled, sources, kept, (ego, ids, cars, blind))
+            self._repose(observation, filled, sources, kept, (ego, ids, (cars, rsus), blind))
         return kept
 
-    def _judge(self, a: Hashable, b: Hashable, sources: Mapping, occluders: np.ndarray,
-               cars: set, blind: Mapping) -> dict[tuple, tuple[PairEvidence, BoxStatus]]:
+    def _judge(self, a: Hashable, b: Hashable, sources: Mapping,
+               occluders: Mapping[Hashable, np.ndarray], witnesses: tuple[set, set],
+               blind: Mapping) -> dict[tuple, tuple[PairEvidence, BoxStatus]]:
         """This step's evidence and per-box status of the pair of sources ``a``, ``b``
         (keys of ``sources``: (boxes, origin), ego frame), both ways: (judged, judge) ->
         (what the judge's boxes say about the judged's boxes, and about its claimed place
-        when the judged is in ``cars`` and no ego and the judge is in ``cars`` too or, with
-        ``use_rsu_witness``, an RSU; the :func:`box_status`). ``occluders`` (M, 3): every
-        box's centre and height (m)."""
+        when the judged is a vehicle (``witnesses`` = (vehicle keys with claims on, RSU
+        keys with use_rsu_witness)) and no ego and the judge a vehicle or an RSU; the
+        :func:`box_status`). ``occluders``: each source's boxes' centres and heights
+        (M, 3), m."""
         (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
-        # an RSU's LiDAR looks down over the cars: only boxes as tall as rsu_over_m block
-        # its view of a car's roof (and it sees no car at its own mast's foot)
-        over = occluders[occluders[:, 2] >= self.params.rsu_over_m, :2]
-        occluders = occluders[:, :2]
+        cars, rsus = witnesses
+        every = np.concatenate(list(occluders.values()))[:, :2]
         distance = centre_distances(boxes_a, boxes_b)
-        status = {(a, b): box_status(boxes_a, boxes_b, origin_b, occluders, *self._geometry,
+        status = {(a, b): box_status(boxes_a, boxes_b, origin_b, every, *self._geometry,
                                      distance, blind[b]),
-                  (b, a): box_status(boxes_b, boxes_a, origin_a, occluders, *self._geometry,
+                  (b, a): box_status(boxes_b, boxes_a, origin_a, every, *self._geometry,
                                      distance.T, blind[a])}
         judged = {}
         for (one, other), seen in status.items():
             evidence = seen.evidence(self.params.orphan_m)
-            if one in cars and one != EGO and (other in cars or self.params.use_rsu_witness):
-                rsu = other not in cars  # with claims on, the sources that are no vehicle
+            if one in cars and one != EGO and (other in cars or other in rsus):
+                # the claimant's own boxes do not shade its claimed place (a liar could
+                # report one in the line of sight); an RSU's LiDAR looks down over the
+                # cars: only boxes as tall as rsu_over_m block its view of a car's roof
+                # (and it sees no car at its own mast's foot)
+                shade = np.concatenate([o for key, o in occluders.items() if key != one])
+                if other in rsus:
+                    shade = shade[shade[:, 2] >= self.params.rsu_over_m]
                 evidence += claim_evidence(sources[one][1], sources[other][0],
-                                           sources[other][1], over if rsu else occluders,
-                                           *self._claim, self.params.rsu_blind_m if rsu else 0.0)
+                                           sources[other][1], shade[:, :2], *self._claim,
+                                           self.params.rsu_blind_m if other in rsus else 0.0)
             judged[one, other] = (evidence, seen)
         return judged
 
@@ -566,8 +582,9 @@ class Defend:
         step) and every kept collaborator passes the consistency test keeps it
         (added to ``kept``; its evidence and statuses replaced by that pose's, for the
         relative and orphan tests; the pose in :attr:`last_reposed`). ``context``: (ego
-        id, key -> id, vehicle keys, key -> blind radius)."""
-        ego, ids, cars, blind = context
+        id, key -> id, (vehicle keys, RSU keys) as :meth:`_judge` takes them, key -> blind
+        radius)."""
+        ego, ids, witnesses, blind = context
         if "collab_reported_poses" not in observation:
             raise ValueError("defend's use_repose re-fits from observation["
                              "'collab_reported_poses'] (the aligned observation's reported "
@@ -582,11 +599,12 @@ class Defend:
                 if not self._plausible(pose, reported[slot]):
                     continue
                 trial = {**sources, slot: (boxes, pose[:2])}
-                occluders = np.concatenate([placed[:, _OCCLUDER] for placed, _ in trial.values()])
+                occluders = {key: placed[:, _OCCLUDER] for key, (placed, _) in trial.items()}
                 judged = {}
                 for other in trial:
                     if other != slot:
-                        judged.update(self._judge(slot, other, trial, occluders, cars, blind))
+                        judged.update(self._judge(slot, other, trial, occluders, witnesses,
+                                                  blind))
                 saved = {key: (self.last_pairs[key], self.last_now[key]) for key in judged}
                 histories = {key: self._pairs[ego, ids[key[0]], ids[key[1]]] for key in judged}
                 for key, (evidence, _) in judged.items():
