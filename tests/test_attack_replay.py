@@ -22,10 +22,10 @@ def test_a_replay_rejects_a_10m_spoofer_and_leaves_out_the_attackers_own_calls()
     that switches every test off rejects nobody."""
     calls = replay_defend.record("urban_intersection", "spoof 10 m", 0, 2)
     assert len(calls) == 2 and len(calls[0]) == 5
-    attackers, honest = replay_defend.replay(calls, {})
+    attackers, honest = replay_defend.split(replay_defend.decisions(calls, {}))
     assert attackers == [1] * 8 and honest == [0] * 24
     off = replay_defend.parse_variant("use_correction=false,use_consistency=false")
-    assert replay_defend.replay(calls, off) == ([0] * 8, [0] * 24)
+    assert replay_defend.split(replay_defend.decisions(calls, off)) == ([0] * 8, [0] * 24)
 
 
 def test_variants_and_seeds_are_parsed_and_a_bad_parameter_names_itself():
@@ -34,6 +34,7 @@ def test_variants_and_seeds_are_parsed_and_a_bad_parameter_names_itself():
         "sticky": 0, "orphan_rate": 0.03}
     assert replay_defend.parse_seeds("2-4") == [2, 3, 4]
     assert replay_defend.parse_seeds("2,5") == [2, 5]
+    assert replay_defend.parse_seeds("5,2,5") == [5, 2]  # played once each
     with pytest.raises(ValueError, match=r"sticky=2.0 is out of range"):
         replay_defend.main(["--seeds", "0", "--steps", "1", "--variant", "sticky=2.0"])
     with pytest.raises(ValueError, match=r"base is not a variant parameter"):

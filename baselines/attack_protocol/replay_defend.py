@@ -93,11 +93,9 @@ def decisions(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
     return found
 
 
-def replay(calls: Sequence[Mapping[str, tuple]], params: Mapping[str, object]
-           ) -> tuple[list[int], list[int]]:
-    """defend's decisions (1 = rejected) over one recorded episode, a fresh ``Defend`` per
-    agent: (per attacker slot of an honest ego's step, per honest slot)."""
-    found = decisions(calls, params)
+def split(found: Sequence[Decision]) -> tuple[list[int], list[int]]:
+    """The rejections (1 = rejected) among ``found``: (per attacker slot of an honest ego's
+    step, per honest slot)."""
     return ([entry.rejected for entry in found if entry.attacker],
             [entry.rejected for entry in found if not entry.attacker])
 
@@ -127,7 +125,7 @@ def parse_seeds(text: str) -> list[int]:
         if seeds[0] > seeds[1]:
             raise bad
         return list(range(seeds[0], seeds[1] + 1))
-    return seeds
+    return list(dict.fromkeys(seeds))  # a seed listed twice is played once
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -164,27 +162,24 @@ def main(argv: Sequence[str] | None = None) -> None:
             cells = []
             for attack in args.attacks:
                 episodes = played[text, scene, attack]
-                found = [d.rejected for episode in episodes.values() for d in episode
-                         if d.attacker]
-                wrong = [d.rejected for episode in episodes.values() for d in episode
-                         if not d.attacker]
+                found, wrong = split([d for episode in episodes.values() for d in episode])
                 detected = f"{100 * np.mean(found):.0f}" if found else "-"
                 cells.append(f"{attack}: {detected} / {100 * np.mean(wrong):.1f}"
                              + _spread(episodes))
             print(f"  {scene}: " + " | ".join(cells))
         if args.details:
-            for (name, scene, attack), episodes in played.items():
-                if name == text:
-                    _print_details(scene, attack, episodes)
+            for scene in args.scenes:
+                for attack in args.attacks:
+                    _print_details(scene, attack, played[text, scene, attack])
 
 
 def _spread(episodes: Mapping[int, Sequence[Decision]]) -> str:
     """The share of honest slots rejected per episode (seed), as " (mean, sd, max)" in
-    per cent; "" for a single episode."""
-    if len(episodes) < 2:
+    per cent over the episodes that have honest slots; "" for fewer than two."""
+    honest = [split(episode)[1] for episode in episodes.values()]
+    shares = 100 * np.array([np.mean(rejected) for rejected in honest if rejected])
+    if shares.size < 2:
         return ""
-    shares = 100 * np.array([np.mean([d.rejected for d in episode if not d.attacker])
-                             for episode in episodes.values()])
     return f" ({shares.mean():.1f}, {shares.std(ddof=1):.1f}, {shares.max():.1f})"
 
 

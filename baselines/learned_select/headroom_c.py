@@ -73,7 +73,7 @@ from env_hook import (
 from privileged_bound import REJECT_ERROR, grid_parser
 
 from roco_env.metrics import APAccumulator
-from roco_env.policies.reject_untested import STATISTIC, tested_choice, untested_slots
+from roco_env.policies.reject_untested import GAP_M, STATISTIC, tested_choice, untested_slots
 from roco_env.policies.spec import parse_policy_spec
 from roco_env.sweeps.cells import build_grid
 
@@ -94,7 +94,8 @@ def rule_c(untested: np.ndarray, choice_diagnostics: np.ndarray, reject: int) ->
     ``choice_diagnostics``: roco_fallback (1) where its ``gap_m`` is <= 0.5 m, else
     roco_antialias (0)."""
     return np.where(untested, reject,
-                    tested_choice(choice_diagnostics, 0, 1, WITHIN_M)).astype(np.int64)
+                    tested_choice(choice_diagnostics, keep=0, prefer=1,
+                                  within_m=WITHIN_M)).astype(np.int64)
 
 
 def decide(variant: str, rule: np.ndarray, errors: np.ndarray, untested: np.ndarray,
@@ -176,9 +177,10 @@ def play_c(cell, choices: list[str], on_frame: Callable[[CFrame], None]) -> dict
             n, errors = choice_errors(alignments, observation, info)
             poses = np.stack([np.asarray(a.corrected, dtype=float)[:n]
                               for a in alignments])  # (C, n, 3)
-            gap = np.hypot(*(poses[1, :, :2] - poses[0, :, :2]).T)
+            diagnostics = observation["choice_diagnostics"][:n]
+            gap = diagnostics[:, 1, GAP_M]  # m between the pair's poses, as C reads it
             untested = untested_slots(observation["diagnostics"][:n, STATISTIC], mask[:n])
-            rule = rule_c(untested, observation["choice_diagnostics"][:n], len(alignments))
+            rule = rule_c(untested, diagnostics, len(alignments))
             reported = info["privileged"]["reported_relative_poses"][:n]
             if info.get("evaluated", True):
                 on_frame(CFrame(observation, errors, poses, gap, untested, rule,
