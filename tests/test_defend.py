@@ -298,6 +298,10 @@ def test_behind_roco_it_rejects_a_10m_spoof_at_once_and_nobody_honest():
     ({"use_repose": "yes"}, r"use_repose"),
     ({"refit_m": 0.0}, r"refit_m=0.0 is out of range"),
     ({"witnessed_level": 1.0}, r"witnessed_level=1.0 is out of range; allowed \(0.0, 1.0\)"),
+    ({"rsu_blind_m": 50.0}, r"rsu_blind_m \(50.0\) must be below claim_view_m \(50.0\)"),
+    ({"rsu_blind_m": -1.0}, r"rsu_blind_m=-1.0 is out of range"),
+    ({"rsu_over_m": 0.0}, r"rsu_over_m=0.0 is out of range"),
+    ({"use_rsu_witness": "yes"}, r"use_rsu_witness"),
 ])
 def test_bad_parameters_are_refused_naming_them(params, match):
     with pytest.raises(ValueError, match=match):
