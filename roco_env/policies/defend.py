@@ -512,7 +512,7 @@ class Defend:
                    names: list[str], ego: Hashable) -> set[int]:
         """The filled slots kept by the consistency test (and the consensus, when on)."""
         sources = _sources(observation, filled)
-        occluders = {key: boxes[:, _OCCLUDER] for key, (boxes, _) in sources.items()}
+        occluders = _shades(sources)
         ids = {EGO: EGO, **{slot: name for slot, name in zip(filled, names, strict=True)}}
 
         def starting(prefix: str) -> set:
@@ -540,19 +540,18 @@ class Defend:
             self._repose(observation, filled, sources, kept, (ego, ids, (cars, rsus), blind))
         return kept
 
-    def _judge(self, a: Hashable, b: Hashable, sources: Mapping,
-               occluders: Mapping[Hashable, np.ndarray], witnesses: tuple[set, set],
-               blind: Mapping) -> dict[tuple, tuple[PairEvidence, BoxStatus]]:
+    def _judge(self, a: Hashable, b: Hashable, sources: Mapping, occluders: Shades,
+               witnesses: tuple[set, set], blind: Mapping
+               ) -> dict[tuple, tuple[PairEvidence, BoxStatus]]:
         """This step's evidence and per-box status of the pair of sources ``a``, ``b``
         (keys of ``sources``: (boxes, origin), ego frame), both ways: (judged, judge) ->
         (what the judge's boxes say about the judged's boxes, and about its claimed place
         when the judged is a vehicle (``witnesses`` = (vehicle keys with claims on, RSU
         keys with use_rsu_witness)) and no ego and the judge a vehicle or an RSU; the
-        :func:`box_status`). ``occluders``: each source's boxes' centres and heights
-        (M, 3), m."""
+        :func:`box_status`). ``occluders``: every source's boxes as :class:`Shades`."""
         (boxes_a, origin_a), (boxes_b, origin_b) = sources[a], sources[b]
         cars, rsus = witnesses
-        every = np.concatenate(list(occluders.values()))[:, :2]
+        every = occluders.boxes[:, :2]
         distance = centre_distances(boxes_a, boxes_b)
         status = {(a, b): box_status(boxes_a, boxes_b, origin_b, every, *self._geometry,
                                      distance, blind[b]),
@@ -566,7 +565,7 @@ class Defend:
                 # report one in the line of sight); an RSU's LiDAR looks down over the
                 # cars: only boxes as tall as rsu_over_m block its view of a car's roof
                 # (and it sees no car at its own mast's foot)
-                shade = np.concatenate([o for key, o in occluders.items() if key != one])
+                shade = occluders.without(one)
                 if other in rsus:
                     shade = shade[shade[:, 2] >= self.params.rsu_over_m]
                 evidence += claim_evidence(sources[one][1], sources[other][0],
@@ -604,7 +603,7 @@ class Defend:
                 if not self._plausible(pose, reported[slot]):
                     continue
                 trial = {**sources, slot: (boxes, pose[:2])}
-                occluders = {key: placed[:, _OCCLUDER] for key, (placed, _) in trial.items()}
+                occluders = _shades(trial)
                 judged = {}
                 for other in trial:
                     if other != slot:
@@ -803,6 +802,27 @@ def _offsets(observation: Mapping[str, Any], filled: np.ndarray) -> np.ndarray:
     offset = se2_compose(se2_inverse(reported), aligned).reshape(-1, 3)
     offset[:, 2] = wrap_angle(offset[:, 2])
     return offset
+
+
+class Shades(NamedTuple):
+    """Every source's boxes as view blockers, ego frame: ``boxes`` (M, 3) their centre x,
+    y and height (m); ``owner`` (M,) the position in ``keys`` of the source that reported
+    each."""
+
+    boxes: np.ndarray
+    owner: np.ndarray
+    keys: tuple
+
+    def without(self, key: Hashable) -> np.ndarray:
+        """(m, 3) the boxes of every source but ``key``."""
+        return self.boxes[self.owner != self.keys.index(key)]
+
+
+def _shades(sources: Mapping[Hashable, tuple[np.ndarray, np.ndarray]]) -> Shades:
+    """:class:`Shades` of :func:`_sources`' sources (built once per step and pose)."""
+    counts = [boxes.shape[0] for boxes, _ in sources.values()]
+    return Shades(np.concatenate([boxes[:, _OCCLUDER] for boxes, _ in sources.values()]),
+                  np.repeat(np.arange(len(counts)), counts), tuple(sources))
 
 
 def _sources(observation: Mapping[str, Any], filled: np.ndarray
