@@ -37,7 +37,6 @@ numpy).
 from __future__ import annotations
 
 import argparse
-import copy
 import functools
 import json
 import random
@@ -260,7 +259,6 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
     curve: list[dict[str, float]] = []
     evaluations: list[dict[str, float]] = []
     returns: list[float] = []
-    best_weights: dict[str, Any] = {}
     started = time.perf_counter()
 
     def checkpoint(timesteps: int) -> None:
@@ -273,7 +271,6 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
                         detected=f"{scores['detection_rate']:.0%}")
         if best_stealthy(evaluations) is evaluations[-1]:
             model.save(out / "best.zip")
-            best_weights.update(copy.deepcopy(model.policy.state_dict()))
 
     class Curve(BaseCallback):
         """Mean and sd of the episode returns per rollout (the learning curve); the
@@ -311,10 +308,10 @@ def train(options: AttackerTrainConfig, out: Path, command: str) -> dict[str, An
     zero = evaluate(held_out, lambda o: np.zeros(env.action_space.shape, np.float32), seeds)
     best = best_stealthy(evaluations)
     if best is not None:
-        model.policy.load_state_dict(best_weights)
+        chosen = PPO.load(out / "best.zip", device="cpu")
         fresh = range(FRESH_SEED, FRESH_SEED + options.eval_episodes)
         best = {**best, "model": "best.zip", "fresh_seeds": evaluate(
-            make(FRESH_SEED, False), lambda o: model.predict(o, deterministic=True)[0], fresh)}
+            make(FRESH_SEED, False), lambda o: chosen.predict(o, deterministic=True)[0], fresh)}
     report = {"command": command, "victims": options.victims, "attack": options.attack(),
               "reward": options.reward, "scenario": options.scenario, "noise": options.noise,
               "steps": options.steps, "timesteps": options.timesteps,
