@@ -51,7 +51,7 @@ def test_bad_seeds_are_refused_naming_the_option(seeds, capsys):
 
 
 def test_decisions_name_each_slot_and_details_list_the_misses(capsys):
-    """The decisions behind ``replay``: per honest ego's step and collaborator, whether it
+    """The decisions behind the printed shares (``split``): per honest ego's step and collaborator, whether it
     is the attacker (cav_1 on seed 0), rejected, and why; with every test off, ``--details``
     lists each of the 4 honest egos' missed attacker slots of the one step played."""
     calls = replay_defend.record("urban_intersection", "spoof 10 m", 0, 1)

@@ -85,7 +85,7 @@ VARIANTS = ("c", "untested_best", "untested_keep", "tested_reject", "tested_far_
 # variant -> (choices it tries, None: all; whether only the open slots: untested or near)
 GREEDY = {"ap_greedy_pair": (len(PAIR), False), "ap_greedy": (None, False),
           "ap_greedy_open": (len(PAIR), True)}
-WITHIN_M = 0.5  # C's tested_within_m
+WITHIN_M = parse_policy_spec(RULE_C).build().params.tested_within_m  # 0.5 m
 
 
 def rule_c(untested: np.ndarray, choice_diagnostics: np.ndarray, reject: int) -> np.ndarray:
